@@ -1,0 +1,113 @@
+"""Offline baking of per-LED light fields at every camera pixel, cached on disk.
+
+A light field holds, per LED m and pixel, the unit direction in which the LED's light
+travels when it arrives at the pixel's membrane point (camera frame). The renderer uses
+L_m = -field.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from scenes.cache import cached, make_key
+from scenes.camera import Camera, SurfaceSamples, cast_rays
+from scenes.geometry import mesh_digest, validate_mesh
+from scenes.spec import LED
+
+from .sources import Sources, snap_leds
+
+METHODS = ("linear", "plane", "geodesic", "transport")
+
+_BAKERS = {
+    "linear": ("phong_reference.linear", "LinearBaker"),
+    "plane": ("phong_reference.plane", "PlaneBaker"),
+    "geodesic": ("phong_reference.geodesic", "GeodesicBaker"),
+    "transport": ("phong_reference.transport", "TransportBaker"),
+}
+
+
+@dataclass(frozen=True)
+class LightFields:
+    """Baked fields of one method on one membrane, camera and LED set.
+
+    fields : (L, H, W, 3) float32, unit propagation directions; zero where invalid.
+    valid : (L, H, W) bool.
+    depth : (H, W) float32, metres, the no-contact depth D_ref the fields were baked on.
+    normals : (H, W, 3) float32, unit outward normals of the undeformed membrane.
+    """
+
+    method: str
+    fields: np.ndarray
+    valid: np.ndarray
+    depth: np.ndarray
+    normals: np.ndarray
+
+
+def baker_module(method: str):
+    if method not in _BAKERS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    return importlib.import_module(_BAKERS[method][0])
+
+
+def make_baker(method: str, mesh: trimesh.Trimesh):
+    """The stateful baker of a method (heavy set-up done once per mesh)."""
+    module = baker_module(method)
+    return getattr(module, _BAKERS[method][1])(mesh)
+
+
+def bake_samples(
+    method: str, mesh: trimesh.Trimesh, samples: SurfaceSamples, sources: Sources
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bake one method at given surface samples: (L, K, 3) unit fields, (L, K) valid."""
+    fields, valid = make_baker(method, mesh).bake(samples, sources)
+    fields = np.asarray(fields, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(fields).all(axis=-1)
+    fields[~valid] = 0.0
+    return fields, valid
+
+
+def bake(
+    mesh: trimesh.Trimesh,
+    camera: Camera,
+    leds: tuple[LED, ...] | list[LED],
+    method: str,
+    *,
+    use_cache: bool = True,
+    timings: dict | None = None,
+) -> LightFields:
+    """Bake (or load from the cache) the light fields of one method.
+
+    The cache key hashes the mesh, LEDs, camera, method and the method's VERSION, so any
+    change rebuilds; a corrupt or stale cache file is detected and rebuilt.
+    """
+    module = baker_module(method)
+    validate_mesh(mesh, "mesh")
+    key = make_key(
+        "fields", mesh_digest(mesh), [led.__dict__ for led in leds], camera.__dict__, method, module.VERSION
+    )
+
+    def build() -> dict[str, np.ndarray]:
+        t0 = time.perf_counter()
+        samples = cast_rays(mesh, camera)
+        sources = snap_leds(mesh, leds)
+        fields, valid = bake_samples(method, mesh, samples, sources)
+        out = {
+            "fields": np.stack([samples.scatter(f.astype(np.float32)) for f in fields]),
+            "valid": np.stack([samples.scatter(v) for v in valid]),
+            "depth": samples.scatter(samples.points[:, 2].astype(np.float32), fill=float(samples.points[:, 2].max())),
+            "normals": samples.scatter(samples.normals.astype(np.float32)),
+        }
+        if timings is not None:
+            timings[method] = time.perf_counter() - t0
+        return out
+
+    arrays = cached(f"fields-{method}", key, build, use_cache=use_cache)
+    expected = (len(leds),) + camera.shape + (3,)
+    if arrays["fields"].shape != expected:
+        raise ValueError(f"baked fields have shape {arrays['fields'].shape}, expected {expected}")
+    return LightFields(method, arrays["fields"], arrays["valid"], arrays["depth"], arrays["normals"])

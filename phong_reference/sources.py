@@ -1,0 +1,55 @@
+"""Light sources of the fast path: LEDs snapped onto the membrane mesh."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from scenes.spec import LED
+
+#: An LED farther than this from the membrane is not "at the membrane's base".
+LED_SNAP_TOLERANCE_M = 0.002
+
+
+@dataclass(frozen=True)
+class Sources:
+    """LEDs as field sources.
+
+    positions : (L, 3) float64, metres, the LEDs' own positions (camera frame).
+    vertices : (L,) int, the mesh vertex nearest each LED, where surface fields start.
+    directions : (L, 3) float64, unit emission directions projected onto the tangent
+        plane at that vertex (the direction transported by the transport method).
+    normals : (L, 3) float64, unit outward surface normal at that vertex.
+    """
+
+    positions: np.ndarray
+    vertices: np.ndarray
+    directions: np.ndarray
+    normals: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.vertices)
+
+
+def snap_leds(mesh: trimesh.Trimesh, leds: tuple[LED, ...] | list[LED]) -> Sources:
+    """Snap each LED to its nearest membrane vertex; refuse LEDs off the surface."""
+    if len(leds) == 0:
+        raise ValueError("leds must hold at least one LED")
+    positions = np.array([led.position for led in leds], dtype=np.float64)
+    dist, vertices = mesh.kdtree.query(positions)
+    for led, d in zip(leds, dist):
+        if d > LED_SNAP_TOLERANCE_M:
+            raise ValueError(
+                f"LED {led.name!r} at {led.position} m is {d * 1e3:.2f} mm from the membrane mesh; "
+                f"expected within {LED_SNAP_TOLERANCE_M * 1e3:g} mm (LEDs sit at the membrane's edge)"
+            )
+    normals = np.asarray(mesh.vertex_normals)[vertices]
+    directions = np.array([led.direction for led in leds], dtype=np.float64)
+    directions = directions - (directions * normals).sum(axis=1, keepdims=True) * normals
+    norm = np.linalg.norm(directions, axis=1)
+    for led, n in zip(leds, norm):
+        if n < 1e-6:
+            raise ValueError(f"LED {led.name!r}: emission direction is normal to the membrane; no tangent part")
+    return Sources(positions, np.asarray(vertices), directions / norm[:, None], normals)

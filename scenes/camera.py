@@ -1,0 +1,189 @@
+"""Pinhole camera model: projection, back-projection and the no-contact depth D_ref."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import trimesh
+
+from .spec import CameraSpec, SensorSpec
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera at the origin, looking along +z (x right, y down), planar z-depth.
+
+    Pixel (u, v) has its centre at integer coordinates; the principal point of the
+    published GelTip camera is ((W - 1) / 2, (H - 1) / 2) = (319.5, 239.5).
+    """
+
+    width: int  # px
+    height: int  # px
+    f: float  # px, focal length (square pixels)
+    cx: float  # px
+    cy: float  # px
+    mask_radius_px: float  # px, radius of the sensor's image circle about (cx, cy)
+
+    @classmethod
+    def from_spec(cls, spec: CameraSpec | SensorSpec) -> "Camera":
+        if isinstance(spec, SensorSpec):
+            spec = spec.camera
+        f = (spec.height / 2.0) / math.tan(spec.fov_y / 2.0)
+        return cls(
+            width=spec.width,
+            height=spec.height,
+            f=f,
+            cx=(spec.width - 1) / 2.0,
+            cy=(spec.height - 1) / 2.0,
+            mask_radius_px=spec.mask_radius_px,
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W)."""
+        return (self.height, self.width)
+
+    def scaled(self, width: int, height: int) -> "Camera":
+        """The same camera at another resolution (same field of view)."""
+        s = height / self.height
+        return Camera(width, height, self.f * s, (width - 1) / 2.0, (height - 1) / 2.0, self.mask_radius_px * s)
+
+    @cached_property
+    def rays(self) -> np.ndarray:
+        """(H, W, 3) float64: per-pixel ray directions with z = 1, so P = depth * ray."""
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        rays = np.stack([(u - self.cx) / self.f, (v - self.cy) / self.f, np.ones_like(u)], axis=-1)
+        rays.setflags(write=False)
+        return rays
+
+    @cached_property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool: inside the sensor's image circle."""
+        v, u = np.mgrid[0 : self.height, 0 : self.width]
+        m = (u - self.cx) ** 2 + (v - self.cy) ** 2 <= self.mask_radius_px**2
+        m.setflags(write=False)
+        return m
+
+
+def check_depth(depth, camera: Camera, name: str = "depth") -> np.ndarray:
+    """Validate a depth map against a camera; returns it as float64.
+
+    A depth map is (H, W) float, metres, planar z-depth, finite and > 0 everywhere.
+    """
+    if not isinstance(depth, np.ndarray):
+        raise ValueError(f"{name} must be a numpy array, got {type(depth).__name__}")
+    if depth.shape != camera.shape or depth.dtype.kind != "f":
+        raise ValueError(
+            f"{name} must be {camera.shape} float (metres), got {depth.shape} {depth.dtype}"
+        )
+    finite = np.isfinite(depth)
+    if not finite.all():
+        raise ValueError(f"{name} has {int((~finite).sum())} NaN or infinite pixels; expected finite metres")
+    if depth.min() <= 0:
+        raise ValueError(f"{name} must be > 0 m everywhere, got min {float(depth.min()):g}")
+    if depth.max() > 10.0:
+        raise ValueError(
+            f"{name} max {float(depth.max()):g} is not a plausible sensor depth in metres "
+            "(millimetres, or a far-plane value?)"
+        )
+    return depth
+
+
+def project(points: np.ndarray, camera: Camera) -> np.ndarray:
+    """Project camera-frame points to pixel coordinates.
+
+    points : (..., 3) metres, z > 0.  Returns (..., 2) float (u, v) in px:
+    u = f x / z + c_x, v = f y / z + c_y.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape[-1] != 3:
+        raise ValueError(f"points must be (..., 3), got {points.shape}")
+    z = points[..., 2]
+    return np.stack([camera.f * points[..., 0] / z + camera.cx, camera.f * points[..., 1] / z + camera.cy], axis=-1)
+
+
+def back_project(depth: np.ndarray, camera: Camera) -> np.ndarray:
+    """Point cloud of a planar z-depth map: P = D (u - c_x, v - c_y, f) / f.
+
+    depth : (H, W) float, metres.  Returns (H, W, 3) camera-frame points, metres.
+    """
+    if depth.shape != camera.shape:
+        raise ValueError(f"depth must be {camera.shape}, got {depth.shape}")
+    return depth[..., None] * camera.rays.astype(depth.dtype, copy=False)
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """Where each camera pixel's ray first meets the membrane.
+
+    pixels : (K, 2) int (row, col) of the pixels that hit, inside the mask.
+    points : (K, 3) float64 metres, hit points in the camera frame.
+    faces : (K,) int, hit face index.
+    bary : (K, 3) float64, barycentric coordinates of the hit in its face.
+    normals : (K, 3) float64, unit outward surface normals (interpolated vertex normals).
+    """
+
+    shape: tuple[int, int]
+    pixels: np.ndarray
+    points: np.ndarray
+    faces: np.ndarray
+    bary: np.ndarray
+    normals: np.ndarray
+
+    def scatter(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """Put per-sample values (K, ...) back into an image (H, W, ...)."""
+        out = np.full(self.shape + values.shape[1:], fill, dtype=values.dtype)
+        out[self.pixels[:, 0], self.pixels[:, 1]] = values
+        return out
+
+    def interpolate(self, mesh: trimesh.Trimesh, vertex_values: np.ndarray) -> np.ndarray:
+        """Barycentric interpolation of per-vertex values (N, ...) at the samples."""
+        corner = vertex_values[mesh.faces[self.faces]]  # (K, 3, ...)
+        w = self.bary.reshape(self.bary.shape + (1,) * (corner.ndim - 2))
+        return (corner * w).sum(axis=1)
+
+
+def cast_rays(mesh: trimesh.Trimesh, camera: Camera) -> SurfaceSamples:
+    """Cast one ray per pixel inside the image circle at the mesh (first hit).
+
+    Uses trimesh's ray engine (Embree through embreex when installed).
+    """
+    rows, cols = np.nonzero(camera.mask)
+    dirs = camera.rays[rows, cols]
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = np.zeros_like(dirs)
+    tri, ray, loc = mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    order = np.argsort(ray)
+    tri, ray, loc = tri[order], ray[order], np.asarray(loc)[order]
+    pixels = np.stack([rows[ray], cols[ray]], axis=1)
+    # Snap hits exactly onto the ray (Embree works in float32), then barycentrics.
+    t = np.einsum("ij,ij->i", loc, dirs[ray])
+    loc = dirs[ray] * t[:, None]
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
+    bary = np.clip(bary, 0.0, 1.0)
+    bary /= bary.sum(axis=1, keepdims=True)
+    samples = SurfaceSamples(camera.shape, pixels, loc, tri, bary, np.zeros_like(loc))
+    normals = samples.interpolate(mesh, np.asarray(mesh.vertex_normals))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return SurfaceSamples(camera.shape, pixels, loc, tri, bary, normals)
+
+
+def reference_depth(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """No-contact depth map D_ref of a membrane mesh.
+
+    Returns
+    -------
+    depth : (H, W) float32, metres, planar z-depth; pixels without a hit hold the
+        largest hit depth (so the map stays finite and positive).
+    valid : (H, W) bool, pixels whose ray hit the membrane.
+    """
+    samples = cast_rays(mesh, camera)
+    if len(samples.points) == 0:
+        raise ValueError("no camera ray hits the membrane mesh; is it in the camera frame, in metres?")
+    z = samples.points[:, 2]
+    depth = samples.scatter(z.astype(np.float32), fill=float(z.max()))
+    valid = samples.scatter(np.ones(len(z), bool), fill=False)
+    return depth, valid
