@@ -1,0 +1,57 @@
+"""Shared fixtures: the default sensor, its mesh and camera, and the reference data."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenes.camera import Camera
+from scenes.geometry import membrane_mesh
+from scenes.spec import default_spec
+
+#: The authors' published data lives beside the repository (never copied into it).
+REFERENCE_DIR = Path(
+    os.environ.get("GELTIP_REFERENCE", Path(__file__).resolve().parents[2] / "shared" / "data" / "geltip_reference")
+)
+
+
+@pytest.fixture(scope="session")
+def reference_dir() -> Path:
+    if not (REFERENCE_DIR / "MANIFEST.txt").exists():
+        pytest.skip(f"GelTip reference data not found at {REFERENCE_DIR} (set GELTIP_REFERENCE)")
+    return REFERENCE_DIR
+
+
+@pytest.fixture(scope="session")
+def spec():
+    return default_spec()
+
+
+@pytest.fixture(scope="session")
+def mesh(spec):
+    return membrane_mesh(spec)
+
+
+@pytest.fixture(scope="session")
+def camera(spec):
+    return Camera.from_spec(spec)
+
+
+@pytest.fixture(scope="session")
+def small_camera(camera):
+    """The default camera at 160x120, for fast tests."""
+    return camera.scaled(160, 120)
+
+
+@pytest.fixture(autouse=True)
+def _isolated_cache(tmp_path_factory, monkeypatch):
+    """Tests never read or write the user's cache."""
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(12345)
