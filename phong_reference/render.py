@@ -1,0 +1,171 @@
+"""The fast path, depth map to tactile image, as one chain:
+
+    image = shade(normals(back_project(deform(depth, ref), camera)), L, material, background)
+
+1. ``deform``: elastic smoothing D_def = min(D, D_ref - G * (D_ref - D));
+2. ``back_project``: the point cloud P of D_def (planar z-depth, pinhole camera);
+3. ``normals``: N from Sobel derivatives of P, facing the camera;
+4. ``shade``: Phong per LED with the baked light field, L_m = -field;
+5. background: k_a i_a B, then the sensor's circle mask and clipping to [0, 1].
+
+``render`` is that chain on the whole frame. ``Renderer`` gives the same image faster: a
+contact changes D_def only within the Gaussian's reach of where D differs from D_ref, so
+it keeps the no-contact image and re-renders only that window.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenes.camera import Camera, back_project, check_depth
+from scenes.spec import SensorSpec
+
+from .background import check_background
+from .bake import LightFields
+from .elastic import deform, smooth
+from .normals import normals
+from .phong import shade
+
+
+def light_vectors(fields: LightFields, rectify: bool = False) -> np.ndarray:
+    """L_m = -field for each LED, (M, H, W, 3) float32.
+
+    rectify : project onto the tangent plane of the undeformed surface and renormalise
+        (the published code did this for the plane, geodesic and transport fields; our
+        baked surface fields are tangent already, so it matters for linear only).
+    """
+    L = -np.asarray(fields.fields, dtype=np.float32)
+    if rectify:
+        L = rectify_vectors(L, fields.normals)
+    return L
+
+
+def rectify_vectors(L: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """Project (M, H, W, 3) vectors onto the planes normal to N (H, W, 3); renormalise."""
+    L = L - np.einsum("mhwi,hwi->mhw", L, N)[..., None] * N[None]
+    norm = np.linalg.norm(L, axis=-1, keepdims=True)
+    return np.divide(L, norm, out=np.zeros_like(L), where=norm > 1e-12)
+
+
+def finish(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Apply the sensor's circle mask and clip to [0, 1]."""
+    return np.clip(image, 0.0, 1.0) * mask[..., None]
+
+
+def render(
+    depth: np.ndarray,
+    ref_depth: np.ndarray,
+    camera: Camera,
+    spec: SensorSpec,
+    L: np.ndarray,
+    background: np.ndarray,
+) -> np.ndarray:
+    """Render one tactile image on the whole frame.
+
+    Parameters
+    ----------
+    depth : (H, W) float, metres, planar z-depth of the contact.
+    ref_depth : (H, W) float, metres, the no-contact depth D_ref.
+    L : (M, H, W, 3) float32, light vectors per LED (see ``light_vectors``).
+    background : (H, W, 3) float32, linear RGB in [0, 1].
+
+    Returns
+    -------
+    (H, W, 3) float32, linear RGB in [0, 1].
+    """
+    depth = check_depth(depth, camera).astype(np.float32, copy=False)
+    ref_depth = check_depth(ref_depth, camera, "ref_depth").astype(np.float32, copy=False)
+    _check_lights(L, camera, spec)
+    background = check_background(background, camera)
+    P = back_project(deform(depth, ref_depth, spec.elastic), camera)
+    N, _ = normals(P)
+    return finish(shade(P, N, L, spec.leds, spec.material, background), camera.mask)
+
+
+def _check_lights(L: np.ndarray, camera: Camera, spec: SensorSpec) -> None:
+    expected = (len(spec.leds),) + camera.shape + (3,)
+    if not isinstance(L, np.ndarray) or L.shape != expected or L.dtype != np.float32:
+        got = getattr(L, "shape", type(L).__name__), getattr(L, "dtype", "")
+        raise ValueError(f"L must be {expected} float32 light vectors, got {got[0]} {got[1]}")
+
+
+def _grow(box: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    r0, r1, c0, c1 = box
+    return max(r0 - margin, 0), min(r1 + margin, shape[0]), max(c0 - margin, 0), min(c1 + margin, shape[1])
+
+
+def _inner(outer, inner_box) -> tuple[slice, slice]:
+    """Slices of ``inner_box`` relative to ``outer``."""
+    return slice(inner_box[0] - outer[0], inner_box[1] - outer[0]), slice(inner_box[2] - outer[2], inner_box[3] - outer[2])
+
+
+class Renderer:
+    """The fast path with the no-contact work done once.
+
+    Gives the same image as ``render`` (up to float rounding), re-rendering only the
+    window that a contact can change: the pixels where D != D_ref, grown by the Gaussian's
+    radius (where D_def can change) and by one pixel (the Sobel stencil).
+    """
+
+    def __init__(
+        self,
+        spec: SensorSpec,
+        camera: Camera,
+        ref_depth: np.ndarray,
+        L: np.ndarray,
+        background: np.ndarray,
+    ):
+        self.spec = spec
+        self.camera = camera
+        self.ref_depth = check_depth(ref_depth, camera, "ref_depth").astype(np.float32)
+        _check_lights(L, camera, spec)
+        self.L = L
+        self.background = check_background(background, camera)
+        self.mask = camera.mask
+        self.base = render(self.ref_depth, self.ref_depth, camera, spec, L, self.background)
+
+    @classmethod
+    def from_fields(
+        cls, spec: SensorSpec, camera: Camera, fields: LightFields, background: np.ndarray, rectify: bool = False
+    ) -> "Renderer":
+        return cls(spec, camera, fields.depth, light_vectors(fields, rectify), background)
+
+    def render(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W) float metres -> (H, W, 3) float32 linear RGB in [0, 1]."""
+        depth = check_depth(depth, self.camera).astype(np.float32, copy=False)
+        delta = self.ref_depth - depth
+        rows = np.flatnonzero(delta.any(axis=1))
+        if rows.size == 0:
+            return self.base.copy()
+        cols = np.flatnonzero(delta[rows[0] : rows[-1] + 1].any(axis=0))
+        box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+        shape = self.camera.shape
+        r = self.spec.elastic.radius_px
+        changed = _grow(box, r, shape)  # where D_def can differ from D_ref
+        support = _grow(box, 2 * r, shape)  # input G needs there, exactly (see deform)
+        shaded = _grow(changed, 1, shape)  # where the Sobel normals can change
+        stencil = _grow(shaded, 1, shape)  # points the Sobel stencil reads
+
+        # Elastic smoothing on the support window. Beyond `box` delta is 0, so the zero
+        # padding implied at the window's inner edges is exact; at image edges the window
+        # ends where the image does and the border mode is the same as on the full frame.
+        spread = smooth(delta[support[0] : support[1], support[2] : support[3]], self.spec.elastic)
+        d_def = self.ref_depth[stencil[0] : stencil[1], stencil[2] : stencil[3]].copy()
+        rs, cs = _inner(stencil, changed)
+        rc, cc = _inner(support, changed)
+        window = (slice(changed[0], changed[1]), slice(changed[2], changed[3]))
+        d_def[rs, cs] = np.minimum(depth[window], self.ref_depth[window] - spread[rc, cc])
+
+        rays = self.camera.rays[stencil[0] : stencil[1], stencil[2] : stencil[3]].astype(np.float32)
+        P = d_def[..., None] * rays
+        N, _ = normals(P)
+        ri, ci = _inner(stencil, shaded)
+        # The window's own edge rows hold Sobel values with a wrong border unless they are
+        # the image's edge, where the full-frame rule applies; keep only `shaded`.
+        P, N = P[ri, ci], N[ri, ci]
+        out = (slice(shaded[0], shaded[1]), slice(shaded[2], shaded[3]))
+        L = self.L[:, out[0], out[1]]
+        I = shade(P, N, L, self.spec.leds, self.spec.material, self.background[out])
+        image = self.base.copy()
+        image[out] = finish(I, self.mask[out])
+        return image

@@ -1,0 +1,58 @@
+"""Image files at the edges: 8-bit PNG in and out, linear float RGB in [0, 1] inside.
+
+The fast path's intensities are, as in the paper, the camera's output values, so 8-bit
+files map to [0, 1] by a plain division by 255 (no sRGB transfer): a real image read here
+and written back is unchanged. The camera's own response is a separate, explicit model.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+
+def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image file as (H, W, 3) float32 in [0, 1].
+
+    shape : expected (H, W); a mismatch is an error, never a silent resize.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"image {path} does not exist")
+    try:
+        with Image.open(path) as im:
+            im = im.convert("RGB")
+            rgb = np.asarray(im, dtype=np.float32) / 255.0
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"image {path} could not be read: {exc}") from None
+    if shape is not None and rgb.shape[:2] != tuple(shape):
+        raise ValueError(f"image {path} must be {shape[1]}x{shape[0]} px, got {rgb.shape[1]}x{rgb.shape[0]}")
+    return rgb
+
+
+def to_uint8(rgb: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] float RGB to 8-bit, rounding and clipping."""
+    return np.clip(np.rint(np.asarray(rgb) * 255.0), 0, 255).astype(np.uint8)
+
+
+def write_rgb(path: str | Path, rgb: np.ndarray) -> Path:
+    """Write (H, W, 3) float RGB in [0, 1] as an 8-bit PNG, atomically."""
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"image must be (H, W, 3), got {rgb.shape}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem, suffix=".png.tmp")
+    os.close(fd)
+    try:
+        Image.fromarray(to_uint8(rgb)).save(tmp, format="PNG")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
