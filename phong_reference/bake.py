@@ -7,6 +7,7 @@ L_m = -field.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import time
 from dataclasses import dataclass
@@ -88,7 +89,8 @@ def bake(
     module = baker_module(method)
     validate_mesh(mesh, "mesh")
     key = make_key(
-        "fields", mesh_digest(mesh), [led.__dict__ for led in leds], camera.__dict__, method, module.VERSION
+        "fields", mesh_digest(mesh), [dataclasses.asdict(led) for led in leds], dataclasses.asdict(camera), method,
+        module.VERSION,
     )
 
     def build() -> dict[str, np.ndarray]:

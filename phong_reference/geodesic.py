@@ -18,7 +18,7 @@ import trimesh
 
 from scenes.camera import SurfaceSamples
 
-from .sources import Sources
+from .sources import Sources, check_sources
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
@@ -75,20 +75,6 @@ def vertex_average_operator(mesh: trimesh.Trimesh) -> scipy.sparse.csr_matrix:
     total = np.asarray(W.sum(axis=1)).ravel()
     scale = np.divide(1.0, total, out=np.zeros_like(total), where=total > 0)
     return scipy.sparse.diags(scale) @ W
-
-
-def check_sources(sources: Sources, n_vertices: int) -> None:
-    """Refuse sources that do not index the mesh (a ValueError naming the bad entry)."""
-    vertices = np.asarray(sources.vertices)
-    if vertices.ndim != 1 or vertices.dtype.kind not in "iu":
-        raise ValueError(f"sources.vertices must be (L,) int, got {vertices.shape} {vertices.dtype}")
-    bad = np.flatnonzero((vertices < 0) | (vertices >= n_vertices))
-    if len(bad):
-        m = int(bad[0])
-        raise ValueError(
-            f"sources.vertices[{m}] = {int(vertices[m])} is out of range for a mesh of "
-            f"{n_vertices} vertices; expected 0 <= index < {n_vertices}"
-        )
 
 
 class GeodesicBaker:

@@ -53,3 +53,17 @@ def snap_leds(mesh: trimesh.Trimesh, leds: tuple[LED, ...] | list[LED]) -> Sourc
         if n < 1e-6:
             raise ValueError(f"LED {led.name!r}: emission direction is normal to the membrane; no tangent part")
     return Sources(positions, np.asarray(vertices), directions / norm[:, None], normals)
+
+
+def check_sources(sources: Sources, n_vertices: int) -> None:
+    """Refuse sources that do not index the mesh (a ValueError naming the bad entry)."""
+    vertices = np.asarray(sources.vertices)
+    if vertices.ndim != 1 or vertices.dtype.kind not in "iu":
+        raise ValueError(f"sources.vertices must be (L,) int, got {vertices.shape} {vertices.dtype}")
+    bad = np.flatnonzero((vertices < 0) | (vertices >= n_vertices))
+    if len(bad):
+        m = int(bad[0])
+        raise ValueError(
+            f"sources.vertices[{m}] = {int(vertices[m])} is out of range for a mesh of "
+            f"{n_vertices} vertices; expected 0 <= index < {n_vertices}"
+        )

@@ -14,7 +14,7 @@ import trimesh
 
 from scenes.camera import SurfaceSamples
 
-from .sources import Sources
+from .sources import Sources, check_sources
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
@@ -23,23 +23,6 @@ VERSION = 1
 #: vector shorter than this means the vertex vectors of the sample's face disagree by
 #: more than ~120 degrees (a singularity of the transported field): invalid, not guessed.
 MIN_INTERPOLATED_NORM = 0.5
-
-
-def check_sources(sources: Sources, n_vertices: int) -> None:
-    """Refuse sources that do not index the mesh (a ValueError naming the bad entry)."""
-    vertices = np.asarray(sources.vertices)
-    if vertices.ndim != 1 or vertices.dtype.kind not in "iu":
-        raise ValueError(f"sources.vertices must be (L,) int, got {vertices.shape} {vertices.dtype}")
-    bad = np.flatnonzero((vertices < 0) | (vertices >= n_vertices))
-    if len(bad):
-        m = int(bad[0])
-        raise ValueError(
-            f"sources.vertices[{m}] = {int(vertices[m])} is out of range for a mesh of "
-            f"{n_vertices} vertices; expected 0 <= index < {n_vertices}"
-        )
-    directions = np.asarray(sources.directions)
-    if directions.shape != (len(vertices), 3):
-        raise ValueError(f"sources.directions must be ({len(vertices)}, 3), got {directions.shape}")
 
 
 class TransportBaker:

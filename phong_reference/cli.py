@@ -1,0 +1,206 @@
+"""Subcommands of the fast path: demo, bake, render, bench phong, bench bake."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from scenes.camera import Camera, check_depth
+from scenes.geometry import load_mesh, membrane_mesh
+from scenes.images import write_rgb
+from scenes.spec import load_spec
+
+from .bake import METHODS
+
+#: Where the published GelTip data lives beside a clone of this repository.
+REFERENCE_ENV = "GELTIP_REFERENCE"
+
+
+def reference_dir() -> Path | None:
+    """The published GelTip reference data, if present (never shipped with the project)."""
+    candidates = [os.environ.get(REFERENCE_ENV)] if os.environ.get(REFERENCE_ENV) else []
+    here = Path(__file__).resolve().parents[1]
+    candidates += [here.parent / "shared" / "data" / "geltip_reference", Path.cwd().parent / "shared" / "data" / "geltip_reference"]
+    for c in candidates:
+        if c and (Path(c) / "MANIFEST.txt").exists():
+            return Path(c)
+    return None
+
+
+def _sensor(args):
+    spec = load_spec(args.spec)
+    mesh = load_mesh(args.mesh, units=args.units) if getattr(args, "mesh", None) else membrane_mesh(spec)
+    return spec, mesh, Camera.from_spec(spec)
+
+
+def _add_sensor_args(p: argparse.ArgumentParser, mesh: bool = True) -> None:
+    p.add_argument("--spec", metavar="TOML", help="sensor spec (default: the embedded GelTip)")
+    if mesh:
+        p.add_argument("--mesh", metavar="PATH", help="membrane mesh (STL/OBJ/PLY) in the camera frame, any shape")
+        p.add_argument("--units", choices=["m", "mm"], default="m", help="units of --mesh (default m)")
+
+
+def _methods(name: str) -> tuple[str, ...]:
+    return METHODS if name == "all" else (name,)
+
+
+def bake_all(mesh, camera, leds, methods, desc="baking light fields"):
+    """Bake several methods with a progress bar; returns {method: LightFields}, {method: s}."""
+    from .bake import bake
+
+    out, seconds = {}, {}
+    with tqdm(methods, desc=desc, unit="field") as bar:
+        for method in bar:
+            bar.set_postfix_str(method)
+            t0 = time.perf_counter()
+            out[method] = bake(mesh, camera, leds, method)
+            seconds[method] = time.perf_counter() - t0
+    return out, seconds
+
+
+def cmd_bake(args) -> int:
+    from .figures import field_figure
+
+    spec, mesh, camera = _sensor(args)
+    fields, seconds = bake_all(mesh, camera, spec.leds, _methods(args.field))
+    for method, lf in fields.items():
+        share = lf.valid[:, camera.mask].mean()
+        print(f"{method:9s} {seconds[method]:7.2f} s  valid {share:6.1%} of the image circle")
+        if args.out:
+            out = Path(args.out)
+            out.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(out / f"{method}_fields.npz", fields=lf.fields, valid=lf.valid, depth=lf.depth, normals=lf.normals)
+            field_figure(mesh, lf, spec.leds, camera, out / f"{method}_fields.png")
+    if args.out:
+        print(f"wrote fields and figures to {args.out}")
+    return 0
+
+
+def _background(kind: str, camera):
+    from .background import make_background
+
+    return make_background(kind, camera)
+
+
+def cmd_render(args) -> int:
+    from .bake import bake
+    from .render import Renderer
+
+    spec, mesh, camera = _sensor(args)
+    try:
+        depth = np.load(args.depth, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"depth file {args.depth} could not be read as .npy: {exc}") from None
+    check_depth(depth, camera, f"depth file {args.depth}")
+    fields = bake(mesh, camera, spec.leds, args.field)
+    if args.ref_depth:
+        ref = check_depth(np.load(args.ref_depth, allow_pickle=False), camera, f"ref depth {args.ref_depth}")
+    else:
+        ref = fields.depth
+    from .render import light_vectors
+
+    renderer = Renderer(spec, camera, ref, light_vectors(fields, args.rectify), _background(args.background, camera))
+    image = renderer.render(depth)
+    write_rgb(args.output, image)
+    print(f"wrote {args.output}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    import trimesh
+
+    from scenes.contact import press
+
+    from .figures import contact_sheet, field_figure
+    from .render import Renderer
+
+    spec, mesh, camera = _sensor(args)
+    out = Path(args.out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    fields, _ = bake_all(mesh, camera, spec.leds, METHODS)
+    ref = fields["linear"].depth
+    contacts = {
+        "sphere_tip": (trimesh.primitives.Sphere(radius=0.004), (camera.cx + 20, camera.cy - 10), 0.0015),
+        "sphere_side": (trimesh.primitives.Sphere(radius=0.003), (camera.cx - 150, camera.cy + 60), 0.0012),
+        "box_edge": (trimesh.creation.box((0.004, 0.004, 0.004)), (camera.cx + 90, camera.cy + 110), 0.001),
+        "cylinder": (trimesh.creation.cylinder(radius=0.002, height=0.006), (camera.cx + 60, camera.cy - 150), 0.0015),
+    }
+    depths = {}
+    for name, (shape, pixel, depth_m) in tqdm(contacts.items(), desc="pressing contacts", unit="contact"):
+        depths[name] = press(ref, camera, mesh, shape, pixel, depth_m, spin=0.3)
+        np.save(out / "depth" / f"{name}.npy", depths[name])
+    backgrounds = {"none": "none", "solid": "solid"}
+    real = Path(args.real_background) if args.real_background else None
+    if real is None and reference_dir() is not None:
+        real = reference_dir() / "real" / "bkg.png"
+    if real is not None:
+        backgrounds["real"] = str(real)
+    else:
+        print("no real no-contact image found (pass --real-background PATH); skipping that background")
+    sheet = {}
+    jobs = [(m, b) for m in METHODS for b in backgrounds]
+    for method, bkg in tqdm(jobs, desc="rendering", unit="renderer"):
+        renderer = Renderer.from_fields(spec, camera, fields[method], _background(backgrounds[bkg], camera))
+        for name, depth in depths.items():
+            image = renderer.render(depth)
+            write_rgb(out / "images" / f"{method}_{bkg}_{name}.png", image)
+            sheet[(f"{method} / {bkg}", name)] = image
+    contact_sheet(sheet, out / "contact_sheet.png")
+    for method, lf in fields.items():
+        field_figure(mesh, lf, spec.leds, camera, out / f"fields_{method}.png")
+    print(f"wrote {len(sheet)} images, contact_sheet.png and field figures to {out}")
+    return 0
+
+
+def cmd_bench_phong(args) -> int:
+    from .bench import bench_phong, write_json
+
+    results = bench_phong(load_spec(args.spec), frames=args.frames, repeats=args.repeats)
+    write_json(args.json, results)
+    print(json.dumps({k: results[k] for k in ("ms_per_frame_median", "baseline_ms_per_frame_median", "speedup")}))
+    return 0
+
+
+def cmd_bench_bake(args) -> int:
+    from .bench import bench_bake, write_json
+
+    results = bench_bake(load_spec(args.spec))
+    write_json(args.json, results)
+    print(json.dumps({"seconds": results["seconds"], "seconds_total": results["seconds_total"]}))
+    return 0
+
+
+def register(registry) -> None:
+    p = registry.command("demo", cmd_demo, "bake the GelTip light fields, press contacts and render every field and background")
+    _add_sensor_args(p)
+    p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    p.add_argument("--real-background", metavar="PNG", help="real no-contact image (default: the published one, if found)")
+
+    p = registry.command("bake", cmd_bake, "bake light fields (cached) for the sensor or any membrane mesh")
+    _add_sensor_args(p)
+    p.add_argument("--field", choices=METHODS + ("all",), default="all")
+    p.add_argument("--out", metavar="DIR", help="also write the fields (.npz) and a figure of each")
+
+    p = registry.command("render", cmd_render, "render one tactile image from a contact depth map")
+    _add_sensor_args(p)
+    p.add_argument("depth", metavar="DEPTH.npy", help="(H, W) float depth map, metres, planar z")
+    p.add_argument("--field", choices=METHODS, default="plane")
+    p.add_argument("--background", default="none", help="none, solid, or the path of a no-contact image")
+    p.add_argument("--ref-depth", metavar="REF.npy", help="no-contact depth D_ref (default: ray cast from the mesh)")
+    p.add_argument("--rectify", action="store_true", help="project the field onto the undeformed tangent plane")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.png")
+
+    p = registry.bench("phong", cmd_bench_phong, "fast path ms per 640x480 frame against the published model")
+    _add_sensor_args(p, mesh=False)
+    p.add_argument("--frames", type=int, default=16)
+    p.add_argument("--repeats", type=int, default=3)
+
+    p = registry.bench("bake", cmd_bench_bake, "cold-cache bake time of every light field method")
+    _add_sensor_args(p, mesh=False)

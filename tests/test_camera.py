@@ -1,0 +1,73 @@
+"""Camera model: projection, back-projection and the no-contact depth D_ref."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from scenes.camera import Camera, back_project, check_depth, project, reference_depth
+
+#: The issue's bound on D_ref against the published sim_depth/bkg.npy, metres RMS.
+DREF_RMS_BOUND_M = 0.1e-3
+
+
+def test_published_intrinsics(camera):
+    assert camera.f == pytest.approx(240.0)
+    assert (camera.cx, camera.cy) == (319.5, 239.5)
+    assert camera.mask.sum() == pytest.approx(np.pi * 240**2, rel=0.01)
+
+
+@settings(max_examples=50, deadline=None)
+@given(u=st.floats(0, 639), v=st.floats(0, 479), z=st.floats(0.001, 0.1))
+def test_back_projection_inverts_projection(camera, u, v, z):
+    p = np.array([(u - camera.cx) * z / camera.f, (v - camera.cy) * z / camera.f, z])
+    assert project(p, camera) == pytest.approx([u, v], abs=1e-9)
+
+
+def test_back_project_a_flat_wall(camera):
+    depth = np.full(camera.shape, 0.02)
+    P = back_project(depth, camera)
+    assert np.allclose(P[..., 2], 0.02)
+    assert project(P, camera)[200, 300] == pytest.approx([300, 200])
+
+
+def test_reference_depth_is_analytic_on_the_capsule(mesh, camera, spec):
+    depth, valid = reference_depth(mesh, camera)
+    assert valid[camera.mask].all()
+    # On the axis the camera sees the tip apex; at the circle's edge (45 deg) the cylinder.
+    assert depth[239:241, 319:321].max() == pytest.approx(spec.membrane.tip_z, abs=2e-5)
+    edge = depth[240, 320 + 239]
+    assert edge == pytest.approx(spec.membrane.radius * camera.f / 239.5, rel=2e-3)
+
+
+def test_reference_depth_matches_the_published_map(mesh, camera, reference_dir):
+    published = np.load(reference_dir / "sim_depth" / "bkg.npy")
+    depth, _ = reference_depth(mesh, camera)
+    err = (depth - published)[camera.mask]
+    rms = float(np.sqrt(np.mean(err.astype(np.float64) ** 2)))
+    print(f"D_ref vs published bkg.npy: RMS {rms * 1e3:.4f} mm, max {np.abs(err).max() * 1e3:.4f} mm")
+    assert rms < DREF_RMS_BOUND_M
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        (np.zeros((480, 640, 3)), r"must be \(480, 640\) float"),
+        (np.zeros((240, 320)), r"must be \(480, 640\) float"),
+        (np.ones((480, 640), np.uint16), r"must be \(480, 640\) float"),
+        (np.full((480, 640), np.nan), "NaN"),
+        (-np.ones((480, 640)), "> 0"),
+        (np.full((480, 640), 30.0), "plausible"),
+        ([[1.0]], "numpy array"),
+    ],
+)
+def test_bad_depth_maps_are_refused(camera, bad, message):
+    with pytest.raises(ValueError, match=message):
+        check_depth(bad, camera)
+
+
+def test_scaled_camera_keeps_the_field_of_view(camera):
+    small = camera.scaled(160, 120)
+    assert small.f == pytest.approx(60.0)
+    assert small.mask_radius_px == pytest.approx(60.0)
+    assert small.rays[0, 0] == pytest.approx(camera.rays[0, 0], rel=0.02)
