@@ -1,0 +1,72 @@
+"""The tactile-sim command line, run as a user would."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from scenes.cli import main
+from scenes.images import read_rgb
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "scenes.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_help_lists_every_subcommand():
+    out = run("--help").stdout
+    for name in ("demo", "bake", "render", "bench"):
+        assert name in out
+    bench = run("bench", "--help").stdout
+    assert "phong" in bench and "bake" in bench
+
+
+def test_render_a_depth_map(tmp_path, camera, mesh):
+    from scenes.camera import reference_depth
+
+    ref, _ = reference_depth(mesh, camera)
+    depth = ref.copy()
+    depth[200:220, 300:330] -= 0.001
+    np.save(tmp_path / "d.npy", depth)
+    out = tmp_path / "img.png"
+    assert main(["render", str(tmp_path / "d.npy"), "--field", "linear", "--background", "solid", "-o", str(out)]) == 0
+    image = read_rgb(out, (480, 640))
+    assert image[camera.mask].mean() > 0.1 and not image[~camera.mask].any()
+
+
+def test_render_refuses_bad_depth_files(tmp_path, capsys):
+    np.save(tmp_path / "small.npy", np.ones((120, 160), np.float32) * 0.03)
+    assert main(["render", str(tmp_path / "small.npy"), "--field", "linear", "-o", str(tmp_path / "x.png")]) == 1
+    assert "must be (480, 640) float" in capsys.readouterr().err
+    bad = np.ones((480, 640), np.float32) * 0.03
+    bad[5, 5] = np.nan
+    np.save(tmp_path / "nan.npy", bad)
+    assert main(["render", str(tmp_path / "nan.npy"), "--field", "linear", "-o", str(tmp_path / "x.png")]) == 1
+    assert "NaN" in capsys.readouterr().err
+    (tmp_path / "junk.npy").write_bytes(b"junk")
+    assert main(["render", str(tmp_path / "junk.npy"), "--field", "linear", "-o", str(tmp_path / "x.png")]) == 1
+    assert "could not be read" in capsys.readouterr().err
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_bake_any_mesh_from_the_command_line(tmp_path, mesh):
+    path = tmp_path / "membrane_mm.stl"
+    mm = mesh.copy()
+    mm.apply_scale(1000)
+    mm.export(path)
+    res = run("bake", "--field", "linear", "--mesh", str(path))
+    assert res.returncode == 1 and "millimetres" in res.stderr
+    res = run("bake", "--field", "linear", "--mesh", str(path), "--units", "mm", "--out", str(tmp_path / "o"))
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "o" / "linear_fields.png").exists()
+
+
+@pytest.mark.slow
+def test_bench_phong_writes_json(tmp_path):
+    out = tmp_path / "b.json"
+    assert main(["bench", "phong", "--json", str(out), "--frames", "2", "--repeats", "1"]) == 0
+    data = json.loads(out.read_text())
+    for key in ("ms_per_frame_median", "baseline_ms_per_frame_median", "speedup"):
+        assert data[key] > 0
