@@ -16,13 +16,16 @@ import numpy as np
 import trimesh
 
 from scenes.cache import cached, make_key
-from scenes.camera import Camera, SurfaceSamples, cast_rays
+from scenes.camera import Camera, SurfaceSamples, cast_rays, reference_depth
 from scenes.geometry import mesh_digest, validate_mesh
 from scenes.spec import LED
 
 from .sources import Sources, snap_leds
 
 METHODS = ("linear", "plane", "geodesic", "transport")
+
+#: Bump when what ``bake`` stores changes (all methods' cache entries are rebuilt).
+FORMAT_VERSION = 2
 
 _BAKERS = {
     "linear": ("phong_reference.linear", "LinearBaker"),
@@ -89,7 +92,7 @@ def bake(
     module = baker_module(method)
     validate_mesh(mesh, "mesh")
     key = make_key(
-        "fields", mesh_digest(mesh), [dataclasses.asdict(led) for led in leds], dataclasses.asdict(camera), method,
+        "fields", FORMAT_VERSION, mesh_digest(mesh), [dataclasses.asdict(led) for led in leds], dataclasses.asdict(camera), method,
         module.VERSION,
     )
 
@@ -101,7 +104,7 @@ def bake(
         out = {
             "fields": np.stack([samples.scatter(f.astype(np.float32)) for f in fields]),
             "valid": np.stack([samples.scatter(v) for v in valid]),
-            "depth": samples.scatter(samples.points[:, 2].astype(np.float32), fill=float(samples.points[:, 2].max())),
+            "depth": reference_depth(mesh, camera)[0],
             "normals": samples.scatter(samples.normals.astype(np.float32)),
         }
         if timings is not None:

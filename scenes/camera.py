@@ -146,12 +146,13 @@ class SurfaceSamples:
         return (corner * w).sum(axis=1)
 
 
-def cast_rays(mesh: trimesh.Trimesh, camera: Camera) -> SurfaceSamples:
-    """Cast one ray per pixel inside the image circle at the mesh (first hit).
+def cast_rays(mesh: trimesh.Trimesh, camera: Camera, whole_frame: bool = False) -> SurfaceSamples:
+    """Cast one ray per pixel at the mesh (first hit): inside the image circle, or on
+    the whole frame.
 
     Uses trimesh's ray engine (Embree through embreex when installed).
     """
-    rows, cols = np.nonzero(camera.mask)
+    rows, cols = np.nonzero(np.ones(camera.shape, bool) if whole_frame else camera.mask)
     dirs = camera.rays[rows, cols]
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     origins = np.zeros_like(dirs)
@@ -174,13 +175,16 @@ def cast_rays(mesh: trimesh.Trimesh, camera: Camera) -> SurfaceSamples:
 def reference_depth(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """No-contact depth map D_ref of a membrane mesh.
 
+    The whole frame is cast, not only the image circle, so that the map stays smooth
+    across the circle's edge (the Sobel normals there read pixels outside it).
+
     Returns
     -------
     depth : (H, W) float32, metres, planar z-depth; pixels without a hit hold the
         largest hit depth (so the map stays finite and positive).
     valid : (H, W) bool, pixels whose ray hit the membrane.
     """
-    samples = cast_rays(mesh, camera)
+    samples = cast_rays(mesh, camera, whole_frame=True)
     if len(samples.points) == 0:
         raise ValueError("no camera ray hits the membrane mesh; is it in the camera frame, in metres?")
     z = samples.points[:, 2]
