@@ -3,7 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
+
+
+def sobel_uv(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """3x3 Sobel derivatives of a planar point image along columns (u) and rows (v).
+
+    points : (3, H, W).  Returns dP/du, dP/dv, each (3, H, W) (unnormalised Sobel, the
+    border replicated as scipy.ndimage.sobel's default 'reflect' mode does for 3x3).
+    """
+    p = np.pad(points, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    dx = p[:, :, 2:] - p[:, :, :-2]
+    du = dx[:, :-2] + 2 * dx[:, 1:-1] + dx[:, 2:]
+    dy = p[:, 2:] - p[:, :-2]
+    dv = dy[:, :, :-2] + 2 * dy[:, :, 1:-1] + dy[:, :, 2:]
+    return du, dv
 
 
 def normals(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -14,20 +27,23 @@ def normals(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Parameters
     ----------
-    points : (H, W, 3) float, metres, camera frame.
+    points : (3, H, W) float, metres, camera frame, channel-first (each component a
+        contiguous plane, which is what makes the fast path fast).
 
     Returns
     -------
-    N : (H, W, 3) unit normals, same dtype; zero where undefined.
+    N : (3, H, W) unit normals, same dtype; zero where undefined.
     valid : (H, W) bool, where the two derivatives span a plane.
     """
-    if points.ndim != 3 or points.shape[2] != 3:
-        raise ValueError(f"points must be (H, W, 3), got {points.shape}")
-    du = np.stack([ndimage.sobel(points[..., c], axis=1) for c in range(3)], axis=-1)
-    dv = np.stack([ndimage.sobel(points[..., c], axis=0) for c in range(3)], axis=-1)
-    n = np.cross(du, dv)
-    facing = np.einsum("...i,...i->...", n, points)
-    norm = np.sqrt(np.einsum("...i,...i->...", n, n))
+    if points.ndim != 3 or points.shape[0] != 3:
+        raise ValueError(f"points must be (3, H, W), got {points.shape}")
+    du, dv = sobel_uv(points)
+    n = np.stack(
+        [du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2], du[0] * dv[1] - du[1] * dv[0]]
+    )
+    facing = n[0] * points[0] + n[1] * points[1] + n[2] * points[2]
+    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     valid = norm > 0
     scale = np.where(valid, -np.sign(facing) / np.where(valid, norm, 1), 0).astype(points.dtype)
-    return n * scale[..., None], valid
+    n *= scale
+    return n, valid

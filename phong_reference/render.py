@@ -11,6 +11,9 @@
 ``render`` is that chain on the whole frame. ``Renderer`` gives the same image faster: a
 contact changes D_def only within the Gaussian's reach of where D differs from D_ref, so
 it keeps the no-contact image and re-renders only that window.
+
+Inside the chain, vector images (points, normals, light vectors) are channel-first,
+(3, H, W), so that each component is a contiguous plane; images in and out are (H, W, 3).
 """
 
 from __future__ import annotations
@@ -28,28 +31,30 @@ from .phong import shade
 
 
 def light_vectors(fields: LightFields, rectify: bool = False) -> np.ndarray:
-    """L_m = -field for each LED, (M, H, W, 3) float32.
+    """L_m = -field for each LED, channel-first: (M, 3, H, W) float32.
 
     rectify : project onto the tangent plane of the undeformed surface and renormalise
         (the published code did this for the plane, geodesic and transport fields; our
         baked surface fields are tangent already, so it matters for linear only).
     """
-    L = -np.asarray(fields.fields, dtype=np.float32)
+    L = -np.asarray(fields.fields, dtype=np.float32).transpose(0, 3, 1, 2)
     if rectify:
-        L = rectify_vectors(L, fields.normals)
-    return L
+        L = rectify_vectors(L, np.asarray(fields.normals, dtype=np.float32).transpose(2, 0, 1))
+    return np.ascontiguousarray(L)
 
 
 def rectify_vectors(L: np.ndarray, N: np.ndarray) -> np.ndarray:
-    """Project (M, H, W, 3) vectors onto the planes normal to N (H, W, 3); renormalise."""
-    L = L - np.einsum("mhwi,hwi->mhw", L, N)[..., None] * N[None]
-    norm = np.linalg.norm(L, axis=-1, keepdims=True)
+    """Project (M, 3, H, W) vectors onto the planes normal to N (3, H, W); renormalise."""
+    L = L - (L * N[None]).sum(axis=1, keepdims=True) * N[None]
+    norm = np.linalg.norm(L, axis=1, keepdims=True)
     return np.divide(L, norm, out=np.zeros_like(L), where=norm > 1e-12)
 
 
 def finish(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Apply the sensor's circle mask and clip to [0, 1]."""
-    return np.clip(image, 0.0, 1.0) * mask[..., None]
+    """(3, H, W) -> (H, W, 3): clip to [0, 1] and apply the sensor's circle mask."""
+    out = np.clip(image, 0.0, 1.0)
+    out *= mask
+    return np.ascontiguousarray(out.transpose(1, 2, 0))
 
 
 def render(
@@ -66,7 +71,7 @@ def render(
     ----------
     depth : (H, W) float, metres, planar z-depth of the contact.
     ref_depth : (H, W) float, metres, the no-contact depth D_ref.
-    L : (M, H, W, 3) float32, light vectors per LED (see ``light_vectors``).
+    L : (M, 3, H, W) float32, light vectors per LED (see ``light_vectors``).
     background : (H, W, 3) float32, linear RGB in [0, 1].
 
     Returns
@@ -76,14 +81,14 @@ def render(
     depth = check_depth(depth, camera).astype(np.float32, copy=False)
     ref_depth = check_depth(ref_depth, camera, "ref_depth").astype(np.float32, copy=False)
     _check_lights(L, camera, spec)
-    background = check_background(background, camera)
-    P = back_project(deform(depth, ref_depth, spec.elastic), camera)
+    B = check_background(background, camera).transpose(2, 0, 1)
+    P = back_project(deform(depth, ref_depth, spec.elastic), camera, channels_first=True)
     N, _ = normals(P)
-    return finish(shade(P, N, L, spec.leds, spec.material, background), camera.mask)
+    return finish(shade(P, N, L, spec.leds, spec.material, B), camera.mask)
 
 
 def _check_lights(L: np.ndarray, camera: Camera, spec: SensorSpec) -> None:
-    expected = (len(spec.leds),) + camera.shape + (3,)
+    expected = (len(spec.leds), 3) + camera.shape
     if not isinstance(L, np.ndarray) or L.shape != expected or L.dtype != np.float32:
         got = getattr(L, "shape", type(L).__name__), getattr(L, "dtype", "")
         raise ValueError(f"L must be {expected} float32 light vectors, got {got[0]} {got[1]}")
@@ -92,6 +97,10 @@ def _check_lights(L: np.ndarray, camera: Camera, spec: SensorSpec) -> None:
 def _grow(box: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
     r0, r1, c0, c1 = box
     return max(r0 - margin, 0), min(r1 + margin, shape[0]), max(c0 - margin, 0), min(c1 + margin, shape[1])
+
+
+def _slices(box) -> tuple[slice, slice]:
+    return slice(box[0], box[1]), slice(box[2], box[3])
 
 
 def _inner(outer, inner_box) -> tuple[slice, slice]:
@@ -121,6 +130,7 @@ class Renderer:
         _check_lights(L, camera, spec)
         self.L = L
         self.background = check_background(background, camera)
+        self._B = np.ascontiguousarray(self.background.transpose(2, 0, 1))
         self.mask = camera.mask
         self.base = render(self.ref_depth, self.ref_depth, camera, spec, L, self.background)
 
@@ -149,23 +159,20 @@ class Renderer:
         # Elastic smoothing on the support window. Beyond `box` delta is 0, so the zero
         # padding implied at the window's inner edges is exact; at image edges the window
         # ends where the image does and the border mode is the same as on the full frame.
-        spread = smooth(delta[support[0] : support[1], support[2] : support[3]], self.spec.elastic)
-        d_def = self.ref_depth[stencil[0] : stencil[1], stencil[2] : stencil[3]].copy()
-        rs, cs = _inner(stencil, changed)
-        rc, cc = _inner(support, changed)
-        window = (slice(changed[0], changed[1]), slice(changed[2], changed[3]))
-        d_def[rs, cs] = np.minimum(depth[window], self.ref_depth[window] - spread[rc, cc])
-
-        rays = self.camera.rays[stencil[0] : stencil[1], stencil[2] : stencil[3]].astype(np.float32)
-        P = d_def[..., None] * rays
+        spread = smooth(delta[_slices(support)], self.spec.elastic)
+        d_def = self.ref_depth[_slices(stencil)].copy()
+        window = _slices(changed)
+        d_def[_inner(stencil, changed)] = np.minimum(
+            depth[window], self.ref_depth[window] - spread[_inner(support, changed)]
+        )
+        P = d_def * self.camera.rays_channels_first[(slice(None),) + _slices(stencil)]
         N, _ = normals(P)
-        ri, ci = _inner(stencil, shaded)
         # The window's own edge rows hold Sobel values with a wrong border unless they are
         # the image's edge, where the full-frame rule applies; keep only `shaded`.
-        P, N = P[ri, ci], N[ri, ci]
-        out = (slice(shaded[0], shaded[1]), slice(shaded[2], shaded[3]))
-        L = self.L[:, out[0], out[1]]
-        I = shade(P, N, L, self.spec.leds, self.spec.material, self.background[out])
+        inner = (slice(None),) + _inner(stencil, shaded)
+        out = _slices(shaded)
+        I = shade(P[inner], N[inner], self.L[(slice(None), slice(None)) + out], self.spec.leds,
+                  self.spec.material, self._B[(slice(None),) + out])
         image = self.base.copy()
         image[out] = finish(I, self.mask[out])
         return image

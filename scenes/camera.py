@@ -60,6 +60,13 @@ class Camera:
         return rays
 
     @cached_property
+    def rays_channels_first(self) -> np.ndarray:
+        """(3, H, W) float32: the same rays, one contiguous plane per component."""
+        rays = np.ascontiguousarray(self.rays.transpose(2, 0, 1), dtype=np.float32)
+        rays.setflags(write=False)
+        return rays
+
+    @cached_property
     def mask(self) -> np.ndarray:
         """(H, W) bool: inside the sensor's image circle."""
         v, u = np.mgrid[0 : self.height, 0 : self.width]
@@ -105,13 +112,16 @@ def project(points: np.ndarray, camera: Camera) -> np.ndarray:
     return np.stack([camera.f * points[..., 0] / z + camera.cx, camera.f * points[..., 1] / z + camera.cy], axis=-1)
 
 
-def back_project(depth: np.ndarray, camera: Camera) -> np.ndarray:
+def back_project(depth: np.ndarray, camera: Camera, channels_first: bool = False) -> np.ndarray:
     """Point cloud of a planar z-depth map: P = D (u - c_x, v - c_y, f) / f.
 
-    depth : (H, W) float, metres.  Returns (H, W, 3) camera-frame points, metres.
+    depth : (H, W) float, metres.  Returns (H, W, 3) camera-frame points, metres, or
+    (3, H, W) float32 with ``channels_first`` (one contiguous plane per component).
     """
     if depth.shape != camera.shape:
         raise ValueError(f"depth must be {camera.shape}, got {depth.shape}")
+    if channels_first:
+        return depth * camera.rays_channels_first
     return depth[..., None] * camera.rays.astype(depth.dtype, copy=False)
 
 

@@ -35,37 +35,51 @@ def test_elastic_smoothing_keeps_no_contact_and_spreads_a_dent(camera):
 
 
 def test_normals_of_a_plane_and_a_sphere(camera):
-    P = back_project(np.full(camera.shape, 0.02), camera)
+    P = back_project(np.full(camera.shape, 0.02, np.float32), camera, channels_first=True)
+    assert P.shape == (3, 480, 640)
     N, valid = normals(P)
     assert valid.all()
-    assert np.allclose(N[5:-5, 5:-5], [0, 0, -1], atol=1e-9)
+    assert np.allclose(N[:, 5:-5, 5:-5], np.array([0, 0, -1.0])[:, None, None], atol=1e-6)
     # A sphere about the camera: normals point back at the centre.
     rays = camera.rays / np.linalg.norm(camera.rays, axis=-1, keepdims=True)
-    P = 0.03 * rays
+    P = np.ascontiguousarray((0.03 * rays).transpose(2, 0, 1))
     N, _ = normals(P)
-    assert np.allclose(N[5:-5, 5:-5], -rays[5:-5, 5:-5], atol=1e-3)
+    assert np.allclose(N[:, 5:-5, 5:-5], -P[:, 5:-5, 5:-5] / 0.03, atol=1e-3)
+
+
+def test_normals_match_scipy_sobel(rng):
+    from scipy import ndimage
+
+    P = rng.random((3, 40, 50))
+    N, _ = normals(P)
+    du = np.stack([ndimage.sobel(P[c], axis=1) for c in range(3)])
+    dv = np.stack([ndimage.sobel(P[c], axis=0) for c in range(3)])
+    n = np.cross(du, dv, axis=0)
+    n /= np.linalg.norm(n, axis=0)
+    n *= -np.sign((n * P).sum(axis=0))
+    assert np.allclose(N, n, atol=1e-9)
 
 
 def test_phong_matches_the_equation_by_hand():
-    P = np.array([[0.0, 0.0, 0.02]])
-    N = np.array([[0.0, 0.0, -1.0]])
+    P = np.array([[0.0], [0.0], [0.02]])
+    N = np.array([[0.0], [0.0], [-1.0]])
     L_m = np.array([0.6, 0.0, -0.8])
     led = LED("l", (0, 0, 0), (0, 0, 1), (1.0, 0.5, 0.25), k_d=0.9, k_s=0.3)
     mat = Material(ambient=0.5, shininess=3.0)
-    I = shade(P, N, L_m[None, None], [led], mat, np.array([[0.2, 0.2, 0.2]]))
+    I = shade(P, N, L_m[None, :, None], [led], mat, np.full((3, 1), 0.2))
     d = 0.8
-    R = 2 * d * N[0] - L_m
+    R = 2 * d * N[:, 0] - L_m
     s = max(R @ np.array([0, 0, -1.0]), 0) ** 3
     expected = 0.5 * 0.2 + (0.9 * d + 0.3 * s) * np.array([1.0, 0.5, 0.25])
-    assert I[0] == pytest.approx(expected)
+    assert I[:, 0] == pytest.approx(expected)
 
 
 def test_unclamped_specular_reproduces_the_published_quirk():
-    P = np.array([[0.0, 0.0, 0.02]])
-    N = np.array([[1.0, 0.0, 0.0]])
-    L = np.array([[[-0.6, 0.0, -0.8]]])  # light from behind the surface: d = 0, R = -L, R.V = -0.8
+    P = np.array([[0.0], [0.0], [0.02]])
+    N = np.array([[1.0], [0.0], [0.0]])
+    L = np.array([[[-0.6], [0.0], [-0.8]]])  # light from behind the surface: d = 0, R = -L, R.V = -0.8
     led = LED("l", (0, 0, 0), (0, 0, 1), (1.0, 1.0, 1.0), k_d=0.0, k_s=1.0)
-    zero = np.zeros((1, 3))
+    zero = np.zeros((3, 1))
     assert shade(P, N, L, [led], Material(ambient=0, shininess=2, clamp_specular=True), zero)[0, 0] == 0
     unclamped = shade(P, N, L, [led], Material(ambient=0, shininess=2, clamp_specular=False), zero)
     assert unclamped[0, 0] == pytest.approx(0.64)
@@ -95,10 +109,11 @@ def test_rendered_images_are_masked_and_in_range(mesh, camera, spec, linear):
 
 def test_light_vectors_rectified_are_tangent(linear):
     L = light_vectors(linear, rectify=True)
+    assert L.shape == (3, 3, 480, 640)
     ok = linear.valid[0] & (np.linalg.norm(linear.normals, axis=-1) > 0)
-    dots = np.einsum("hwi,hwi->hw", L[0], linear.normals)[ok]
+    dots = np.einsum("ihw,hwi->hw", L[0], linear.normals)[ok]
     assert np.abs(dots).max() < 1e-5
-    assert np.allclose(np.linalg.norm(L[0][ok], axis=-1), 1, atol=1e-5)
+    assert np.allclose(np.linalg.norm(L[0], axis=0)[ok], 1, atol=1e-5)
 
 
 def test_bad_render_inputs(camera, spec, linear, tmp_path):
