@@ -71,3 +71,21 @@ def test_bad_contacts_are_refused(mesh, camera, ref):
         press(ref, camera, mesh, "sphere", (320, 240), 0.001)
     with pytest.raises(ValueError, match="unit vector"):
         pose_indenter(sphere, np.zeros(3), np.array([0, 0, 2.0]), 0.001)
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    x=st.floats(-0.01, 0.01), y=st.floats(-0.01, 0.01), z=st.floats(0.01, 0.05), radius=st.floats(0.001, 0.008)
+)
+def test_sphere_hits_lie_on_the_sphere_and_face_the_camera(small_camera, x, y, z, radius):
+    centre = np.array([x, y, z])
+    depth = sphere_depth(centre, radius, small_camera)
+    hit = np.isfinite(depth)
+    P = depth[hit, None] * small_camera.rays[hit]
+    assert np.allclose(np.linalg.norm(P - centre, axis=1), radius, atol=1e-9)
+    # The nearer of the two roots: the surface there faces the camera.
+    assert np.all(np.einsum("ij,ij->i", P - centre, P) <= 1e-12)
