@@ -17,7 +17,9 @@ class Camera:
     """Pinhole camera at the origin, looking along +z (x right, y down), planar z-depth.
 
     Pixel (u, v) has its centre at integer coordinates; the principal point of the
-    published GelTip camera is ((W - 1) / 2, (H - 1) / 2) = (319.5, 239.5).
+    published GelTip camera is ((W - 1) / 2, (H - 1) / 2) = (319.5, 239.5). The image
+    circle (the sensor's aperture) has its own centre: the published images centre it on
+    pixel (320, 240).
     """
 
     width: int  # px
@@ -25,7 +27,9 @@ class Camera:
     f: float  # px, focal length (square pixels)
     cx: float  # px
     cy: float  # px
-    mask_radius_px: float  # px, radius of the sensor's image circle about (cx, cy)
+    mask_radius_px: float  # px, radius of the sensor's image circle
+    mask_cx: float | None = None  # px, centre of the image circle; None: cx
+    mask_cy: float | None = None  # px; None: cy
 
     @classmethod
     def from_spec(cls, spec: CameraSpec | SensorSpec) -> "Camera":
@@ -39,6 +43,8 @@ class Camera:
             cx=(spec.width - 1) / 2.0,
             cy=(spec.height - 1) / 2.0,
             mask_radius_px=spec.mask_radius_px,
+            mask_cx=spec.mask_center_px[0] if spec.mask_center_px else None,
+            mask_cy=spec.mask_center_px[1] if spec.mask_center_px else None,
         )
 
     @property
@@ -49,7 +55,9 @@ class Camera:
     def scaled(self, width: int, height: int) -> "Camera":
         """The same camera at another resolution (same field of view)."""
         s = height / self.height
-        return Camera(width, height, self.f * s, (width - 1) / 2.0, (height - 1) / 2.0, self.mask_radius_px * s)
+        scale = (lambda m: None if m is None else (m + 0.5) * s - 0.5)  # pixel centres
+        return Camera(width, height, self.f * s, (width - 1) / 2.0, (height - 1) / 2.0, self.mask_radius_px * s,
+                      scale(self.mask_cx), scale(self.mask_cy))
 
     @cached_property
     def rays(self) -> np.ndarray:
@@ -70,7 +78,9 @@ class Camera:
     def mask(self) -> np.ndarray:
         """(H, W) bool: inside the sensor's image circle."""
         v, u = np.mgrid[0 : self.height, 0 : self.width]
-        m = (u - self.cx) ** 2 + (v - self.cy) ** 2 <= self.mask_radius_px**2
+        mx = self.cx if self.mask_cx is None else self.mask_cx
+        my = self.cy if self.mask_cy is None else self.mask_cy
+        m = (u - mx) ** 2 + (v - my) ** 2 <= self.mask_radius_px**2
         m.setflags(write=False)
         return m
 

@@ -48,6 +48,7 @@ class CameraSpec:
     height: int = 480  # px
     fov_y: float = math.pi / 2  # rad
     mask_radius_px: float = 240.0  # px
+    mask_center_px: tuple[float, float] | None = None  # px (u, v); None: the principal point
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,18 @@ def _vec3(table: dict, key: str, where: str) -> tuple[float, float, float]:
     return tuple(float(v) for v in value)
 
 
+def _vec2(table: dict, key: str, where: str) -> tuple[float, float]:
+    value = table.get(key)
+    if (
+        not isinstance(value, list)
+        or len(value) != 2
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        or not all(math.isfinite(v) for v in value)
+    ):
+        raise ValueError(f"{where}.{key} must be a list of 2 finite numbers, got {value!r}")
+    return (float(value[0]), float(value[1]))
+
+
 def _positive(value: float, name: str) -> float:
     if not value > 0:
         raise ValueError(f"{name} must be > 0, got {value!r}")
@@ -170,6 +183,7 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         height=_take(c, "height", int, f"{source}: camera", 480),
         fov_y=_take(c, "fov_y", float, f"{source}: camera", math.pi / 2),
         mask_radius_px=_take(c, "mask_radius_px", float, f"{source}: camera", 240.0),
+        mask_center_px=_vec2(c, "mask_center_px", f"{source}: camera") if "mask_center_px" in c else None,
     )
     if camera.width < 2 or camera.height < 2:
         raise ValueError(f"{source}: camera must be at least 2x2 px, got {camera.width}x{camera.height}")

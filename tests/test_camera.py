@@ -71,3 +71,10 @@ def test_scaled_camera_keeps_the_field_of_view(camera):
     assert small.f == pytest.approx(60.0)
     assert small.mask_radius_px == pytest.approx(60.0)
     assert small.rays[0, 0] == pytest.approx(camera.rays[0, 0], rel=0.02)
+
+
+def test_image_circle_matches_the_real_capture(camera, reference_dir):
+    from scenes.images import read_rgb
+
+    real = read_rgb(reference_dir / "real" / "bkg.png", camera.shape)
+    assert np.array_equal(real.sum(axis=-1) > 0, camera.mask)
