@@ -40,16 +40,16 @@ def field_figure(mesh, fields, leds, camera, path: str | Path, stride: int | Non
     for m, led in enumerate(leds):
         ax = fig.add_subplot(1, n_led + 1, m + 1, projection="3d")
         tris = mesh.vertices[mesh.faces]
-        ax.add_collection3d(Poly3DCollection(tris, facecolor=(0.8, 0.8, 0.8, 0.15), edgecolor="none"))
+        ax.add_collection3d(Poly3DCollection(tris, facecolor=(0.45, 0.45, 0.5, 0.12), edgecolor="none"))
         ok = fields.valid[m, rows, cols]
         p, v = points[ok], fields.fields[m, rows[ok], cols[ok]]
         ax.quiver(p[:, 0], p[:, 1], p[:, 2], v[:, 0], v[:, 1], v[:, 2], length=length, normalize=True,
-                  color=np.clip(led.colour, 0, 1), linewidth=0.8, arrow_length_ratio=0.35)
+                  color=0.8 * np.clip(led.colour, 0, 1), linewidth=0.9, arrow_length_ratio=0.35)
         ax.scatter(*led.position, color="k", s=30)
         centre = mesh.vertices.mean(axis=0)
         for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
             setter(c - extent / 2, c + extent / 2)
-        ax.set_box_aspect((1, 1, 1))
+        ax.set_box_aspect((1, 1, 1), zoom=1.6)
         ax.view_init(elev=20, azim=-60 + 120 * m)
         ax.set_title(f"{fields.method}: {led.name}")
         ax.set_axis_off()
