@@ -19,6 +19,7 @@ import trimesh
 from scenes.camera import SurfaceSamples
 
 from .sources import Sources, check_sources
+from .tangent import tangent_unit
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
@@ -154,10 +155,9 @@ class GeodesicBaker:
             d_sample = samples.interpolate(self.mesh, np.where(reached, d, 0.0))  # (K,) metres
             near = d_sample < SOURCE_EXCLUSION_EDGES * self._mean_edge
             ok = (smooth | own_face) & ~near & reached[F[samples.faces]].all(axis=1)
-            t = g - (g * N).sum(axis=1, keepdims=True) * N  # onto the tangent plane at the sample
-            norm = np.linalg.norm(t, axis=1)
-            ok &= norm > 0
-            fields[m, ok] = t[ok] / norm[ok, None]
+            t, tangent = tangent_unit(g, N)
+            ok &= tangent
+            fields[m, ok] = t[ok]
             valid[m] = ok
         return fields, valid
 

@@ -28,6 +28,7 @@ from .bake import LightFields
 from .elastic import deform, smooth
 from .normals import normals
 from .phong import shade
+from .tangent import tangent_unit
 
 
 def light_vectors(fields: LightFields, rectify: bool = False) -> np.ndarray:
@@ -45,9 +46,7 @@ def light_vectors(fields: LightFields, rectify: bool = False) -> np.ndarray:
 
 def rectify_vectors(L: np.ndarray, N: np.ndarray) -> np.ndarray:
     """Project (M, 3, H, W) vectors onto the planes normal to N (3, H, W); renormalise."""
-    L = L - (L * N[None]).sum(axis=1, keepdims=True) * N[None]
-    norm = np.linalg.norm(L, axis=1, keepdims=True)
-    return np.divide(L, norm, out=np.zeros_like(L), where=norm > 1e-12)
+    return tangent_unit(L, N[None], axis=1)[0]
 
 
 def finish(image: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ import trimesh
 from scenes.camera import SurfaceSamples
 
 from .sources import Sources, check_sources
+from .tangent import tangent_unit
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
@@ -92,10 +93,9 @@ class TransportBaker:
             X = self.transport(int(vertex), omega)  # (N, 3) transported ω_m per vertex
             x = samples.interpolate(self.mesh, X)  # (K, 3)
             ok = np.isfinite(x).all(axis=1) & (np.linalg.norm(x, axis=1) >= MIN_INTERPOLATED_NORM)
-            t = x - (x * N).sum(axis=1, keepdims=True) * N  # onto the tangent plane at the sample
-            norm = np.linalg.norm(t, axis=1)
-            ok &= norm > 0
-            fields[m, ok] = t[ok] / norm[ok, None]
+            t, tangent = tangent_unit(x, N)
+            ok &= tangent
+            fields[m, ok] = t[ok]
             valid[m] = ok
         return fields, valid
 

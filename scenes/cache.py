@@ -50,7 +50,7 @@ class CacheError(ValueError):
 def read_entry(path: Path, key: str) -> dict[str, np.ndarray]:
     """Read a cache file and check its key and checksum; raises CacheError."""
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
         raise CacheError(f"cache file {path} is unreadable: {exc}") from None

@@ -153,6 +153,27 @@ class SurfaceSamples:
     bary: np.ndarray
     normals: np.ndarray
 
+    @classmethod
+    def on_mesh(
+        cls, mesh: trimesh.Trimesh, points: np.ndarray, faces: np.ndarray, pixels: np.ndarray, shape: tuple[int, int]
+    ) -> "SurfaceSamples":
+        """Samples at points known to lie on given faces: barycentrics and normals."""
+        bary = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], points)
+        bary = np.clip(bary, 0.0, 1.0)
+        bary /= bary.sum(axis=1, keepdims=True)
+        corner = np.asarray(mesh.vertex_normals)[mesh.faces[faces]]  # (K, 3, 3)
+        normals = (corner * bary[..., None]).sum(axis=1)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return cls(tuple(shape), pixels, points, faces, bary, normals)
+
+    @classmethod
+    def at_points(cls, mesh: trimesh.Trimesh, points: np.ndarray) -> "SurfaceSamples":
+        """Samples at the mesh points closest to arbitrary points (K, 3), as a 1 x K image."""
+        closest, _, faces = trimesh.proximity.closest_point(mesh, np.asarray(points, dtype=np.float64))
+        k = len(closest)
+        pixels = np.stack([np.zeros(k, int), np.arange(k)], axis=1)
+        return cls.on_mesh(mesh, closest, faces, pixels, (1, k))
+
     def scatter(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
         """Put per-sample values (K, ...) back into an image (H, W, ...)."""
         out = np.full(self.shape + values.shape[1:], fill, dtype=values.dtype)
@@ -180,16 +201,9 @@ def cast_rays(mesh: trimesh.Trimesh, camera: Camera, whole_frame: bool = False) 
     order = np.argsort(ray)
     tri, ray, loc = tri[order], ray[order], np.asarray(loc)[order]
     pixels = np.stack([rows[ray], cols[ray]], axis=1)
-    # Snap hits exactly onto the ray (Embree works in float32), then barycentrics.
+    # Snap hits exactly onto the ray (Embree works in float32).
     t = np.einsum("ij,ij->i", loc, dirs[ray])
-    loc = dirs[ray] * t[:, None]
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
-    bary = np.clip(bary, 0.0, 1.0)
-    bary /= bary.sum(axis=1, keepdims=True)
-    samples = SurfaceSamples(camera.shape, pixels, loc, tri, bary, np.zeros_like(loc))
-    normals = samples.interpolate(mesh, np.asarray(mesh.vertex_normals))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    return SurfaceSamples(camera.shape, pixels, loc, tri, bary, normals)
+    return SurfaceSamples.on_mesh(mesh, dirs[ray] * t[:, None], tri, pixels, camera.shape)
 
 
 def reference_depth(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from phong_reference.bake import METHODS, bake
+from phong_reference.tangent import angle_deg, tangent_unit
 from scenes.camera import Camera
 from scenes.geometry import membrane_mesh
 from scenes.spec import SensorSpec, default_spec
@@ -49,17 +50,6 @@ def unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.divide(v, n, out=np.zeros_like(v, dtype=np.float64), where=n > MIN_NORM), ok
 
 
-def tangent(v: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit tangent part of (..., 3) vectors on the planes normal to ``normals`` (..., 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    return unit(v - np.einsum("...i,...i->...", v, normals)[..., None] * normals)
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle between unit vectors (..., 3), degrees."""
-    return np.degrees(np.arccos(np.clip(np.einsum("...i,...i->...", a, b), -1.0, 1.0)))
-
-
 def led_agreement(ours: np.ndarray, our_valid: np.ndarray, theirs: np.ndarray, normals: np.ndarray,
                   mask: np.ndarray, project_ours: bool) -> dict[str, float]:
     """Angular difference of one LED's fields (H, W, 3) inside ``mask`` where both are valid."""
@@ -71,8 +61,8 @@ def led_agreement(ours: np.ndarray, our_valid: np.ndarray, theirs: np.ndarray, n
     b, ok_b = unit(theirs)
     both = mask & our_valid & ok_a & ok_b
     raw = angle_deg(a, b)[both]
-    ta, ok_ta = tangent(ours, normals) if project_ours else (a, ok_a)
-    tb, ok_tb = tangent(theirs, normals)
+    ta, ok_ta = tangent_unit(np.asarray(ours, np.float64), normals) if project_ours else (a, ok_a)
+    tb, ok_tb = tangent_unit(np.asarray(theirs, np.float64), normals)
     both_t = both & ok_ta & ok_tb
     projected = angle_deg(ta, tb)[both_t]
     return {

@@ -12,6 +12,7 @@ from phong_reference.bake import bake
 from phong_reference.geodesic import GeodesicBaker, bake_geodesic
 from phong_reference.sources import Sources
 from phong_reference.transport import TransportBaker, bake_transport
+from phong_reference.tangent import angle_deg
 from scenes.camera import SurfaceSamples
 from scenes.geometry import capsule_profile, revolve
 
@@ -49,25 +50,6 @@ TIP_MAX_MEAN_COSINE = 0.8
 #: (measured 2.8, 2.1, 2.8; theirs is the chord of the last path segment, ending at the
 #: vertex nearest the pixel, so it is quantised to the mesh and not tangent).
 GEODESIC_REFERENCE_MAX_MEAN_DEG = 5.0
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle between rows of a and b, degrees."""
-    cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-def samples_at(mesh: trimesh.Trimesh, points: np.ndarray) -> SurfaceSamples:
-    """Surface samples at the points of the mesh closest to given points."""
-    closest, _, faces = trimesh.proximity.closest_point(mesh, points)
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], closest)
-    bary = np.clip(bary, 0.0, 1.0)
-    bary /= bary.sum(axis=1, keepdims=True)
-    pixels = np.stack([np.zeros(len(points), int), np.arange(len(points))], axis=1)
-    samples = SurfaceSamples((1, len(points)), pixels, closest, faces, bary, np.zeros_like(closest))
-    normals = samples.interpolate(mesh, np.asarray(mesh.vertex_normals))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    return SurfaceSamples((1, len(points)), pixels, closest, faces, bary, normals)
 
 
 def sources_at(mesh: trimesh.Trimesh, points, direction=(0.0, 0.0, 1.0)) -> Sources:
@@ -126,7 +108,7 @@ def test_cylinder_geodesic_direction_is_unrolled_straight_line(cylinder, rng):
     src = sources_at(cylinder, [R, 0.0, 0.01])
     phi = rng.uniform(-np.pi, np.pi, 3000)
     z = rng.uniform(0.001, 0.039, 3000)
-    samples = samples_at(cylinder, np.stack([R * np.cos(phi), R * np.sin(phi), z], axis=1))
+    samples = SurfaceSamples.at_points(cylinder, np.stack([R * np.cos(phi), R * np.sin(phi), z], axis=1))
     fields, valid = bake_geodesic(cylinder, samples, src)
 
     P = samples.points
@@ -154,7 +136,7 @@ def test_hemisphere_geodesics_are_great_circles(hemisphere, rng):
     z = rng.uniform(0.02, 0.999, 3000)
     az = rng.uniform(-np.pi, np.pi, 3000)
     points = R * np.stack([np.sqrt(1 - z**2) * np.cos(az), np.sqrt(1 - z**2) * np.sin(az), z], axis=1)
-    samples = samples_at(hemisphere, points)
+    samples = SurfaceSamples.at_points(hemisphere, points)
     fields, valid = bake_geodesic(hemisphere, samples, src)
     p = samples.points / np.linalg.norm(samples.points, axis=1, keepdims=True)
     expected = (p @ s)[:, None] * p - s  # great circle from s, at p, heading away from s
@@ -166,7 +148,7 @@ def test_hemisphere_geodesics_are_great_circles(hemisphere, rng):
 
 def test_geodesic_is_invalid_at_the_source(cylinder):
     src = sources_at(cylinder, [R, 0.0, 0.01])
-    samples = samples_at(cylinder, src.positions)
+    samples = SurfaceSamples.at_points(cylinder, src.positions)
     fields, valid = bake_geodesic(cylinder, samples, src)
     assert not valid.any()
     assert np.all(fields == 0.0)
@@ -179,7 +161,7 @@ def test_cylinder_transport_keeps_plus_z(cylinder, rng):
     src = sources_at(cylinder, [R, 0.0, 0.01], direction=(0.0, 0.0, 1.0))
     phi = rng.uniform(-np.pi, np.pi, 2000)
     z = rng.uniform(0.001, 0.039, 2000)
-    samples = samples_at(cylinder, np.stack([R * np.cos(phi), R * np.sin(phi), z], axis=1))
+    samples = SurfaceSamples.at_points(cylinder, np.stack([R * np.cos(phi), R * np.sin(phi), z], axis=1))
     fields, valid = bake_transport(cylinder, samples, src)
     assert valid.all()
     err = angle_deg(fields[0], np.array([0.0, 0.0, 1.0]))
@@ -193,14 +175,14 @@ def test_transport_keeps_signs_on_the_tip(capsule, rng):
     z = rng.uniform(0.5, 0.999, 2000)  # polar angle < 60 deg
     az = rng.uniform(-np.pi, np.pi, 2000)
     tip = np.stack([R * np.sqrt(1 - z**2) * np.cos(az), R * np.sqrt(1 - z**2) * np.sin(az), 0.02 + R * z], axis=1)
-    fields, valid = TransportBaker(capsule).bake(samples_at(capsule, tip), src)
+    fields, valid = TransportBaker(capsule).bake(SurfaceSamples.at_points(capsule, tip), src)
     for a, b in [(0, 1), (0, 2), (1, 2)]:
         both = valid[a] & valid[b]
         cos = (fields[a, both] * fields[b, both]).sum(axis=1).mean()
         assert cos < TIP_MAX_MEAN_COSINE, f"LEDs {a} and {b}: mean cosine {cos:.3f} on the tip"
 
     # At the pole each field points across, away from its LED; above the LED it is +z.
-    pole_and_above = samples_at(capsule, [[0.0, 0.0, 0.02 + R], [R, 0.0, 0.015]])
+    pole_and_above = SurfaceSamples.at_points(capsule, [[0.0, 0.0, 0.02 + R], [R, 0.0, 0.015]])
     fields, valid = TransportBaker(capsule).bake(pole_and_above, src)
     assert valid.all()
     away = -np.stack([np.cos(azimuths), np.sin(azimuths), np.zeros(3)], axis=1)
@@ -233,7 +215,7 @@ def test_out_of_range_source_vertex_is_refused(cylinder, baker):
     good = sources_at(cylinder, [[R, 0.0, 0.01], [-R, 0.0, 0.01]])
     bad_index = len(cylinder.vertices) + 7
     bad = Sources(good.positions, np.array([good.vertices[0], bad_index]), good.directions, good.normals)
-    samples = samples_at(cylinder, [[0.0, R, 0.02]])
+    samples = SurfaceSamples.at_points(cylinder, [[0.0, R, 0.02]])
     with pytest.raises(ValueError, match=rf"sources\.vertices\[1\] = {bad_index} is out of range"):
         baker(cylinder).bake(samples, bad)
 

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 from phong_reference.bake import bake
 from phong_reference.plane import PlaneBaker, bake_plane
 from phong_reference.sources import Sources, snap_leds
+from phong_reference.tangent import angle_deg
 from scenes.camera import SurfaceSamples, cast_rays
 from scenes.geometry import capsule_profile, revolve
 
@@ -40,23 +41,6 @@ REFERENCE_MAX_TOL_DEG = 30.0
 REFERENCE_MIN_VALID = 0.99
 
 R = 0.0115  # m, test sphere and cylinder radius (the GelTip's)
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle between rows of a and b, degrees."""
-    cos = (a * b).sum(-1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-
-
-def samples_at(mesh: trimesh.Trimesh, points: np.ndarray) -> SurfaceSamples:
-    """Surface samples at the mesh points closest to `points`, with interpolated normals."""
-    closest, _, faces = trimesh.proximity.closest_point(mesh, points)
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[faces], closest)
-    K = len(points)
-    s = SurfaceSamples((1, K), np.stack([np.zeros(K, int), np.arange(K)], 1), closest, faces, bary, closest * 0)
-    normals = s.interpolate(mesh, np.asarray(mesh.vertex_normals))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    return SurfaceSamples(s.shape, s.pixels, closest, faces, bary, normals)
 
 
 def source_at(mesh: trimesh.Trimesh, vertex: int, normal: np.ndarray) -> Sources:
@@ -92,7 +76,7 @@ def test_sphere_great_circle(rng):
     vertex = 17
     S = mesh.vertices[vertex]
     sources = source_at(mesh, vertex, S)
-    samples = samples_at(mesh, random_sphere_points(rng, 2000, R))
+    samples = SurfaceSamples.at_points(mesh, random_sphere_points(rng, 2000, R))
     fields, valid = bake_plane(mesh, samples, sources)
     expected = great_circle_travel(S, samples.points)
     away = (samples.points @ S) / R**2 > -0.9  # outside the antipodal cap
@@ -108,7 +92,7 @@ def test_hemisphere_open_great_circle(rng):
     vertex = int(np.argmin(np.linalg.norm(mesh.vertices - [R, 0, 0], axis=1)))
     S = mesh.vertices[vertex]
     sources = source_at(mesh, vertex, S * [1, 1, 0])
-    samples = samples_at(mesh, random_sphere_points(rng, 2000, R, upper=True))
+    samples = SurfaceSamples.at_points(mesh, random_sphere_points(rng, 2000, R, upper=True))
     fields, valid = bake_plane(mesh, samples, sources)
     assert valid.mean() > 0.99
     err = angle_deg(fields[0][valid[0]], great_circle_travel(S, samples.points)[valid[0]])
@@ -177,7 +161,7 @@ def test_other_component_is_invalid(rng):
     vertex = int(np.argmin(np.linalg.norm(mesh.vertices - [0, R, 0], axis=1)))
     sources = source_at(mesh, vertex, mesh.vertices[vertex])
     points = np.vstack([random_sphere_points(rng, 200, R), random_sphere_points(rng, 200, R) + [3 * R, 0, 0]])
-    fields, valid = bake_plane(mesh, samples_at(mesh, points), sources)
+    fields, valid = bake_plane(mesh, SurfaceSamples.at_points(mesh, points), sources)
     assert not valid[0, 200:].any()
     assert (fields[0, 200:] == 0).all()
     assert valid[0, :200].mean() > 0.9
