@@ -89,7 +89,6 @@ def _background(kind: str, camera):
 
 
 def cmd_render(args) -> int:
-    from .bake import bake
     from .render import Renderer
 
     spec, mesh, camera = _sensor(args)
@@ -98,7 +97,7 @@ def cmd_render(args) -> int:
     except (OSError, ValueError) as exc:
         raise ValueError(f"depth file {args.depth} could not be read as .npy: {exc}") from None
     check_depth(depth, camera, f"depth file {args.depth}")
-    fields = bake(mesh, camera, spec.leds, args.field)
+    fields = bake_all(mesh, camera, spec.leds, (args.field,))[0][args.field]
     if args.ref_depth:
         ref = check_depth(np.load(args.ref_depth, allow_pickle=False), camera, f"ref depth {args.ref_depth}")
     else:
