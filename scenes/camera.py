@@ -169,7 +169,11 @@ class SurfaceSamples:
     @classmethod
     def at_points(cls, mesh: trimesh.Trimesh, points: np.ndarray) -> "SurfaceSamples":
         """Samples at the mesh points closest to arbitrary points (K, 3), as a 1 x K image."""
-        closest, _, faces = trimesh.proximity.closest_point(mesh, np.asarray(points, dtype=np.float64))
+        # trimesh's closest-point search has absolute tolerances that misfire on metre-
+        # scale meshes (0.35 mm off at the GelTip's pole), so search in millimetres.
+        scaled = trimesh.Trimesh(np.asarray(mesh.vertices) * 1e3, mesh.faces, process=False)
+        closest, _, faces = trimesh.proximity.closest_point(scaled, np.asarray(points, dtype=np.float64) * 1e3)
+        closest = closest * 1e-3
         k = len(closest)
         pixels = np.stack([np.zeros(k, int), np.arange(k)], axis=1)
         return cls.on_mesh(mesh, closest, faces, pixels, (1, k))

@@ -33,9 +33,8 @@ def surface_point(mesh: trimesh.Trimesh, camera: Camera, pixel: tuple[float, flo
     if len(tri) == 0:
         raise ValueError(f"the camera ray through pixel {pixel} misses the membrane")
     point = d * float(np.dot(loc[0], d))
-    closest, _, face = trimesh.proximity.closest_point(mesh, point[None])
-    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[face], closest)
-    normal = (np.asarray(mesh.vertex_normals)[mesh.faces[face[0]]] * bary[0][:, None]).sum(axis=0)
+    bary = np.clip(trimesh.triangles.points_to_barycentric(mesh.triangles[tri[:1]], point[None])[0], 0, 1)
+    normal = (np.asarray(mesh.vertex_normals)[mesh.faces[tri[0]]] * (bary / bary.sum())[:, None]).sum(axis=0)
     return point, normal / np.linalg.norm(normal)
 
 

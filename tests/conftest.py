@@ -9,8 +9,15 @@ import numpy as np
 import pytest
 
 from scenes.camera import Camera
+from scenes.gl import GLPlatformError, choose_gl
 from scenes.geometry import membrane_mesh
 from scenes.spec import default_spec
+
+# MuJoCo reads MUJOCO_GL once, when first imported: choose a headless platform first.
+try:
+    choose_gl()
+except GLPlatformError:
+    pass
 
 #: The authors' published data lives beside the repository (never copied into it).
 REFERENCE_DIR = Path(

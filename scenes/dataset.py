@@ -1,0 +1,213 @@
+"""Tactile datasets on disk: one documented format for simulated, PBR and real captures.
+
+See ``docs/dataset-format.md``. Every file is written atomically (a temporary file in the
+same folder, then a rename), and ``samples.jsonl`` gets a sample's line only after its
+image and depth files are complete, so an interrupted run resumes where it stopped with
+nothing lost or duplicated.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from .images import read_rgb, write_rgb
+
+FORMAT = "tactile-sim-dataset"
+VERSION = 1
+SOURCES = ("sim", "pbr", "real")
+#: Keys of dataset.json that must match when a run resumes into an existing folder.
+IDENTITY_KEYS = ("format", "version", "source", "sensor", "protocol", "renderer")
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_json(path: Path, obj) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def sha256_json(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()
+
+
+def sample_id(index: int, obj: str) -> str:
+    """File-system-safe id of a sample: its tap index, then its object."""
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in obj)
+    return f"{index:06d}_{safe}"
+
+
+class DatasetError(ValueError):
+    """A dataset folder is corrupt, incomplete or of another kind than expected."""
+
+
+class DatasetWriter:
+    """Create or resume a dataset folder.
+
+    Parameters
+    ----------
+    root : the folder.
+    meta : the dataset.json content (``format`` and ``version`` are filled in). A folder
+        that already holds a dataset must have the same identity (sensor, protocol,
+        renderer, source) or the writer refuses it.
+    protocol : the full protocol dict, written to ``protocol.json``.
+    """
+
+    def __init__(self, root: str | Path, meta: dict, protocol: dict | None = None):
+        self.root = Path(root)
+        meta = {"format": FORMAT, "version": VERSION, **meta}
+        if meta.get("source") not in SOURCES:
+            raise ValueError(f"dataset source must be one of {SOURCES}, got {meta.get('source')!r}")
+        if protocol is not None:
+            meta["protocol"] = {**meta.get("protocol", {}), "file": "protocol.json", "sha256": sha256_json(protocol)}
+        self.meta = meta
+        existing = self.root / "dataset.json"
+        if existing.exists():
+            old = read_meta(self.root)
+            diff = [k for k in IDENTITY_KEYS if json.loads(json.dumps(old.get(k))) != json.loads(json.dumps(meta.get(k)))]
+            if diff:
+                raise DatasetError(
+                    f"{self.root} already holds a dataset with different {', '.join(diff)}; "
+                    "resume with the same settings or choose another folder"
+                )
+        else:
+            (self.root / "images").mkdir(parents=True, exist_ok=True)
+            (self.root / "depth").mkdir(parents=True, exist_ok=True)
+            if protocol is not None:
+                atomic_write_json(self.root / "protocol.json", protocol)
+            atomic_write_json(existing, meta)
+        self.done = set(r["id"] for r in read_samples(self.root, repair=True))
+        # Temporary files of writes an interruption cut short; their samples are redone.
+        for folder in ("images", "depth", "."):
+            for tmp in (self.root / folder).glob(".*.tmp"):
+                tmp.unlink(missing_ok=True)
+
+    def append(self, record: dict) -> None:
+        """Record a finished sample (its files must exist): one line, flushed to disk."""
+        if record["id"] in self.done:
+            raise DatasetError(f"sample {record['id']} is already in {self.root / 'samples.jsonl'}")
+        for key in ("image", "depth"):
+            if key in record and not (self.root / record[key]).exists():
+                raise DatasetError(f"sample {record['id']}: {record[key]} was not written")
+        line = json.dumps(record, sort_keys=True) + "\n"
+        with open(self.root / "samples.jsonl", "a") as fh:
+            fh.write(line)
+            fh.flush()
+            os.fsync(fh.fileno())
+        self.done.add(record["id"])
+
+    def write_background(self, image: np.ndarray) -> None:
+        write_rgb(self.root / "background.png", image)
+
+
+def write_sample_files(root: str | Path, sid: str, image: np.ndarray, depth: np.ndarray | None) -> dict:
+    """Write a sample's image (and depth) atomically; returns their paths relative to root.
+
+    Safe to call from worker processes: only the parent appends to samples.jsonl.
+    """
+    root = Path(root)
+    files = {"image": f"images/{sid}.png"}
+    write_rgb(root / files["image"], image, compress_level=1)
+    if depth is not None:
+        files["depth"] = f"depth/{sid}.npy"
+        atomic_write_bytes(root / files["depth"], npy_bytes(np.asarray(depth, np.float32)))
+    return files
+
+
+def read_meta(root: str | Path) -> dict:
+    """dataset.json of a dataset folder, checked for format and version."""
+    path = Path(root) / "dataset.json"
+    if not path.exists():
+        raise DatasetError(f"{root} is not a dataset: {path.name} is missing")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path} is corrupt: {exc}") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise DatasetError(f"{path} is not a {FORMAT} file (format = {meta.get('format') if isinstance(meta, dict) else meta!r})")
+    if meta.get("version") != VERSION:
+        raise DatasetError(f"{path} has format version {meta.get('version')}, this reader knows {VERSION}")
+    return meta
+
+
+def read_samples(root: str | Path, repair: bool = False) -> list[dict]:
+    """The sample records of a dataset, in the order they were written.
+
+    A last line cut short by an interrupted write is dropped (and, with ``repair``, cut
+    from the file); any other unreadable line is an error naming the line.
+    """
+    path = Path(root) / "samples.jsonl"
+    if not path.exists():
+        return []
+    raw = path.read_bytes()
+    lines = raw.split(b"\n")
+    records, seen, good_end = [], set(), 0
+    for number, line in enumerate(lines, start=1):
+        if not line.strip():
+            good_end += len(line) + 1
+            continue
+        last = number == len(lines)  # no newline after it: possibly cut short
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict) or "id" not in record:
+                raise ValueError("not a sample record with an 'id'")
+        except ValueError as exc:
+            if last:
+                break
+            raise DatasetError(f"{path}, line {number}: {exc}") from None
+        if record["id"] in seen:
+            raise DatasetError(f"{path}, line {number}: sample {record['id']} appears twice")
+        seen.add(record["id"])
+        records.append(record)
+        good_end += len(line) + 1
+    good_end = min(good_end, len(raw))
+    if repair and good_end < len(raw):
+        with open(path, "r+b") as fh:
+            fh.truncate(good_end)
+    return records
+
+
+def load_sample(root: str | Path, record: dict, shape: tuple[int, int] | None = None):
+    """(image (H, W, 3) float32, depth (H, W) float32 or None) of one sample record."""
+    root = Path(root)
+    image_path = root / record.get("image", "")
+    if not image_path.is_file():
+        raise DatasetError(f"{root}: sample {record.get('id')}: image {record.get('image')} is missing")
+    try:
+        image = read_rgb(image_path, shape)
+    except ValueError as exc:
+        raise DatasetError(f"{root}: sample {record.get('id')}: {exc}") from None
+    depth = None
+    if record.get("depth"):
+        try:
+            depth = np.load(root / record["depth"], allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f"{root}: sample {record.get('id')}: depth {record['depth']} unreadable: {exc}") from None
+    return image, depth
+
+
+def pending(ids: Iterable[str], done: set[str]) -> list[str]:
+    return [i for i in ids if i not in done]

@@ -1,0 +1,319 @@
+"""MuJoCo model of the tapping rig: the GelTip on a 3D printer with two servos.
+
+World frame: the printer bed, Z up, metres. The printer head moves on three prismatic
+axes (``printer_x``, ``printer_y``, ``printer_z``) and carries an indenter on a pitch
+servo (``indenter_pitch``, about world +Y); the sensor lies on the bed with its axis along
+world +X and rolls on a servo (``sensor_roll``, about its own axis). Every joint, actuator,
+body, geom, site and camera is named in the XML and looked up by name.
+
+The membrane is geometric, as in the published set-up: the indenter passes into it and the
+in-sensor depth camera ``geltip_depth`` sees whichever surface is nearer. MuJoCo culls back
+faces, so the camera sees an inward-facing copy of the membrane (``membrane_view``, group
+0) while the overview sees the outward one (``membrane``, group 2).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .geometry import membrane_mesh
+from .protocol import SENSOR_TO_WORLD_AT_ROLL0, Tap
+from .spec import SensorSpec
+
+#: Geom groups: what the in-sensor depth camera sees, and visual-only parts.
+GROUP_MEMBRANE_VIEW, GROUP_INDENTER, GROUP_MEMBRANE, GROUP_BODY = 0, 1, 2, 3
+DEPTH_GROUPS = (GROUP_MEMBRANE_VIEW, GROUP_INDENTER)
+
+#: Servo travel, radians: the Hitec HS-422 turns about 180 degrees; a little beyond
+#: [0, pi] for the roll and [0, pi/2] for the pitch leaves room for perturbed taps.
+ROLL_TRAVEL_RAD = (-0.2, math.pi + 0.2)
+PITCH_TRAVEL_RAD = (-0.35, math.pi / 2 + 0.35)
+
+#: Model extent for MuJoCo's near/far planes, which are fractions of it (metres).
+EXTENT_M = 0.5
+#: Near and far clip planes of every camera, metres (set explicitly: MuJoCo's defaults,
+#: fractions of the model extent, can clip a small sensor).
+ZNEAR_M, ZFAR_M = 0.001, 2.0
+
+
+@dataclass(frozen=True)
+class RigLayout:
+    """Where the rig's parts are, metres (world frame)."""
+
+    sensor_origin: tuple[float, float, float] = (0.16, 0.0, 0.08)  # camera centre at roll 0
+    mount_length: float = 0.045  # head to the pitch servo's axis
+    indenter_offset: float = 0.012  # pitch axis to the indenter's base
+    travel_x: tuple[float, float] = (-0.05, 0.35)  # printer_x range
+    travel_y: tuple[float, float] = (-0.16, 0.16)
+    travel_z: tuple[float, float] = (-0.05, 0.40)
+    home: tuple[float, float, float] = (0.16, 0.0, 0.20)  # head position at rest
+
+
+def _f(values) -> str:
+    return " ".join(f"{float(v):.17g}" for v in np.atleast_1d(values))
+
+
+def _mat_to_quat(m: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion (w, x, y, z)."""
+    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
+    x = math.copysign(math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2, m[2, 1] - m[1, 2])
+    y = math.copysign(math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0])
+    z = math.copysign(math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2, m[1, 0] - m[0, 1])
+    q = np.array([w, x, y, z])
+    return q / np.linalg.norm(q)
+
+
+def _stl(mesh: trimesh.Trimesh) -> bytes:
+    return mesh.export(file_type="stl")
+
+
+@dataclass(frozen=True)
+class RigScene:
+    """An MJCF document and the mesh files it refers to (file name -> STL bytes)."""
+
+    xml: str
+    assets: dict[str, bytes]
+    indenter: str
+
+    def export(self, folder: str | Path) -> Path:
+        """Write ``rig.xml`` and its meshes, for ``python -m mujoco.viewer --mjcf``."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, data in self.assets.items():
+            (folder / name).write_bytes(data)
+        path = folder / "rig.xml"
+        path.write_text(self.xml)
+        return path
+
+
+def rig_scene(
+    spec: SensorSpec,
+    indenter: trimesh.Trimesh,
+    indenter_name: str = "indenter",
+    membrane: trimesh.Trimesh | None = None,
+    layout: RigLayout = RigLayout(),
+) -> RigScene:
+    """Build the rig's MJCF from a sensor spec, a membrane mesh and an indenter mesh.
+
+    Parameters
+    ----------
+    indenter : watertight mesh in metres, its feature along local +z (see
+        ``scenes.indenters``); mounted pointing down at pitch 0.
+    membrane : the membrane in the sensor (camera) frame; default: built from the spec.
+    """
+    membrane = membrane_mesh(spec) if membrane is None else membrane
+    inward = membrane.copy()
+    inward.invert()
+    m = spec.membrane
+    cam = spec.camera
+    lo, hi = membrane.bounds
+    base_z = float(lo[2])
+    radius = float(np.max(np.linalg.norm(membrane.vertices[:, :2], axis=1)))
+    core = min(m.core_radius, radius * 0.95)
+    glass_top = float(hi[2]) - (m.radius - m.core_radius)
+    glass_half = max((glass_top - core - base_z) / 2, 1e-3)
+    sensor_quat = _mat_to_quat(np.asarray(SENSOR_TO_WORLD_AT_ROLL0))
+    feature_top = float(indenter.bounds[1, 2])
+    assets = {
+        "membrane.stl": _stl(membrane),
+        "membrane_view.stl": _stl(inward),
+        f"{indenter_name}.stl": _stl(indenter),
+    }
+    fovy_deg = math.degrees(cam.fov_y)
+    xml = f"""<mujoco model="geltip_tapping_rig">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="0.002"/>
+  <statistic center="{_f(layout.sensor_origin)}" extent="{EXTENT_M}"/>
+  <visual>
+    <map znear="{ZNEAR_M / EXTENT_M:.9g}" zfar="{ZFAR_M / EXTENT_M:.9g}"/>
+    <global offwidth="{max(cam.width, 1280)}" offheight="{max(cam.height, 960)}"/>
+    <quality shadowsize="2048"/>
+  </visual>
+  <default>
+    <geom contype="0" conaffinity="0"/>
+    <default class="frame"><geom type="box" group="{GROUP_BODY}" rgba="0.15 0.15 0.17 1"/></default>
+  </default>
+  <asset>
+    <texture name="grid" type="2d" builtin="checker" rgb1="0.8 0.8 0.8" rgb2="0.7 0.7 0.72" width="256" height="256"/>
+    <material name="bed" texture="grid" texrepeat="8 8"/>
+    <mesh name="membrane" file="membrane.stl" inertia="shell"/>
+    <mesh name="membrane_view" file="membrane_view.stl" inertia="shell"/>
+    <mesh name="indenter" file="{indenter_name}.stl"/>
+  </asset>
+  <worldbody>
+    <light name="key" pos="0.1 -0.4 0.8" dir="0 0.4 -0.8" diffuse="0.8 0.8 0.8"/>
+    <light name="fill" pos="0.4 0.4 0.6" dir="-0.3 -0.3 -0.6" diffuse="0.4 0.4 0.4"/>
+    <camera name="overview" mode="targetbody" target="sensor" pos="{_f(np.add(layout.sensor_origin, (-0.07, -0.15, 0.09)))}" fovy="45"/>
+    <geom name="printer_bed" type="box" size="0.2 0.2 0.004" pos="{_f((layout.sensor_origin[0], 0, 0))}" material="bed" group="{GROUP_BODY}"/>
+    <geom name="frame_left" class="frame" size="0.012 0.012 0.25" pos="{_f((layout.sensor_origin[0], -0.22, 0.25))}"/>
+    <geom name="frame_right" class="frame" size="0.012 0.012 0.25" pos="{_f((layout.sensor_origin[0], 0.22, 0.25))}"/>
+    <geom name="frame_top" class="frame" size="0.012 0.232 0.012" pos="{_f((layout.sensor_origin[0], 0, 0.5))}"/>
+    <geom name="sensor_holder" class="frame" size="0.02 0.02 {layout.sensor_origin[2] / 2 - 0.002:.9g}" pos="{_f((layout.sensor_origin[0] + base_z - 0.02, 0, layout.sensor_origin[2] / 2))}"/>
+    <body name="sensor" pos="{_f(layout.sensor_origin)}" quat="{_f(sensor_quat)}">
+      <joint name="sensor_roll" type="hinge" axis="0 0 1" range="{_f(ROLL_TRAVEL_RAD)}" damping="0.05"/>
+      <inertial pos="0 0 0" mass="0.05" diaginertia="1e-5 1e-5 1e-5"/>
+      <camera name="geltip_depth" pos="0 0 0" xyaxes="1 0 0 0 -1 0" fovy="{fovy_deg:.9g}"/>
+      <geom name="membrane_view" type="mesh" mesh="membrane_view" group="{GROUP_MEMBRANE_VIEW}" rgba="0.9 0.9 0.9 1" mass="0"/>
+      <geom name="membrane" type="mesh" mesh="membrane" group="{GROUP_MEMBRANE}" rgba="0.75 0.75 0.78 1" mass="0"/>
+      <geom name="glass_core" type="capsule" size="{core:.9g} {glass_half:.9g}" pos="0 0 {base_z + glass_half:.9g}" group="{GROUP_BODY}" rgba="0.7 0.85 1 0.35" mass="0"/>
+      <geom name="sensor_body" type="cylinder" size="{radius + 0.002:.9g} 0.015" pos="0 0 {base_z - 0.015:.9g}" group="{GROUP_BODY}" rgba="0.1 0.1 0.1 1" mass="0"/>
+    </body>
+    <body name="gantry_x">
+      <joint name="printer_x" type="slide" axis="1 0 0" range="{_f(layout.travel_x)}" damping="50"/>
+      <inertial pos="0 0 0" mass="1" diaginertia="1e-3 1e-3 1e-3"/>
+      <body name="gantry_y">
+        <joint name="printer_y" type="slide" axis="0 1 0" range="{_f(layout.travel_y)}" damping="50"/>
+        <inertial pos="0 0 0" mass="1" diaginertia="1e-3 1e-3 1e-3"/>
+        <body name="printer_head">
+          <joint name="printer_z" type="slide" axis="0 0 1" range="{_f(layout.travel_z)}" damping="50"/>
+          <inertial pos="0 0 0" mass="0.5" diaginertia="1e-3 1e-3 1e-3"/>
+          <geom name="head" type="box" size="0.025 0.02 0.015" group="{GROUP_BODY}" rgba="0.2 0.2 0.22 1"/>
+          <geom name="indenter_mount" type="box" size="0.006 0.012 {layout.mount_length / 2:.9g}" pos="0 0 {-layout.mount_length / 2:.9g}" group="{GROUP_BODY}" rgba="0.3 0.3 0.35 1"/>
+          <body name="indenter_servo" pos="0 0 {-layout.mount_length:.9g}">
+            <joint name="indenter_pitch" type="hinge" axis="0 1 0" range="{_f(PITCH_TRAVEL_RAD)}" damping="0.05"/>
+            <inertial pos="0 0 0" mass="0.05" diaginertia="1e-5 1e-5 1e-5"/>
+            <geom name="servo_horn" type="cylinder" size="0.01 0.008" quat="0.7071068 0.7071068 0 0" group="{GROUP_BODY}" rgba="0.05 0.05 0.05 1"/>
+            <body name="indenter" pos="0 0 {-layout.indenter_offset:.9g}" quat="0 1 0 0">
+              <geom name="indenter" type="mesh" mesh="indenter" group="{GROUP_INDENTER}" rgba="0.85 0.45 0.2 1" mass="0.01"/>
+              <site name="indenter_tip" pos="0 0 {feature_top:.9g}" size="0.0005" group="5"/>
+            </body>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <position name="printer_x" joint="printer_x" kp="2000" ctrlrange="{_f(layout.travel_x)}"/>
+    <position name="printer_y" joint="printer_y" kp="2000" ctrlrange="{_f(layout.travel_y)}"/>
+    <position name="printer_z" joint="printer_z" kp="2000" ctrlrange="{_f(layout.travel_z)}"/>
+    <position name="indenter_pitch" joint="indenter_pitch" kp="2" ctrlrange="{_f(PITCH_TRAVEL_RAD)}"/>
+    <position name="sensor_roll" joint="sensor_roll" kp="2" ctrlrange="{_f(ROLL_TRAVEL_RAD)}"/>
+  </actuator>
+</mujoco>
+"""
+    return RigScene(xml, assets, indenter_name)
+
+
+class Rig:
+    """A compiled rig: MuJoCo model and data, with tap poses and depth capture."""
+
+    def __init__(self, scene: RigScene, spec: SensorSpec, layout: RigLayout = RigLayout()):
+        from .gl import import_mujoco
+
+        self.mujoco = import_mujoco()
+        self.spec = spec
+        self.layout = layout
+        self.scene = scene
+        self.model = self.mujoco.MjModel.from_xml_string(scene.xml, assets=scene.assets)
+        self.data = self.mujoco.MjData(self.model)
+        self.home()
+        geom = self.model.geom("indenter")
+        mesh_id = int(self.model.geom_dataid[geom.id])
+        start, count = self.model.mesh_vertadr[mesh_id], self.model.mesh_vertnum[mesh_id]
+        # MuJoCo stores mesh vertices in the geom's frame (re-centred on the mesh's inertia).
+        self._indenter_vertices = np.array(self.model.mesh_vert[start : start + count], dtype=np.float64)
+        self._renderers: dict = {}
+
+    # -- poses ------------------------------------------------------------------------
+
+    def qpos(self, joint: str) -> float:
+        return float(self.data.joint(joint).qpos[0])
+
+    def set_joints(self, **values: float) -> None:
+        """Set joint positions by name (a settled servo or axis) and update kinematics."""
+        for name, value in values.items():
+            joint = self.model.joint(name)
+            lo, hi = self.model.jnt_range[joint.id]
+            if not lo - 1e-9 <= value <= hi + 1e-9:
+                raise ValueError(f"{name} = {value:.6g} is outside its travel [{lo:.6g}, {hi:.6g}]")
+            self.data.joint(name).qpos[0] = value
+            self.data.actuator(name).ctrl[0] = value
+        self.mujoco.mj_kinematics(self.model, self.data)
+        self.mujoco.mj_camlight(self.model, self.data)  # cameras are not part of kinematics
+
+    def home(self) -> None:
+        x, y, z = self.layout.home
+        self.set_joints(printer_x=x, printer_y=y, printer_z=z, indenter_pitch=0.0, sensor_roll=0.0)
+
+    def sensor_to_world(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t): the sensor frame's rotation and origin in the world, now."""
+        body = self.data.body("sensor")
+        return np.array(body.xmat).reshape(3, 3), np.array(body.xpos)
+
+    def tap_pose(self, tap: Tap) -> dict[str, float]:
+        """Joint positions that press the indenter ``tap.depth`` into the membrane.
+
+        The indenter's tip site is put on the normal line through the contact point, and
+        the indenter is moved along the normal until its deepest vertex lies ``depth``
+        below the surface, measured along the normal.
+        """
+        self.set_joints(printer_x=0.0, printer_y=0.0, printer_z=0.0, indenter_pitch=tap.indenter_pitch,
+                        sensor_roll=tap.sensor_roll)
+        R, t = self.sensor_to_world()
+        p = R @ np.asarray(tap.point) + t
+        n = R @ np.asarray(tap.normal)
+        geom = self.data.geom("indenter")
+        verts = self._indenter_vertices @ np.array(geom.xmat).reshape(3, 3).T + np.array(geom.xpos)
+        tip = np.array(self.data.site("indenter_tip").xpos)
+        lateral = (p - tip) - np.dot(p - tip, n) * n
+        along = (np.dot(p, n) - tap.depth) - (verts @ n).min()
+        x, y, z = lateral + along * n
+        pose = {"printer_x": x, "printer_y": y, "printer_z": z, "indenter_pitch": tap.indenter_pitch,
+                "sensor_roll": tap.sensor_roll}
+        for name in ("printer_x", "printer_y", "printer_z"):
+            lo, hi = self.model.jnt_range[self.model.joint(name).id]
+            if not lo <= pose[name] <= hi:
+                raise ValueError(
+                    f"tap {tap.index} ({tap.object}, row {tap.row}, position {tap.position}) needs "
+                    f"{name} = {pose[name]:.4f} m, outside the printer's travel [{lo:.3f}, {hi:.3f}]"
+                )
+        return pose
+
+    def press(self, tap: Tap) -> None:
+        self.set_joints(**self.tap_pose(tap))
+
+    # -- rendering --------------------------------------------------------------------
+
+    def _renderer(self, width: int, height: int):
+        key = (width, height)
+        if key not in self._renderers:
+            try:
+                self._renderers[key] = self.mujoco.Renderer(self.model, height, width)
+            except Exception as exc:  # MuJoCo raises plain Exceptions for GL failures
+                from .gl import missing_message
+
+                raise RuntimeError(f"MuJoCo could not open a rendering context: {exc}; {missing_message()}") from exc
+        return self._renderers[key]
+
+    def depth(self) -> np.ndarray:
+        """Depth map of the in-sensor camera: (H, W) float32, metres, planar z."""
+        cam = self.spec.camera
+        renderer = self._renderer(cam.width, cam.height)
+        option = self.mujoco.MjvOption()
+        option.geomgroup[:] = 0
+        option.sitegroup[:] = 0  # sites would stand out of the indenter's surface
+        for group in DEPTH_GROUPS:
+            option.geomgroup[group] = 1
+        renderer.enable_depth_rendering()
+        renderer.update_scene(self.data, camera="geltip_depth", scene_option=option)
+        return np.asarray(renderer.render(), dtype=np.float32)
+
+    def snapshot(self, width: int = 1280, height: int = 960, camera: str = "overview") -> np.ndarray:
+        """RGB overview of the rig: (H, W, 3) float32 in [0, 1]."""
+        renderer = self._renderer(width, height)
+        renderer.disable_depth_rendering()
+        option = self.mujoco.MjvOption()
+        option.geomgroup[:] = 1
+        option.geomgroup[GROUP_MEMBRANE_VIEW] = 0
+        renderer.update_scene(self.data, camera=camera, scene_option=option)
+        return renderer.render().astype(np.float32) / 255.0
+
+    def close(self) -> None:
+        for r in self._renderers.values():
+            r.close()
+        self._renderers.clear()

@@ -1,0 +1,132 @@
+"""The MuJoCo tapping rig: names, headless depth on the spec's camera, geometric contact."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from scenes.camera import reference_depth
+from scenes.gl import GLPlatformError, choose_gl
+from scenes.protocol import base_protocol
+
+#: The issue's bound on a no-contact capture against the ray-cast D_ref, metres RMS.
+NO_CONTACT_RMS_BOUND_M = 0.1e-3
+#: Measured indentation (deepest pixel along the normal) against the commanded depth.
+DEPTH_TOLERANCE_M = 0.05e-3
+
+
+@pytest.fixture(scope="module")
+def rig_factory(spec, mesh):
+    try:
+        choose_gl()  # before mujoco is imported: it reads MUJOCO_GL once
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
+    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    from scenes.indenters import indenter
+    from scenes.rig import Rig, rig_scene
+
+    rigs = {}
+
+    def make(name="sphere"):
+        if name not in rigs:
+            try:
+                rigs[name] = Rig(rig_scene(spec, indenter(name), name, membrane=mesh), spec)
+                rigs[name].depth()
+            except RuntimeError as exc:
+                pytest.skip(f"no headless GL context: {exc}")
+        return rigs[name]
+
+    yield make
+    for rig in rigs.values():
+        rig.close()
+
+
+@pytest.fixture(scope="module")
+def ref(mesh, camera):
+    return reference_depth(mesh, camera)[0]
+
+
+def test_everything_is_named(rig_factory):
+    rig = rig_factory()
+    m = rig.model
+    for joint in ("printer_x", "printer_y", "printer_z", "indenter_pitch", "sensor_roll"):
+        assert m.joint(joint).name == joint
+        assert m.actuator(joint).name == joint
+    for body in ("sensor", "printer_head", "indenter_servo", "indenter"):
+        assert m.body(body).name == body
+    for geom in ("membrane", "membrane_view", "glass_core", "indenter", "printer_bed"):
+        assert m.geom(geom).name == geom
+    assert m.camera("geltip_depth").name == "geltip_depth"
+    assert m.site("indenter_tip").name == "indenter_tip"
+    assert 'name="geltip_depth"' in rig.scene.xml
+
+
+def test_no_contact_depth_matches_the_ray_cast_reference(rig_factory, camera, ref):
+    rig = rig_factory()
+    rig.home()
+    depth = rig.depth()
+    assert depth.shape == camera.shape and depth.dtype == np.float32
+    err = (depth - ref)[camera.mask].astype(np.float64)
+    rms = float(np.sqrt(np.mean(err**2)))
+    print(f"MuJoCo no-contact vs ray-cast D_ref: RMS {rms * 1e3:.6f} mm")
+    assert rms < NO_CONTACT_RMS_BOUND_M
+    # The same holds with the sensor rolled: the camera rolls with it.
+    rig.set_joints(sensor_roll=1.0)
+    assert np.sqrt(np.mean((rig.depth() - ref)[camera.mask] ** 2)) < NO_CONTACT_RMS_BOUND_M
+
+
+@pytest.mark.parametrize("name", ["sphere", "cylinder", "cone", "dots", "open_cylinder", "pacman", "indented_prism", "random"])
+def test_measured_indentation_equals_the_commanded_depth(rig_factory, spec, mesh, camera, ref, name):
+    from scenes.generate import measured_depth
+
+    rig = rig_factory(name)
+    protocol = base_protocol(spec, mesh, (name,))
+    for tap in protocol.taps[::5]:
+        rig.press(tap)
+        depth = rig.depth()
+        assert (depth < ref - 1e-6).sum() > 20, f"tap {tap.index} left no imprint"
+        got = measured_depth(depth, ref, camera, tap, 1e-6)
+        assert got == pytest.approx(tap.depth, abs=DEPTH_TOLERANCE_M), f"tap {tap.index} ({name})"
+
+
+def test_pose_puts_the_indenter_where_the_tap_says(rig_factory, spec, mesh):
+    rig = rig_factory()
+    tap = base_protocol(spec, mesh, ("sphere",)).taps[0]  # the apex, from +X
+    pose = rig.tap_pose(tap)
+    assert pose["indenter_pitch"] == pytest.approx(math.pi / 2)
+    rig.set_joints(**pose)
+    R, t = rig.sensor_to_world()
+    tip = np.array(rig.data.site("indenter_tip").xpos)
+    apex = R @ np.asarray(tap.point) + t
+    # The sphere's top point is 2 mm inside the apex, on the axis.
+    assert np.allclose(tip, apex - 0.002 * (R @ np.asarray(tap.normal)), atol=1e-6)
+
+
+def test_out_of_travel_is_refused(rig_factory):
+    rig = rig_factory()
+    with pytest.raises(ValueError, match="outside its travel"):
+        rig.set_joints(printer_z=5.0)
+    with pytest.raises(ValueError, match="sensor_roll"):
+        rig.set_joints(sensor_roll=4.0)
+
+
+def test_snapshot_and_export(rig_factory, tmp_path):
+    import mujoco
+
+    rig = rig_factory()
+    image = rig.snapshot(320, 240)
+    assert image.shape == (240, 320, 3) and image.std() > 0.05
+    path = rig.scene.export(tmp_path / "scene")
+    model = mujoco.MjModel.from_xml_path(str(path))
+    assert model.camera("geltip_depth").name == "geltip_depth"
+
+
+def test_missing_gl_platform_names_the_packages(monkeypatch):
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    with pytest.raises(GLPlatformError, match="libegl1 libegl-mesa0 libgl1-mesa-dri"):
+        choose_gl(find_library=lambda name: None)
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    with pytest.raises(GLPlatformError, match="libEGL is missing"):
+        choose_gl(find_library=lambda name: None)
