@@ -55,7 +55,9 @@ def sha256_json(obj) -> str:
 
 
 def sample_id(index: int, obj: str) -> str:
-    """File-system-safe id of a sample: its tap index, then its object."""
+    """File-system-safe id of a sample: its tap index, then its object (a mesh file's stem)."""
+    if "/" in obj or "\\" in obj or Path(obj).suffix.lower() in (".stl", ".obj", ".ply", ".off", ".glb"):
+        obj = Path(obj).stem
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in obj)
     return f"{index:06d}_{safe}"
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import os
 import time
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -58,37 +59,26 @@ class Job:
 
 
 class Worker:
-    """Per-process state: one compiled rig per object, the renderer, D_ref."""
+    """Per-process state: one compiled rig carrying every object, the renderer, D_ref."""
 
-    def __init__(self, job: Job):
+    def __init__(self, job: Job, objects: tuple[str, ...]):
+        from .indenters import indenter
         from .rig import Rig, rig_scene
 
         self.job = job
         self.spec = job.spec
         self.mesh = membrane_mesh(job.spec)
         self.camera = Camera.from_spec(job.spec)
-        self._rig_scene, self._rig_class = rig_scene, Rig
-        self.rigs: dict = {}
-        self.renderer = None
-
-    def rig(self, name: str):
-        if name not in self.rigs:
-            from .indenters import indenter
-
-            scene = self._rig_scene(self.spec, indenter(name), name, membrane=self.mesh)
-            self.rigs[name] = self._rig_class(scene, self.spec)
-            if self.renderer is None:
-                rig = self.rigs[name]
-                rig.home()
-                self.ref_depth = rig.depth()
-                plugin = renderer_plugin(self.job.renderer)
-                self.renderer = plugin.make_renderer(self.spec, self.mesh, self.camera, self.ref_depth, self.job.options)
-        return self.rigs[name]
+        meshes = {name: indenter(name) for name in objects}
+        self.rig = Rig(rig_scene(self.spec, meshes, membrane=self.mesh), self.spec)
+        self.rig.home()
+        self.ref_depth = self.rig.depth()
+        plugin = renderer_plugin(job.renderer)
+        self.renderer = plugin.make_renderer(self.spec, self.mesh, self.camera, self.ref_depth, job.options)
 
     def capture(self, tap: Tap) -> np.ndarray:
-        rig = self.rig(tap.object)
-        rig.press(tap)
-        return rig.depth()
+        self.rig.press(tap)
+        return self.rig.depth()
 
     def run(self, tap: Tap) -> dict:
         depth = self.capture(tap)
@@ -116,13 +106,21 @@ class Worker:
 _WORKER: Worker | None = None
 
 
-def _init_worker(job: Job) -> None:
+def _init_worker(job: Job, objects: tuple[str, ...], gl_threads: str | None = None) -> None:
     global _WORKER
-    _WORKER = Worker(job)
+    if gl_threads is not None:
+        # Mesa's software rasteriser starts a thread per core in every process; with one
+        # process per core they only contend.
+        os.environ.setdefault("LP_NUM_THREADS", gl_threads)
+    _WORKER = Worker(job, objects)
 
 
 def _run(tap: Tap) -> dict:
     return _WORKER.run(tap)
+
+
+def _no_contact(_=None) -> np.ndarray:
+    return _WORKER.renderer.no_contact
 
 
 def generate(
@@ -165,31 +163,44 @@ def generate(
     writer = DatasetWriter(root, meta, protocol.to_dict())
     todo = [t for t in protocol.taps if sample_id(t.index, t.object) not in writer.done]
     job = Job(str(Path(root).resolve()), spec, renderer, options)
+    objects = tuple(protocol.objects)
     t0 = time.perf_counter()
-    if not (writer.root / "background.png").exists() and protocol.taps:
-        local = Worker(job)
-        local.rig(protocol.taps[0].object)
-        writer.write_background(local.renderer.no_contact)
-        for rig in local.rigs.values():
-            rig.close()
     from tqdm import tqdm
 
     bar = tqdm(total=len(protocol.taps), initial=len(protocol.taps) - len(todo), desc="dataset", unit="sample",
                disable=not progress)
+    need_background = not (writer.root / "background.png").exists() and bool(objects)
     if workers == 1 or len(todo) <= 1:
-        _init_worker(job)
-        results = map(_run, todo)
-        _finish(writer, results, bar)
+        if need_background or todo:
+            _init_worker(job, objects)
+        if need_background:
+            writer.write_background(_no_contact())
+        stamps = _finish(writer, map(_run, todo), bar)
     else:
         ctx = multiprocessing.get_context("spawn")  # EGL contexts must not cross a fork
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(job,)) as pool:
-            _finish(writer, pool.imap_unordered(_run, todo, chunksize=4), bar)
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(job, objects, "1")) as pool:
+            background = pool.apply_async(_no_contact) if need_background else None
+            stamps = _finish(writer, pool.imap_unordered(_run, todo, chunksize=4), bar)
+            if background is not None:
+                writer.write_background(background.get())
     bar.close()
     seconds = time.perf_counter() - t0
-    return {"samples": len(writer.done), "new": len(todo), "seconds": seconds, "workers": workers}
+    steady = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 2 and stamps[-1] > stamps[0] else None
+    return {
+        "samples": len(writer.done),
+        "new": len(todo),
+        "seconds": seconds,
+        "workers": workers,
+        "start_up_seconds": (stamps[0] - t0) if stamps else None,
+        "steady_frames_per_second": steady,
+    }
 
 
-def _finish(writer: DatasetWriter, results, bar) -> None:
+def _finish(writer: DatasetWriter, results, bar) -> list[float]:
+    """Record results as they come; returns when each was recorded (perf_counter)."""
+    stamps = []
     for record in results:
         writer.append(record)
+        stamps.append(time.perf_counter())
         bar.update(1)
+    return stamps

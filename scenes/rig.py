@@ -10,6 +10,10 @@ The membrane is geometric, as in the published set-up: the indenter passes into 
 in-sensor depth camera ``geltip_depth`` sees whichever surface is nearer. MuJoCo culls back
 faces, so the camera sees an inward-facing copy of the membrane (``membrane_view``, group
 0) while the overview sees the outward one (``membrane``, group 2).
+
+One model carries every indenter of a session (``indenter_<name>`` geoms on the servo,
+tip sites ``indenter_tip_<name>``); mounting one moves its geom into the visible group
+and the others into a spare group, so swapping objects costs no recompilation.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from .protocol import SENSOR_TO_WORLD_AT_ROLL0, Tap
 from .spec import SensorSpec
 
 #: Geom groups: what the in-sensor depth camera sees, and visual-only parts.
-GROUP_MEMBRANE_VIEW, GROUP_INDENTER, GROUP_MEMBRANE, GROUP_BODY = 0, 1, 2, 3
+GROUP_MEMBRANE_VIEW, GROUP_INDENTER, GROUP_MEMBRANE, GROUP_BODY, GROUP_SPARE = 0, 1, 2, 3, 4
 DEPTH_GROUPS = (GROUP_MEMBRANE_VIEW, GROUP_INDENTER)
 
 #: Servo travel, radians: the Hitec HS-422 turns about 180 degrees; a little beyond
@@ -78,7 +82,7 @@ class RigScene:
 
     xml: str
     assets: dict[str, bytes]
-    indenter: str
+    indenters: tuple[str, ...]
 
     def export(self, folder: str | Path) -> Path:
         """Write ``rig.xml`` and its meshes, for ``python -m mujoco.viewer --mjcf``."""
@@ -91,21 +95,27 @@ class RigScene:
         return path
 
 
+def _safe_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
 def rig_scene(
     spec: SensorSpec,
-    indenter: trimesh.Trimesh,
-    indenter_name: str = "indenter",
+    indenters: dict[str, trimesh.Trimesh],
     membrane: trimesh.Trimesh | None = None,
     layout: RigLayout = RigLayout(),
 ) -> RigScene:
-    """Build the rig's MJCF from a sensor spec, a membrane mesh and an indenter mesh.
+    """Build the rig's MJCF from a sensor spec, a membrane mesh and indenter meshes.
 
     Parameters
     ----------
-    indenter : watertight mesh in metres, its feature along local +z (see
-        ``scenes.indenters``); mounted pointing down at pitch 0.
+    indenters : name -> watertight mesh in metres, its feature along local +z (see
+        ``scenes.indenters``); each is mounted pointing down at pitch 0. The first is
+        mounted when the model loads.
     membrane : the membrane in the sensor (camera) frame; default: built from the spec.
     """
+    if not indenters:
+        raise ValueError("indenters must name at least one indenter mesh")
     membrane = membrane_mesh(spec) if membrane is None else membrane
     inward = membrane.copy()
     inward.invert()
@@ -118,12 +128,23 @@ def rig_scene(
     glass_top = float(hi[2]) - (m.radius - m.core_radius)
     glass_half = max((glass_top - core - base_z) / 2, 1e-3)
     sensor_quat = _mat_to_quat(np.asarray(SENSOR_TO_WORLD_AT_ROLL0))
-    feature_top = float(indenter.bounds[1, 2])
-    assets = {
-        "membrane.stl": _stl(membrane),
-        "membrane_view.stl": _stl(inward),
-        f"{indenter_name}.stl": _stl(indenter),
-    }
+    names = {name: _safe_name(name) for name in indenters}
+    if len(set(names.values())) != len(names):
+        raise ValueError(f"indenter names must stay distinct as file names, got {sorted(indenters)}")
+    assets = {"membrane.stl": _stl(membrane), "membrane_view.stl": _stl(inward)}
+    mesh_xml, geom_xml = [], []
+    for i, (name, mesh) in enumerate(indenters.items()):
+        safe = names[name]
+        assets[f"indenter_{safe}.stl"] = _stl(mesh)
+        mesh_xml.append(f'<mesh name="indenter_{safe}" file="indenter_{safe}.stl"/>')
+        group = GROUP_INDENTER if i == 0 else GROUP_SPARE
+        geom_xml.append(
+            f'<geom name="indenter_{safe}" type="mesh" mesh="indenter_{safe}" group="{group}" '
+            f'rgba="0.85 0.45 0.2 1" mass="0.01"/>\n'
+            f'              <site name="indenter_tip_{safe}" pos="0 0 {_f(mesh.bounds[1, 2])}" size="0.0005" group="5"/>'
+        )
+    mesh_xml = "\n    ".join(mesh_xml)
+    geom_xml = "\n              ".join(geom_xml)
     fovy_deg = math.degrees(cam.fov_y)
     xml = f"""<mujoco model="geltip_tapping_rig">
   <compiler angle="radian" autolimits="true"/>
@@ -143,7 +164,7 @@ def rig_scene(
     <material name="bed" texture="grid" texrepeat="8 8"/>
     <mesh name="membrane" file="membrane.stl" inertia="shell"/>
     <mesh name="membrane_view" file="membrane_view.stl" inertia="shell"/>
-    <mesh name="indenter" file="{indenter_name}.stl"/>
+    {mesh_xml}
   </asset>
   <worldbody>
     <light name="key" pos="0.1 -0.4 0.8" dir="0 0.4 -0.8" diffuse="0.8 0.8 0.8"/>
@@ -179,8 +200,7 @@ def rig_scene(
             <inertial pos="0 0 0" mass="0.05" diaginertia="1e-5 1e-5 1e-5"/>
             <geom name="servo_horn" type="cylinder" size="0.01 0.008" quat="0.7071068 0.7071068 0 0" group="{GROUP_BODY}" rgba="0.05 0.05 0.05 1"/>
             <body name="indenter" pos="0 0 {-layout.indenter_offset:.9g}" quat="0 1 0 0">
-              <geom name="indenter" type="mesh" mesh="indenter" group="{GROUP_INDENTER}" rgba="0.85 0.45 0.2 1" mass="0.01"/>
-              <site name="indenter_tip" pos="0 0 {feature_top:.9g}" size="0.0005" group="5"/>
+              {geom_xml}
             </body>
           </body>
         </body>
@@ -196,7 +216,7 @@ def rig_scene(
   </actuator>
 </mujoco>
 """
-    return RigScene(xml, assets, indenter_name)
+    return RigScene(xml, assets, tuple(indenters))
 
 
 class Rig:
@@ -212,12 +232,29 @@ class Rig:
         self.model = self.mujoco.MjModel.from_xml_string(scene.xml, assets=scene.assets)
         self.data = self.mujoco.MjData(self.model)
         self.home()
-        geom = self.model.geom("indenter")
+        self.mounted: str | None = None
+        self.mount(scene.indenters[0])
+        self._renderers: dict = {}
+
+    # -- indenters --------------------------------------------------------------------
+
+    def mount(self, name: str) -> None:
+        """Mount one of the model's indenters (the others go to a hidden group)."""
+        if name not in self.scene.indenters:
+            raise ValueError(f"indenter {name!r} is not in this rig; it has {list(self.scene.indenters)}")
+        if name == self.mounted:
+            return
+        for other in self.scene.indenters:
+            geom = self.model.geom(f"indenter_{_safe_name(other)}")
+            self.model.geom_group[geom.id] = GROUP_INDENTER if other == name else GROUP_SPARE
+        geom = self.model.geom(f"indenter_{_safe_name(name)}")
         mesh_id = int(self.model.geom_dataid[geom.id])
         start, count = self.model.mesh_vertadr[mesh_id], self.model.mesh_vertnum[mesh_id]
-        # MuJoCo stores mesh vertices in the geom's frame (re-centred on the mesh's inertia).
-        self._indenter_vertices = np.array(self.model.mesh_vert[start : start + count], dtype=np.float64)
-        self._renderers: dict = {}
+        # MuJoCo stores mesh vertices in the geom's frame (re-centred on the mesh).
+        self._vertices = np.array(self.model.mesh_vert[start : start + count], dtype=np.float64)
+        self._geom = f"indenter_{_safe_name(name)}"
+        self._tip = f"indenter_tip_{_safe_name(name)}"
+        self.mounted = name
 
     # -- poses ------------------------------------------------------------------------
 
@@ -252,14 +289,15 @@ class Rig:
         the indenter is moved along the normal until its deepest vertex lies ``depth``
         below the surface, measured along the normal.
         """
+        self.mount(tap.object)
         self.set_joints(printer_x=0.0, printer_y=0.0, printer_z=0.0, indenter_pitch=tap.indenter_pitch,
                         sensor_roll=tap.sensor_roll)
         R, t = self.sensor_to_world()
         p = R @ np.asarray(tap.point) + t
         n = R @ np.asarray(tap.normal)
-        geom = self.data.geom("indenter")
-        verts = self._indenter_vertices @ np.array(geom.xmat).reshape(3, 3).T + np.array(geom.xpos)
-        tip = np.array(self.data.site("indenter_tip").xpos)
+        geom = self.data.geom(self._geom)
+        verts = self._vertices @ np.array(geom.xmat).reshape(3, 3).T + np.array(geom.xpos)
+        tip = np.array(self.data.site(self._tip).xpos)
         lateral = (p - tip) - np.dot(p - tip, n) * n
         along = (np.dot(p, n) - tap.depth) - (verts @ n).min()
         x, y, z = lateral + along * n
@@ -300,16 +338,24 @@ class Rig:
         for group in DEPTH_GROUPS:
             option.geomgroup[group] = 1
         renderer.enable_depth_rendering()
+        self._effects(renderer, False)  # shadows and reflections only cost time in depth
         renderer.update_scene(self.data, camera="geltip_depth", scene_option=option)
         return np.asarray(renderer.render(), dtype=np.float32)
+
+    def _effects(self, renderer, on: bool) -> None:
+        flags = self.mujoco.mjtRndFlag
+        for flag in (flags.mjRND_SHADOW, flags.mjRND_REFLECTION, flags.mjRND_SKYBOX):
+            renderer.scene.flags[flag] = on
 
     def snapshot(self, width: int = 1280, height: int = 960, camera: str = "overview") -> np.ndarray:
         """RGB overview of the rig: (H, W, 3) float32 in [0, 1]."""
         renderer = self._renderer(width, height)
         renderer.disable_depth_rendering()
+        self._effects(renderer, True)
         option = self.mujoco.MjvOption()
         option.geomgroup[:] = 1
         option.geomgroup[GROUP_MEMBRANE_VIEW] = 0
+        option.geomgroup[GROUP_SPARE] = 0
         renderer.update_scene(self.data, camera=camera, scene_option=option)
         return renderer.render().astype(np.float32) / 255.0
 

@@ -132,3 +132,26 @@ def test_dataset_bad_input(tmp_path):
     res = subprocess.run(_cli("dataset", "--objects", "sphere", "--field", "spline", "--out", str(tmp_path / "b")),
                          capture_output=True, text=True)
     assert res.returncode == 1 and "field must be one of" in res.stderr
+
+
+def test_scene_commands(tmp_path):
+    _gl_or_skip()
+    from scenes.cli import main
+    from scenes.images import read_rgb
+
+    png = tmp_path / "rig.png"
+    assert main(["scene", "snapshot", "-o", str(png), "--width", "320", "--height", "240", "--object", "cone"]) == 0
+    assert read_rgb(png).std() > 0.05
+    assert main(["scene", "export", "-o", str(tmp_path / "xml"), "--object", "all"]) == 0
+    xml = (tmp_path / "xml" / "rig.xml").read_text()
+    assert 'name="geltip_depth"' in xml and 'name="indenter_pacman"' in xml
+
+
+def test_bench_dataset_writes_json(tmp_path):
+    _gl_or_skip()
+    from scenes.cli import main
+
+    out = tmp_path / "bench.json"
+    assert main(["bench", "dataset", "--json", str(out), "--workers", "1"]) == 0
+    data = json.loads(out.read_text())
+    assert data["samples"] == 144 and data["frames_per_second"] > 0 and data["ms_per_depth_frame"] > 0

@@ -27,20 +27,20 @@ def rig_factory(spec, mesh):
     from scenes.indenters import indenter
     from scenes.rig import Rig, rig_scene
 
-    rigs = {}
+    from scenes.indenters import INDENTERS
+
+    try:
+        rig = Rig(rig_scene(spec, {name: indenter(name) for name in ("sphere",) + INDENTERS}, membrane=mesh), spec)
+        rig.depth()
+    except RuntimeError as exc:
+        pytest.skip(f"no headless GL context: {exc}")
 
     def make(name="sphere"):
-        if name not in rigs:
-            try:
-                rigs[name] = Rig(rig_scene(spec, indenter(name), name, membrane=mesh), spec)
-                rigs[name].depth()
-            except RuntimeError as exc:
-                pytest.skip(f"no headless GL context: {exc}")
-        return rigs[name]
+        rig.mount(name)
+        return rig
 
     yield make
-    for rig in rigs.values():
-        rig.close()
+    rig.close()
 
 
 @pytest.fixture(scope="module")
@@ -56,10 +56,10 @@ def test_everything_is_named(rig_factory):
         assert m.actuator(joint).name == joint
     for body in ("sensor", "printer_head", "indenter_servo", "indenter"):
         assert m.body(body).name == body
-    for geom in ("membrane", "membrane_view", "glass_core", "indenter", "printer_bed"):
+    for geom in ("membrane", "membrane_view", "glass_core", "indenter_sphere", "indenter_cone", "printer_bed"):
         assert m.geom(geom).name == geom
     assert m.camera("geltip_depth").name == "geltip_depth"
-    assert m.site("indenter_tip").name == "indenter_tip"
+    assert m.site("indenter_tip_sphere").name == "indenter_tip_sphere"
     assert 'name="geltip_depth"' in rig.scene.xml
 
 
@@ -98,10 +98,27 @@ def test_pose_puts_the_indenter_where_the_tap_says(rig_factory, spec, mesh):
     assert pose["indenter_pitch"] == pytest.approx(math.pi / 2)
     rig.set_joints(**pose)
     R, t = rig.sensor_to_world()
-    tip = np.array(rig.data.site("indenter_tip").xpos)
+    tip = np.array(rig.data.site("indenter_tip_sphere").xpos)
     apex = R @ np.asarray(tap.point) + t
     # The sphere's top point is 2 mm inside the apex, on the axis.
     assert np.allclose(tip, apex - 0.002 * (R @ np.asarray(tap.normal)), atol=1e-6)
+
+
+def test_mounting_swaps_what_the_camera_sees(rig_factory, spec, mesh, camera, ref):
+    rig = rig_factory("sphere")
+    tap = base_protocol(spec, mesh, ("sphere",)).taps[0]
+    rig.press(tap)
+    sphere = rig.depth()
+    from dataclasses import replace
+
+    rig.press(replace(tap, object="cylinder"))
+    cylinder = rig.depth()
+    assert rig.mounted == "cylinder"
+    # At 2 mm the 5 mm sphere cuts a wider cap out of the curved apex than the 3 mm cylinder.
+    area_sphere, area_cylinder = (sphere < ref - 1e-6).sum(), (cylinder < ref - 1e-6).sum()
+    assert area_sphere > 1.1 * area_cylinder > 0
+    with pytest.raises(ValueError, match="not in this rig"):
+        rig.mount("teapot")
 
 
 def test_out_of_travel_is_refused(rig_factory):
