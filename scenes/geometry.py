@@ -144,6 +144,28 @@ def validate_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
     return mesh
 
 
+#: Metres per unit of a mesh file.
+UNIT_SCALE = {"m": 1.0, "mm": 1e-3}
+
+
+def read_mesh_file(path: str | Path, what: str = "mesh") -> trimesh.Trimesh:
+    """Read a triangle mesh file as it is (file units, unprocessed).
+
+    Raises FileNotFoundError, or ValueError naming the file when it is not a readable
+    triangle mesh. ``what`` names the file's role in messages ("mesh", "indenter").
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} file {path} does not exist")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise ValueError(f"{what} file {path} could not be read as a triangle mesh: {exc}") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"{what} file {path} holds no triangle faces (not a mesh, or unreadable)")
+    return mesh
+
+
 def load_mesh(path: str | Path, units: str = "m") -> trimesh.Trimesh:
     """Load any membrane mesh (STL, OBJ, PLY, ...) and return it in metres.
 
@@ -153,18 +175,12 @@ def load_mesh(path: str | Path, units: str = "m") -> trimesh.Trimesh:
     units : "m" or "mm", the units of the file. A file that looks like millimetres while
         metres were declared is refused, never silently rescaled.
     """
-    path = Path(path)
-    scale = {"m": 1.0, "mm": 1e-3}.get(units)
+    scale = UNIT_SCALE.get(units)
     if scale is None:
         raise ValueError(f"units must be 'm' or 'mm', got {units!r}")
-    if not path.exists():
-        raise FileNotFoundError(f"mesh file {path} does not exist")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for malformed files
-        raise ValueError(f"mesh file {path} could not be read as a triangle mesh: {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"mesh file {path} holds no triangle faces")
+    mesh = read_mesh_file(path, "mesh")
+    # Validate before processing: trimesh's processing silently drops NaN vertices.
+    validate_mesh(trimesh.Trimesh(np.asarray(mesh.vertices) * scale, mesh.faces, process=False), name=str(path))
     mesh = trimesh.Trimesh(np.asarray(mesh.vertices) * scale, mesh.faces, process=True)
     return validate_mesh(mesh, name=str(path))
 

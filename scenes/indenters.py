@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .geometry import validate_mesh
+from .geometry import UNIT_SCALE, read_mesh_file, validate_mesh
 
 #: The paper's objects, by the names used here. "indented_prism" is the published
 #: ``dot_in``, "open_cylinder" the published ``cylinder_shell``.
@@ -59,7 +59,6 @@ _OVERLAP_M = 1e-3
 MAX_INDENTER_EXTENT_M = 0.5
 #: Declared "mm" but smaller than this, millimetres: the file is in metres.
 MIN_INDENTER_EXTENT_MM = 0.1
-_UNIT_SCALE = {"m": 1.0, "mm": 1e-3}
 
 
 # --- Parameters ---------------------------------------------------------------------
@@ -466,19 +465,12 @@ def load_indenter(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     is not watertight.
     """
     path = Path(path)
-    scale = _UNIT_SCALE.get(units)
+    scale = UNIT_SCALE.get(units)
     if scale is None:
         raise ValueError(f"units must be 'm' or 'mm', got {units!r}")
-    if not path.is_file():
-        raise FileNotFoundError(f"indenter file {path} does not exist")
-    # Read here rather than with scenes.geometry.load_mesh: its 1 m limit is the
-    # membrane's rule, and an indenter's unit check must come before it.
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for malformed files
-        raise ValueError(f"indenter file {path} could not be read as a triangle mesh: {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"indenter file {path} holds no triangle faces (not a mesh, or unreadable)")
+    # Not scenes.geometry.load_mesh: its 1 m limit is the membrane's rule, and an
+    # indenter's unit check must come before it.
+    mesh = read_mesh_file(path, "indenter")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     if np.isfinite(vertices).all():  # otherwise validate_mesh names the bad vertices
         extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))  # file units

@@ -106,3 +106,10 @@ def test_malformed_meshes_are_refused(tmp_path):
         validate_mesh(trimesh.Trimesh(v, [[0, 1, 2]], process=False))
     with pytest.raises(ValueError, match="faces"):
         validate_mesh(trimesh.Trimesh(np.eye(3) * 0.01, np.zeros((0, 3), int), process=False))
+
+
+def test_nan_vertices_in_a_file_are_refused_not_dropped(tmp_path):
+    path = tmp_path / "nan.obj"
+    path.write_text("v 0 0 0\nv 0.01 0 0\nv 0 0.01 0\nv nan 0 0.01\nf 1 2 3\nf 1 2 4\n")
+    with pytest.raises(ValueError, match="NaN"):
+        load_mesh(path)
