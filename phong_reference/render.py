@@ -21,11 +21,11 @@ from __future__ import annotations
 import numpy as np
 
 from scenes.camera import Camera, back_project, check_depth
+from scenes.elastic import deform, smooth
 from scenes.spec import SensorSpec
 
 from .background import check_background
 from .bake import LightFields
-from .elastic import deform, smooth
 from .normals import normals
 from .phong import shade
 from .tangent import tangent_unit

@@ -48,7 +48,7 @@ from skimage.metrics import peak_signal_noise_ratio
 from skimage.transform import resize
 
 from phong_reference.bake import METHODS, bake
-from phong_reference.elastic import deform
+from scenes.elastic import deform
 from phong_reference.normals import normals
 from phong_reference.render import Renderer, light_vectors, rectify_vectors, render
 from scenes.camera import Camera, back_project

@@ -6,7 +6,7 @@ import trimesh
 
 from phong_reference.background import make_background
 from phong_reference.bake import bake
-from phong_reference.elastic import deform
+from scenes.elastic import deform
 from phong_reference.normals import normals
 from phong_reference.phong import shade
 from phong_reference.render import Renderer, light_vectors, render

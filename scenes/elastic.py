@@ -1,11 +1,11 @@
-"""Elastic smoothing of a contact depth map (the paper's approximation of the membrane)."""
+"""Elastic smoothing of a contact depth map: the paper's model of the membrane, shared by both renderers."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
 
-from scenes.spec import Elastic
+from .spec import Elastic
 
 #: Border handling of G; 'mirror' is OpenCV's default BORDER_REFLECT_101, which the
 #: published implementation used.
