@@ -61,6 +61,8 @@ class LED:
     colour: tuple[float, float, float]  # linear RGB in [0, 1]
     k_d: float  # diffuse coefficient
     k_s: float  # specular coefficient
+    peak_nm: float | None = None  # emission peak wavelength (physically based renderer)
+    fwhm_nm: float | None = None  # emission full width at half maximum
 
 
 @dataclass(frozen=True)
@@ -211,8 +213,14 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
                 colour=colour,
                 k_d=_take(t, "k_d", float, where),
                 k_s=_take(t, "k_s", float, where),
+                peak_nm=_take(t, "peak_nm", float, where, None),
+                fwhm_nm=_take(t, "fwhm_nm", float, where, None),
             )
         )
+        for key in ("peak_nm", "fwhm_nm"):
+            value = getattr(leds[-1], key)
+            if value is not None and not 1.0 <= value <= 2000.0:
+                raise ValueError(f"{where}.{key} must be in nanometres (1-2000), got {value}")
         if max(abs(v) for v in leds[-1].position) > MAX_SENSOR_SIZE_M:
             raise ValueError(f"{where}.position {leds[-1].position} looks like millimetres; use metres")
 

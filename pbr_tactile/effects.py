@@ -1,0 +1,51 @@
+"""Physical effects of the reference, each a named switch.
+
+The virtual rig and the sim-to-real gap diagnosis turn these on and off; every field is
+documented with its unit, and ``Effects()`` is the full physical model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class Effects:
+    """Switches and strengths of the reference's physical effects."""
+
+    #: Fraction of each LED's power emitted straight into the glass core (the paper's
+    #: explanation of its real images) instead of into the elastomer; 0 switches it off.
+    core_light_leak: float = 0.0
+    #: Absorption coefficient sigma_a of the elastomer, 1/m (0: off).
+    absorption_per_m: float = 20.0
+    #: Scattering coefficient sigma_s of the elastomer, 1/m (0: off).
+    scattering_per_m: float = 50.0
+    #: Gloss of the coating, 0 (matte, diffuse) to 1 (mirror-like binder).
+    coating_gloss: float = 0.0
+    #: Diffuse reflectance (albedo) of the coating, 0-1.
+    coating_albedo: float = 0.85
+    #: The indentation shadows light from an LED (off: light paths see the undeformed
+    #: membrane, only the camera sees the deformed one).
+    contact_shadow: bool = True
+    #: LEDs emit their real spectra (off: flat white).
+    led_spectra: bool = True
+    #: The camera's own spectral response (off: ideal response, CIE-like via sRGB film).
+    camera_response: bool = True
+    #: Vignetting strength: relative fall-off at the image circle's edge, 0-1.
+    vignetting: float = 0.0
+    #: Radial lens distortion coefficients (k1, k2), normalised by the focal length.
+    lens_distortion: tuple[float, float] = (0.0, 0.0)
+    #: Sensor noise: standard deviation of additive Gaussian noise, in [0, 1] units.
+    sensor_noise: float = 0.0
+
+    def __post_init__(self):
+        for name in ("core_light_leak", "coating_gloss", "coating_albedo", "vignetting"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"Effects.{name} must be in [0, 1], got {value}")
+        for name in ("absorption_per_m", "scattering_per_m", "sensor_noise"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"Effects.{name} must be >= 0, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,113 @@
+"""The physically based reference, depth map to image, as one chain:
+
+    image = render(load(geltip_scene(write_meshes(elastomer(membrane, depth, ref)))))
+
+1. ``elastomer``: the membrane refined, displaced to the elastically smoothed depth and
+   closed into the elastomer solid (pbr_tactile.membrane);
+2. ``write_meshes`` and ``geltip_scene``: the scene as a plain dict (pbr_tactile.scene);
+3. ``load``: the one call of ``mi.load_dict``, after ``to_mitsuba`` turns the dict's plain
+   transforms and points into Mitsuba objects;
+4. ``render``: Monte Carlo estimate in independent passes, giving the mean image and a
+   per-pixel variance of that mean.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenes.camera import Camera
+from scenes.spec import SensorSpec
+
+from .effects import Effects
+from .membrane import elastomer
+from .scene import geltip_scene, write_meshes
+from .variant import choose_variant
+
+
+def to_mitsuba(value, mi):
+    """Plain scene dict -> what ``mi.load_dict`` takes (transforms and points)."""
+    if isinstance(value, dict):
+        if "look_at" in value:
+            la = value["look_at"]
+            return mi.ScalarTransform4f().look_at(origin=la["origin"], target=la["target"], up=la["up"])
+        out = {}
+        for k, v in value.items():
+            if k == "center" and isinstance(v, list):
+                out[k] = mi.ScalarPoint3f(*v)
+            elif isinstance(v, dict) and v.get("type") == "rgb":
+                out[k] = {"type": "rgb", "value": mi.ScalarColor3f(*v["value"])}
+            else:
+                out[k] = to_mitsuba(v, mi)
+        return out
+    return value
+
+
+def load(scene: dict, variant: str | None = None):
+    """The Mitsuba scene object of a plain scene dict (the one place that loads)."""
+    mi = choose_variant(variant)
+    return mi, mi.load_dict(to_mitsuba(scene, mi))
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A Monte Carlo image: mean (H, W, 3) float32 linear, and the variance of that mean."""
+
+    mean: np.ndarray
+    variance: np.ndarray
+    spp: int
+
+    @property
+    def relative_error(self) -> np.ndarray:
+        """Per-pixel standard error over the mean (inf where the mean is 0)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.sqrt(self.variance) / self.mean
+
+
+def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: str | None = None,
+           progress=None) -> Estimate:
+    """Render ``passes`` independent passes of spp/passes samples each.
+
+    The variance of the mean is the sample variance across passes divided by their
+    number (passes >= 2), so every estimate carries its own error bar.
+    """
+    if passes < 2:
+        raise ValueError(f"passes must be >= 2 for a variance estimate, got {passes}")
+    if spp < passes:
+        raise ValueError(f"spp ({spp}) must be >= passes ({passes})")
+    mi, loaded = load(scene, variant)
+    per = spp // passes
+    images = []
+    for k in range(passes):
+        img = np.array(mi.render(loaded, spp=per, seed=seed * 7919 + k), dtype=np.float64)
+        images.append(img[..., :3])
+        if progress is not None:
+            progress(k + 1, passes)
+    stack = np.stack(images)
+    return Estimate(stack.mean(axis=0).astype(np.float32), (stack.var(axis=0, ddof=1) / passes).astype(np.float32),
+                    per * passes)
+
+
+def reference(
+    depth: np.ndarray | None,
+    ref_depth: np.ndarray | None,
+    membrane,
+    spec: SensorSpec,
+    camera: Camera,
+    effects: Effects = Effects(),
+    spp: int = 64,
+    width: int | None = None,
+    height: int | None = None,
+    seed: int = 0,
+    variant: str | None = None,
+    progress=None,
+    passes: int = 4,
+) -> Estimate:
+    """Render what the sensor's camera sees for a contact depth map (None: no contact)."""
+    solid = elastomer(membrane, spec, camera, depth, ref_depth)
+    with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
+        meshes = write_meshes(solid, folder)
+        scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
+        return render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)

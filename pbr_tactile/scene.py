@@ -1,0 +1,254 @@
+"""The GelTip as a Mitsuba 3 scene: a plain dict made by pure functions.
+
+Inside out: the camera sits in air inside a glass tube; the tube is in optical contact
+with the elastomer, a light-guiding medium (homogeneous, absorbing and scattering) bounded
+by the glass core (dielectric), the painted outer surface (the coating, reflecting back
+inwards) and a black base ring; the LEDs are small spherical area emitters inside the
+elastomer at the base, with real spectra; the film has the webcam's spectral response.
+
+Everything here is plain data: meshes are referenced by PLY file name, transforms as
+``{"look_at": ...}`` and points as lists. ``to_mitsuba`` (in render.py) turns those into
+Mitsuba objects right before the one ``mi.load_dict``; ``to_xml`` writes the same dict as
+a Mitsuba XML file for other tools.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import trimesh
+
+from scenes.camera import Camera
+from scenes.spec import SensorSpec
+
+from .effects import Effects
+from .membrane import Elastomer
+from .spectra import CAMERA_BANDS_NM, gaussian, led_spectrum, mitsuba_spectrum
+
+#: Refractive indices (dimensionless): silicone elastomer, glass core, air.
+IOR_SILICONE, IOR_GLASS, IOR_AIR = 1.41, 1.49, 1.0
+#: Wall thickness of the glass tube, metres.
+GLASS_THICKNESS_M = 2.0e-3
+#: Radius of each LED's spherical emitter, metres.
+LED_RADIUS_M = 0.35e-3
+#: Paths longer than this are cut (trapped light needs 24-32 bounces).
+MAX_DEPTH = 32
+
+
+def write_meshes(solid: Elastomer, folder: str | Path, glass_thickness: float = GLASS_THICKNESS_M) -> dict[str, str]:
+    """Write the scene's meshes as PLY files; returns {role: path}.
+
+    Roles: ``coating`` (outer surface, normals out of the elastomer), ``core`` (elastomer
+    to glass), ``base`` (elastomer's base ring), ``glass_inner`` (glass to air, normals
+    into the air) and ``glass_base`` (the tube's base ring).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    inner = solid.inner  # normals point into the glass, towards the axis
+    # The tube's inner wall: the core surface moved a wall thickness further in. It keeps
+    # the core's winding, so its normals point into the air inside the tube.
+    glass_inner = trimesh.Trimesh(np.asarray(inner.vertices) + glass_thickness * np.asarray(inner.vertex_normals),
+                                  inner.faces, process=False)
+    glass_base = _ring(inner, _loop(inner), glass_inner, _loop(glass_inner), down=np.array([0.0, 0.0, -1.0]))
+    meshes = {"coating": solid.outer, "core": inner, "base": solid.base, "glass_inner": glass_inner,
+              "glass_base": glass_base}
+    paths = {}
+    for role, mesh in meshes.items():
+        path = folder / f"{role}.ply"
+        mesh.export(path)
+        paths[role] = str(path)
+    return paths
+
+
+def _loop(mesh: trimesh.Trimesh) -> np.ndarray:
+    loop = np.asarray(mesh.outline().entities[0].points)
+    return loop[:-1] if loop[0] == loop[-1] else loop
+
+
+def _ring(a: trimesh.Trimesh, la: np.ndarray, b: trimesh.Trimesh, lb: np.ndarray, down: np.ndarray) -> trimesh.Trimesh:
+    n = len(la)
+    V = np.vstack([a.vertices[la], b.vertices[lb]])
+    i, j = np.arange(n), (np.arange(n) + 1) % n
+    ring = trimesh.Trimesh(V, np.vstack([np.c_[i, j, n + j], np.c_[i, n + j, n + i]]), process=False)
+    if np.dot(ring.face_normals.mean(axis=0), down) < 0:
+        ring.invert()
+    return ring
+
+
+def _medium(effects: Effects) -> dict | None:
+    sigma_t = float(effects.absorption_per_m + effects.scattering_per_m)
+    if sigma_t <= 0:
+        return None
+    return {
+        "type": "homogeneous",
+        "sigma_t": sigma_t,
+        "albedo": float(effects.scattering_per_m / sigma_t),
+        "scale": 1.0,
+        "phase": {"type": "isotropic"},
+    }
+
+
+def _coating(effects: Effects) -> dict:
+    """The paint, seen from either side (``diffuse`` alone is one-sided)."""
+    if effects.coating_gloss > 0:
+        inner = {
+            "type": "roughplastic",
+            "diffuse_reflectance": {"type": "rgb", "value": [effects.coating_albedo] * 3},
+            "alpha": max(1e-3, 0.5 * (1.0 - effects.coating_gloss)),
+            "int_ior": 1.5,
+            "ext_ior": IOR_SILICONE,
+        }
+    else:
+        inner = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [effects.coating_albedo] * 3}}
+    return {"type": "twosided", "material": inner}
+
+
+def _film(camera: Camera, effects: Effects, width: int, height: int) -> dict:
+    if not effects.camera_response:
+        return {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                "rfilter": {"type": "box"}}
+    film = {"type": "specfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+            "component_format": "float32"}
+    for k, (name, (peak, fwhm)) in enumerate(CAMERA_BANDS_NM.items(), start=1):
+        film[f"band{k}_{name}"] = mitsuba_spectrum(gaussian(peak, fwhm))
+    return film
+
+
+def led_centres(spec: SensorSpec) -> np.ndarray:
+    """(L, 3) metres: each LED moved radially into the middle of the elastomer wall."""
+    r_mid = spec.membrane.core_radius + 0.5 * (spec.membrane.radius - spec.membrane.core_radius)
+    pos = np.array([led.position for led in spec.leds], dtype=np.float64)
+    radial = np.linalg.norm(pos[:, :2], axis=1, keepdims=True)
+    xy = np.where(radial > 0, pos[:, :2] / np.where(radial > 0, radial, 1) * r_mid, pos[:, :2])
+    return np.c_[xy, pos[:, 2]]
+
+
+def geltip_scene(
+    meshes: dict[str, str],
+    spec: SensorSpec,
+    camera: Camera,
+    effects: Effects = Effects(),
+    width: int | None = None,
+    height: int | None = None,
+    spp: int = 64,
+    seed: int = 0,
+    led_power: float = 1.0,
+) -> dict:
+    """The Mitsuba scene dict of a sensor with the given meshes (see ``write_meshes``).
+
+    width, height : film size (default: the camera's); the field of view is the camera's.
+    led_power : radiance scale of every LED (the camera's exposure).
+    """
+    width = width or camera.width
+    height = height or camera.height
+    fov_y = math.degrees(2 * math.atan((camera.height / 2) / camera.f))
+    medium = _medium(effects)
+    scene: dict = {"type": "scene"}
+    if medium is not None:
+        scene["elastomer"] = medium
+    inside = {"interior": {"type": "ref", "id": "elastomer"}} if medium is not None else {}
+    scene["integrator"] = {"type": "volpath", "max_depth": MAX_DEPTH}
+    scene["sensor"] = {
+        "type": "perspective",
+        "fov": fov_y,
+        "fov_axis": "y",
+        "near_clip": 1e-4,
+        "far_clip": 1.0,
+        "to_world": {"look_at": {"origin": [0, 0, 0], "target": [0, 0, 1], "up": [0, -1, 0]}},
+        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+        "film": _film(camera, effects, width, height),
+    }
+    scene["coating"] = {"type": "ply", "filename": meshes["coating"], "bsdf": _coating(effects), **inside}
+    scene["core"] = {
+        "type": "ply", "filename": meshes["core"],
+        "bsdf": {"type": "dielectric", "int_ior": IOR_SILICONE, "ext_ior": IOR_GLASS}, **inside,
+    }
+    black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
+    scene["base"] = {"type": "ply", "filename": meshes["base"], "bsdf": black, **inside}
+    scene["glass_inner"] = {
+        "type": "ply", "filename": meshes["glass_inner"],
+        "bsdf": {"type": "dielectric", "int_ior": IOR_GLASS, "ext_ior": IOR_AIR},
+    }
+    scene["glass_base"] = {"type": "ply", "filename": meshes["glass_base"], "bsdf": black}
+    outside = {"exterior": {"type": "ref", "id": "elastomer"}} if medium is not None else {}
+    for m, (led, centre) in enumerate(zip(spec.leds, led_centres(spec))):
+        power = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra) * led_power
+        leak = effects.core_light_leak
+        scene[f"led{m}"] = {
+            "type": "sphere", "center": list(map(float, centre)), "radius": LED_RADIUS_M,
+            "emitter": {"type": "area", "radiance": mitsuba_spectrum(power * (1 - leak))},
+            "bsdf": black, **outside,
+        }
+        if leak > 0:
+            # The same LED's light entering the glass core straight away.
+            r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
+            xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
+            scene[f"led{m}_leak"] = {
+                "type": "sphere", "center": [float(xy[0]), float(xy[1]), float(centre[2])], "radius": LED_RADIUS_M,
+                "emitter": {"type": "area", "radiance": mitsuba_spectrum(power * leak)}, "bsdf": black,
+            }
+    return scene
+
+
+# -- XML export -------------------------------------------------------------------------
+
+_TAGS = {
+    "volpath": "integrator", "path": "integrator", "ptracer": "integrator",
+    "perspective": "sensor", "specfilm": "film", "hdrfilm": "film", "box": "rfilter", "gaussian": "rfilter",
+    "independent": "sampler", "ply": "shape", "sphere": "shape", "obj": "shape",
+    "diffuse": "bsdf", "dielectric": "bsdf", "twosided": "bsdf", "roughplastic": "bsdf",
+    "area": "emitter", "homogeneous": "medium", "isotropic": "phase", "hg": "phase",
+    "rgb": "rgb", "irregular": "spectrum",
+}
+
+
+def to_xml(scene: dict) -> str:
+    """The scene dict as Mitsuba 3 XML (meshes stay as the PLY files it names)."""
+    lines = ['<scene version="3.0.0">']
+    for key, value in scene.items():
+        if key != "type":
+            _xml(lines, key, value, 1, top=True)
+    lines.append("</scene>")
+    return "\n".join(lines) + "\n"
+
+
+def _xml(lines: list[str], name: str, value, depth: int, top: bool = False) -> None:
+    pad = "    " * depth
+    if isinstance(value, dict) and "look_at" in value:
+        la = value["look_at"]
+        fmt = lambda v: ", ".join(f"{float(x):g}" for x in v)  # noqa: E731
+        lines.append(f'{pad}<transform name="{name}">')
+        lines.append(f'{pad}    <lookat origin="{fmt(la["origin"])}" target="{fmt(la["target"])}" up="{fmt(la["up"])}"/>')
+        lines.append(f"{pad}</transform>")
+    elif isinstance(value, dict) and value.get("type") == "ref":
+        lines.append(f'{pad}<ref name="{name}" id={quoteattr(value["id"])}/>')
+    elif isinstance(value, dict) and value.get("type") == "rgb":
+        lines.append(f'{pad}<rgb name="{name}" value="{", ".join(f"{float(v):g}" for v in value["value"])}"/>')
+    elif isinstance(value, dict) and value.get("type") == "irregular":
+        pairs = ", ".join(f"{w.strip()}:{v.strip()}" for w, v in zip(value["wavelengths"].split(","), value["values"].split(",")))
+        lines.append(f'{pad}<spectrum name="{name}" value="{pairs}"/>')
+    elif isinstance(value, dict):
+        tag = _TAGS.get(value["type"])
+        if tag is None:
+            raise ValueError(f"to_xml does not know the Mitsuba plugin type {value['type']!r}")
+        ident = f" id={quoteattr(name)}" if top else (f" name={quoteattr(name)}" if tag in ("bsdf",) and depth > 1 else "")
+        lines.append(f'{pad}<{tag} type="{value["type"]}"{ident}>')
+        for k, v in value.items():
+            if k != "type":
+                _xml(lines, k, v, depth + 1)
+        lines.append(f"{pad}</{tag}>")
+    elif isinstance(value, bool):
+        lines.append(f'{pad}<boolean name="{name}" value="{str(value).lower()}"/>')
+    elif isinstance(value, int):
+        lines.append(f'{pad}<integer name="{name}" value="{value}"/>')
+    elif isinstance(value, float):
+        lines.append(f'{pad}<float name="{name}" value="{value:.9g}"/>')
+    elif isinstance(value, str):
+        lines.append(f"{pad}<string name={quoteattr(name)} value={quoteattr(value)}/>")
+    elif isinstance(value, (list, tuple)) and len(value) == 3:
+        lines.append(f'{pad}<point name="{name}" value="{", ".join(f"{float(v):.9g}" for v in value)}"/>')
+    else:
+        raise ValueError(f"to_xml cannot write {name} = {value!r}")

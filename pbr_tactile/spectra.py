@@ -1,0 +1,38 @@
+"""Spectra of the physically based reference: LED emission and the camera's RGB response."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Wavelength grid of every spectrum, nanometres (Mitsuba's visible range).
+WAVELENGTHS_NM = np.arange(360.0, 831.0, 5.0)
+
+#: A webcam CMOS sensor's red, green and blue responses, as Gaussians (peak, FWHM) in nm:
+#: typical of Bayer colour filters on silicon.
+CAMERA_BANDS_NM = {"red": (600.0, 80.0), "green": (535.0, 90.0), "blue": (460.0, 70.0)}
+
+
+def gaussian(peak_nm: float, fwhm_nm: float, wavelengths: np.ndarray = WAVELENGTHS_NM) -> np.ndarray:
+    """A unit-peak Gaussian spectrum sampled at ``wavelengths``."""
+    if not fwhm_nm > 0:
+        raise ValueError(f"fwhm_nm must be > 0, got {fwhm_nm}")
+    sigma = fwhm_nm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+    return np.exp(-0.5 * ((wavelengths - peak_nm) / sigma) ** 2)
+
+
+def mitsuba_spectrum(values: np.ndarray, wavelengths: np.ndarray = WAVELENGTHS_NM) -> dict:
+    """An irregular Mitsuba spectrum dict."""
+    return {
+        "type": "irregular",
+        "wavelengths": ", ".join(f"{w:g}" for w in wavelengths),
+        "values": ", ".join(f"{v:.6g}" for v in values),
+    }
+
+
+def led_spectrum(peak_nm: float | None, fwhm_nm: float | None, real: bool = True) -> np.ndarray:
+    """Relative spectral power of an LED (unit peak); flat (white) when ``real`` is off."""
+    if not real:
+        return np.ones_like(WAVELENGTHS_NM)
+    if peak_nm is None or fwhm_nm is None:
+        raise ValueError("the LED has no spectrum: set peak_nm and fwhm_nm in the sensor spec")
+    return gaussian(peak_nm, fwhm_nm)

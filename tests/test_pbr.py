@@ -1,0 +1,125 @@
+"""The physically based reference: the elastomer solid, the scene dict, variants, a render."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import trimesh
+
+from pbr_tactile.effects import Effects
+from pbr_tactile.membrane import elastomer
+from pbr_tactile.scene import geltip_scene, led_centres, to_xml, write_meshes
+from pbr_tactile.spectra import gaussian, led_spectrum
+from scenes.camera import reference_depth
+from scenes.contact import press
+
+
+@pytest.fixture(scope="module")
+def ref(mesh, camera):
+    return reference_depth(mesh, camera)[0]
+
+
+@pytest.fixture(scope="module")
+def pressed(mesh, camera, ref):
+    return press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (350, 220), 0.0015)
+
+
+def test_undeformed_elastomer_is_a_closed_shell_of_the_membrane_thickness(mesh, spec, camera):
+    solid = elastomer(mesh, spec, camera, edge=0.5e-3)
+    closed = solid.solid()
+    assert closed.is_watertight and closed.is_winding_consistent and closed.volume > 0
+    m = spec.membrane
+    # Volume of a capsule shell of thickness t, open at the base.
+    def capsule(r):
+        return np.pi * r**2 * m.cylinder_length + 2 / 3 * np.pi * r**3
+
+    assert closed.volume == pytest.approx(capsule(m.radius) - capsule(m.core_radius), rel=0.01)
+    gap = np.linalg.norm(solid.outer.vertices - solid.inner.vertices, axis=1)
+    assert np.allclose(gap, m.radius - m.core_radius)
+
+
+def test_contact_dents_the_outer_surface_inwards_along_camera_rays(mesh, spec, camera, ref, pressed):
+    flat = elastomer(mesh, spec, camera, edge=0.5e-3)
+    dented = elastomer(mesh, spec, camera, pressed, ref, edge=0.5e-3)
+    assert dented.solid().is_watertight
+    moved = np.linalg.norm(dented.outer.vertices - flat.outer.vertices, axis=1)
+    assert moved.max() > 0.5e-3 and (moved > 1e-6).sum() < len(moved) // 4
+    # Vertices move along their camera rays: direction unchanged.
+    k = moved > 1e-6
+    a = dented.outer.vertices[k] / np.linalg.norm(dented.outer.vertices[k], axis=1, keepdims=True)
+    b = flat.outer.vertices[k] / np.linalg.norm(flat.outer.vertices[k], axis=1, keepdims=True)
+    assert np.allclose(a, b, atol=1e-9)
+    assert np.allclose(dented.inner.vertices, flat.inner.vertices)  # the glass does not move
+
+
+def test_bad_depth_maps_for_the_reference(mesh, spec, camera, ref):
+    deep = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (350, 220), 0.0045)
+    with pytest.raises(ValueError, match="through the glass core"):
+        elastomer(mesh, spec, camera, deep, ref, edge=0.5e-3)
+    with pytest.raises(ValueError, match="ref_depth is required"):
+        elastomer(mesh, spec, camera, ref, None, edge=0.5e-3)
+    with pytest.raises(ValueError, match=r"must be \(480, 640\) float"):
+        elastomer(mesh, spec, camera, ref[:10], ref, edge=0.5e-3)
+    spike = ref.copy()
+    spike[200:203, 300:303] -= 0.002  # a needle: a vertical cliff no membrane can follow
+    with pytest.raises(ValueError, match="folds over"):
+        elastomer(mesh, spec, camera, spike, ref, edge=0.25e-3, smooth=False)
+
+
+def test_scene_dict_is_plain_data_with_consistent_media(tmp_path, mesh, spec, camera):
+    solid = elastomer(mesh, spec, camera, edge=0.5e-3)
+    meshes = write_meshes(solid, tmp_path)
+    scene = geltip_scene(meshes, spec, camera, Effects(), 32, 24, spp=4)
+    for role in ("coating", "core", "base"):
+        assert scene[role]["interior"] == {"type": "ref", "id": "elastomer"}
+    assert scene["elastomer"]["type"] == "homogeneous"
+    assert scene["sensor"]["film"]["type"] == "specfilm"
+    # LEDs sit inside the elastomer wall, at the LEDs' azimuths.
+    centres = led_centres(spec)
+    r = np.linalg.norm(centres[:, :2], axis=1)
+    assert np.all((r > spec.membrane.core_radius) & (r < spec.membrane.radius))
+    assert len([k for k in scene if k.startswith("led")]) == len(spec.leds)
+    leak = geltip_scene(meshes, spec, camera, Effects(core_light_leak=0.3), 32, 24)
+    assert len([k for k in leak if k.startswith("led")]) == 2 * len(spec.leds)
+    off = geltip_scene(meshes, spec, camera, Effects(absorption_per_m=0, scattering_per_m=0, camera_response=False))
+    assert "elastomer" not in off and off["sensor"]["film"]["type"] == "hdrfilm"
+    root = ET.fromstring(to_xml(scene))
+    assert root.tag == "scene" and root.find("medium").get("id") == "elastomer"
+
+
+def test_spectra_and_effects():
+    g = gaussian(525.0, 30.0)
+    from pbr_tactile.spectra import WAVELENGTHS_NM
+
+    half = WAVELENGTHS_NM[g >= 0.5]
+    assert half.max() - half.min() == pytest.approx(30.0, abs=5.0)
+    with pytest.raises(ValueError, match="no spectrum"):
+        led_spectrum(None, None)
+    with pytest.raises(ValueError, match="coating_gloss"):
+        Effects(coating_gloss=2.0)
+    with pytest.raises(ValueError, match="absorption_per_m"):
+        Effects(absorption_per_m=-1.0)
+
+
+def test_variant_selection_errors(monkeypatch):
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile import variant
+
+    with pytest.raises(variant.VariantError, match="unknown Mitsuba variant"):
+        variant.choose_variant("scalar_banana")
+    monkeypatch.setattr(variant, "find_llvm", lambda: None)
+    with pytest.raises(variant.VariantError, match="apt-get install libllvm19"):
+        variant.choose_variant("llvm_ad_spectral")
+
+
+def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.render import reference
+
+    est = reference(None, None, mesh, spec, camera, Effects(), spp=8, width=24, height=18, variant="scalar_spectral",
+                    passes=2)
+    assert est.mean.shape == (18, 24, 3) and est.variance.shape == (18, 24, 3)
+    assert np.isfinite(est.mean).all() and (est.variance >= 0).all()
+    assert est.mean.max() > 0  # some LED light reaches the camera
