@@ -44,7 +44,8 @@ def cmd_reference(args) -> int:
         bar.update(done - bar.n)
 
     est = reference(depth, ref, mesh, spec, camera, Effects(), spp=args.spp, width=args.width, height=args.height,
-                    seed=args.seed, variant=args.variant, progress=progress, passes=args.passes)
+                    seed=args.seed, variant=args.variant, progress=progress, passes=args.passes,
+                    estimator=args.estimator, photons=args.photons)
     bar.close()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -69,5 +70,8 @@ def register(registry) -> None:
     p.add_argument("--width", type=int, help="film width (default: the camera's)")
     p.add_argument("--height", type=int, help="film height (default: the camera's)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--estimator", choices=["photons", "volpath"], default="photons",
+                   help="photons (two-pass, fast) or volpath (brute force)")
+    p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
     p.add_argument("--out", required=True, help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png")

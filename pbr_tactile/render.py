@@ -7,8 +7,9 @@
 2. ``write_meshes`` and ``geltip_scene``: the scene as a plain dict (pbr_tactile.scene);
 3. ``load``: the one call of ``mi.load_dict``, after ``to_mitsuba`` turns the dict's plain
    transforms and points into Mitsuba objects;
-4. ``render``: Monte Carlo estimate in independent passes, giving the mean image and a
-   per-pixel variance of that mean.
+4. ``render_photons`` (photons from the LEDs to the coating, then camera rays; see
+   pbr_tactile.photons) or ``render`` (brute-force volpath): Monte Carlo estimates in
+   independent passes, giving the mean image and a per-pixel variance of that mean.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from scenes.spec import SensorSpec
 
 from .effects import Effects
 from .membrane import elastomer
-from .scene import geltip_scene, write_meshes
+from .scene import geltip_scene, led_sources, write_meshes
 from .variant import choose_variant
 
 
@@ -90,6 +91,39 @@ def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: 
                     per * passes)
 
 
+def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
+                   passes: int = 4, seed: int = 0, variant: str | None = None, progress=None) -> Estimate:
+    """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
+
+    Each pass traces its own photons and its own camera samples, so the variance across
+    passes is that of the whole estimator.
+    """
+    from .photons import Source, camera_integrator, irradiance_maps
+
+    if effects.coating_gloss > 0:
+        raise ValueError("the photon estimator needs a diffuse coating (coating_gloss = 0); use volpath")
+    if passes < 2:
+        raise ValueError(f"passes must be >= 2 for a variance estimate, got {passes}")
+    mi, loaded = load(scene, variant)
+    if not mi.variant().startswith(("llvm_", "cuda_")):
+        raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
+                         "apt-get install libllvm19, or use the volpath estimator")
+    srcs = [Source(s["centre"], s["radius"], s["peak_nm"], s["fwhm_nm"], s["scale"], s["in_elastomer"]) for s in sources]
+    sigma_t = float(effects.absorption_per_m + effects.scattering_per_m)
+    albedo = effects.scattering_per_m / sigma_t if sigma_t > 0 else 0.0
+    images = []
+    for k in range(passes):
+        maps = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k)
+        integrator = camera_integrator(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo)
+        img = np.array(mi.render(loaded, integrator=integrator, spp=spp, seed=seed * 7919 + k), dtype=np.float64)
+        images.append(img[..., :3])
+        if progress is not None:
+            progress(k + 1, passes)
+    stack = np.stack(images)
+    return Estimate(stack.mean(axis=0).astype(np.float32), (stack.var(axis=0, ddof=1) / passes).astype(np.float32),
+                    spp * passes)
+
+
 def reference(
     depth: np.ndarray | None,
     ref_depth: np.ndarray | None,
@@ -104,10 +138,23 @@ def reference(
     variant: str | None = None,
     progress=None,
     passes: int = 4,
+    estimator: str = "photons",
+    photons: int = 1 << 20,
 ) -> Estimate:
-    """Render what the sensor's camera sees for a contact depth map (None: no contact)."""
+    """Render what the sensor's camera sees for a contact depth map (None: no contact).
+
+    estimator : "photons" (two-pass, converges fast; diffuse coating) or "volpath"
+        (Mitsuba's brute-force volumetric path tracer).
+    photons : photons per LED per pass, for the photon estimator.
+    """
+    if estimator not in ("photons", "volpath"):
+        raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
     solid = elastomer(membrane, spec, camera, depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)
         scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
+        if estimator == "photons":
+            return render_photons(scene, led_sources(spec, effects), effects, photons=photons,
+                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
+                                  progress=progress)
         return render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)

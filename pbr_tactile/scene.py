@@ -34,8 +34,10 @@ IOR_SILICONE, IOR_GLASS, IOR_AIR = 1.41, 1.49, 1.0
 GLASS_THICKNESS_M = 2.0e-3
 #: Radius of each LED's spherical emitter, metres.
 LED_RADIUS_M = 0.35e-3
-#: Paths longer than this are cut (trapped light needs 24-32 bounces).
-MAX_DEPTH = 32
+#: Paths longer than this are cut. Light trapped in the membrane arrives after many
+#: bounces: at 32 volpath read the tip about 30 % dark against the photon estimator, which
+#: agreed once both allowed 160.
+MAX_DEPTH = 160
 
 
 def write_meshes(solid: Elastomer, folder: str | Path, glass_thickness: float = GLASS_THICKNESS_M) -> dict[str, str]:
@@ -126,6 +128,29 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
     return np.c_[xy, pos[:, 2]]
 
 
+def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float = 1.0) -> list[dict]:
+    """The LEDs as spherical emitters: name, centre (m), radius (m), radiance spectrum on
+    WAVELENGTHS_NM, its (peak_nm, fwhm_nm, scale) and whether it sits in the elastomer.
+
+    With ``core_light_leak`` > 0 each LED also has a ``_leak`` emitter inside the glass.
+    """
+    sources = []
+    for m, (led, centre) in enumerate(zip(spec.leds, led_centres(spec))):
+        shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
+        peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
+        leak = effects.core_light_leak
+        sources.append({"name": f"led{m}", "centre": tuple(map(float, centre)), "radius": LED_RADIUS_M,
+                        "spectrum": shape * led_power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
+                        "scale": led_power * (1 - leak), "in_elastomer": True})
+        if leak > 0:
+            r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
+            xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
+            sources.append({"name": f"led{m}_leak", "centre": (float(xy[0]), float(xy[1]), float(centre[2])),
+                            "radius": LED_RADIUS_M, "spectrum": shape * led_power * leak, "peak_nm": peak,
+                            "fwhm_nm": fwhm, "scale": led_power * leak, "in_elastomer": False})
+    return sources
+
+
 def geltip_scene(
     meshes: dict[str, str],
     spec: SensorSpec,
@@ -173,23 +198,14 @@ def geltip_scene(
         "bsdf": {"type": "dielectric", "int_ior": IOR_GLASS, "ext_ior": IOR_AIR},
     }
     scene["glass_base"] = {"type": "ply", "filename": meshes["glass_base"], "bsdf": black}
-    outside = {"exterior": {"type": "ref", "id": "elastomer"}} if medium is not None else {}
-    for m, (led, centre) in enumerate(zip(spec.leds, led_centres(spec))):
-        power = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra) * led_power
-        leak = effects.core_light_leak
-        scene[f"led{m}"] = {
-            "type": "sphere", "center": list(map(float, centre)), "radius": LED_RADIUS_M,
-            "emitter": {"type": "area", "radiance": mitsuba_spectrum(power * (1 - leak))},
-            "bsdf": black, **outside,
+    for k, src in enumerate(led_sources(spec, effects, led_power)):
+        emitter = {
+            "type": "sphere", "center": list(src["centre"]), "radius": src["radius"],
+            "emitter": {"type": "area", "radiance": mitsuba_spectrum(src["spectrum"])}, "bsdf": black,
         }
-        if leak > 0:
-            # The same LED's light entering the glass core straight away.
-            r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
-            xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
-            scene[f"led{m}_leak"] = {
-                "type": "sphere", "center": [float(xy[0]), float(xy[1]), float(centre[2])], "radius": LED_RADIUS_M,
-                "emitter": {"type": "area", "radiance": mitsuba_spectrum(power * leak)}, "bsdf": black,
-            }
+        if src["in_elastomer"] and medium is not None:
+            emitter["exterior"] = {"type": "ref", "id": "elastomer"}
+        scene[src["name"]] = emitter
     return scene
 
 

@@ -119,7 +119,57 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
     from pbr_tactile.render import reference
 
     est = reference(None, None, mesh, spec, camera, Effects(), spp=8, width=24, height=18, variant="scalar_spectral",
-                    passes=2)
+                    passes=2, estimator="volpath")
     assert est.mean.shape == (18, 24, 3) and est.variance.shape == (18, 24, 3)
     assert np.isfinite(est.mean).all() and (est.variance >= 0).all()
     assert est.mean.max() > 0  # some LED light reaches the camera
+    with pytest.raises(ValueError, match="vectorised"):
+        reference(None, None, mesh, spec, camera, Effects(), spp=4, width=8, height=6, variant="scalar_spectral",
+                  passes=2, estimator="photons")
+    with pytest.raises(ValueError, match="estimator must be"):
+        reference(None, None, mesh, spec, camera, Effects(), estimator="magic")
+
+
+def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
+    """Ring-averaged means of both estimators, with standard errors from independent
+    passes, must agree within Z_MAX (a z-test on aggregates: volpath's per-pixel
+    estimates at CI-sized sample counts are too heavy-tailed for per-pixel z)."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile import photons as ph
+    from pbr_tactile.render import load
+    from pbr_tactile.scene import led_sources
+
+    Z_MAX = 4.0
+    effects = Effects()
+    W, H = 24, 18
+    solid = elastomer(mesh, spec, camera, edge=0.5e-3)
+    scene = geltip_scene(write_meshes(solid, tmp_path), spec, camera, effects, W, H, spp=4)
+    try:
+        mi, loaded = load(scene)
+    except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
+        pytest.skip(f"no usable Mitsuba variant: {exc}")
+    if not mi.variant().startswith(("llvm_", "cuda_")):
+        pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
+    srcs = [ph.Source(s["centre"], s["radius"], s["peak_nm"], s["fwhm_nm"], s["scale"], s["in_elastomer"])
+            for s in led_sources(spec, effects)]
+    sigma_t = effects.absorption_per_m + effects.scattering_per_m
+    albedo = effects.scattering_per_m / sigma_t
+    v, u = np.mgrid[0:H, 0:W]
+    r = np.hypot(v - (H - 1) / 2, u - (W - 1) / 2) / (H / 2)
+    rings = [(0, 0.35), (0.35, 0.7), (0.7, 1.0), (1.0, 2.0)]
+
+    def ring_means(img):
+        return np.array([[img[(r >= lo) & (r < hi), c].mean() for c in range(3)] for lo, hi in rings])
+
+    photon_runs = []
+    for k in range(6):
+        maps = ph.irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, 1 << 16, seed=k)
+        integrator = ph.camera_integrator(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo)
+        photon_runs.append(ring_means(np.array(mi.render(loaded, integrator=integrator, spp=4, seed=k))[..., :3]))
+    volpath_runs = [ring_means(np.array(mi.render(loaded, spp=256, seed=100 + k))[..., :3]) for k in range(8)]
+    a, b = np.array(photon_runs), np.array(volpath_runs)
+    se = np.sqrt(a.var(0, ddof=1) / len(a) + b.var(0, ddof=1) / len(b))
+    z = (a.mean(0) - b.mean(0)) / se
+    print("ring x channel z:", np.round(z, 2).tolist())
+    assert np.all(np.abs(z) < Z_MAX)
+    assert a.mean() == pytest.approx(b.mean(), rel=0.05)
