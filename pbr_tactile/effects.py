@@ -31,7 +31,8 @@ class Effects:
     led_spectra: bool = True
     #: The camera's own spectral response (off: ideal response, CIE-like via sRGB film).
     camera_response: bool = True
-    #: Vignetting strength: relative fall-off at the image circle's edge, 0-1.
+    #: Vignetting strength: relative fall-off at the image circle's edge, 0-1
+    #: (pbr_tactile.sensor, applied to the rendered image like the two below).
     vignetting: float = 0.0
     #: Radial lens distortion coefficients (k1, k2), normalised by the focal length.
     lens_distortion: tuple[float, float] = (0.0, 0.0)

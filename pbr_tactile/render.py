@@ -154,7 +154,26 @@ def reference(
         meshes = write_meshes(solid, folder)
         scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
         if estimator == "photons":
-            return render_photons(scene, led_sources(spec, effects), effects, photons=photons,
-                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
-                                  progress=progress)
-        return render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
+            est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
+                                 spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
+                                 progress=progress)
+        else:
+            est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
+    return sensor_effects(est, camera, effects, seed)
+
+
+def sensor_effects(est: Estimate, camera: Camera, effects: Effects, seed: int = 0) -> Estimate:
+    """Lens distortion, vignetting and sensor noise on the estimate (pbr_tactile.sensor).
+
+    The variance stays that of the Monte Carlo estimate, carried through distortion and
+    vignetting (a gain g scales it by g^2); sensor noise is part of the image, not of the
+    estimator's error.
+    """
+    from .sensor import add_noise, distort, vignetting
+
+    k1, k2 = effects.lens_distortion
+    mean = vignetting(distort(est.mean, camera, k1, k2), camera, effects.vignetting)
+    variance = distort(est.variance, camera, k1, k2)
+    variance = vignetting(vignetting(variance, camera, effects.vignetting), camera, effects.vignetting)
+    mean = add_noise(mean, effects.sensor_noise, np.random.default_rng(seed))
+    return Estimate(mean.astype(np.float32), variance.astype(np.float32), est.spp)

@@ -173,3 +173,23 @@ def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
     print("ring x channel z:", np.round(z, 2).tolist())
     assert np.all(np.abs(z) < Z_MAX)
     assert a.mean() == pytest.approx(b.mean(), rel=0.05)
+
+
+def test_sensor_effects_analytically(camera, rng):
+    from pbr_tactile.sensor import add_noise, apply, distort, vignetting
+
+    flat = np.ones((480, 640, 3), np.float32)
+    assert apply(flat, camera, Effects(), rng) is flat  # all off: untouched
+    v = vignetting(flat, camera, 0.4)
+    assert v[240, 320, 0] == pytest.approx(1.0, abs=1e-4)
+    assert v[240, 320 + 240, 0] == pytest.approx(0.6, abs=0.01)  # at the circle's radius
+    # A bright dot at normalised radius 0.5 moves out to 0.5 (1 + k1 0.25) with k1 > 0.
+    img = np.zeros((480, 640, 3), np.float32)
+    img[239:241, 319 + 120 : 321 + 120] = 1.0  # 120 px = 0.5 f right of centre
+    out = distort(img, camera, 0.2, 0.0)
+    cols = np.nonzero(out[239:241, :, 0].max(axis=0) > 0.25)[0]
+    expected = 319.5 + 120 * (1 + 0.2 * 0.25)
+    assert cols.mean() == pytest.approx(expected, abs=1.0)
+    noisy = add_noise(np.zeros((200, 200, 3), np.float32), 0.05, np.random.default_rng(1))
+    assert noisy.std() == pytest.approx(0.05, rel=0.05)
+    assert np.array_equal(noisy, add_noise(np.zeros((200, 200, 3), np.float32), 0.05, np.random.default_rng(1)))
