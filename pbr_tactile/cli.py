@@ -60,6 +60,21 @@ def cmd_reference(args) -> int:
     return 0
 
 
+def cmd_bench_pbr(args) -> int:
+    import json
+
+    from scenes.spec import load_spec
+
+    from .bench import bench_pbr
+
+    results = bench_pbr(load_spec(args.spec), photons=args.photons, volpath_spp=args.volpath_spp)
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=2) + "\n")
+    print(json.dumps({k: results[k] for k in ("seconds_to_2pct", "volpath_seconds_to_2pct", "speedup", "variant")}))
+    return 0
+
+
 def register(registry) -> None:
     p = registry.command("reference", cmd_reference, "render one frame with the physically based reference (Mitsuba 3)")
     p.add_argument("depth", metavar="DEPTH.npy", help="(H, W) float contact depth map, metres, planar z")
@@ -75,3 +90,8 @@ def register(registry) -> None:
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
     p.add_argument("--out", required=True, help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png")
+
+    p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 % noise at 320x240, photons vs volpath")
+    p.add_argument("--spec", metavar="TOML")
+    p.add_argument("--photons", type=int, default=1 << 18, help="photons per LED per pass")
+    p.add_argument("--volpath-spp", type=int, default=16)

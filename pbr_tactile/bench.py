@@ -1,0 +1,78 @@
+"""Benchmark of the reference: time to 2 % relative standard error, photons vs volpath."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+
+import numpy as np
+import trimesh
+
+from scenes.camera import Camera, reference_depth
+from scenes.contact import press
+from scenes.geometry import membrane_mesh
+from scenes.spec import SensorSpec
+
+from .effects import Effects
+from .membrane import elastomer
+from .render import Estimate, render, render_photons
+from .scene import geltip_scene, led_sources, write_meshes
+
+#: The goal's noise level: relative standard error averaged over the contact region.
+TARGET_RSE = 0.02
+
+
+def contact_rse(est: Estimate, region: np.ndarray) -> float:
+    """Mean relative standard error over the region's lit pixels."""
+    rel = est.relative_error[region]
+    return float(np.nanmean(rel[np.isfinite(rel)]))
+
+
+def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: int = 1 << 18,
+              volpath_spp: int = 16, passes: int = 2, seed: int = 0) -> dict:
+    """Time both estimators on one contact and extrapolate each to TARGET_RSE.
+
+    Monte Carlo error falls as 1/sqrt(work), so time_to_target = T (rse / target)^2,
+    with T and rse measured in the same run. Both figures are extrapolations, stated so.
+    """
+    camera = Camera.from_spec(spec)
+    mesh = membrane_mesh(spec)
+    ref, _ = reference_depth(mesh, camera)
+    depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (camera.cx + 30, camera.cy - 20), 0.0015)
+    rows = (np.arange(height) * camera.height / height).astype(int)
+    cols = (np.arange(width) * camera.width / width).astype(int)
+    region = (ref - depth)[np.ix_(rows, cols)] > 1e-6
+    effects = Effects()
+    solid = elastomer(mesh, spec, camera, depth, ref)
+    results = {}
+    with tempfile.TemporaryDirectory(prefix="tactile-bench-") as folder:
+        scene = geltip_scene(write_meshes(solid, folder), spec, camera, effects, width, height, spp=4, seed=seed)
+        t0 = time.perf_counter()
+        est = render_photons(scene, led_sources(spec, effects), effects, photons=photons, spp=2, passes=passes,
+                             seed=seed)
+        t_photons = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        vol = render(scene, spp=volpath_spp, passes=passes, seed=seed)
+        t_volpath = time.perf_counter() - t0
+        import mitsuba as mi
+
+        variant = mi.variant()
+    rse_p, rse_v = contact_rse(est, region), contact_rse(vol, region)
+    results = {
+        "seconds_to_2pct": t_photons * (rse_p / TARGET_RSE) ** 2,
+        "volpath_seconds_to_2pct": t_volpath * (rse_v / TARGET_RSE) ** 2,
+        "resolution": [width, height],
+        "variant": variant,
+        "measured": {
+            "photons": {"seconds": t_photons, "contact_rse": rse_p, "photons_per_led_per_pass": photons,
+                        "passes": passes, "camera_spp_per_pass": 2},
+            "volpath": {"seconds": t_volpath, "contact_rse": rse_v, "spp": volpath_spp, "passes": passes},
+        },
+        "contact_pixels": int(region.sum()),
+        "method": "both extrapolated from one measured run by time x (rse / 0.02)^2 (error ~ 1/sqrt(work)); "
+        "rse = mean per-pixel standard error / mean over the contact region",
+        "cpus": os.cpu_count(),
+    }
+    results["speedup"] = results["volpath_seconds_to_2pct"] / results["seconds_to_2pct"]
+    return results
