@@ -91,7 +91,7 @@ def register(registry) -> None:
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
     p.add_argument("--out", required=True, help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png")
 
-    p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 % noise at 320x240, photons vs volpath")
+    p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 %% noise at 320x240, photons vs volpath")
     p.add_argument("--spec", metavar="TOML")
     p.add_argument("--photons", type=int, default=1 << 18, help="photons per LED per pass")
     p.add_argument("--volpath-spp", type=int, default=16)
