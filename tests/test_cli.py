@@ -70,3 +70,15 @@ def test_bench_phong_writes_json(tmp_path):
     data = json.loads(out.read_text())
     for key in ("ms_per_frame_median", "baseline_ms_per_frame_median", "speedup"):
         assert data[key] > 0
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["demo"], ["bake"], ["render"], ["scene"], ["dataset"], ["reference"], ["bench", "phong"], ["bench", "bake"],
+     ["bench", "dataset"], ["bench", "pbr"]],
+)
+def test_every_subcommand_prints_its_help(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv + ["--help"])
+    assert exit_info.value.code == 0
+    assert "usage: tactile-sim" in capsys.readouterr().out
