@@ -25,7 +25,8 @@ class Effects:
     #: Diffuse reflectance (albedo) of the coating, 0-1.
     coating_albedo: float = 0.85
     #: The indentation shadows light from an LED (off: light paths see the undeformed
-    #: membrane, only the camera sees the deformed one).
+    #: membrane, only the camera sees the deformed one). Switching it off is not
+    #: implemented yet and is refused.
     contact_shadow: bool = True
     #: LEDs emit their real spectra (off: flat white).
     led_spectra: bool = True

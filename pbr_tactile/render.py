@@ -149,6 +149,8 @@ def reference(
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
+    if not effects.contact_shadow:
+        raise NotImplementedError("Effects(contact_shadow=False) is not implemented yet: the indentation always shadows")
     solid = elastomer(membrane, spec, camera, depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)

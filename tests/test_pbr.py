@@ -128,6 +128,8 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
                   passes=2, estimator="photons")
     with pytest.raises(ValueError, match="estimator must be"):
         reference(None, None, mesh, spec, camera, Effects(), estimator="magic")
+    with pytest.raises(NotImplementedError, match="contact_shadow"):
+        reference(None, None, mesh, spec, camera, Effects(contact_shadow=False))
 
 
 def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
