@@ -67,10 +67,10 @@ def cmd_bench_pbr(args) -> int:
 
     from .bench import bench_pbr
 
+    from scenes.dataset import atomic_write_json
+
     results = bench_pbr(load_spec(args.spec), photons=args.photons, volpath_spp=args.volpath_spp)
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    atomic_write_json(Path(args.json), results)
     print(json.dumps({k: results[k] for k in ("seconds_to_2pct", "volpath_seconds_to_2pct", "speedup", "variant")}))
     return 0
 

@@ -59,6 +59,22 @@ def _shape(scene, name: str):
     raise ValueError(f"the scene has no shape {name!r}")
 
 
+def _corners(mi, faces, V, si, active):
+    """The hit face's vertex indices and the hit's barycentric weights (clamped)."""
+    import drjit as dr
+
+    f = si.prim_index
+    i0, i1, i2 = (dr.gather(mi.UInt32, faces, 3 * f + k, active) for k in range(3))
+    p0, p1, p2 = (dr.gather(mi.Point3f, V, i, active) for i in (i0, i1, i2))
+    e1, e2, q = p1 - p0, p2 - p0, si.p - p0
+    d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
+    q1, q2 = dr.dot(q, e1), dr.dot(q, e2)
+    den = d11 * d22 - d12 * d12
+    b1 = dr.clip((d22 * q1 - d12 * q2) / den, 0, 1)
+    b2 = dr.clip((d11 * q2 - d12 * q1) / den, 0, 1 - b1)
+    return (i0, i1, i2), (1 - b1 - b2, b1, b2)
+
+
 def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
                     photons: int, seed: int = 0) -> np.ndarray:
     """Per source, irradiance on the coating's vertices per unit emitted flux.
@@ -101,17 +117,8 @@ def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: fl
             surface = active & ~scatter & si.is_valid()
             hit_coating = surface & (si.shape == coating_ptr)
             # Deposit on the coating's vertices, barycentric weights.
-            f = si.prim_index
-            i0, i1, i2 = (dr.gather(mi.UInt32, faces, 3 * f + k, hit_coating) for k in range(3))
-            p0, p1, p2 = (dr.gather(mi.Point3f, V, i, hit_coating) for i in (i0, i1, i2))
-            e1, e2, q = p1 - p0, p2 - p0, si.p - p0
-            d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-            q1, q2 = dr.dot(q, e1), dr.dot(q, e2)
-            den = d11 * d22 - d12 * d12
-            b1 = dr.clip((d22 * q1 - d12 * q2) / den, 0, 1)
-            b2 = dr.clip((d11 * q2 - d12 * q1) / den, 0, 1 - b1)
-            b0 = 1 - b1 - b2
-            for i, b in ((i0, b0), (i1, b1), (i2, b2)):
+            corners, weights = _corners(mi, faces, V, si, hit_coating)
+            for i, b in zip(corners, weights):
                 dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, i, hit_coating)
             # Next direction.
             inward = -si.n
@@ -191,20 +198,10 @@ def camera_integrator(mi, scene, sources: list[Source], maps: np.ndarray, sigma_
                     scatter = mi.Bool(False)
                 surface = active & ~scatter & si.is_valid()
                 hit_coating = surface & (si.shape == coating_ptr)
-                f = si.prim_index
-                i0, i1, i2 = (dr.gather(mi.UInt32, faces, 3 * f + k, hit_coating) for k in range(3))
-                p0, p1, p2 = (dr.gather(mi.Point3f, V, i, hit_coating) for i in (i0, i1, i2))
-                e1, e2, q = p1 - p0, p2 - p0, si.p - p0
-                d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-                q1, q2 = dr.dot(q, e1), dr.dot(q, e2)
-                den = d11 * d22 - d12 * d12
-                b1 = dr.clip((d22 * q1 - d12 * q2) / den, 0, 1)
-                b2 = dr.clip((d11 * q2 - d12 * q1) / den, 0, 1 - b1)
-                b0 = 1 - b1 - b2
+                corners, weights = _corners(mi, faces, V, si, hit_coating)
                 radiance = mi.Spectrum(0.0)
                 for src, e in zip(sources, E):
-                    irr = (dr.gather(mi.Float, e, i0, hit_coating) * b0 + dr.gather(mi.Float, e, i1, hit_coating) * b1
-                           + dr.gather(mi.Float, e, i2, hit_coating) * b2)
+                    irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, weights))
                     radiance += irr * spectral_flux(src, si.wavelengths)
                 L += dr.select(hit_coating, beta * radiance * (coating_albedo / math.pi), 0.0)
                 # LEDs seen directly (a null emitter evaluates to zero).

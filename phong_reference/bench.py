@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -159,9 +158,7 @@ def _machine() -> dict:
 
 
 def write_json(path: str | Path, results: dict) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(results, indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
+    from scenes.dataset import atomic_write_json
+
+    atomic_write_json(Path(path), results)
+    return Path(path)

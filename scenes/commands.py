@@ -147,10 +147,10 @@ def bench_dataset(spec, workers: int = 2, objects=None, frames: int = 48) -> dic
 
 
 def cmd_bench_dataset(args) -> int:
+    from .dataset import atomic_write_json
+
     results = bench_dataset(load_spec(args.spec), workers=args.workers)
-    path = Path(args.json)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(results, indent=2) + "\n")
+    atomic_write_json(Path(args.json), results)
     print(json.dumps({k: results[k] for k in ("frames_per_second", "workers", "ms_per_depth_frame", "ms_per_render")}))
     return 0
 

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scenes.camera import Camera, back_project, check_depth, project, reference_depth
+from scenes.camera import back_project, check_depth, project, reference_depth
 
 #: The issue's bound on D_ref against the published sim_depth/bkg.npy, metres RMS.
 DREF_RMS_BOUND_M = 0.1e-3
