@@ -14,7 +14,6 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -209,7 +208,3 @@ def load_sample(root: str | Path, record: dict, shape: tuple[int, int] | None = 
         except (OSError, ValueError) as exc:
             raise DatasetError(f"{root}: sample {record.get('id')}: depth {record['depth']} unreadable: {exc}") from None
     return image, depth
-
-
-def pending(ids: Iterable[str], done: set[str]) -> list[str]:
-    return [i for i in ids if i not in done]

@@ -62,16 +62,6 @@ def _f(values) -> str:
     return " ".join(f"{float(v):.17g}" for v in np.atleast_1d(values))
 
 
-def _mat_to_quat(m: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> unit quaternion (w, x, y, z)."""
-    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2, m[2, 1] - m[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2, m[0, 2] - m[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2, m[1, 0] - m[0, 1])
-    q = np.array([w, x, y, z])
-    return q / np.linalg.norm(q)
-
-
 def _stl(mesh: trimesh.Trimesh) -> bytes:
     return mesh.export(file_type="stl")
 
@@ -127,7 +117,9 @@ def rig_scene(
     core = min(m.core_radius, radius * 0.95)
     glass_top = float(hi[2]) - (m.radius - m.core_radius)
     glass_half = max((glass_top - core - base_z) / 2, 1e-3)
-    sensor_quat = _mat_to_quat(np.asarray(SENSOR_TO_WORLD_AT_ROLL0))
+    to_world = np.eye(4)
+    to_world[:3, :3] = SENSOR_TO_WORLD_AT_ROLL0
+    sensor_quat = trimesh.transformations.quaternion_from_matrix(to_world)  # (w, x, y, z), as MuJoCo
     names = {name: _safe_name(name) for name in indenters}
     if len(set(names.values())) != len(names):
         raise ValueError(f"indenter names must stay distinct as file names, got {sorted(indenters)}")
