@@ -49,5 +49,15 @@ class Effects:
             if getattr(self, name) < 0:
                 raise ValueError(f"Effects.{name} must be >= 0, got {getattr(self, name)}")
 
+    @property
+    def sigma_t(self) -> float:
+        """Extinction coefficient of the elastomer, 1/m."""
+        return float(self.absorption_per_m + self.scattering_per_m)
+
+    @property
+    def albedo(self) -> float:
+        """Single-scattering albedo sigma_s / sigma_t of the elastomer (0 without medium)."""
+        return float(self.scattering_per_m / self.sigma_t) if self.sigma_t > 0 else 0.0
+
     def to_dict(self) -> dict:
         return asdict(self)

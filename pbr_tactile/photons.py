@@ -52,11 +52,48 @@ class Source:
     in_elastomer: bool
 
 
+def sources_from(leds: list[dict]) -> list[Source]:
+    """Sources from ``pbr_tactile.scene.led_sources``."""
+    return [Source(d["centre"], d["radius"], d["peak_nm"], d["fwhm_nm"], d["scale"], d["in_elastomer"]) for d in leds]
+
+
 def _shape(scene, name: str):
     for shape in scene.shapes():
         if shape.id() == name:
             return shape
     raise ValueError(f"the scene has no shape {name!r}")
+
+
+@dataclass(frozen=True)
+class _Coating:
+    """The coating mesh as Dr.Jit buffers, and the shapes the walks tell apart."""
+
+    faces: object  # UInt32 (3F,), vertex indices
+    V: object  # Point3f (V,), vertex positions, metres
+    vertex_area: np.ndarray  # (V,) m^2, a third of each adjacent face's area
+    coating: object  # ShapePtr
+    core: object  # ShapePtr
+
+
+def _coating(mi, scene) -> _Coating:
+    import trimesh
+
+    coating = _shape(scene, "coating")
+    positions = np.asarray(coating.vertex_positions_buffer()).reshape(-1, 3)
+    tri = np.asarray(coating.faces_buffer()).reshape(-1, 3)
+    mesh = trimesh.Trimesh(positions, tri, process=False)
+    vertex_area = np.zeros(len(positions))
+    np.add.at(vertex_area, tri.ravel(), np.repeat(mesh.area_faces / 3, 3))
+    return _Coating(mi.UInt32(tri.ravel()), mi.Point3f(*[mi.Float(positions[:, k]) for k in range(3)]), vertex_area,
+                    mi.ShapePtr(coating), mi.ShapePtr(_shape(scene, "core")))
+
+
+def _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t: float):
+    """Where a walk in the elastomer scatters before the next surface: (scatter, point)."""
+    if sigma_t <= 0:
+        return mi.Bool(False), ray.o
+    t_free = -dr.log(1 - sampler.next_1d(active)) / sigma_t
+    return active & in_el & (t_free < si.t), ray(t_free)
 
 
 def _corners(mi, faces, V, si, active):
@@ -83,17 +120,9 @@ def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: fl
     """
     import drjit as dr
 
-    coating = _shape(scene, "coating")
-    core = _shape(scene, "core")
-    faces = mi.UInt32(np.asarray(coating.faces_buffer()))
-    positions = np.asarray(coating.vertex_positions_buffer()).reshape(-1, 3)
-    tri = np.asarray(coating.faces_buffer()).reshape(-1, 3)
-    n_vertices = len(positions)
-    area = np.linalg.norm(np.cross(positions[tri[:, 1]] - positions[tri[:, 0]], positions[tri[:, 2]] - positions[tri[:, 0]]), axis=1) / 2
-    vertex_area = np.zeros(n_vertices)
-    np.add.at(vertex_area, tri.ravel(), np.repeat(area / 3, 3))
-    V = mi.Point3f(*[mi.Float(positions[:, k]) for k in range(3)])
-    coating_ptr, core_ptr = mi.ShapePtr(coating), mi.ShapePtr(core)
+    c = _coating(mi, scene)
+    faces, V, coating_ptr, core_ptr = c.faces, c.V, c.coating, c.core
+    n_vertices = len(c.vertex_area)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
     maps = []
     for s_index, src in enumerate(sources):
@@ -109,11 +138,7 @@ def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: fl
         active = mi.Bool(True)
         for depth in range(PHOTON_MAX_DEPTH):
             si = scene.ray_intersect(ray, active)
-            if sigma_t > 0:
-                t_free = -dr.log(1 - sampler.next_1d()) / sigma_t
-                scatter = active & in_el & (t_free < si.t)
-            else:
-                scatter = mi.Bool(False)
+            scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
             surface = active & ~scatter & si.is_valid()
             hit_coating = surface & (si.shape == coating_ptr)
             # Deposit on the coating's vertices, barycentric weights.
@@ -128,7 +153,6 @@ def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: fl
             refr_dir = si.to_world(bs.wo)
             transmitted = dielectric & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Transmission)
             in_el = dr.select(transmitted & (si.shape == core_ptr), ~in_el, in_el)
-            scatter_pos = ray(t_free) if sigma_t > 0 else ray.o
             scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d())
             new_dir = dr.select(hit_coating, diffuse_dir, refr_dir)
             weight = dr.select(hit_coating, weight * coating_albedo, weight)
@@ -146,7 +170,7 @@ def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: fl
             dr.eval(acc, ray, weight, in_el, active)
             if not dr.any(active):
                 break
-        maps.append(np.asarray(acc, dtype=np.float64) / vertex_area)
+        maps.append(np.asarray(acc, dtype=np.float64) / c.vertex_area)
     return np.stack(maps)
 
 
@@ -160,13 +184,9 @@ def camera_integrator(mi, scene, sources: list[Source], maps: np.ndarray, sigma_
     """A Mitsuba integrator that looks up the photon irradiance at the first coating hit."""
     import drjit as dr
 
-    coating = _shape(scene, "coating")
-    core = _shape(scene, "core")
-    faces = mi.UInt32(np.asarray(coating.faces_buffer()))
-    positions = np.asarray(coating.vertex_positions_buffer()).reshape(-1, 3)
-    V = mi.Point3f(*[mi.Float(positions[:, k]) for k in range(3)])
+    c = _coating(mi, scene)
+    faces, V, coating_ptr, core_ptr = c.faces, c.V, c.coating, c.core
     E = [mi.Float(m) for m in maps]
-    coating_ptr, core_ptr = mi.ShapePtr(coating), mi.ShapePtr(core)
 
     def spectral_flux(src: Source, wavelengths):
         area = 4 * math.pi * src.radius**2
@@ -191,11 +211,7 @@ def camera_integrator(mi, scene, sources: list[Source], maps: np.ndarray, sigma_
             active = mi.Bool(active)
             for _ in range(CAMERA_MAX_DEPTH):
                 si = scene.ray_intersect(ray, active)
-                if sigma_t > 0:
-                    t_free = -dr.log(1 - sampler.next_1d(active)) / sigma_t
-                    scatter = active & in_el & (t_free < si.t)
-                else:
-                    scatter = mi.Bool(False)
+                scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
                 surface = active & ~scatter & si.is_valid()
                 hit_coating = surface & (si.shape == coating_ptr)
                 corners, weights = _corners(mi, faces, V, si, hit_coating)
@@ -212,7 +228,6 @@ def camera_integrator(mi, scene, sources: list[Source], maps: np.ndarray, sigma_
                 in_el = dr.select(transmitted & (si.shape == core_ptr), ~in_el, in_el)
                 beta = dr.select(dielectric, beta * w, beta)
                 beta = dr.select(scatter, beta * albedo, beta)
-                scatter_pos = ray(t_free) if sigma_t > 0 else ray.o
                 scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(scatter))
                 nxt = si.spawn_ray(si.to_world(bs.wo))
                 ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d),

@@ -60,6 +60,13 @@ class Estimate:
     variance: np.ndarray
     spp: int
 
+    @classmethod
+    def from_passes(cls, images: list[np.ndarray], spp: int) -> "Estimate":
+        """Mean of independent pass images and the variance of that mean."""
+        stack = np.stack(images)
+        return cls(stack.mean(axis=0).astype(np.float32),
+                   (stack.var(axis=0, ddof=1) / len(images)).astype(np.float32), spp)
+
     @property
     def relative_error(self) -> np.ndarray:
         """Per-pixel standard error over the mean (inf where the mean is 0)."""
@@ -86,9 +93,7 @@ def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: 
         images.append(img[..., :3])
         if progress is not None:
             progress(k + 1, passes)
-    stack = np.stack(images)
-    return Estimate(stack.mean(axis=0).astype(np.float32), (stack.var(axis=0, ddof=1) / passes).astype(np.float32),
-                    per * passes)
+    return Estimate.from_passes(images, per * passes)
 
 
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
@@ -98,7 +103,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     Each pass traces its own photons and its own camera samples, so the variance across
     passes is that of the whole estimator.
     """
-    from .photons import Source, camera_integrator, irradiance_maps
+    from .photons import camera_integrator, irradiance_maps, sources_from
 
     if effects.coating_gloss > 0:
         raise ValueError("the photon estimator needs a diffuse coating (coating_gloss = 0); use volpath")
@@ -108,9 +113,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
                          "apt-get install libllvm19, or use the volpath estimator")
-    srcs = [Source(s["centre"], s["radius"], s["peak_nm"], s["fwhm_nm"], s["scale"], s["in_elastomer"]) for s in sources]
-    sigma_t = float(effects.absorption_per_m + effects.scattering_per_m)
-    albedo = effects.scattering_per_m / sigma_t if sigma_t > 0 else 0.0
+    srcs = sources_from(sources)
+    sigma_t, albedo = effects.sigma_t, effects.albedo
     images = []
     for k in range(passes):
         maps = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k)
@@ -119,9 +123,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         images.append(img[..., :3])
         if progress is not None:
             progress(k + 1, passes)
-    stack = np.stack(images)
-    return Estimate(stack.mean(axis=0).astype(np.float32), (stack.var(axis=0, ddof=1) / passes).astype(np.float32),
-                    spp * passes)
+    return Estimate.from_passes(images, spp * passes)
 
 
 def reference(

@@ -81,13 +81,12 @@ def _ring(a: trimesh.Trimesh, la: np.ndarray, b: trimesh.Trimesh, lb: np.ndarray
 
 
 def _medium(effects: Effects) -> dict | None:
-    sigma_t = float(effects.absorption_per_m + effects.scattering_per_m)
-    if sigma_t <= 0:
+    if effects.sigma_t <= 0:
         return None
     return {
         "type": "homogeneous",
-        "sigma_t": sigma_t,
-        "albedo": float(effects.scattering_per_m / sigma_t),
+        "sigma_t": effects.sigma_t,
+        "albedo": effects.albedo,
         "scale": 1.0,
         "phase": {"type": "isotropic"},
     }

@@ -152,10 +152,8 @@ def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
         pytest.skip(f"no usable Mitsuba variant: {exc}")
     if not mi.variant().startswith(("llvm_", "cuda_")):
         pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
-    srcs = [ph.Source(s["centre"], s["radius"], s["peak_nm"], s["fwhm_nm"], s["scale"], s["in_elastomer"])
-            for s in led_sources(spec, effects)]
-    sigma_t = effects.absorption_per_m + effects.scattering_per_m
-    albedo = effects.scattering_per_m / sigma_t
+    srcs = ph.sources_from(led_sources(spec, effects))
+    sigma_t, albedo = effects.sigma_t, effects.albedo
     v, u = np.mgrid[0:H, 0:W]
     r = np.hypot(v - (H - 1) / 2, u - (W - 1) / 2) / (H / 2)
     rings = [(0, 0.35), (0.35, 0.7), (0.7, 1.0), (1.0, 2.0)]
