@@ -37,6 +37,8 @@ RR_DEPTH = 8
 PHOTON_MAX_DEPTH = 160
 #: Hard cap on camera path vertices (tube, medium).
 CAMERA_MAX_DEPTH = 24
+#: Camera paths follow both Fresnel branches at this many leading dielectric hits.
+CAMERA_SPLIT = 1
 
 
 @dataclass(frozen=True)
@@ -50,11 +52,13 @@ class Source:
     fwhm_nm: float | None
     scale: float
     in_elastomer: bool
+    name: str
 
 
 def sources_from(leds: list[dict]) -> list[Source]:
     """Sources from ``pbr_tactile.scene.led_sources``."""
-    return [Source(d["centre"], d["radius"], d["peak_nm"], d["fwhm_nm"], d["scale"], d["in_elastomer"]) for d in leds]
+    return [Source(d["centre"], d["radius"], d["peak_nm"], d["fwhm_nm"], d["scale"], d["in_elastomer"], d["name"])
+            for d in leds]
 
 
 def _shape(scene, name: str):
@@ -112,127 +116,230 @@ def _corners(mi, faces, V, si, active):
     return (i0, i1, i2), (1 - b1 - b2, b1, b2)
 
 
-def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-                    photons: int, seed: int = 0) -> np.ndarray:
-    """Per source, irradiance on the coating's vertices per unit emitted flux.
+def _interfaces(mi, scene) -> list[tuple[object, float]]:
+    """The smooth dielectric interfaces: (ShapePtr, eta = interior IOR / exterior IOR)."""
+    out = []
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if mi.has_flag(bsdf.flags(), mi.BSDFFlags.DeltaTransmission):
+            out.append((mi.ShapePtr(shape), float(mi.traverse(bsdf)["eta"])))
+    return out
 
-    Returns (S, V) float64, 1/m^2, V the coating mesh's vertex count.
+
+def _dielectric(mi, dr, si, surface, interfaces):
+    """Where the hit is a smooth dielectric interface, and its relative IOR there."""
+    hit, eta = mi.Bool(False), mi.Float(1.0)
+    for ptr, value in interfaces:
+        here = surface & (si.shape == ptr)
+        hit |= here
+        eta = dr.select(here, value, eta)
+    return hit, eta
+
+
+def _sample_dielectric(mi, dr, d, n, eta, u):
+    """Fresnel-sampled reflection or refraction of direction d at a smooth interface of
+    normal n (world space, geometric normal): (new direction, transmitted, eta_ti).
+
+    In importance transport the sampled weight is exactly 1 (the eta^2 factor applies
+    to radiance only), as in Mitsuba's ``dielectric``.
+    """
+    wi = -d
+    cos_i = dr.dot(wi, n)
+    F, cos_t, _, eta_ti = mi.fresnel(cos_i, eta)
+    transmitted = u >= F
+    refracted = -eta_ti * (wi - n * cos_i) + n * cos_t
+    reflected = 2 * cos_i * n - wi
+    return dr.normalize(dr.select(transmitted, refracted, reflected)), transmitted, F, eta_ti
+
+
+def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
+             photons: int, seed: int = 0) -> np.ndarray:
+    """Per source, the flux each coating vertex receives, per unit flux emitted.
+
+    All sources' photons are traced in one wavefront, as one symbolic Dr.Jit loop (one
+    kernel: a photon's lane retires when its walk ends, with no per-bounce launches).
+    Returns (S, V) float64, V the coating mesh's vertex count; a hit's flux is shared
+    among its face's vertices with barycentric weights.
     """
     import drjit as dr
 
     c = _coating(mi, scene)
-    faces, V, coating_ptr, core_ptr = c.faces, c.V, c.coating, c.core
     n_vertices = len(c.vertex_area)
-    ctx = mi.BSDFContext(mi.TransportMode.Importance)
-    maps = []
-    for s_index, src in enumerate(sources):
-        acc = dr.zeros(mi.Float, n_vertices)
-        sampler = mi.load_dict({"type": "independent"})
-        sampler.seed(seed * 1009 + s_index, photons)
-        n = mi.warp.square_to_uniform_sphere(sampler.next_2d())
-        origin = mi.Point3f(*src.centre) + n * (src.radius * (1 + 1e-4))
-        d = mi.Frame3f(n).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
-        ray = mi.Ray3f(origin, d)
-        weight = mi.Float(1.0 / photons)
-        in_el = mi.Bool(src.in_elastomer)
-        active = mi.Bool(True)
-        for depth in range(PHOTON_MAX_DEPTH):
-            si = scene.ray_intersect(ray, active)
-            scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
-            surface = active & ~scatter & si.is_valid()
-            hit_coating = surface & (si.shape == coating_ptr)
-            # Deposit on the coating's vertices, barycentric weights.
-            corners, weights = _corners(mi, faces, V, si, hit_coating)
-            for i, b in zip(corners, weights):
-                dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, i, hit_coating)
-            # Next direction.
-            inward = -si.n
-            diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
-            dielectric = surface & ~hit_coating & has_transmission(mi, si)
-            bs, bsdf_w = si.bsdf().sample(ctx, si, sampler.next_1d(dielectric), sampler.next_2d(dielectric), dielectric)
-            refr_dir = si.to_world(bs.wo)
-            transmitted = dielectric & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Transmission)
-            in_el = dr.select(transmitted & (si.shape == core_ptr), ~in_el, in_el)
-            scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d())
-            new_dir = dr.select(hit_coating, diffuse_dir, refr_dir)
-            weight = dr.select(hit_coating, weight * coating_albedo, weight)
-            weight = dr.select(dielectric, weight * bsdf_w[0], weight)
-            weight = dr.select(scatter, weight * albedo, weight)
-            next_ray = si.spawn_ray(new_dir)
-            ray = mi.Ray3f(dr.select(scatter, scatter_pos, next_ray.o), dr.select(scatter, scatter_dir, next_ray.d))
-            active = scatter | hit_coating | (dielectric & (bs.pdf > 0))
-            if depth >= RR_DEPTH:
-                survive = dr.minimum(1.0, weight * photons)
-                alive = sampler.next_1d(active) < survive
-                weight = dr.select(alive, weight / dr.maximum(survive, 1e-12), 0.0)
-                active &= alive
-            sampler.schedule_state()  # else the RNG state's graph grows every bounce
-            dr.eval(acc, ray, weight, in_el, active)
-            if not dr.any(active):
-                break
-        maps.append(np.asarray(acc, dtype=np.float64) / c.vertex_area)
-    return np.stack(maps)
+    n_src = len(sources)
+    interfaces = _interfaces(mi, scene)
+    lane = dr.arange(mi.UInt32, n_src * photons)
+    s = lane // photons
+    centre = dr.gather(mi.Point3f, mi.Point3f(*[mi.Float([src.centre[k] for src in sources]) for k in range(3)]), s)
+    radius = dr.gather(mi.Float, mi.Float([src.radius for src in sources]), s)
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, n_src * photons)
+    n = mi.warp.square_to_uniform_sphere(sampler.next_2d())
+    d = mi.Frame3f(n).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
+    ray = mi.Ray3f(centre + n * (radius * (1 + 1e-4)), d)
+    weight = mi.Float(1.0 / photons)
+    in_el = dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s)
+    acc = dr.zeros(mi.Float, n_src * n_vertices)
+    offset = s * n_vertices
+
+    def cond(ray, weight, in_el, active, depth, sampler):
+        return active
+
+    def body(ray, weight, in_el, active, depth, sampler):
+        pi = scene.ray_intersect_preliminary(ray, False, active)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+        scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
+        surface = active & ~scatter & si.is_valid()
+        hit_coating = surface & (si.shape == c.coating)
+        corners = [dr.gather(mi.UInt32, c.faces, 3 * pi.prim_index + k, hit_coating) for k in range(3)]
+        bary = (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
+        for i, b in zip(corners, bary):
+            dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating, mode=dr.ReduceMode.Expand)
+        diffuse_dir = mi.Frame3f(-si.n).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
+        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
+        refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
+        in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
+        scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
+        weight = dr.select(hit_coating, weight * coating_albedo, weight)
+        weight = dr.select(scatter, weight * albedo, weight)
+        nxt = si.spawn_ray(dr.select(hit_coating, diffuse_dir, refr_dir))
+        ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
+        active = scatter | hit_coating | dielectric
+        # Russian roulette on the photon's flux relative to its start.
+        survive = dr.select(depth >= RR_DEPTH, dr.minimum(1.0, weight * photons), 1.0)
+        alive = sampler.next_1d(active) < survive
+        weight = dr.select(alive, weight / dr.maximum(survive, 1e-12), 0.0)
+        depth += 1
+        active &= alive & (depth < PHOTON_MAX_DEPTH)
+        return ray, weight, in_el, active, depth, sampler
+
+    dr.while_loop(state=(ray, weight, in_el, mi.Bool(True), mi.UInt32(0), sampler), cond=cond, body=body,
+                  labels=("ray", "weight", "in_el", "active", "depth", "sampler"), label="photons")
+    return np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
 
 
-def has_transmission(mi, si):
-    """Where the hit surface's BSDF can transmit (the dielectric interfaces)."""
-    return mi.has_flag(si.bsdf().flags(), mi.BSDFFlags.Transmission)
+def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
+                    photons: int, seed: int = 0, radius: float = 0.0, kernel=None) -> np.ndarray:
+    """Per source, irradiance on the coating's vertices per unit emitted flux.
+
+    radius : the density estimate's kernel radius, m (0: each vertex's own deposits over
+        its own area); kernel : a prebuilt ``density_kernel`` for this scene, reused
+        across passes.
+    Returns (S, V) float64, 1/m^2, V the coating mesh's vertex count.
+    """
+    c = _coating(mi, scene)
+    flux = deposits(mi, scene, sources, sigma_t, albedo, coating_albedo, photons, seed)
+    if kernel is None:
+        kernel = density_kernel(coating_vertices(scene), radius)
+    return irradiance(flux, c.vertex_area, kernel)
 
 
-def camera_integrator(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
-                      coating_albedo: float):
-    """A Mitsuba integrator that looks up the photon irradiance at the first coating hit."""
+def coating_vertices(scene) -> np.ndarray:
+    """(V, 3) positions of the coating mesh's vertices, metres."""
+    return np.asarray(_shape(scene, "coating").vertex_positions_buffer()).reshape(-1, 3)
+
+
+def density_kernel(positions: np.ndarray, radius: float):
+    """The (V, V) sparse Epanechnikov weights w_ij = 1 - (|x_i - x_j| / radius)^2 over a
+    ball of the given radius (m); radius = 0 gives the identity."""
+    from scipy.sparse import csr_matrix, identity
+    from scipy.spatial import cKDTree
+
+    n = len(positions)
+    if radius <= 0:
+        return identity(n, format="csr")
+    tree = cKDTree(positions)
+    pairs = tree.sparse_distance_matrix(tree, radius, output_type="coo_matrix")
+    # Distance-0 pairs (the diagonal) are not stored: add them with weight 1.
+    rows = np.concatenate([pairs.row, np.arange(n)])
+    cols = np.concatenate([pairs.col, np.arange(n)])
+    w = np.concatenate([1.0 - (pairs.data / radius) ** 2, np.ones(n)])
+    return csr_matrix((w, (rows, cols)), shape=(n, n))
+
+
+def irradiance(flux: np.ndarray, vertex_area: np.ndarray, kernel) -> np.ndarray:
+    """Irradiance from deposited flux: E_i = sum_j w_ij Phi_j / sum_j w_ij A_j.
+
+    That is the area-weighted mean irradiance over the kernel's ball around x_i: exact
+    for irradiance linear over the ball, so its bias is of order radius^2 times the
+    irradiance's curvature (photon mapping's density estimate, consistent as the radius
+    goes to 0), while its variance falls as 1 / radius^2.
+
+    flux : (S, V) deposited flux per vertex; vertex_area (V,) m^2; kernel from
+    ``density_kernel``.
+    """
+    return (kernel @ flux.T).T / (kernel @ vertex_area)
+
+
+def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
+                coating_albedo: float, spp: int, seed: int = 0, split: int = CAMERA_SPLIT) -> np.ndarray:
+    """Per pixel and source, the radiance reaching the camera per unit emitted flux.
+
+    Camera rays (the scene's sensor, spp per pixel, jittered over the pixel) are followed
+    through the tube and the medium to the first coating hit, where the coating's
+    outgoing radiance is (rho / pi) e_m(x); LEDs seen directly give 1 / (pi A_m). The
+    first ``split`` dielectric hits follow both Fresnel branches instead of choosing one:
+    the first is the tube's inner wall, whose ~4 % reflection shows the bright LED end
+    of the membrane and, sampled, would dominate every pixel's variance.
+
+    The transport is grey, so no wavelength is sampled here: the film's response is
+    applied exactly afterwards (pbr_tactile.spectra.film_response).
+    Returns (H, W, S) float64, 1/(m^2 sr) per unit flux.
+    """
     import drjit as dr
 
     c = _coating(mi, scene)
-    faces, V, coating_ptr, core_ptr = c.faces, c.V, c.coating, c.core
+    interfaces = _interfaces(mi, scene)
     E = [mi.Float(m) for m in maps]
+    emitters = [mi.ShapePtr(_shape(scene, src.name)) for src in sources]
+    inv_area = [1.0 / (math.pi * 4 * math.pi * src.radius**2) for src in sources]
+    sensor = scene.sensors()[0]
+    width, height = (int(v) for v in sensor.film().crop_size())
+    n = width * height * spp
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, n)
+    pixel = dr.arange(mi.UInt32, n) // spp
+    px = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width))
+    position = (px + sampler.next_2d()) / mi.ScalarVector2f(width, height)
+    ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
 
-    def spectral_flux(src: Source, wavelengths):
-        area = 4 * math.pi * src.radius**2
-        if src.peak_nm is None:
-            shape = mi.Spectrum(1.0)
-        else:
-            sigma = src.fwhm_nm / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-            shape = dr.exp(-0.5 * dr.square((wavelengths - src.peak_nm) / sigma))
-        return shape * (math.pi * area * src.scale)
+    def trace(ray, beta, in_el, active, splits):
+        T = [mi.Float(0.0) for _ in sources]
+        for depth in range(CAMERA_MAX_DEPTH):
+            si = scene.ray_intersect(ray, active)
+            scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
+            surface = active & ~scatter & si.is_valid()
+            hit_coating = surface & (si.shape == c.coating)
+            corners, bary = _corners(mi, c.faces, c.V, si, hit_coating)
+            for m, e in enumerate(E):
+                irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
+                T[m] += dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
+                T[m] += dr.select(surface & (si.shape == emitters[m]), beta * inv_area[m], 0.0)
+            dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
+            F, cos_t, _, eta_ti = mi.fresnel(mi.Frame3f.cos_theta(si.wi), eta)
+            if depth < splits:
+                reflected = si.spawn_ray(si.to_world(mi.reflect(si.wi)))
+                branch = trace(reflected, beta * F, in_el, dielectric & (F > 0), splits - depth - 1)
+                T = [a + b for a, b in zip(T, branch)]
+                transmitted, w = dielectric, (1 - F) * dr.square(eta_ti)
+                dielectric &= F < 1
+            else:
+                transmitted = sampler.next_1d(dielectric) >= F
+                # Radiance crossing into a denser medium is compressed by eta^2.
+                w = dr.select(transmitted, dr.square(eta_ti), 1.0)
+            wo = dr.select(transmitted, mi.refract(si.wi, cos_t, eta_ti), mi.reflect(si.wi))
+            in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
+            beta = dr.select(dielectric, beta * w, beta)
+            beta = dr.select(scatter, beta * albedo, beta)
+            scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(scatter))
+            nxt = si.spawn_ray(si.to_world(wo))
+            ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
+            active = scatter | dielectric
+            dr.eval(ray, beta, in_el, active, T)
+            sampler.schedule_state()
+            if not dr.any(active):
+                break
+        return T
 
-    class PhotonCamera(mi.SamplingIntegrator):
-        def __init__(self, props=mi.Properties()):
-            super().__init__(props)
-
-        def sample(self, scene, sampler, ray, medium=None, active=True):
-            ctx = mi.BSDFContext(mi.TransportMode.Radiance)
-            ray = mi.Ray3f(ray)
-            wavelengths = ray.wavelengths
-            L = mi.Spectrum(0.0)
-            beta = mi.Spectrum(1.0)
-            in_el = mi.Bool(False)
-            active = mi.Bool(active)
-            for _ in range(CAMERA_MAX_DEPTH):
-                si = scene.ray_intersect(ray, active)
-                scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
-                surface = active & ~scatter & si.is_valid()
-                hit_coating = surface & (si.shape == coating_ptr)
-                corners, weights = _corners(mi, faces, V, si, hit_coating)
-                radiance = mi.Spectrum(0.0)
-                for src, e in zip(sources, E):
-                    irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, weights))
-                    radiance += irr * spectral_flux(src, si.wavelengths)
-                L += dr.select(hit_coating, beta * radiance * (coating_albedo / math.pi), 0.0)
-                # LEDs seen directly (a null emitter evaluates to zero).
-                L += beta * si.emitter(scene, surface).eval(si, surface)
-                dielectric = surface & ~hit_coating & has_transmission(mi, si)
-                bs, w = si.bsdf().sample(ctx, si, sampler.next_1d(dielectric), sampler.next_2d(dielectric), dielectric)
-                transmitted = dielectric & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Transmission)
-                in_el = dr.select(transmitted & (si.shape == core_ptr), ~in_el, in_el)
-                beta = dr.select(dielectric, beta * w, beta)
-                beta = dr.select(scatter, beta * albedo, beta)
-                scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(scatter))
-                nxt = si.spawn_ray(si.to_world(bs.wo))
-                ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d),
-                               ray.time, wavelengths)
-                active = scatter | (dielectric & (bs.pdf > 0))
-            return L, mi.Bool(True), []
-
-    return PhotonCamera()
+    T = trace(mi.Ray3f(ray.o, ray.d), mi.Float(1.0), mi.Bool(False), mi.Bool(True), split)
+    out = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1)
+    return out.reshape(height, width, spp, len(sources)).mean(axis=2)

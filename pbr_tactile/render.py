@@ -96,31 +96,48 @@ def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: 
     return Estimate.from_passes(images, per * passes)
 
 
+#: Default kernel radius of the photon density estimate, m (pbr_tactile.photons.irradiance).
+KERNEL_RADIUS_M = 0.75e-3
+
+
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
-                   passes: int = 4, seed: int = 0, variant: str | None = None, progress=None) -> Estimate:
+                   passes: int = 4, seed: int = 0, variant: str | None = None, progress=None,
+                   kernel_radius: float = KERNEL_RADIUS_M) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
     Each pass traces its own photons and its own camera samples, so the variance across
-    passes is that of the whole estimator.
+    passes is that of the whole estimator. kernel_radius (m) is the photon density
+    estimate's radius: its bias grows as radius^2 and its variance falls as 1/radius^2.
+    The transport is grey, so each source's image is weighted by the film's exact
+    response to that source's spectrum (pbr_tactile.spectra.film_response).
     """
-    from .photons import camera_integrator, irradiance_maps, sources_from
+    from .photons import camera_pass, coating_vertices, density_kernel, irradiance_maps, sources_from
+    from .spectra import film_response
 
     if effects.coating_gloss > 0:
         raise ValueError("the photon estimator needs a diffuse coating (coating_gloss = 0); use volpath")
     if passes < 2:
         raise ValueError(f"passes must be >= 2 for a variance estimate, got {passes}")
+    if kernel_radius < 0:
+        raise ValueError(f"kernel_radius must be >= 0 m, got {kernel_radius}")
     mi, loaded = load(scene, variant)
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
                          "apt-get install libllvm19, or use the volpath estimator")
     srcs = sources_from(sources)
+    # Pixel value per unit flux-normalised radiance: pi A_m times the film's response to
+    # the source's radiance spectrum (flux = pi A L for a Lambertian sphere).
+    response = np.stack([np.pi * 4 * np.pi * s["radius"] ** 2 * film_response(s["spectrum"], effects.camera_response)
+                         for s in sources])
     sigma_t, albedo = effects.sigma_t, effects.albedo
+    kernel = density_kernel(coating_vertices(loaded), kernel_radius)
     images = []
     for k in range(passes):
-        maps = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k)
-        integrator = camera_integrator(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo)
-        img = np.array(mi.render(loaded, integrator=integrator, spp=spp, seed=seed * 7919 + k), dtype=np.float64)
-        images.append(img[..., :3])
+        maps = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
+                               kernel=kernel)
+        per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp,
+                                 seed * 7919 + k)
+        images.append(per_source @ response)
         if progress is not None:
             progress(k + 1, passes)
     return Estimate.from_passes(images, spp * passes)

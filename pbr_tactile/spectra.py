@@ -36,3 +36,29 @@ def led_spectrum(peak_nm: float | None, fwhm_nm: float | None, real: bool = True
     if peak_nm is None or fwhm_nm is None:
         raise ValueError("the LED has no spectrum: set peak_nm and fwhm_nm in the sensor spec")
     return gaussian(peak_nm, fwhm_nm)
+
+
+def film_response(radiance: np.ndarray, camera_response: bool = True,
+                  wavelengths: np.ndarray = WAVELENGTHS_NM) -> np.ndarray:
+    """(3,) pixel value the reference's film records for a constant spectral radiance.
+
+    ``radiance`` is sampled at ``wavelengths`` and, like every spectrum handed to
+    Mitsuba, read as piecewise linear. With the camera's response (``specfilm``) channel
+    c records int S_c(lambda) L(lambda) dlambda, S_c the CAMERA_BANDS_NM curve; without
+    it (``hdrfilm``), linear sRGB of the CIE 1931 XYZ integrals times Mitsuba's
+    CIE_Y normalisation. Both are Mitsuba's own conventions, so an image assembled from
+    this matches a Mitsuba render of the same light in expectation, without sampling
+    wavelengths (pbr_tactile.photons.camera_pass).
+    """
+    fine = np.linspace(wavelengths[0], wavelengths[-1], 20 * (len(wavelengths) - 1) + 1)
+    L = np.interp(fine, wavelengths, radiance)
+    if camera_response:
+        return np.array([np.trapezoid(np.interp(fine, wavelengths, gaussian(peak, fwhm)) * L, fine)
+                         for peak, fwhm in CAMERA_BANDS_NM.values()])
+    import mitsuba as mi
+
+    if not mi.variant():
+        mi.set_variant("scalar_spectral")
+    xyz_bar = np.array([np.asarray(mi.cie1931_xyz(float(w))).ravel() for w in fine])
+    xyz = np.trapezoid(xyz_bar * L[:, None], fine, axis=0) * mi.MI_CIE_Y_NORMALIZATION
+    return np.asarray(mi.xyz_to_srgb(mi.ScalarColor3f(*xyz))).ravel()

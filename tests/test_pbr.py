@@ -11,7 +11,7 @@ import trimesh
 from pbr_tactile.effects import Effects
 from pbr_tactile.membrane import elastomer
 from pbr_tactile.scene import geltip_scene, led_centres, to_xml, write_meshes
-from pbr_tactile.spectra import gaussian, led_spectrum
+from pbr_tactile.spectra import film_response, gaussian, led_spectrum
 from scenes.camera import reference_depth
 from scenes.contact import press
 
@@ -161,11 +161,15 @@ def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
     def ring_means(img):
         return np.array([[img[(r >= lo) & (r < hi), c].mean() for c in range(3)] for lo, hi in rings])
 
+    response = np.stack([np.pi * 4 * np.pi * d["radius"] ** 2 * film_response(d["spectrum"])
+                         for d in led_sources(spec, effects)])
+    kernel = ph.density_kernel(ph.coating_vertices(loaded), 0.75e-3)
     photon_runs = []
     for k in range(6):
-        maps = ph.irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, 1 << 16, seed=k)
-        integrator = ph.camera_integrator(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo)
-        photon_runs.append(ring_means(np.array(mi.render(loaded, integrator=integrator, spp=4, seed=k))[..., :3]))
+        maps = ph.irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, 1 << 16, seed=k,
+                                  kernel=kernel)
+        per_source = ph.camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, 4, seed=k)
+        photon_runs.append(ring_means(per_source @ response))
     volpath_runs = [ring_means(np.array(mi.render(loaded, spp=256, seed=100 + k))[..., :3]) for k in range(8)]
     a, b = np.array(photon_runs), np.array(volpath_runs)
     se = np.sqrt(a.var(0, ddof=1) / len(a) + b.var(0, ddof=1) / len(b))
