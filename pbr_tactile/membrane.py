@@ -26,6 +26,9 @@ CONTACT_EPS_M = 1e-6
 MIN_GAP_M = 0.1e-3
 #: A face whose normal turns by more than this has folded over, radians.
 MAX_FACE_TURN_RAD = np.radians(80.0)
+#: Slack of the crossing test, as a fraction of an edge and in barycentric terms: faces
+#: that only touch count as crossing, rounding error on a shared corner does not.
+CROSSING_TOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -134,7 +137,8 @@ def elastomer(
     inner.invert()  # normals into the glass: out of the elastomer
     base = _base_ring(outer0, inner)
     result = Elastomer(outer, inner, base, thickness)
-    check_solid(result)
+    moved = np.any(np.asarray(outer.vertices) != np.asarray(outer0.vertices), axis=1)
+    check_solid(result, changed=np.flatnonzero(moved[outer.faces].any(axis=1)))
     return result
 
 
@@ -158,8 +162,14 @@ def _base_ring(outer: trimesh.Trimesh, inner: trimesh.Trimesh) -> trimesh.Trimes
     return ring
 
 
-def check_solid(solid: Elastomer) -> None:
-    """The three surfaces must weld into a watertight, consistently wound solid."""
+def check_solid(solid: Elastomer, changed: np.ndarray | None = None) -> None:
+    """The three surfaces must weld into a watertight, consistently wound solid that does
+    not intersect itself.
+
+    changed : (K,) int, indices of the outer faces that moved (the solid lists the outer
+        faces first); only the faces near them are tested for crossings. None tests every
+        face, which takes seconds on a finely refined membrane.
+    """
     mesh = solid.solid()
     if not mesh.is_watertight:
         raise ValueError("the elastomer is not watertight (the membrane's base loop did not close)")
@@ -167,3 +177,58 @@ def check_solid(solid: Elastomer) -> None:
         raise ValueError("the elastomer's surfaces are not consistently wound")
     if mesh.volume <= 0:
         raise ValueError("the elastomer's normals point inwards (negative volume)")
+    crossed = crossing_faces(mesh, changed)
+    if len(crossed):
+        raise ValueError(
+            f"the elastomer intersects itself at {len(crossed)} faces: the deformed membrane passes through "
+            "itself or through the glass core"
+        )
+
+
+def crossing_faces(mesh: trimesh.Trimesh, faces: np.ndarray | None = None) -> np.ndarray:
+    """Faces of a welded mesh that another face crosses (where the mesh intersects itself).
+
+    Two faces that share no vertex intersect when an edge of one passes through the other;
+    every pair of triangles meeting at an angle has such an edge. Faces lying in one plane
+    are not tested.
+
+    Parameters
+    ----------
+    faces : (K,) int, the faces to test against every face near them (in their common
+        bounding box); None tests all faces.
+
+    Returns
+    -------
+    (C,) int, sorted indices of the faces that an edge crosses.
+    """
+    F = np.asarray(mesh.faces)
+    tri = np.asarray(mesh.triangles)
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    near = np.arange(len(F))
+    if faces is not None:
+        faces = np.asarray(faces, dtype=np.int64)
+        if len(faces) == 0:
+            return faces
+        box_lo, box_hi = lo[faces].min(axis=0), hi[faces].max(axis=0)
+        near = np.flatnonzero((lo <= box_hi).all(axis=1) & (hi >= box_lo).all(axis=1))
+    normals, ok = trimesh.triangles.normals(tri[near])
+    near = near[ok]  # a zero-area face has no plane to be crossed
+    edges = np.unique(np.sort(F[near][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    a, b = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
+    # Broad phase: faces whose bounding box meets the edge's (trimesh's ray queries would
+    # take the box of the whole ray instead).
+    tree = trimesh.util.bounds_tree(np.column_stack([lo[near], hi[near]]))
+    candidates, counts = tree.intersection_v(np.minimum(a, b), np.maximum(a, b))
+    edge = np.repeat(np.arange(len(edges)), counts.astype(np.int64))
+    face = candidates.astype(np.int64)
+    apart = ~(F[near][face][:, :, None] == edges[edge][:, None, :]).any(axis=(1, 2))
+    edge, face = edge[apart], face[apart]
+    length = np.linalg.norm(b - a, axis=1)
+    hit, valid, t = trimesh.intersections.planes_lines(
+        tri[near][face, 0], normals[face], a[edge], ((b - a) / length[:, None])[edge], return_distance=True
+    )
+    edge, face = edge[valid], face[valid]
+    along = (t >= -CROSSING_TOL * length[edge]) & (t <= (1 + CROSSING_TOL) * length[edge])
+    bary = trimesh.triangles.points_to_barycentric(tri[near][face], hit)
+    inside = (bary >= -CROSSING_TOL).all(axis=1)
+    return np.unique(near[face[along & inside]])
