@@ -16,7 +16,7 @@ from scenes.spec import SensorSpec
 
 from .effects import Effects
 from .membrane import elastomer
-from .render import Estimate, render, render_photons
+from .render import KERNEL_RADIUS_M, Estimate, render, render_photons
 from .scene import geltip_scene, led_sources, write_meshes
 
 #: The goal's noise level: relative standard error averaged over the contact region.
@@ -29,8 +29,9 @@ def contact_rse(est: Estimate, region: np.ndarray) -> float:
     return float(np.nanmean(rel[np.isfinite(rel)]))
 
 
-def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: int = 1 << 18,
-              volpath_spp: int = 16, passes: int = 2, seed: int = 0) -> dict:
+def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: int = 1 << 20,
+              camera_spp: int = 16, volpath_spp: int = 16, passes: int = 2, seed: int = 0,
+              kernel_radius: float = KERNEL_RADIUS_M) -> dict:
     """Time both estimators on one contact and extrapolate each to TARGET_RSE.
 
     Monte Carlo error falls as 1/sqrt(work), so time_to_target = T (rse / target)^2,
@@ -49,8 +50,8 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
     with tempfile.TemporaryDirectory(prefix="tactile-bench-") as folder:
         scene = geltip_scene(write_meshes(solid, folder), spec, camera, effects, width, height, spp=4, seed=seed)
         t0 = time.perf_counter()
-        est = render_photons(scene, led_sources(spec, effects), effects, photons=photons, spp=2, passes=passes,
-                             seed=seed)
+        est = render_photons(scene, led_sources(spec, effects), effects, photons=photons, spp=camera_spp,
+                             passes=passes, seed=seed, kernel_radius=kernel_radius)
         t_photons = time.perf_counter() - t0
         t0 = time.perf_counter()
         vol = render(scene, spp=volpath_spp, passes=passes, seed=seed)
@@ -66,7 +67,8 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
         "variant": variant,
         "measured": {
             "photons": {"seconds": t_photons, "contact_rse": rse_p, "photons_per_led_per_pass": photons,
-                        "passes": passes, "camera_spp_per_pass": 2},
+                        "passes": passes, "camera_spp_per_pass": camera_spp, "kernel_radius_m": kernel_radius,
+                        "includes": "scene load, pilot pass, density kernel, all passes"},
             "volpath": {"seconds": t_volpath, "contact_rse": rse_v, "spp": volpath_spp, "passes": passes},
         },
         "contact_pixels": int(region.sum()),

@@ -4,24 +4,32 @@ Light reaches the coating mostly after many total internal reflections, so camer
 path tracing (volpath) converges very slowly: its shadow rays cannot cross the
 dielectric core. Here:
 
-1. **Light pass.** Photons leave each LED sphere (uniform over its surface, cosine about
-   the normal) carrying unit total flux, and are traced through the scene: free flights
-   and isotropic scattering in the elastomer (sigma_t, albedo), the dielectric core and
-   tube sampled by Mitsuba's own BSDFs (importance transport, so flux is conserved), and
+1. **Light pass** (``deposits``). Photons leave each LED sphere (uniform over its surface,
+   cosine about the normal) carrying unit total flux, and are traced through the scene
+   in one symbolic Dr.Jit loop: free flights and isotropic scattering in the elastomer
+   (sigma_t, albedo), Fresnel reflection or refraction at the smooth dielectric
+   interfaces (the core and the tube, with their IORs read from the scene's BSDFs), and
    the diffuse coating, where each hit deposits its flux on the hit face's vertices with
-   barycentric weights before reflecting back inside. Per LED m, the deposits divided by
-   each vertex's area give the irradiance per unit emitted flux, e_m (1/m^2).
-2. **Camera pass.** A Mitsuba integrator follows camera rays through the tube and the
-   medium (the same BSDFs, radiance transport) and stops at the first coating hit, where
-   the coating's outgoing radiance is L = (rho / pi) sum_m e_m(x) Phi_m(lambda), with
-   Phi_m = pi A_m L_e,m the LED's spectral flux. The film (``specfilm``) applies the
-   camera's response exactly as for volpath.
+   barycentric weights before reflecting back inside. A weight window set by a pilot
+   pass (``weight_window``) splits photons heading for the dim tip and rouletted ones in
+   the bright LED end, so every part of the coating gets about as many deposits.
+2. **Density estimate** (``irradiance``). Per LED m, the irradiance per unit emitted
+   flux e_m at each coating vertex is the deposited flux over the area within a kernel
+   of stated radius (photon mapping's estimate: bias of order radius^2, consistent as
+   the radius goes to 0).
+3. **Camera pass** (``camera_pass``). Camera rays, jittered in strata of each pixel, are
+   followed through the tube and the medium to the first coating hit, whose outgoing
+   radiance is (rho / pi) sum_m e_m(x) Phi_m(lambda), Phi_m = pi A_m L_e,m the LED's
+   spectral flux. The first dielectric hit (the tube's inner wall) follows both Fresnel
+   branches.
 
-The transport is taken as wavelength independent (constant refractive indices, grey
-medium and coating, as in ``pbr_tactile.scene``), which lets one scalar map per LED carry
-every wavelength. The coating must be diffuse (``coating_gloss = 0``). The only
-approximation beyond Monte Carlo noise is the irradiance's piecewise-linear
-reconstruction on the coating mesh (its edges are ``REFINED_EDGE_M``).
+The transport is wavelength independent (constant refractive indices, grey medium and
+coating, as in ``pbr_tactile.scene``), so one scalar map and one scalar image per LED carry
+every wavelength, and the film's response to each LED's spectrum is applied exactly
+(``pbr_tactile.spectra.film_response``), with no wavelength sampling noise. The coating
+must be diffuse (``coating_gloss = 0``). Beyond Monte Carlo noise, the approximations are
+the kernel's blur and the piecewise-linear reconstruction on the coating mesh (edges of
+``REFINED_EDGE_M``); the camera pass uses geometric normals at the interfaces.
 """
 
 from __future__ import annotations
@@ -37,6 +45,12 @@ RR_DEPTH = 8
 PHOTON_MAX_DEPTH = 160
 #: Hard cap on camera path vertices (tube, medium).
 CAMERA_MAX_DEPTH = 24
+#: Generations of split photons traced at most (the last one splits no more).
+MAX_GENERATIONS = 12
+#: A photon heavier than its window splits into at most this many.
+MAX_SPLIT = 8
+#: Split photons restart this far inside the coating, along its inward normal, m.
+SPAWN_OFFSET_M = 1e-7
 #: Camera paths follow both Fresnel branches at this many leading dielectric hits.
 CAMERA_SPLIT = 1
 
@@ -153,13 +167,22 @@ def _sample_dielectric(mi, dr, d, n, eta, u):
 
 
 def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-             photons: int, seed: int = 0) -> np.ndarray:
+             photons: int, seed: int = 0, window: np.ndarray | None = None) -> np.ndarray:
     """Per source, the flux each coating vertex receives, per unit flux emitted.
 
     All sources' photons are traced in one wavefront, as one symbolic Dr.Jit loop (one
     kernel: a photon's lane retires when its walk ends, with no per-bounce launches).
-    Returns (S, V) float64, V the coating mesh's vertex count; a hit's flux is shared
-    among its face's vertices with barycentric weights.
+    A hit's flux is shared among its face's vertices with barycentric weights.
+
+    window : optional (S, V) target photon weight at each coating vertex (a weight
+        window, see ``weight_window``). After each coating deposit a photon lighter than
+        half its target survives Russian roulette with probability weight / target and
+        takes the target weight; one heavier than twice its target is split into
+        k = min(round(weight / target), MAX_SPLIT) photons of weight / k, traced in the
+        next generation. Both keep the estimate unbiased; they move photons from the
+        bright LED end to the dim tip, so every part of the coating gets about the same
+        number of deposits. Without a window, plain Russian roulette after RR_DEPTH.
+    Returns (S, V) float64, V the coating mesh's vertex count.
     """
     import drjit as dr
 
@@ -167,70 +190,148 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     n_vertices = len(c.vertex_area)
     n_src = len(sources)
     interfaces = _interfaces(mi, scene)
+    acc = dr.zeros(mi.Float, n_src * n_vertices)
+    target = None if window is None else mi.Float(np.asarray(window, dtype=np.float64).ravel())
+
+    # Generation 0: points on the LED spheres, cosine about their normals.
     lane = dr.arange(mi.UInt32, n_src * photons)
     s = lane // photons
     centre = dr.gather(mi.Point3f, mi.Point3f(*[mi.Float([src.centre[k] for src in sources]) for k in range(3)]), s)
     radius = dr.gather(mi.Float, mi.Float([src.radius for src in sources]), s)
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n_src * photons)
-    n = mi.warp.square_to_uniform_sphere(sampler.next_2d())
-    d = mi.Frame3f(n).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
-    ray = mi.Ray3f(centre + n * (radius * (1 + 1e-4)), d)
-    weight = mi.Float(1.0 / photons)
-    in_el = dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s)
-    acc = dr.zeros(mi.Float, n_src * n_vertices)
-    offset = s * n_vertices
+    normal = mi.warp.square_to_uniform_sphere(sampler.next_2d())
+    start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
+             "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
+             "depth": mi.UInt32(0)}
+    for generation in range(MAX_GENERATIONS):
+        n_lanes = dr.width(start["s"])
+        if generation > 0:
+            sampler = mi.load_dict({"type": "independent"})
+            sampler.seed(seed * 1_000_003 + generation, n_lanes)
+        d = mi.Frame3f(start["n"]).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
+        ray = mi.Ray3f(start["p"], d)
+        s, offset = start["s"], start["s"] * n_vertices
+        may_split = target is not None and generation < MAX_GENERATIONS - 1
+        queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
+                                                       ("nx", mi.Float), ("ny", mi.Float), ("nz", mi.Float),
+                                                       ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32),
+                                                       ("k", mi.UInt32))}
+        lane_index = dr.arange(mi.UInt32, n_lanes)
 
-    def cond(ray, weight, in_el, active, depth, sampler):
-        return active
+        def cond(ray, weight, in_el, active, depth, sampler):
+            return active
 
-    def body(ray, weight, in_el, active, depth, sampler):
-        pi = scene.ray_intersect_preliminary(ray, False, active)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-        scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
-        surface = active & ~scatter & si.is_valid()
-        hit_coating = surface & (si.shape == c.coating)
-        corners = [dr.gather(mi.UInt32, c.faces, 3 * pi.prim_index + k, hit_coating) for k in range(3)]
-        bary = (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
-        for i, b in zip(corners, bary):
-            dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating, mode=dr.ReduceMode.Expand)
-        diffuse_dir = mi.Frame3f(-si.n).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
-        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
-        refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
-        in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
-        scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
-        weight = dr.select(hit_coating, weight * coating_albedo, weight)
-        weight = dr.select(scatter, weight * albedo, weight)
-        nxt = si.spawn_ray(dr.select(hit_coating, diffuse_dir, refr_dir))
-        ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
-        active = scatter | hit_coating | dielectric
-        # Russian roulette on the photon's flux relative to its start.
-        survive = dr.select(depth >= RR_DEPTH, dr.minimum(1.0, weight * photons), 1.0)
-        alive = sampler.next_1d(active) < survive
-        weight = dr.select(alive, weight / dr.maximum(survive, 1e-12), 0.0)
-        depth += 1
-        active &= alive & (depth < PHOTON_MAX_DEPTH)
-        return ray, weight, in_el, active, depth, sampler
+        def body(ray, weight, in_el, active, depth, sampler):
+            pi = scene.ray_intersect_preliminary(ray, False, active)
+            si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+            scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
+            surface = active & ~scatter & si.is_valid()
+            hit_coating = surface & (si.shape == c.coating)
+            corners = [dr.gather(mi.UInt32, c.faces, 3 * pi.prim_index + k, hit_coating) for k in range(3)]
+            bary = (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
+            for i, b in zip(corners, bary):
+                dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating,
+                                  mode=dr.ReduceMode.Expand)
+            inward = -si.n
+            diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
+            dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
+            refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
+            in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
+            scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
+            weight = dr.select(hit_coating, weight * coating_albedo, weight)
+            weight = dr.select(scatter, weight * albedo, weight)
+            nxt = si.spawn_ray(dr.select(hit_coating, diffuse_dir, refr_dir))
+            ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
+            active = scatter | hit_coating | dielectric
+            u = sampler.next_1d(active)
+            if target is None:
+                survive = dr.select(depth >= RR_DEPTH, dr.minimum(1.0, weight * photons), 1.0)
+                alive = u < survive
+                weight = dr.select(alive, weight / dr.maximum(survive, 1e-12), 0.0)
+            else:
+                nearest = dr.select(bary[0] >= dr.maximum(bary[1], bary[2]), corners[0],
+                                    dr.select(bary[1] >= bary[2], corners[1], corners[2]))
+                goal = dr.gather(mi.Float, target, offset + nearest, hit_coating)
+                light = hit_coating & (weight < 0.5 * goal)
+                alive = ~light | (u * goal < weight)
+                weight = dr.select(light & alive, goal, weight)
+                if may_split:
+                    heavy = active & hit_coating & (weight > 2.0 * goal)
+                    k = mi.UInt32(dr.minimum(dr.round(weight / goal), MAX_SPLIT))
+                    # A lane splits at most once (it retires): its own slot in the queue.
+                    slot = lane_index
+                    for key, value in (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x),
+                                       ("ny", inward.y), ("nz", inward.z), ("w", weight / mi.Float(k)),
+                                       ("s", s), ("depth", depth + 1), ("k", k)):
+                        dr.scatter(queue[key], value, slot, heavy)
+                    alive &= ~heavy
+            depth += 1
+            active &= alive & (depth < PHOTON_MAX_DEPTH)
+            return ray, weight, in_el, active, depth, sampler
 
-    dr.while_loop(state=(ray, weight, in_el, mi.Bool(True), mi.UInt32(0), sampler), cond=cond, body=body,
-                  labels=("ray", "weight", "in_el", "active", "depth", "sampler"), label="photons")
+        dr.while_loop(state=(ray, start["w"], start["in_el"], mi.Bool(True), start["depth"], sampler), cond=cond,
+                      body=body, labels=("ray", "weight", "in_el", "active", "depth", "sampler"),
+                      label="photons")
+        if target is None:
+            break
+        dr.eval(acc, queue)
+        split = np.asarray(queue["k"]) > 0
+        if not split.any():
+            break
+        q = {key: np.asarray(value)[split] for key, value in queue.items()}
+        copies = q["k"].astype(np.int64)
+        rep = {key: np.repeat(value, copies) for key, value in q.items()}
+        p = np.c_[rep["px"], rep["py"], rep["pz"]]
+        nrm = np.c_[rep["nx"], rep["ny"], rep["nz"]]
+        p = p + nrm * SPAWN_OFFSET_M
+        # Split photons restart on the coating, inside the elastomer.
+        start = {"p": mi.Point3f(*[mi.Float(p[:, k]) for k in range(3)]),
+                 "n": mi.Vector3f(*[mi.Float(nrm[:, k]) for k in range(3)]), "w": mi.Float(rep["w"]),
+                 "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": mi.UInt32(rep["s"]),
+                 "depth": mi.UInt32(rep["depth"])}
     return np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
 
 
+def weight_window(irradiance_pilot: np.ndarray, vertex_area: np.ndarray, photons: int,
+                  deposits_per_photon: float = 2.5) -> np.ndarray:
+    """Target photon weights that spread deposits evenly over the coating.
+
+    A photon of weight w adds w to the flux at its hit, so the density of deposits is
+    E(x) / w(x); the target w(x) = E(x) A / D makes it the uniform D / A, D being about
+    as many deposits as unguided tracing of ``photons`` per source makes. Any positive
+    window keeps the estimate unbiased; a good pilot only makes it less noisy.
+
+    irradiance_pilot : (S, V) a rough irradiance per unit flux (e.g. a few photons and a
+        wide kernel); vertex_area (V,) m^2. Returns (S, V).
+    """
+    pilot = np.asarray(irradiance_pilot, dtype=np.float64)
+    floor = 1e-3 * pilot.mean(axis=1, keepdims=True)  # vertices the pilot missed
+    return np.maximum(pilot, floor) * vertex_area.sum() / (deposits_per_photon * photons)
+
+
 def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-                    photons: int, seed: int = 0, radius: float = 0.0, kernel=None) -> np.ndarray:
+                    photons: int, seed: int = 0, radius: float = 0.0, kernel=None,
+                    window: np.ndarray | None = None) -> np.ndarray:
     """Per source, irradiance on the coating's vertices per unit emitted flux.
 
     radius : the density estimate's kernel radius, m (0: each vertex's own deposits over
         its own area); kernel : a prebuilt ``density_kernel`` for this scene, reused
-        across passes.
+        across passes; window : the photons' weight window (``deposits``).
     Returns (S, V) float64, 1/m^2, V the coating mesh's vertex count.
     """
     c = _coating(mi, scene)
-    flux = deposits(mi, scene, sources, sigma_t, albedo, coating_albedo, photons, seed)
+    flux = deposits(mi, scene, sources, sigma_t, albedo, coating_albedo, photons, seed, window)
     if kernel is None:
         kernel = density_kernel(coating_vertices(scene), radius)
     return irradiance(flux, c.vertex_area, kernel)
+
+
+def coating_areas(scene) -> np.ndarray:
+    """(V,) area attributed to each coating vertex, m^2 (a third of each adjacent face)."""
+    import mitsuba as mi
+
+    return _coating(mi, scene).vertex_area
 
 
 def coating_vertices(scene) -> np.ndarray:
@@ -297,9 +398,15 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     n = width * height * spp
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(seed, n)
-    pixel = dr.arange(mi.UInt32, n) // spp
+    index = dr.arange(mi.UInt32, n)
+    pixel = index // spp
     px = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width))
-    position = (px + sampler.next_2d()) / mi.ScalarVector2f(width, height)
+    # Jittered strata of the pixel: a side x side grid (the whole pixel when spp is not
+    # a square), one sample in each cell.
+    side = math.isqrt(spp) if math.isqrt(spp) ** 2 == spp else 1
+    cell = index % spp % (side * side)
+    stratum = mi.Point2f(mi.Float(cell % side), mi.Float(cell // side))
+    position = (px + (stratum + sampler.next_2d()) / side) / mi.ScalarVector2f(width, height)
     ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
 
     def trace(ray, beta, in_el, active, splits):

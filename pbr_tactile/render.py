@@ -98,6 +98,8 @@ def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: 
 
 #: Default kernel radius of the photon density estimate, m (pbr_tactile.photons.irradiance).
 KERNEL_RADIUS_M = 0.75e-3
+#: Kernel radius of the pilot pass that sets the photons' weight window, m.
+PILOT_RADIUS_M = 1.5e-3
 
 
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
@@ -111,7 +113,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     The transport is grey, so each source's image is weighted by the film's exact
     response to that source's spectrum (pbr_tactile.spectra.film_response).
     """
-    from .photons import camera_pass, coating_vertices, density_kernel, irradiance_maps, sources_from
+    from .photons import (camera_pass, coating_areas, coating_vertices, density_kernel, irradiance_maps,
+                          sources_from, weight_window)
     from .spectra import film_response
 
     if effects.coating_gloss > 0:
@@ -130,11 +133,17 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     response = np.stack([np.pi * 4 * np.pi * s["radius"] ** 2 * film_response(s["spectrum"], effects.camera_response)
                          for s in sources])
     sigma_t, albedo = effects.sigma_t, effects.albedo
-    kernel = density_kernel(coating_vertices(loaded), kernel_radius)
+    positions = coating_vertices(loaded)
+    kernel = density_kernel(positions, kernel_radius)
+    # A pilot pass (an eighth of the photons, a wide kernel) sets the weight window that
+    # spreads the photons' deposits evenly over the coating.
+    pilot = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
+                            seed * 7919 + passes, kernel=density_kernel(positions, PILOT_RADIUS_M))
+    window = weight_window(pilot, coating_areas(loaded), photons)
     images = []
     for k in range(passes):
         maps = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
-                               kernel=kernel)
+                               kernel=kernel, window=window)
         per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp,
                                  seed * 7919 + k)
         images.append(per_source @ response)

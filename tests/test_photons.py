@@ -1,0 +1,80 @@
+"""The photon estimator's pieces: density kernel, weight window, film response."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pbr_tactile.photons import density_kernel, irradiance, weight_window
+from pbr_tactile.spectra import CAMERA_BANDS_NM, WAVELENGTHS_NM, film_response, gaussian
+
+
+def _plane_grid(spacing=0.25e-3, n=41):
+    u = (np.arange(n) - n // 2) * spacing
+    x, y = np.meshgrid(u, u)
+    return np.c_[x.ravel(), y.ravel(), np.zeros(x.size)], np.full(x.size, spacing**2)
+
+
+def test_kernel_density_is_exact_for_linear_irradiance_away_from_the_edge():
+    positions, area = _plane_grid()
+    E_true = 100.0 + 3e4 * positions[:, 0] - 2e4 * positions[:, 1]  # 1/m^2, linear
+    flux = (E_true * area)[None]
+    K = density_kernel(positions, 0.75e-3)
+    E = irradiance(flux, area, K)[0]
+    inner = np.all(np.abs(positions[:, :2]) < 4e-3, axis=1)
+    assert np.allclose(E[inner], E_true[inner], rtol=1e-9)
+    assert np.allclose(irradiance(flux, area, density_kernel(positions, 0.0))[0], E_true)
+
+
+def test_kernel_density_averages_noise_down_as_one_over_radius():
+    rng = np.random.default_rng(0)
+    positions, area = _plane_grid(n=61)
+    flux = rng.poisson(20.0, size=(1, len(area))) * 1.0  # counts: relative noise 1/sqrt(20)
+    inner = np.all(np.abs(positions[:, :2]) < 4e-3, axis=1)
+    noise = [irradiance(flux, area, density_kernel(positions, r))[0][inner].std() for r in (0.5e-3, 1.0e-3)]
+    # Epanechnikov over ~pi r^2 / spacing^2 vertices: twice the radius, about half the noise.
+    assert 0.3 < noise[1] / noise[0] < 0.65
+
+
+def test_weight_window_targets_even_deposits():
+    area = np.full(4, 1e-6)
+    pilot = np.array([[1000.0, 100.0, 10.0, 0.0]])
+    w = weight_window(pilot, area, photons=1000, deposits_per_photon=2.0)
+    # Deposit density E / w is the same wherever the pilot saw light.
+    density = pilot[0, :3] / w[0, :3]
+    assert np.allclose(density, density[0]) and density[0] == pytest.approx(2.0 * 1000 / area.sum())
+    assert w[0, 3] > 0  # an unlit vertex still gets a positive (finite) target
+
+
+def test_film_response_follows_specfilm_convention_analytically():
+    flat = np.ones_like(WAVELENGTHS_NM)
+    # A flat unit spectrum gives each channel the area under its Gaussian: FWHM * 1.0645.
+    expected = [1.0645 * fwhm for _, fwhm in CAMERA_BANDS_NM.values()]
+    assert np.allclose(film_response(flat), expected, rtol=2e-3)
+    red = film_response(gaussian(630.0, 20.0))
+    assert red[0] > 10 * red[1] > 0 and red[2] < 1e-3 * red[0]
+
+
+def test_film_response_matches_mitsuba_films():
+    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.effects import Effects
+    from pbr_tactile.render import to_mitsuba
+    from pbr_tactile.scene import _film
+    from pbr_tactile.spectra import mitsuba_spectrum
+    from scenes.camera import Camera
+    from scenes.spec import load_spec
+
+    mi.set_variant("scalar_spectral")
+    camera = Camera.from_spec(load_spec())
+    led = 2.0 * gaussian(530.0, 30.0)
+    for response in (True, False):
+        scene = {"type": "scene", "integrator": {"type": "path"},
+                 "sensor": {"type": "perspective", "fov": 10, "film": _film(camera, Effects(camera_response=response), 8, 8),
+                            "sampler": {"type": "independent", "sample_count": 1024}},
+                 "wall": {"type": "rectangle", "flip_normals": True,
+                          "to_world": mi.ScalarTransform4f().translate([0, 0, 5]).scale(10),
+                          "emitter": {"type": "area", "radiance": mitsuba_spectrum(led)}}}
+        img = np.array(mi.render(mi.load_dict(to_mitsuba(scene, mi)))).reshape(-1, 3)
+        mean, se = img.mean(0), img.std(0, ddof=1) / np.sqrt(len(img))
+        expected = film_response(led, response)
+        assert np.all(np.abs(mean - expected) < 5 * se + 1e-3 * np.abs(expected).max()), (response, mean, expected)
