@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,61 @@ def srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def cmd_reference(args) -> int:
+def _pixel(value: str) -> tuple[float, float]:
+    """``U,V`` in pixels -> (u, v), for ``--at``."""
+    try:
+        u, v = (float(x) for x in value.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected U,V in pixels (column,row), e.g. 350,220; got {value!r}") from None
+    return u, v
+
+
+def _check_contact_args(args, parser: argparse.ArgumentParser | None = None) -> None:
+    """The contact is DEPTH.npy, or --indenter with either --pose or --at and --depth-mm.
+
+    Errors go through ``parser.error`` (usage, exit 2), or raise ValueError without a parser.
+    """
+    def fail(message: str):
+        if parser is not None:
+            parser.error(message)
+        raise ValueError(message)
+
+    at_options = [name for name, value in (("--depth-mm", args.depth_mm), ("--spin-deg", args.spin_deg))
+                  if value is not None]
+    if args.indenter is None:
+        given = [name for name, value in (("--pose", args.pose), ("--at", args.at)) if value is not None]
+        if given + at_options:
+            fail(f"{', '.join(given + at_options)}: only with --indenter NAME_OR_PATH, not with DEPTH.npy")
+    elif args.pose is None and args.at is None:
+        fail("--indenter needs a pose: --pose POSE.npy, or --at U,V --depth-mm D")
+    elif args.at is not None and args.depth_mm is None:
+        fail("--at needs --depth-mm D, how deep the indenter presses along the surface normal")
+    elif args.pose is not None and at_options:
+        fail(f"{', '.join(at_options)}: only with --at, not with --pose")
+
+
+def _contact_depth(args, ref, mesh, camera):
+    """The contact depth map of --indenter at --pose, or pressed in at --at."""
+    from scenes.contact import press
+    from scenes.indenters import indenter
+
+    from .contact import check_pose, contact_depth
+
+    pose = None
+    if args.pose is not None:
+        try:
+            pose = np.load(args.pose, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"pose {args.pose} could not be read as .npy: {exc}") from None
+        pose = check_pose(pose, f"pose {args.pose}")
+    shape = indenter(args.indenter, units=args.indenter_units)
+    if pose is not None:
+        return contact_depth(shape, camera, ref, pose)
+    spin = np.radians(args.spin_deg or 0.0)
+    return press(ref, camera, mesh, shape, args.at, args.depth_mm * 1e-3, spin)
+
+
+def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     from tqdm import tqdm
 
     from scenes.camera import Camera, check_depth, reference_depth
@@ -24,6 +80,7 @@ def cmd_reference(args) -> int:
     from .effects import Effects
     from .render import reference
 
+    _check_contact_args(args, parser)
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
@@ -36,8 +93,8 @@ def cmd_reference(args) -> int:
                 raise
             raise ValueError(f"{what} {path} could not be read as .npy: {exc}") from None
 
-    depth = npy(args.depth, "depth file")
     ref = npy(args.ref_depth, "ref depth") if args.ref_depth else reference_depth(mesh, camera)[0]
+    depth = _contact_depth(args, ref, mesh, camera) if args.indenter else npy(args.depth, "depth file")
     bar = tqdm(total=args.passes, desc="rendering", unit="pass")
 
     def progress(done, total):
@@ -76,8 +133,25 @@ def cmd_bench_pbr(args) -> int:
 
 
 def register(registry) -> None:
+    from scenes.indenters import INDENTERS
+
     p = registry.command("reference", cmd_reference, "render one frame with the physically based reference (Mitsuba 3)")
-    p.add_argument("depth", metavar="DEPTH.npy", help="(H, W) float contact depth map, metres, planar z")
+    p.set_defaults(func=functools.partial(cmd_reference, parser=p))  # its contact options depend on each other
+    p.epilog = ("the contact, exactly one of: DEPTH.npy; --indenter NAME_OR_PATH --pose POSE.npy; "
+                "--indenter NAME_OR_PATH --at U,V --depth-mm D [--spin-deg S]")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("depth", nargs="?", metavar="DEPTH.npy", help="(H, W) float contact depth map, metres, planar z")
+    source.add_argument("--indenter", metavar="NAME_OR_PATH",
+                        help=f"contact an indenter instead: {', '.join(INDENTERS)}, or a closed mesh file")
+    p.add_argument("--indenter-units", choices=["mm", "m"], default="mm", help="units of an --indenter mesh file")
+    place = p.add_mutually_exclusive_group()
+    place.add_argument("--pose", metavar="POSE.npy",
+                       help="(4, 4) rigid transform, metres, from the indenter's frame (+z towards the membrane) "
+                       "to the sensor (camera) frame")
+    place.add_argument("--at", type=_pixel, metavar="U,V",
+                       help="press the indenter in where the camera sees pixel (U, V), along the surface normal")
+    p.add_argument("--depth-mm", type=float, metavar="D", help="with --at: indentation depth, millimetres")
+    p.add_argument("--spin-deg", type=float, metavar="S", help="with --at: turn about the normal, degrees (default 0)")
     p.add_argument("--ref-depth", metavar="REF.npy", help="no-contact depth D_ref (default: ray cast from the mesh)")
     p.add_argument("--spec", metavar="TOML")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel in all")

@@ -1,10 +1,13 @@
 """A contact given as an indenter mesh and a pose: its depth map, the dented elastomer, bad
-input and the self-intersection check.
+input, the self-intersection check, and the reference command's contact options.
 
-None of this needs Mitsuba: the elastomer is trimesh and numpy.
+None of this needs Mitsuba: the elastomer is trimesh and numpy, and the command's renderer
+is replaced by a stub that keeps the depth map it was given.
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import pytest
@@ -18,6 +21,7 @@ from pbr_tactile.contact import (
 )
 from pbr_tactile.membrane import Elastomer, check_solid, crossing_faces, elastomer
 from scenes.camera import reference_depth
+from scenes.cli import main
 from scenes.contact import press, surface_point
 
 EDGE = 0.5e-3  # m, refined edge: coarse enough for fast tests
@@ -183,3 +187,80 @@ def test_a_torn_membrane_is_not_watertight(mesh, spec, camera):
     torn.update_faces(np.arange(1, len(torn.faces)))
     with pytest.raises(ValueError, match="not watertight"):
         check_solid(Elastomer(torn, flat.inner, flat.base, flat.thickness), np.array([], int))
+
+
+# --- The reference command --------------------------------------------------------------
+
+
+class Rendered(Exception):
+    """Raised by the stub renderer, carrying the depth map it was given."""
+
+
+@pytest.fixture
+def stub_render(monkeypatch):
+    import tqdm
+
+    import pbr_tactile.render
+
+    def reference(depth, ref_depth, *args, **kwargs):
+        raise Rendered(depth, ref_depth)
+
+    monkeypatch.setattr(pbr_tactile.render, "reference", reference)
+    monkeypatch.setattr(tqdm, "tqdm", functools.partial(tqdm.tqdm, disable=True))  # the stub never closes it
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        ([], "one of the arguments DEPTH.npy --indenter is required"),
+        (["d.npy", "--indenter", "sphere"], "not allowed with argument DEPTH.npy"),
+        (["--indenter", "sphere"], "--indenter needs a pose"),
+        (["--indenter", "sphere", "--at", "1,2", "--pose", "p.npy", "--depth-mm", "1"], "not allowed with"),
+        (["--indenter", "sphere", "--at", "1,2"], "--at needs --depth-mm"),
+        (["--indenter", "sphere", "--at", "350"], "expected U,V in pixels"),
+        (["--indenter", "sphere", "--pose", "p.npy", "--depth-mm", "1"], "--depth-mm: only with --at"),
+        (["d.npy", "--pose", "p.npy"], "--pose: only with --indenter"),
+        (["d.npy", "--spin-deg", "10"], "--spin-deg: only with --indenter"),
+    ],
+)
+def test_reference_needs_exactly_one_contact(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["reference", *argv, "--out", "x"])
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_reference_presses_an_indenter_mesh_file(tmp_path, stub_render, mesh, camera, ref):
+    path = tmp_path / "ball_mm.stl"
+    ball = icosphere()
+    ball.apply_scale(1000)
+    ball.export(path)
+    with pytest.raises(Rendered) as rendered:
+        main(["reference", "--indenter", str(path), "--at", "350,220", "--depth-mm", "1.5", "--out", "x"])
+    depth, _ = rendered.value.args
+    assert np.allclose(depth, press(ref, camera, mesh, icosphere(), PIXEL, DEPTH), rtol=0, atol=1e-6)
+
+
+def test_reference_presses_a_paper_indenter_by_name(stub_render, mesh, camera, ref):
+    pytest.importorskip("manifold3d", reason="building indenters needs the manifold boolean engine")
+    from scenes.indenters import make_indenter
+
+    with pytest.raises(Rendered) as rendered:
+        main(["reference", "--indenter", "cone", "--at", "350,220", "--depth-mm", "1", "--spin-deg", "30",
+              "--out", "x"])
+    depth, _ = rendered.value.args
+    assert np.array_equal(depth, press(ref, camera, mesh, make_indenter("cone"), PIXEL, 1e-3, np.radians(30.0)))
+
+
+def test_reference_takes_a_pose_file(tmp_path, stub_render, camera, ref, sphere_pose, capsys):
+    path = tmp_path / "ball.stl"
+    icosphere().export(path)
+    np.save(tmp_path / "pose.npy", sphere_pose)
+    with pytest.raises(Rendered) as rendered:
+        main(["reference", "--indenter", str(path), "--indenter-units", "m", "--pose", str(tmp_path / "pose.npy"),
+              "--out", "x"])
+    depth, _ = rendered.value.args
+    assert np.allclose(depth, contact_depth(icosphere(), camera, ref, sphere_pose), rtol=0, atol=1e-6)
+    np.save(tmp_path / "scaled.npy", sphere_pose @ np.diag([2.0, 2.0, 2.0, 1.0]))
+    assert main(["reference", "--indenter", str(path), "--pose", str(tmp_path / "scaled.npy"), "--out", "x"]) == 1
+    assert "must be rigid" in capsys.readouterr().err
