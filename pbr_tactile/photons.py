@@ -166,6 +166,80 @@ def _sample_dielectric(mi, dr, d, n, eta, u):
     return dr.normalize(dr.select(transmitted, refracted, reflected)), transmitted, F, eta_ti
 
 
+def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: dict, sampler, photons: int,
+                      sigma_t: float, albedo: float, coating_albedo: float, may_split: bool) -> dict:
+    """Trace one generation of photons from ``start``, depositing into ``acc``; returns
+    the queue of photons the weight window split (slot per lane, k = 0 where none)."""
+    import drjit as dr
+
+    n_vertices = len(c.vertex_area)
+    n_lanes = dr.width(start["s"])
+    d = mi.Frame3f(start["n"]).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
+    ray = mi.Ray3f(start["p"], d)
+    s, offset = start["s"], start["s"] * n_vertices
+    queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
+                                                   ("nx", mi.Float), ("ny", mi.Float), ("nz", mi.Float),
+                                                   ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32),
+                                                   ("k", mi.UInt32))}
+    lane_index = dr.arange(mi.UInt32, n_lanes)
+
+    def cond(ray, weight, in_el, active, depth, sampler):
+        return active
+
+    def body(ray, weight, in_el, active, depth, sampler):
+        pi = scene.ray_intersect_preliminary(ray, False, active)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+        scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
+        surface = active & ~scatter & si.is_valid()
+        hit_coating = surface & (si.shape == c.coating)
+        corners = [dr.gather(mi.UInt32, c.faces, 3 * pi.prim_index + k, hit_coating) for k in range(3)]
+        bary = (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
+        for i, b in zip(corners, bary):
+            dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating,
+                              mode=dr.ReduceMode.Expand)
+        inward = -si.n
+        diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
+        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
+        refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
+        in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
+        scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
+        weight = dr.select(hit_coating, weight * coating_albedo, weight)
+        weight = dr.select(scatter, weight * albedo, weight)
+        nxt = si.spawn_ray(dr.select(hit_coating, diffuse_dir, refr_dir))
+        ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
+        active = scatter | hit_coating | dielectric
+        u = sampler.next_1d(active)
+        if target is None:
+            survive = dr.select(depth >= RR_DEPTH, dr.minimum(1.0, weight * photons), 1.0)
+            alive = u < survive
+            weight = dr.select(alive, weight / dr.maximum(survive, 1e-12), 0.0)
+        else:
+            nearest = dr.select(bary[0] >= dr.maximum(bary[1], bary[2]), corners[0],
+                                dr.select(bary[1] >= bary[2], corners[1], corners[2]))
+            goal = dr.gather(mi.Float, target, offset + nearest, hit_coating)
+            light = hit_coating & (weight < 0.5 * goal)
+            alive = ~light | (u * goal < weight)
+            weight = dr.select(light & alive, goal, weight)
+            if may_split:
+                heavy = active & hit_coating & (weight > 2.0 * goal)
+                k = mi.UInt32(dr.minimum(dr.round(weight / goal), MAX_SPLIT))
+                # A lane splits at most once (it retires): its own slot in the queue.
+                slot = lane_index
+                for key, value in (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x),
+                                   ("ny", inward.y), ("nz", inward.z), ("w", weight / mi.Float(k)),
+                                   ("s", s), ("depth", depth + 1), ("k", k)):
+                    dr.scatter(queue[key], value, slot, heavy)
+                alive &= ~heavy
+        depth += 1
+        active &= alive & (depth < PHOTON_MAX_DEPTH)
+        return ray, weight, in_el, active, depth, sampler
+
+    dr.while_loop(state=(ray, start["w"], start["in_el"], mi.Bool(True), start["depth"], sampler), cond=cond,
+                  body=body, labels=("ray", "weight", "in_el", "active", "depth", "sampler"),
+                  label="photons")
+    return queue
+
+
 def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
              photons: int, seed: int = 0, window: np.ndarray | None = None) -> np.ndarray:
     """Per source, the flux each coating vertex receives, per unit flux emitted.
@@ -209,70 +283,8 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         if generation > 0:
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(seed * 1_000_003 + generation, n_lanes)
-        d = mi.Frame3f(start["n"]).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
-        ray = mi.Ray3f(start["p"], d)
-        s, offset = start["s"], start["s"] * n_vertices
-        may_split = target is not None and generation < MAX_GENERATIONS - 1
-        queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
-                                                       ("nx", mi.Float), ("ny", mi.Float), ("nz", mi.Float),
-                                                       ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32),
-                                                       ("k", mi.UInt32))}
-        lane_index = dr.arange(mi.UInt32, n_lanes)
-
-        def cond(ray, weight, in_el, active, depth, sampler):
-            return active
-
-        def body(ray, weight, in_el, active, depth, sampler):
-            pi = scene.ray_intersect_preliminary(ray, False, active)
-            si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-            scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
-            surface = active & ~scatter & si.is_valid()
-            hit_coating = surface & (si.shape == c.coating)
-            corners = [dr.gather(mi.UInt32, c.faces, 3 * pi.prim_index + k, hit_coating) for k in range(3)]
-            bary = (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
-            for i, b in zip(corners, bary):
-                dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating,
-                                  mode=dr.ReduceMode.Expand)
-            inward = -si.n
-            diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
-            dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
-            refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
-            in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
-            scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
-            weight = dr.select(hit_coating, weight * coating_albedo, weight)
-            weight = dr.select(scatter, weight * albedo, weight)
-            nxt = si.spawn_ray(dr.select(hit_coating, diffuse_dir, refr_dir))
-            ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
-            active = scatter | hit_coating | dielectric
-            u = sampler.next_1d(active)
-            if target is None:
-                survive = dr.select(depth >= RR_DEPTH, dr.minimum(1.0, weight * photons), 1.0)
-                alive = u < survive
-                weight = dr.select(alive, weight / dr.maximum(survive, 1e-12), 0.0)
-            else:
-                nearest = dr.select(bary[0] >= dr.maximum(bary[1], bary[2]), corners[0],
-                                    dr.select(bary[1] >= bary[2], corners[1], corners[2]))
-                goal = dr.gather(mi.Float, target, offset + nearest, hit_coating)
-                light = hit_coating & (weight < 0.5 * goal)
-                alive = ~light | (u * goal < weight)
-                weight = dr.select(light & alive, goal, weight)
-                if may_split:
-                    heavy = active & hit_coating & (weight > 2.0 * goal)
-                    k = mi.UInt32(dr.minimum(dr.round(weight / goal), MAX_SPLIT))
-                    # A lane splits at most once (it retires): its own slot in the queue.
-                    slot = lane_index
-                    for key, value in (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x),
-                                       ("ny", inward.y), ("nz", inward.z), ("w", weight / mi.Float(k)),
-                                       ("s", s), ("depth", depth + 1), ("k", k)):
-                        dr.scatter(queue[key], value, slot, heavy)
-                    alive &= ~heavy
-            depth += 1
-            active &= alive & (depth < PHOTON_MAX_DEPTH)
-            return ray, weight, in_el, active, depth, sampler
-
-        dr.while_loop(state=(ray, start["w"], start["in_el"], mi.Bool(True), start["depth"], sampler), cond=cond,
-                      body=body, labels=("ray", "weight", "in_el", "active", "depth", "sampler"),
-                      label="photons")
+        queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
+                                  coating_albedo, target is not None and generation < MAX_GENERATIONS - 1)
         if target is None:
             break
         dr.eval(acc, queue)
