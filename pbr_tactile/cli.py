@@ -102,7 +102,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
 
     est = reference(depth, ref, mesh, spec, camera, Effects(), spp=args.spp, width=args.width, height=args.height,
                     seed=args.seed, variant=args.variant, progress=progress, passes=args.passes,
-                    estimator=args.estimator, photons=args.photons)
+                    estimator=args.estimator, photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3)
     bar.close()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -126,7 +126,8 @@ def cmd_bench_pbr(args) -> int:
 
     from scenes.dataset import atomic_write_json
 
-    results = bench_pbr(load_spec(args.spec), photons=args.photons, volpath_spp=args.volpath_spp)
+    results = bench_pbr(load_spec(args.spec), photons=args.photons, camera_spp=args.camera_spp,
+                        volpath_spp=args.volpath_spp)
     atomic_write_json(Path(args.json), results)
     print(json.dumps({k: results[k] for k in ("seconds_to_2pct", "volpath_seconds_to_2pct", "speedup", "variant")}))
     return 0
@@ -162,10 +163,13 @@ def register(registry) -> None:
     p.add_argument("--estimator", choices=["photons", "volpath"], default="photons",
                    help="photons (two-pass, fast) or volpath (brute force)")
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
+    p.add_argument("--kernel-radius-mm", type=float, default=0.75,
+                   help="radius of the photon density estimate, mm (bias ~ r^2, noise ~ 1/r)")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
     p.add_argument("--out", required=True, help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png")
 
     p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 %% noise at 320x240, photons vs volpath")
     p.add_argument("--spec", metavar="TOML")
-    p.add_argument("--photons", type=int, default=1 << 18, help="photons per LED per pass")
+    p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
+    p.add_argument("--camera-spp", type=int, default=16, help="camera samples per pixel per pass (photons)")
     p.add_argument("--volpath-spp", type=int, default=16)

@@ -168,12 +168,14 @@ def reference(
     passes: int = 4,
     estimator: str = "photons",
     photons: int = 1 << 20,
+    kernel_radius: float = KERNEL_RADIUS_M,
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
     estimator : "photons" (two-pass, converges fast; diffuse coating) or "volpath"
         (Mitsuba's brute-force volumetric path tracer).
     photons : photons per LED per pass, for the photon estimator.
+    kernel_radius : the photon density estimate's radius, m (bias ~ radius^2).
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -186,7 +188,7 @@ def reference(
         if estimator == "photons":
             est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
-                                 progress=progress)
+                                 progress=progress, kernel_radius=kernel_radius)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
     return sensor_effects(est, camera, effects, seed)
