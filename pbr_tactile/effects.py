@@ -24,9 +24,9 @@ class Effects:
     coating_gloss: float = 0.0
     #: Diffuse reflectance (albedo) of the coating, 0-1.
     coating_albedo: float = 0.85
-    #: The indentation shadows light from an LED (off: light paths see the undeformed
-    #: membrane, only the camera sees the deformed one). Switching it off is not
-    #: implemented yet and is refused.
+    #: The indentation shadows and redirects the LEDs' light (off: light paths see the
+    #: undeformed membrane and only the camera sees the deformed one, as in a shading
+    #: model without shadows; photon estimator only).
     contact_shadow: bool = True
     #: LEDs emit their real spectra (off: flat white).
     led_spectra: bool = True

@@ -78,6 +78,11 @@ def sources_from(leds: list[dict]) -> list[Source]:
             for d in leds]
 
 
+def _seed(*parts: int) -> int:
+    """One 32-bit sampler seed from several integers (pass, generation, batch)."""
+    return int(np.random.SeedSequence([int(p) % (1 << 32) for p in parts]).generate_state(1)[0])
+
+
 def _shape(scene, name: str):
     for shape in scene.shapes():
         if shape.id() == name:
@@ -276,7 +281,7 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     centre = dr.gather(mi.Point3f, mi.Point3f(*[mi.Float([src.centre[k] for src in sources]) for k in range(3)]), s)
     radius = dr.gather(mi.Float, mi.Float([src.radius for src in sources]), s)
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(seed, n_src * photons)
+    sampler.seed(_seed(seed), n_src * photons)
     normal = mi.warp.square_to_uniform_sphere(sampler.next_2d())
     start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
              "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
@@ -285,7 +290,7 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         n_lanes = dr.width(start["s"])
         if generation > 0:
             sampler = mi.load_dict({"type": "independent"})
-            sampler.seed(seed * 1_000_003 + generation, n_lanes)
+            sampler.seed(_seed(seed, generation), n_lanes)
         queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
                                   coating_albedo, target is not None and generation < MAX_GENERATIONS - 1)
         if target is None:
@@ -428,7 +433,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         count = min(per_batch, spp - done)
         n = width * height * count
         sampler = mi.load_dict({"type": "independent"})
-        sampler.seed(seed * 65_537 + done, 2 * n)
+        sampler.seed(_seed(seed, 1 << 20, done), 2 * n)
         index = dr.arange(mi.UInt32, n)
         pixel = index // count
         sample = index % count + done
@@ -463,7 +468,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
         per_lane = np.stack([np.asarray(t, dtype=np.float64) for t in T2], axis=-1)  # (2n, S)
         if scatter_split > 1:
-            per_lane += _split_scatter(mi, dr, walk, scattered, scatter_split, seed * 65_537 + done, 2 * n)
+            per_lane += _split_scatter(mi, dr, walk, scattered, scatter_split, _seed(seed, 1 << 20, done), 2 * n)
         per_sample = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1) + per_lane.reshape(2, n, -1).sum(0)
         total += per_sample.reshape(width * height, count, -1).sum(axis=1)
         done += count
@@ -556,7 +561,7 @@ def _split_scatter(mi, dr, walk, stopped: dict, k: int, seed: int, n_lanes: int)
     k = side * side
     m = len(lanes) * k
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(seed + 7, m)
+    sampler.seed(_seed(seed, 1 << 21), m)
     index = dr.arange(mi.UInt32, m)
     cell = index % k
     u = (mi.Point2f(mi.Float(cell % side), mi.Float(cell // side)) + sampler.next_2d()) / side

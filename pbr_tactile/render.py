@@ -104,8 +104,13 @@ PILOT_RADIUS_M = 1.5e-3
 
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
                    passes: int = 4, seed: int = 0, variant: str | None = None, progress=None,
-                   kernel_radius: float = KERNEL_RADIUS_M) -> Estimate:
+                   kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
+
+    light_scene : the scene the photons are traced in, when it differs from the one the
+        camera sees (Effects.contact_shadow off: the undeformed membrane). Its coating
+        mesh must have the same vertices, in the same order, as the camera scene's: the
+        irradiance maps are carried over vertex by vertex.
 
     Each pass traces its own photons and its own camera samples, so the variance across
     passes is that of the whole estimator. kernel_radius (m) is the photon density
@@ -127,22 +132,27 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
                          "apt-get install libllvm19, or use the volpath estimator")
+    lit = loaded if light_scene is None else load(light_scene, variant)[1]
+    n_lit, n_seen = len(coating_vertices(lit)), len(coating_vertices(loaded))
+    if n_lit != n_seen:
+        raise ValueError(f"light_scene's coating has {n_lit} vertices but the camera scene's has {n_seen}: "
+                         "both must be the same mesh, displaced")
     srcs = sources_from(sources)
     # Pixel value per unit flux-normalised radiance: pi A_m times the film's response to
     # the source's radiance spectrum (flux = pi A L for a Lambertian sphere).
     response = np.stack([np.pi * 4 * np.pi * s["radius"] ** 2 * film_response(s["spectrum"], effects.camera_response)
                          for s in sources])
     sigma_t, albedo = effects.sigma_t, effects.albedo
-    positions = coating_vertices(loaded)
+    positions = coating_vertices(lit)
     kernel = density_kernel(positions, kernel_radius)
     # A pilot pass (an eighth of the photons, a wide kernel) sets the weight window that
     # spreads the photons' deposits evenly over the coating.
-    pilot = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
+    pilot = irradiance_maps(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
                             seed * 7919 + passes, kernel=density_kernel(positions, PILOT_RADIUS_M))
-    window = weight_window(pilot, coating_areas(loaded), photons)
+    window = weight_window(pilot, coating_areas(lit), photons)
     images = []
     for k in range(passes):
-        maps = irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
+        maps = irradiance_maps(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
                                kernel=kernel, window=window)
         per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp,
                                  seed * 7919 + k)
@@ -179,16 +189,23 @@ def reference(
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
-    if not effects.contact_shadow:
-        raise NotImplementedError("Effects(contact_shadow=False) is not implemented yet: the indentation always shadows")
+    if not effects.contact_shadow and estimator != "photons":
+        raise ValueError("Effects(contact_shadow=False) needs the photon estimator: volpath cannot trace light "
+                         "and camera paths in different geometry")
     solid = elastomer(membrane, spec, camera, depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)
         scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
         if estimator == "photons":
+            light_scene = None
+            if not effects.contact_shadow and depth is not None:
+                # The light sees the undeformed membrane: the indentation casts no shadow
+                # and guides no light differently; only the camera sees the dent.
+                flat = write_meshes(elastomer(membrane, spec, camera), f"{folder}/undeformed")
+                light_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed)
             est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
-                                 progress=progress, kernel_radius=kernel_radius)
+                                 progress=progress, kernel_radius=kernel_radius, light_scene=light_scene)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
     return sensor_effects(est, camera, effects, seed)

@@ -128,8 +128,8 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
                   passes=2, estimator="photons")
     with pytest.raises(ValueError, match="estimator must be"):
         reference(None, None, mesh, spec, camera, Effects(), estimator="magic")
-    with pytest.raises(NotImplementedError, match="contact_shadow"):
-        reference(None, None, mesh, spec, camera, Effects(contact_shadow=False))
+    with pytest.raises(ValueError, match="contact_shadow=False. needs the photon estimator"):
+        reference(None, None, mesh, spec, camera, Effects(contact_shadow=False), estimator="volpath")
 
 
 def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
@@ -219,6 +219,39 @@ def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camer
 
     print("tip per-vertex relative spread, plain vs guided:", tip_noise(plain), tip_noise(guided))
     assert tip_noise(guided) < tip_noise(plain)
+
+
+def test_contact_shadow_off_lights_the_undeformed_membrane(tmp_path, mesh, spec, camera, ref, pressed):
+    """With contact_shadow off the photons see the undeformed membrane: the light scene
+    is plumbed through exactly (same scene, same seed: the same image), an undeformed
+    light scene changes the dent's pixels only, and a mismatched mesh is refused."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.render import load, render_photons
+    from pbr_tactile.scene import led_sources
+
+    effects = Effects()
+    dented = geltip_scene(write_meshes(elastomer(mesh, spec, camera, pressed, ref, edge=0.5e-3), tmp_path / "d"),
+                          spec, camera, effects, 32, 24)
+    flat = geltip_scene(write_meshes(elastomer(mesh, spec, camera, edge=0.5e-3), tmp_path / "f"), spec, camera,
+                        effects, 32, 24)
+    try:
+        mi, _ = load(dented)
+    except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
+        pytest.skip(f"no usable Mitsuba variant: {exc}")
+    if not mi.variant().startswith(("llvm_", "cuda_")):
+        pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
+    leds = led_sources(spec, effects)
+    kw = dict(photons=1 << 12, spp=1, passes=2, seed=3)
+    same = render_photons(dented, leds, effects, **kw)
+    # (Equal up to the order of atomic float additions across threads.)
+    replay = render_photons(dented, leds, effects, light_scene=dented, **kw).mean
+    assert np.allclose(same.mean, replay, rtol=1e-4, atol=1e-9)
+    unshadowed = render_photons(dented, leds, effects, light_scene=flat, **kw)
+    assert np.isfinite(unshadowed.mean).all() and not np.allclose(unshadowed.mean, same.mean, rtol=1e-3)
+    coarse = geltip_scene(write_meshes(elastomer(mesh, spec, camera, edge=1e-3), tmp_path / "c"), spec, camera,
+                          effects, 32, 24)
+    with pytest.raises(ValueError, match="both must be the same mesh"):
+        render_photons(dented, leds, effects, light_scene=coarse, **kw)
 
 
 def test_sensor_effects_analytically(camera, rng):
