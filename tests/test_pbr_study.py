@@ -1,0 +1,192 @@
+"""The light-field study against the physically based reference (studies.pbr_field_comparison).
+
+The quick run needs Mitsuba with a vectorised (llvm_ or cuda_) variant, and skips saying
+why when there is none; the published-map test needs the reference data. The rest is
+analytic and always runs.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from phong_reference.bake import METHODS
+from studies import pbr_field_comparison as study
+
+
+@pytest.fixture(scope="module")
+def vectorised_mitsuba():
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.variant import VariantError, choose_variant
+
+    try:
+        mi = choose_variant()
+    except VariantError as exc:
+        pytest.skip(f"no usable Mitsuba variant: {exc}")
+    if not mi.variant().startswith(("llvm_", "cuda_")):
+        pytest.skip(f"the photon estimator needs an llvm_ or cuda_ variant, got {mi.variant()} "
+                    "(apt-get install libllvm19)")
+    return mi.variant()
+
+
+@pytest.fixture(scope="module")
+def quick(vectorised_mitsuba, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pbr_study")
+    return out, study.run(out, study.QUICK, study.QUICK_CONTACTS, reference_dir=None)
+
+
+def test_quick_run_writes_a_complete_table_with_bracketing_intervals(quick):
+    out, results = quick
+    assert set(results["table"]) == set(METHODS)
+    assert results["best"] in METHODS
+    for method, row in results["table"].items():
+        for kind in study.KINDS:
+            for metric in study.METRICS:
+                c = row[kind][metric]
+                assert len(c["values"]) == len(study.QUICK_CONTACTS)
+                assert np.isfinite([c["mean"], c["ci_low"], c["ci_high"], *c["values"]]).all(), (method, kind, c)
+                assert c["ci_low"] <= c["mean"] <= c["ci_high"], (method, kind, metric, c)
+    for kind in study.CHANGE_KINDS:
+        for c in results["baseline_no_change"][kind].values():
+            assert c["ci_low"] <= c["mean"] <= c["ci_high"]
+    # Every calibration gain is a units map: never negative.
+    assert all(np.min(c["gain"]) >= 0 for c in results["calibration"].values())
+    for row in results["table"].values():
+        r = row["contact"][study.CORRELATION]
+        assert -1 <= r["ci_low"] <= r["mean"] <= r["ci_high"] <= 1
+    assert results["contact_names"] == list(study.QUICK_CONTACTS)
+    assert 0 <= results["unreliable_share"] < 1
+    for name in study.QUICK_CONTACTS:
+        assert 0 < results["contacts"][name]["scale"] <= 1
+        assert (out / f"grid_{name}.png").stat().st_size > 0
+    assert (out / "metrics.png").stat().st_size > 0
+    summary = (out / "summary.md").read_text()
+    assert all(f"| {m}" in summary for m in METHODS) and "Conclusion" in summary
+    assert json.loads((out / study.JSON_NAME).read_text())["best"] == results["best"]
+
+
+def test_references_are_cached_atomically_and_read_back(quick, spec, mesh, camera):
+    from scenes.camera import reference_depth
+
+    out, first = quick
+    assert not any(first["reference_cached"].values())
+    folder = out / study.CACHE_FOLDER
+    cache = sorted(folder.glob("*.npy"))
+    assert len(cache) == 1 + len(study.QUICK_CONTACTS)
+    assert not list(folder.glob("*.tmp")) and not list(folder.glob(".*"))  # written atomically
+    assert all(np.load(p).shape == (2, study.QUICK.height, study.QUICK.width, 3) for p in cache)
+    ref = reference_depth(mesh, camera)[0]
+    mean, variance, hit = study.reference_frame(study.NO_CONTACT, None, ref, mesh, spec, camera, study.QUICK, folder)
+    assert hit  # keyed by name, resolution, photons and the rest: the same frame is not rendered again
+    stored = np.load(next(p for p in cache if p.name.startswith(study.NO_CONTACT)))
+    assert np.array_equal(mean, stored[0]) and np.array_equal(variance, stored[1])
+
+
+def test_published_maps_are_moved_onto_our_membrane_and_scaled_until_the_reference_accepts_them(
+    reference_dir, spec, mesh, camera
+):
+    from scenes.camera import reference_depth
+
+    ref = reference_depth(mesh, camera)[0]
+    maps = study.published_contacts(reference_dir, ref)
+    assert list(maps) == list(study.PUBLISHED)
+    for depth in maps.values():
+        assert depth.shape == camera.shape and depth.dtype == np.float32
+        assert np.all(depth <= ref) and np.any(depth < ref)
+    # Map 0 (the textured height field) folds the membrane over at full depth.
+    scale, why = study.membrane_scale(maps["published_0"], ref, mesh, spec, camera)
+    assert study.MIN_SCALE <= scale < 1 and "folds over" in why
+
+
+def test_calibration_recovers_a_known_affine_map_and_never_inverts():
+    rng = np.random.default_rng(3)
+    mask = np.ones((12, 16), bool)
+    mask[0] = False
+    fast = rng.uniform(0, 1, (3, 12, 16, 3))
+    gain, offset = np.array([0.5, 2.0, 1.0]), np.array([0.1, -0.2, 0.0])
+    ref = gain * fast + offset
+    ref[:, 0] = 99.0  # outside the mask: ignored
+    g, o = study.fit_affine(fast, ref, mask)
+    assert np.allclose(g, gain) and np.allclose(o, offset)
+    g, _ = study.fit_affine(fast, -fast, mask)
+    assert np.allclose(g, 0.0, atol=1e-9)  # anticorrelated: predicts no change, never an inverted one
+    gains, offsets = study.leave_one_out_calibration(fast, gain * fast + offset, mask)
+    assert gains.shape == (2, 3) and np.allclose(gains, gain) and np.allclose(offsets, offset)
+    change = fast[1:] - fast[:1]
+    assert np.allclose(study.fit_gain(change, 3.0 * change, mask), 3.0)
+    assert np.allclose(study.fit_gain(change, -change, mask), 0.0)  # never inverted
+    assert np.allclose(study.fit_gain(np.zeros_like(change), change, mask), 0.0)  # no signal, no gain
+
+
+def test_correlation_and_reliable_pixels():
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=100)
+    assert study.pearson(a, 2 * a + 1) == pytest.approx(1.0)
+    assert study.pearson(a, -a) == pytest.approx(-1.0)
+    assert study.pearson(np.zeros(100), a) == 0.0  # a field that predicts no change
+    mean = np.full((2, 8, 8, 3), 0.5)
+    variance = np.full_like(mean, 1e-4)
+    variance[1, 3, 4, 0] = 100.0  # one spike in one frame and channel
+    ok = study.reliable_pixels(mean, variance, np.ones((8, 8), bool))
+    assert not ok[3, 4] and ok.sum() == 63
+
+
+def test_metrics_of_identical_images_and_area_averaging():
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0, 1, (24, 32, 3))
+    mask = np.ones((24, 32), bool)
+    with np.errstate(divide="ignore"):
+        m = study.image_metrics(x, x, mask, 1.0)
+    assert m["mae"] == 0 and m["ssim"] == pytest.approx(1.0)
+    m = study.image_metrics(x, x + 0.1, mask, 1.0)
+    assert m["mae"] == pytest.approx(0.1) and m["psnr_db"] == pytest.approx(20.0)
+    small = study.downsample(np.repeat(np.repeat(x, 4, axis=0), 4, axis=1), (24, 32))
+    assert np.allclose(small, x)
+
+
+def test_bootstrap_interval_brackets_the_mean():
+    c = study.bootstrap_mean([0.1, 0.3, 0.2, 0.5], seed=0)
+    assert c["ci_low"] <= c["mean"] <= c["ci_high"] and c["ci_low"] < c["ci_high"]
+    assert c == study.bootstrap_mean([0.1, 0.3, 0.2, 0.5], seed=0)  # seeded
+    same = study.bootstrap_mean([0.2, 0.2], seed=0)
+    assert same["ci_low"] == same["mean"] == same["ci_high"] == 0.2
+
+
+def test_validators_refuse_bad_input(tmp_path, camera):
+    with pytest.raises(ValueError, match="width x height must divide"):
+        study.check_settings(study.Settings(width=100, height=48), camera)
+    with pytest.raises(ValueError, match="passes must be >= 2"):
+        study.check_settings(study.Settings(passes=1), camera)
+    with pytest.raises(ValueError, match="spp >= passes"):
+        study.check_settings(study.Settings(spp=2, passes=4), camera)
+    with pytest.raises(ValueError, match="contacts must be >= 2 distinct names"):
+        study.run(tmp_path, study.QUICK, ("sphere_tip", "teapot"))
+    with pytest.raises(ValueError, match="contacts must be >= 2 distinct names"):
+        study.run(tmp_path, study.QUICK, ("sphere_tip",))
+    with pytest.raises(ValueError, match="need the published data"):
+        study.run(tmp_path, study.QUICK, ("sphere_tip", "published_1"), reference_dir=None)
+    with pytest.raises(ValueError, match="values must be >= 2 finite numbers"):
+        study.bootstrap_mean([0.1], seed=0)
+    with pytest.raises(ValueError, match="values must be >= 2 finite numbers"):
+        study.bootstrap_mean([0.1, np.nan], seed=0)
+    with pytest.raises(ValueError, match="at least 2 contacts"):
+        study.leave_one_out_calibration(np.zeros((2, 4, 4, 3)), np.zeros((2, 4, 4, 3)), np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="change_fast and change_ref must be"):
+        study.fit_gain(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)), np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="same number"):
+        study.pearson(np.zeros(3), np.zeros(4))
+    with pytest.raises(ValueError, match="black inside the mask"):
+        study.reliable_pixels(np.zeros((1, 4, 4, 3)), np.zeros((1, 4, 4, 3)), np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="region must hold"):
+        study.image_metrics(np.zeros((8, 8, 3)), np.zeros((8, 8, 3)), np.ones((8, 8), bool), 1.0,
+                            np.zeros((8, 8), bool))
+    with pytest.raises(ValueError, match="fast and ref must be"):
+        study.fit_affine(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)), np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="data_range must be > 0"):
+        study.image_metrics(np.zeros((8, 8, 3)), np.zeros((8, 8, 3)), np.ones((8, 8), bool), 0.0)
+    with pytest.raises(ValueError, match="integer multiple"):
+        study.downsample(np.zeros((10, 10, 3)), (3, 3))
+    with pytest.raises(ValueError, match="analytic contacts must be among"):
+        study.analytic_contacts(None, camera, None, ("teapot",))
