@@ -11,7 +11,7 @@ import trimesh
 from pbr_tactile.effects import Effects
 from pbr_tactile.membrane import elastomer
 from pbr_tactile.scene import geltip_scene, led_centres, to_xml, write_meshes
-from pbr_tactile.spectra import film_response, gaussian, led_spectrum
+from pbr_tactile.spectra import gaussian, led_spectrum
 from scenes.camera import reference_depth
 from scenes.contact import press
 
@@ -132,51 +132,39 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
         reference(None, None, mesh, spec, camera, Effects(contact_shadow=False), estimator="volpath")
 
 
-def test_photon_estimator_agrees_with_volpath(tmp_path, mesh, spec, camera):
-    """Ring-averaged means of both estimators, with standard errors from independent
-    passes, must agree within Z_MAX (a z-test on aggregates: volpath's per-pixel
-    estimates at CI-sized sample counts are too heavy-tailed for per-pixel z)."""
+def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera):
+    """A per-pixel z-test of the photon estimator against a high-sample volpath
+    reference, each with its variance of the mean from independent passes.
+
+    At 8x6 px, volpath at 16 passes x 4096 spp has about 10 % per-pixel standard
+    error and the photon estimator about 4 %; under agreement z ~ N(0, 1), so the
+    median |z| is about 0.67 and |z| > 3 is rare. Measured here: median |z| 0.70,
+    no |z| > 3, mean z -0.3, aggregate -4 % (volpath's own seed-to-seed spread at this
+    budget is 1.2-1.6 %: its per-pass means are heavy-tailed)."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
-    from pbr_tactile import photons as ph
-    from pbr_tactile.render import load
+    from pbr_tactile.render import load, render, render_photons
     from pbr_tactile.scene import led_sources
 
-    Z_MAX = 4.0
     effects = Effects()
-    W, H = 24, 18
     solid = elastomer(mesh, spec, camera, edge=0.5e-3)
-    scene = geltip_scene(write_meshes(solid, tmp_path), spec, camera, effects, W, H, spp=4)
+    scene = geltip_scene(write_meshes(solid, tmp_path), spec, camera, effects, 8, 6, spp=4)
     try:
-        mi, loaded = load(scene)
+        mi, _ = load(scene)
     except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
         pytest.skip(f"no usable Mitsuba variant: {exc}")
     if not mi.variant().startswith(("llvm_", "cuda_")):
         pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
-    srcs = ph.sources_from(led_sources(spec, effects))
-    sigma_t, albedo = effects.sigma_t, effects.albedo
-    v, u = np.mgrid[0:H, 0:W]
-    r = np.hypot(v - (H - 1) / 2, u - (W - 1) / 2) / (H / 2)
-    rings = [(0, 0.35), (0.35, 0.7), (0.7, 1.0), (1.0, 2.0)]
-
-    def ring_means(img):
-        return np.array([[img[(r >= lo) & (r < hi), c].mean() for c in range(3)] for lo, hi in rings])
-
-    response = np.stack([np.pi * 4 * np.pi * d["radius"] ** 2 * film_response(d["spectrum"])
-                         for d in led_sources(spec, effects)])
-    kernel = ph.density_kernel(ph.coating_vertices(loaded), 0.75e-3)
-    photon_runs = []
-    for k in range(6):
-        maps = ph.irradiance_maps(mi, loaded, srcs, sigma_t, albedo, effects.coating_albedo, 1 << 16, seed=k,
-                                  kernel=kernel)
-        per_source = ph.camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, 4, seed=k)
-        photon_runs.append(ring_means(per_source @ response))
-    volpath_runs = [ring_means(np.array(mi.render(loaded, spp=256, seed=100 + k))[..., :3]) for k in range(8)]
-    a, b = np.array(photon_runs), np.array(volpath_runs)
-    se = np.sqrt(a.var(0, ddof=1) / len(a) + b.var(0, ddof=1) / len(b))
-    z = (a.mean(0) - b.mean(0)) / se
-    print("ring x channel z:", np.round(z, 2).tolist())
-    assert np.all(np.abs(z) < Z_MAX)
-    assert a.mean() == pytest.approx(b.mean(), rel=0.05)
+    photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=4, passes=6, seed=1)
+    volpath = render(scene, spp=16 * 4096, passes=16, seed=2)
+    lit = (photons.mean > 1e-5) & (volpath.mean > 0)
+    z = ((photons.mean - volpath.mean) / np.sqrt(photons.variance + volpath.variance))[lit]
+    print(f"per-pixel z over {z.size} px: median |z| {np.median(np.abs(z)):.2f}, mean {z.mean():.2f}, "
+          f"|z|>3 {np.mean(np.abs(z) > 3):.3f}; aggregate {photons.mean[lit].sum() / volpath.mean[lit].sum() - 1:+.3f}")
+    assert z.size > 100
+    assert np.median(np.abs(z)) < 1.0
+    assert np.mean(np.abs(z) > 3) < 0.05
+    assert abs(z.mean()) < 0.6
+    assert photons.mean[lit].sum() == pytest.approx(volpath.mean[lit].sum(), rel=0.06)
 
 
 def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camera):
@@ -241,7 +229,7 @@ def test_contact_shadow_off_lights_the_undeformed_membrane(tmp_path, mesh, spec,
     if not mi.variant().startswith(("llvm_", "cuda_")):
         pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
     leds = led_sources(spec, effects)
-    kw = dict(photons=1 << 12, spp=1, passes=2, seed=3)
+    kw = {"photons": 1 << 12, "spp": 1, "passes": 2, "seed": 3}
     same = render_photons(dented, leds, effects, **kw)
     # (Equal up to the order of atomic float additions across threads.)
     replay = render_photons(dented, leds, effects, light_scene=dented, **kw).mean
