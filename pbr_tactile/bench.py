@@ -72,6 +72,7 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
             "volpath": {"seconds": t_volpath, "contact_rse": rse_v, "spp": volpath_spp, "passes": passes},
         },
         "contact_pixels": int(region.sum()),
+        "photons_median_rse_whole_image": float(np.nanmedian(est.relative_error[est.mean > 0])),
         "method": "both extrapolated from one measured run by time x (rse / 0.02)^2 (error ~ 1/sqrt(work)); "
         "rse = mean per-pixel standard error / mean over the contact region",
         "cpus": os.cpu_count(),
