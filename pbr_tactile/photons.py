@@ -462,13 +462,14 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         lanes = mi.Ray3f(both(o_t, o_r), both(refracted, reflected))
         beta = both(dr.select(dielectric, (1 - F) * dr.square(eta_ti), 0.0), dr.select(dielectric, F, 0.0))
         in_el = both(dielectric & enters, dr.zeros(mi.Bool, n))
-        walk = functools.partial(_camera_walk, mi, dr, scene, c, E, emitters, inv_area, interfaces,
+        walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, inv_area, interfaces,
                                  sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
                                  coating_albedo=coating_albedo)
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
         per_lane = np.stack([np.asarray(t, dtype=np.float64) for t in T2], axis=-1)  # (2n, S)
         if scatter_split > 1:
-            per_lane += _split_scatter(mi, dr, walk, scattered, scatter_split, _seed(seed, 1 << 20, done), 2 * n)
+            nee = functools.partial(_led_nee, mi, dr, scene, sources, emitters, inv_area, sigma_t=sigma_t)
+            per_lane += _split_scatter(mi, dr, walk, nee, scattered, scatter_split, _seed(seed, 1 << 20, done), 2 * n)
         per_sample = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1) + per_lane.reshape(2, n, -1).sum(0)
         total += per_sample.reshape(width * height, count, -1).sum(axis=1)
         done += count
@@ -485,41 +486,65 @@ def _concat(mi, dr, a, b):
     return dr.select(first, dr.gather(type(a), a, index, first), dr.gather(type(a), b, index - n, ~first))
 
 
-def _camera_hit(mi, dr, c, E, emitters, inv_area, si, surface, beta, coating_albedo):
+def _camera_hit(mi, dr, c, E, emitters, inv_area, si, surface, beta, coating_albedo, count_leds=True):
     """Radiance per unit flux of each source, seen at a hit: the coating's (rho/pi) e_m
-    interpolated on the hit face, or an LED's 1 / (pi A_m)."""
+    interpolated on the hit face, or an LED's 1 / (pi A_m) where ``count_leds``."""
     hit_coating = surface & (si.shape == c.coating)
     corners, bary = _corners(mi, c.faces, c.V, si, hit_coating)
     out = []
     for e, emitter, inv in zip(E, emitters, inv_area):
         irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
         t = dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
-        out.append(t + dr.select(surface & (si.shape == emitter), beta * inv, 0.0))
+        out.append(t + dr.select(surface & count_leds & (si.shape == emitter), beta * inv, 0.0))
     return out
 
 
-def _camera_walk(mi, dr, scene, c, E, emitters, inv_area, interfaces, sampler, ray, beta, in_el, sigma_s: float,
-                 sigma_a: float, coating_albedo: float, stop_at_scatter: bool = False):
+def _led_nee(mi, dr, scene, leds, emitters, inv_area, point, beta, sampler, active, sigma_t: float):
+    """Next-event estimate of each LED's light scattered towards the camera at points in
+    the elastomer (isotropic phase 1/(4 pi)): a direction sampled uniformly in the cone
+    the LED sphere subtends, kept if the sphere is the first thing it hits, attenuated by
+    exp(-sigma_t t). Light reaching the point through an interface is not included (the
+    walk itself finds it). Returns radiance per unit flux per source."""
+    out = []
+    for src, emitter, inv in zip(leds, emitters, inv_area):
+        to_led = mi.Point3f(*src.centre) - point
+        dist = dr.norm(to_led)
+        cos_max = dr.safe_sqrt(1 - dr.square(src.radius / dr.maximum(dist, src.radius * (1 + 1e-6))))
+        d = mi.Frame3f(to_led / dist).to_world(mi.warp.square_to_uniform_cone(sampler.next_2d(active), cos_max))
+        si = scene.ray_intersect(mi.Ray3f(point, d), mi.RayFlags.Minimal, False, active)
+        seen = active & si.is_valid() & (si.shape == emitter)
+        weight = beta * inv / (4 * math.pi) * 2 * math.pi * (1 - cos_max) * dr.exp(-sigma_t * si.t)
+        out.append(dr.select(seen, weight, 0.0))
+    return out
+
+
+def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, sampler, ray, beta, in_el,
+                 sigma_s: float, sigma_a: float, coating_albedo: float, stop_at_scatter: bool = False,
+                 after_scatter=None):
     """Follow camera rays (one symbolic loop) until they end on the coating, an LED or
-    nothing. Returns the radiance per unit flux of each source per lane, and, with
-    ``stop_at_scatter``, the lanes stopped at their first scattering event (a dict of
-    arrays: flag, position, weight, one slot per lane), else None."""
+    nothing. At a scattering event the LEDs' direct light comes by next-event estimation
+    (``_led_nee``), so a segment starting there does not count an LED it hits (it would
+    count that light twice); after an interface it does. Returns the radiance per unit
+    flux of each source per lane, and, with ``stop_at_scatter``, the lanes stopped at
+    their first scattering event (a dict of arrays: flag, position, weight, one slot per
+    lane), else None. ``after_scatter``: lanes that start at a scattering event."""
     n_src = len(E)
     n = dr.width(beta)
     lane_index = dr.arange(mi.UInt32, n)
     stopped = {k: dr.zeros(mi.Float, n) for k in ("flag", "px", "py", "pz", "beta")} if stop_at_scatter else None
+    sigma_t = sigma_s + sigma_a
 
-    def cond(ray, beta, in_el, active, depth, sampler, *T):
+    def cond(ray, beta, in_el, after, active, depth, sampler, *T):
         return active
 
-    def body(ray, beta, in_el, active, depth, sampler, *T):
+    def body(ray, beta, in_el, after, active, depth, sampler, *T):
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal, False, active)
         scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_s)
         if sigma_a > 0:
             travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
             beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
         surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, si, surface, beta, coating_albedo)
+        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, si, surface, beta, coating_albedo, ~after)
         T = [t + dt for t, dt in zip(T, seen)]
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
         wo, transmitted, _, eta_ti = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
@@ -538,16 +563,21 @@ def _camera_walk(mi, dr, scene, c, E, emitters, inv_area, interfaces, sampler, r
                                ("pz", scatter_pos.z), ("beta", beta)):
                 dr.scatter(stopped[key], value, lane_index, stop)
             keep = scatter & ~stop
+        if sigma_s > 0:
+            direct = _led_nee(mi, dr, scene, leds, emitters, inv_area, scatter_pos, beta, sampler, keep, sigma_t)
+            T = [t + dt for t, dt in zip(T, direct)]
+        after = keep
         active = (keep | dielectric) & (beta > 0) & (depth < CAMERA_MAX_DEPTH)
-        return (ray, beta, in_el, active, depth, sampler, *T)
+        return (ray, beta, in_el, after, active, depth, sampler, *T)
 
     zeros = [dr.zeros(mi.Float, n) for _ in range(n_src)]
-    state = dr.while_loop(state=(ray, beta, in_el, beta > 0, dr.zeros(mi.UInt32, n), sampler, *zeros),
+    after = dr.zeros(mi.Bool, n) if after_scatter is None else after_scatter
+    state = dr.while_loop(state=(ray, beta, in_el, after, beta > 0, dr.zeros(mi.UInt32, n), sampler, *zeros),
                           cond=cond, body=body, label="camera")
-    return list(state[6:]), stopped
+    return list(state[7:]), stopped
 
 
-def _split_scatter(mi, dr, walk, stopped: dict, k: int, seed: int, n_lanes: int) -> np.ndarray:
+def _split_scatter(mi, dr, walk, nee, stopped: dict, k: int, seed: int, n_lanes: int) -> np.ndarray:
     """Continue each stopped lane from its scattering point in k directions, one per
     stratum of the sphere (a jittered sqrt(k) x sqrt(k) grid on the unit square), each
     with weight beta / k. Returns (n_lanes, S) radiance per unit flux per lane."""
@@ -568,7 +598,11 @@ def _split_scatter(mi, dr, walk, stopped: dict, k: int, seed: int, n_lanes: int)
     d = mi.warp.square_to_uniform_sphere(u)
     o = np.repeat(origin, k, axis=0)
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]), d)
-    T, _ = walk(sampler, ray, mi.Float(np.repeat(beta / k, k)), dr.full(mi.Bool, True, m))
+    weight = mi.Float(np.repeat(beta / k, k))
+    T, _ = walk(sampler, ray, weight, dr.full(mi.Bool, True, m), after_scatter=dr.full(mi.Bool, True, m))
+    # The LEDs' direct light at each event, one estimate per direction's stratum sample.
+    direct = nee(ray.o, weight, sampler, dr.full(mi.Bool, True, m))
+    T = [t + d for t, d in zip(T, direct)]
     per = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1).reshape(len(lanes), k, -1).sum(1)
     out = np.zeros((n_lanes, per.shape[1]))
     out[lanes] = per
