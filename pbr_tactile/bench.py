@@ -47,11 +47,15 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
     effects = Effects()
     solid = elastomer(mesh, spec, camera, depth, ref)
     results = {}
+    flat = elastomer(mesh, spec, camera)
     with tempfile.TemporaryDirectory(prefix="tactile-bench-") as folder:
         scene = geltip_scene(write_meshes(solid, folder), spec, camera, effects, width, height, spp=4, seed=seed)
+        # As pbr_tactile.render.reference does: the undeformed membrane sets the window.
+        pilot_scene = geltip_scene(write_meshes(flat, f"{folder}/undeformed"), spec, camera, effects, width,
+                                   height, spp=4, seed=seed)
         t0 = time.perf_counter()
         est = render_photons(scene, led_sources(spec, effects), effects, photons=photons, spp=camera_spp,
-                             passes=passes, seed=seed, kernel_radius=kernel_radius)
+                             passes=passes, seed=seed, kernel_radius=kernel_radius, pilot_scene=pilot_scene)
         t_photons = time.perf_counter() - t0
         t0 = time.perf_counter()
         vol = render(scene, spp=volpath_spp, passes=passes, seed=seed)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import functools
 import math
+import typing
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,6 +82,51 @@ def sources_from(leds: list[dict]) -> list[Source]:
 def _seed(*parts: int) -> int:
     """One 32-bit sampler seed from several integers (pass, generation, batch)."""
     return int(np.random.SeedSequence([int(p) % (1 << 32) for p in parts]).generate_state(1)[0])
+
+
+def _splitmix(*parts: np.ndarray) -> np.ndarray:
+    """A 64-bit hash (SplitMix64 steps) of integer arrays, element-wise."""
+    with np.errstate(over="ignore"):
+        h = np.zeros(np.broadcast(*parts).shape, dtype=np.uint64)
+        for part in parts:
+            h = (h ^ np.asarray(part).astype(np.uint64)) + np.uint64(0x9E3779B97F4A7C15)
+            h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            h = h ^ (h >> np.uint64(31))
+    return h
+
+
+class _Rng:
+    """Per-lane random streams keyed by a 64-bit identity, not by lane position.
+
+    A photon (or camera ray) keeps its own stream whichever lane it lands in, so two
+    renders with the same seed (a contact and the no-contact frame) trace the same
+    walks wherever the geometry is the same: common random numbers, which keep the
+    noise of a contact's change image down to the paths the contact actually changed.
+    Offers the two sampler methods the walks use, and travels as Dr.Jit loop state.
+    """
+
+    DRJIT_STRUCT: typing.ClassVar[dict] = {"pcg": object}
+
+    def __init__(self, mi=None, identity: np.ndarray | None = None):
+        if mi is None:
+            return
+        import drjit as dr
+
+        n = len(identity)
+        # PCG32 adds arange(n) to both words; take it back so only the identity counts.
+        offset = dr.arange(mi.UInt64, n)
+        state = mi.UInt64(_splitmix(identity, np.uint64(1)))
+        sequence = mi.UInt64(_splitmix(identity, np.uint64(2)))
+        self.pcg = mi.PCG32(n, state - offset, sequence - offset)
+
+    def next_1d(self, active=True):
+        return self.pcg.next_float32(active)
+
+    def next_2d(self, active=True):
+        import mitsuba as mi
+
+        return mi.Point2f(self.pcg.next_float32(active), self.pcg.next_float32(active))
 
 
 def _shape(scene, name: str):
@@ -188,7 +234,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
     queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
                                                    ("nx", mi.Float), ("ny", mi.Float), ("nz", mi.Float),
                                                    ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32),
-                                                   ("k", mi.UInt32))}
+                                                   ("k", mi.UInt32), ("id", mi.UInt64))}
     lane_index = dr.arange(mi.UInt32, n_lanes)
 
     def cond(ray, weight, in_el, active, depth, sampler):
@@ -235,7 +281,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
                 slot = lane_index
                 for key, value in (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x),
                                    ("ny", inward.y), ("nz", inward.z), ("w", weight / mi.Float(k)),
-                                   ("s", s), ("depth", depth + 1), ("k", k)):
+                                   ("s", s), ("depth", depth + 1), ("k", k), ("id", start["id"])):
                     dr.scatter(queue[key], value, slot, heavy)
                 alive &= ~heavy
         depth += 1
@@ -280,17 +326,15 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     s = lane // photons
     centre = dr.gather(mi.Point3f, mi.Point3f(*[mi.Float([src.centre[k] for src in sources]) for k in range(3)]), s)
     radius = dr.gather(mi.Float, mi.Float([src.radius for src in sources]), s)
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(_seed(seed), n_src * photons)
+    identity = _splitmix(np.uint64(seed), np.arange(n_src * photons, dtype=np.uint64))
+    sampler = _Rng(mi, identity)
     normal = mi.warp.square_to_uniform_sphere(sampler.next_2d())
     start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
              "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
-             "depth": mi.UInt32(0)}
+             "depth": mi.UInt32(0), "id": mi.UInt64(identity)}
     for generation in range(MAX_GENERATIONS):
-        n_lanes = dr.width(start["s"])
         if generation > 0:
-            sampler = mi.load_dict({"type": "independent"})
-            sampler.seed(_seed(seed, generation), n_lanes)
+            sampler = _Rng(mi, identity)
         queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
                                   coating_albedo, target is not None and generation < MAX_GENERATIONS - 1)
         if target is None:
@@ -302,6 +346,9 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         q = {key: np.asarray(value)[split] for key, value in queue.items()}
         copies = q["k"].astype(np.int64)
         rep = {key: np.repeat(value, copies) for key, value in q.items()}
+        # Each copy's stream: its parent's identity, its copy number, the generation.
+        copy = np.arange(len(rep["k"])) - np.repeat(np.cumsum(copies) - copies, copies)
+        identity = _splitmix(rep["id"], copy.astype(np.uint64), np.uint64(generation + 1))
         p = np.c_[rep["px"], rep["py"], rep["pz"]]
         nrm = np.c_[rep["nx"], rep["ny"], rep["nz"]]
         p = p + nrm * SPAWN_OFFSET_M
@@ -309,7 +356,7 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         start = {"p": mi.Point3f(*[mi.Float(p[:, k]) for k in range(3)]),
                  "n": mi.Vector3f(*[mi.Float(nrm[:, k]) for k in range(3)]), "w": mi.Float(rep["w"]),
                  "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": mi.UInt32(rep["s"]),
-                 "depth": mi.UInt32(rep["depth"])}
+                 "depth": mi.UInt32(rep["depth"]), "id": mi.UInt64(identity)}
     return np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
 
 
@@ -590,8 +637,10 @@ def _split_scatter(mi, dr, walk, nee, stopped: dict, k: int, seed: int, n_lanes:
     side = max(1, math.isqrt(k))
     k = side * side
     m = len(lanes) * k
-    sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(_seed(seed, 1 << 21), m)
+    # Streams keyed by the parent lane and the direction's stratum: a lane that scatters
+    # in two renders (contact, no contact) continues the same way in both.
+    sampler = _Rng(mi, _splitmix(np.uint64(seed), np.repeat(lanes, k).astype(np.uint64),
+                                 np.tile(np.arange(k, dtype=np.uint64), len(lanes))))
     index = dr.arange(mi.UInt32, m)
     cell = index % k
     u = (mi.Point2f(mi.Float(cell % side), mi.Float(cell // side)) + sampler.next_2d()) / side

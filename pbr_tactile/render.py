@@ -102,13 +102,19 @@ KERNEL_RADIUS_M = 0.75e-3
 
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
                    passes: int = 4, seed: int = 0, variant: str | None = None, progress=None,
-                   kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None) -> Estimate:
+                   kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None,
+                   pilot_scene: dict | None = None) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
     light_scene : the scene the photons are traced in, when it differs from the one the
         camera sees (Effects.contact_shadow off: the undeformed membrane). Its coating
         mesh must have the same vertices, in the same order, as the camera scene's: the
         irradiance maps are carried over vertex by vertex.
+    pilot_scene : the scene the pilot pass (which sets the photons' weight window) runs
+        in; default the light scene. Giving every contact the undeformed membrane here
+        makes the window independent of the contact, so a contact and the no-contact
+        frame rendered with the same seed share their random walks wherever the dent
+        does not change them (common random numbers: low-noise change images).
 
     Each pass traces its own photons and its own camera samples, so the variance across
     passes is that of the whole estimator. kernel_radius (m) is the photon density
@@ -147,9 +153,16 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     # spreads the photons' deposits evenly over the coating.
     # The pilot's kernel is the main kernel applied twice (about 1.4 times as wide).
     area = coating_areas(lit)
-    pilot_flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
+    pilot_lit, pilot_kernel = lit, kernel
+    if pilot_scene is not None:
+        pilot_lit = load(pilot_scene, variant)[1]
+        if len(coating_vertices(pilot_lit)) != n_seen:
+            raise ValueError("pilot_scene's coating must have the camera scene's vertices, displaced")
+        pilot_kernel = density_kernel(coating_vertices(pilot_lit), kernel_radius)
+    pilot_area = coating_areas(pilot_lit)
+    pilot_flux = deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
                           seed * 7919 + passes)
-    pilot = (kernel @ (kernel @ pilot_flux.T)).T / (kernel @ (kernel @ area))
+    pilot = (pilot_kernel @ (pilot_kernel @ pilot_flux.T)).T / (pilot_kernel @ (pilot_kernel @ pilot_area))
     window = weight_window(pilot, area, photons)
     images = []
     for k in range(passes):
@@ -198,15 +211,20 @@ def reference(
         meshes = write_meshes(solid, folder)
         scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
         if estimator == "photons":
-            light_scene = None
-            if not effects.contact_shadow and depth is not None:
-                # The light sees the undeformed membrane: the indentation casts no shadow
-                # and guides no light differently; only the camera sees the dent.
+            light_scene = flat_scene = None
+            if depth is not None:
+                # The undeformed membrane sets the photons' weight window for every
+                # contact (common random numbers with the no-contact frame) and, with
+                # contact_shadow off, is what the light sees: no shadow, no guiding by
+                # the dent; only the camera sees it.
                 flat = write_meshes(elastomer(membrane, spec, camera), f"{folder}/undeformed")
-                light_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed)
+                flat_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed)
+                if not effects.contact_shadow:
+                    light_scene = flat_scene
             est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
-                                 progress=progress, kernel_radius=kernel_radius, light_scene=light_scene)
+                                 progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
+                                 pilot_scene=flat_scene)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
     return sensor_effects(est, camera, effects, seed)

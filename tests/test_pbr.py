@@ -242,6 +242,35 @@ def test_contact_shadow_off_lights_the_undeformed_membrane(tmp_path, mesh, spec,
         render_photons(dented, leds, effects, light_scene=coarse, **kw)
 
 
+def test_contact_and_no_contact_share_random_walks(mesh, spec, camera, ref, pressed):
+    """Same seed, contact vs no contact: photons and camera rays keep their own streams
+    (keyed by identity, with the undeformed membrane setting the weight window), so far
+    from the dent the change image is much quieter than between two independent seeds."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from scipy.ndimage import binary_dilation
+
+    from pbr_tactile.render import reference
+    from pbr_tactile.variant import VariantError, choose_variant
+
+    try:
+        if not choose_variant().variant().startswith(("llvm_", "cuda_")):
+            pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
+    except VariantError as exc:
+        pytest.skip(str(exc))
+    W, H = 40, 30
+    kw = {"spp": 4, "width": W, "height": H, "passes": 2, "photons": 1 << 14}
+    contact = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, **kw).mean
+    same = reference(None, None, mesh, spec, camera, Effects(), seed=4, **kw).mean
+    other = reference(None, None, mesh, spec, camera, Effects(), seed=5, **kw).mean
+    rows = (np.arange(H) * camera.height / H).astype(int)
+    cols = (np.arange(W) * camera.width / W).astype(int)
+    dent = (ref - pressed)[np.ix_(rows, cols)] > 1e-6
+    far = ~binary_dilation(dent, iterations=6) & (same.sum(-1) > 1e-5)
+    crn, independent = np.abs(contact - same)[far].mean(), np.abs(contact - other)[far].mean()
+    print(f"far-field change, same seed vs another seed: {crn:.3g} vs {independent:.3g}")
+    assert crn < 0.6 * independent
+
+
 def test_sensor_effects_analytically(camera, rng):
     from pbr_tactile.sensor import add_noise, apply, distort, vignetting
 
