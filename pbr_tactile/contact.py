@@ -18,7 +18,7 @@ import trimesh
 from scenes.camera import Camera, check_depth, reference_depth
 from scenes.contact import indenter_depth
 from scenes.geometry import validate_mesh
-from scenes.indenters import MAX_INDENTER_EXTENT_M
+from scenes.indenters import MAX_INDENTER_EXTENT_M, check_closed
 from scenes.spec import MAX_SENSOR_SIZE_M, SensorSpec
 
 from .membrane import CONTACT_EPS_M, REFINED_EDGE_M, Elastomer, elastomer
@@ -74,14 +74,7 @@ def check_indenter(shape, name: str = "indenter") -> trimesh.Trimesh:
                 "it looks like millimetres, but metres were expected"
             )
     validate_mesh(shape, name=name)
-    if not shape.is_watertight:
-        open_edges = len(trimesh.grouping.group_rows(shape.edges_sorted, require_count=1))
-        raise ValueError(
-            f"{name}: mesh is not watertight ({open_edges} edges bound a single face); the camera needs a "
-            "closed surface to tell the indenter's inside from its outside"
-        )
-    if not shape.is_winding_consistent:
-        raise ValueError(f"{name}: faces are wound inconsistently; fix the mesh's normals")
+    check_closed(shape, name)
     return shape
 
 

@@ -442,6 +442,19 @@ def make_indenter(name: str, seed: int = 0, **params) -> trimesh.Trimesh:
 # --- Any mesh file ------------------------------------------------------------------
 
 
+def check_closed(mesh: trimesh.Trimesh, name: str) -> None:
+    """Raise ValueError naming ``name`` unless the mesh is watertight and consistently
+    wound: a camera tells an indenter's inside from its outside only on a closed surface."""
+    if not mesh.is_watertight:
+        open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+        raise ValueError(
+            f"{name}: mesh is not watertight ({open_edges} edges bound a single face); "
+            "the camera needs a closed surface to tell the indenter's inside from its outside"
+        )
+    if not mesh.is_winding_consistent:
+        raise ValueError(f"{name}: faces are wound inconsistently; fix the mesh's normals")
+
+
 def load_indenter(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     """Load any closed mesh (STL, OBJ, PLY, ...) as an indenter, in metres.
 
@@ -492,14 +505,7 @@ def load_indenter(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     # Validate before processing: trimesh's processing silently drops NaN vertices.
     validate_mesh(trimesh.Trimesh(vertices * scale, mesh.faces, process=False), name=f"indenter file {path}")
     mesh = trimesh.Trimesh(vertices * scale, mesh.faces, process=True)
-    if not mesh.is_watertight:
-        open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
-        raise ValueError(
-            f"indenter file {path}: mesh is not watertight ({open_edges} edges bound a single face); "
-            "the depth camera needs a closed surface to tell the indenter's inside from its outside"
-        )
-    if not mesh.is_winding_consistent:
-        raise ValueError(f"indenter file {path}: faces are wound inconsistently; fix the mesh's normals")
+    check_closed(mesh, f"indenter file {path}")
     if mesh.volume < 0:
         warnings.warn(f"indenter file {path}: mesh is wound inside-out; turned outward", stacklevel=2)
         mesh.invert()

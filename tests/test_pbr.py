@@ -132,6 +132,19 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
         reference(None, None, mesh, spec, camera, Effects(contact_shadow=False), estimator="volpath")
 
 
+def _vectorised(scene: dict):
+    """(mi, loaded scene), or skip: the photon estimator needs an llvm_ or cuda_ variant."""
+    from pbr_tactile.render import load
+
+    try:
+        mi, loaded = load(scene)
+    except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
+        pytest.skip(f"no usable Mitsuba variant: {exc}")
+    if not mi.variant().startswith(("llvm_", "cuda_")):
+        pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
+    return mi, loaded
+
+
 def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera):
     """A per-pixel z-test of the photon estimator against a high-sample volpath
     reference, each with its variance of the mean from independent passes.
@@ -142,18 +155,13 @@ def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, ca
     no |z| > 3, mean z -0.3, aggregate -4 % (volpath's own seed-to-seed spread at this
     budget is 1.2-1.6 %: its per-pass means are heavy-tailed)."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
-    from pbr_tactile.render import load, render, render_photons
+    from pbr_tactile.render import render, render_photons
     from pbr_tactile.scene import led_sources
 
     effects = Effects()
     solid = elastomer(mesh, spec, camera, edge=0.5e-3)
     scene = geltip_scene(write_meshes(solid, tmp_path), spec, camera, effects, 8, 6, spp=4)
-    try:
-        mi, _ = load(scene)
-    except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
-        pytest.skip(f"no usable Mitsuba variant: {exc}")
-    if not mi.variant().startswith(("llvm_", "cuda_")):
-        pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
+    _vectorised(scene)
     photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=4, passes=6, seed=1)
     volpath = render(scene, spp=16 * 4096, passes=16, seed=2)
     lit = (photons.mean > 1e-5) & (volpath.mean > 0)
@@ -172,18 +180,12 @@ def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camer
     total deposited flux per LED, and the flux at the dim tip, agree with plain tracing."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from pbr_tactile import photons as ph
-    from pbr_tactile.render import load
     from pbr_tactile.scene import led_sources
 
     effects = Effects()
     solid = elastomer(mesh, spec, camera, edge=0.5e-3)
     scene = geltip_scene(write_meshes(solid, tmp_path), spec, camera, effects, 8, 6, spp=4)
-    try:
-        mi, loaded = load(scene)
-    except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
-        pytest.skip(f"no usable Mitsuba variant: {exc}")
-    if not mi.variant().startswith(("llvm_", "cuda_")):
-        pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
+    mi, loaded = _vectorised(scene)
     srcs = ph.sources_from(led_sources(spec, effects))[:1]
     args = (mi, loaded, srcs, effects.sigma_t, effects.albedo, effects.coating_albedo)
     n = 1 << 15
@@ -214,7 +216,7 @@ def test_contact_shadow_off_lights_the_undeformed_membrane(tmp_path, mesh, spec,
     is plumbed through exactly (same scene, same seed: the same image), an undeformed
     light scene changes the dent's pixels only, and a mismatched mesh is refused."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
-    from pbr_tactile.render import load, render_photons
+    from pbr_tactile.render import render_photons
     from pbr_tactile.scene import led_sources
 
     effects = Effects()
@@ -222,12 +224,7 @@ def test_contact_shadow_off_lights_the_undeformed_membrane(tmp_path, mesh, spec,
                           spec, camera, effects, 32, 24)
     flat = geltip_scene(write_meshes(elastomer(mesh, spec, camera, edge=0.5e-3), tmp_path / "f"), spec, camera,
                         effects, 32, 24)
-    try:
-        mi, _ = load(dented)
-    except Exception as exc:  # noqa: BLE001 - any variant failure is a skip reason here
-        pytest.skip(f"no usable Mitsuba variant: {exc}")
-    if not mi.variant().startswith(("llvm_", "cuda_")):
-        pytest.skip(f"the photon estimator needs a vectorised variant, got {mi.variant()} (apt-get install libllvm19)")
+    _vectorised(dented)
     leds = led_sources(spec, effects)
     kw = {"photons": 1 << 12, "spp": 1, "passes": 2, "seed": 3}
     same = render_photons(dented, leds, effects, **kw)
