@@ -81,6 +81,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     from .render import reference
 
     _check_contact_args(args, parser)
+    effects = Effects().with_settings(args.effect or [])
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
@@ -100,7 +101,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     def progress(done, total):
         bar.update(done - bar.n)
 
-    est = reference(depth, ref, mesh, spec, camera, Effects(), spp=args.spp, width=args.width, height=args.height,
+    est = reference(depth, ref, mesh, spec, camera, effects, spp=args.spp, width=args.width, height=args.height,
                     seed=args.seed, variant=args.variant, progress=progress, passes=args.passes,
                     estimator=args.estimator, photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3)
     bar.close()
@@ -120,11 +121,10 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
 def cmd_bench_pbr(args) -> int:
     import json
 
+    from scenes.dataset import atomic_write_json
     from scenes.spec import load_spec
 
     from .bench import bench_pbr
-
-    from scenes.dataset import atomic_write_json
 
     results = bench_pbr(load_spec(args.spec), photons=args.photons, camera_spp=args.camera_spp,
                         volpath_spp=args.volpath_spp)
@@ -163,6 +163,9 @@ def register(registry) -> None:
     p.add_argument("--estimator", choices=["photons", "volpath"], default="photons",
                    help="photons (two-pass, fast) or volpath (brute force)")
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
+    p.add_argument("--effect", action="append", metavar="NAME=VALUE",
+                   help="set one physical effect of pbr_tactile.effects.Effects, e.g. contact_shadow=false or "
+                        "scattering_per_m=0 (repeatable)")
     p.add_argument("--kernel-radius-mm", type=float, default=0.75,
                    help="radius of the photon density estimate, mm (bias ~ r^2, noise ~ 1/r)")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")

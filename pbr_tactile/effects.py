@@ -6,7 +6,7 @@ documented with its unit, and ``Effects()`` is the full physical model.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 
 
 @dataclass(frozen=True)
@@ -61,3 +61,31 @@ class Effects:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def with_settings(self, settings: list[str]) -> Effects:
+        """A copy with ``NAME=VALUE`` settings applied, as given on a command line:
+        booleans as true/false (on/off, 1/0), numbers as numbers, pairs as ``a,b``."""
+        kinds = {f.name: f.type for f in fields(self)}
+        changes = {}
+        for item in settings:
+            name, sep, text = item.partition("=")
+            name, text = name.strip(), text.strip()
+            if not sep or name not in kinds:
+                raise ValueError(f"effect setting {item!r}: expected NAME=VALUE with NAME one of {', '.join(kinds)}")
+            kind = str(kinds[name])
+            try:
+                if kind == "bool":
+                    lowered = text.lower()
+                    if lowered not in ("true", "false", "on", "off", "1", "0"):
+                        raise ValueError
+                    changes[name] = lowered in ("true", "on", "1")
+                elif kind.startswith("tuple"):
+                    changes[name] = tuple(float(x) for x in text.split(","))
+                    if len(changes[name]) != len(getattr(self, name)):
+                        raise ValueError
+                else:
+                    changes[name] = float(text)
+            except ValueError:
+                example = {"bool": "true or false", "float": "a number"}.get(kind, "numbers as a,b")
+                raise ValueError(f"effect setting {item!r}: {name} takes {example}") from None
+        return replace(self, **changes)

@@ -103,6 +103,20 @@ def test_spectra_and_effects():
         Effects(absorption_per_m=-1.0)
 
 
+def test_effects_from_command_line_settings():
+    e = Effects().with_settings(["contact_shadow=off", "scattering_per_m=0", "lens_distortion=0.1,0.02"])
+    assert (e.contact_shadow, e.scattering_per_m, e.lens_distortion) == (False, 0.0, (0.1, 0.02))
+    assert Effects().with_settings([]) == Effects()
+    with pytest.raises(ValueError, match="'banana=1': expected NAME=VALUE with NAME one of core_light_leak"):
+        Effects().with_settings(["banana=1"])
+    with pytest.raises(ValueError, match="contact_shadow takes true or false"):
+        Effects().with_settings(["contact_shadow=maybe"])
+    with pytest.raises(ValueError, match="lens_distortion takes numbers as a,b"):
+        Effects().with_settings(["lens_distortion=1"])
+    with pytest.raises(ValueError, match=r"vignetting must be in \[0, 1\]"):
+        Effects().with_settings(["vignetting=2"])
+
+
 def test_variant_selection_errors(monkeypatch):
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from pbr_tactile import variant
