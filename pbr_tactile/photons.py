@@ -79,11 +79,6 @@ def sources_from(leds: list[dict]) -> list[Source]:
             for d in leds]
 
 
-def _seed(*parts: int) -> int:
-    """One 32-bit sampler seed from several integers (pass, generation, batch)."""
-    return int(np.random.SeedSequence([int(p) % (1 << 32) for p in parts]).generate_state(1)[0])
-
-
 def _splitmix(*parts: np.ndarray) -> np.ndarray:
     """A 64-bit hash (SplitMix64 steps) of integer arrays, element-wise."""
     with np.errstate(over="ignore"):
@@ -94,6 +89,11 @@ def _splitmix(*parts: np.ndarray) -> np.ndarray:
             h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
             h = h ^ (h >> np.uint64(31))
     return h
+
+
+def _seed(*parts: int) -> int:
+    """One 32-bit sampler seed from several integers (pass, batch)."""
+    return int(_splitmix(*(np.uint64(p % (1 << 64)) for p in parts)) & np.uint64(0xFFFFFFFF))
 
 
 class _Rng:
@@ -141,7 +141,6 @@ class _Coating:
     """The coating mesh as Dr.Jit buffers, and the shapes the walks tell apart."""
 
     faces: object  # UInt32 (3F,), vertex indices
-    V: object  # Point3f (V,), vertex positions, metres
     vertex_area: np.ndarray  # (V,) m^2, a third of each adjacent face's area
     coating: object  # ShapePtr
     core: object  # ShapePtr
@@ -156,8 +155,7 @@ def _coating(mi, scene) -> _Coating:
     mesh = trimesh.Trimesh(positions, tri, process=False)
     vertex_area = np.zeros(len(positions))
     np.add.at(vertex_area, tri.ravel(), np.repeat(mesh.area_faces / 3, 3))
-    return _Coating(mi.UInt32(tri.ravel()), mi.Point3f(*[mi.Float(positions[:, k]) for k in range(3)]), vertex_area,
-                    mi.ShapePtr(coating), mi.ShapePtr(_shape(scene, "core")))
+    return _Coating(mi.UInt32(tri.ravel()), vertex_area, mi.ShapePtr(coating), mi.ShapePtr(_shape(scene, "core")))
 
 
 def _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t: float):
@@ -168,20 +166,13 @@ def _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t: float):
     return active & in_el & (t_free < si.t), ray(t_free)
 
 
-def _corners(mi, faces, V, si, active):
-    """The hit face's vertex indices and the hit's barycentric weights (clamped)."""
+def _corners(mi, faces, pi, active):
+    """The hit face's coating-vertex indices and the hit's barycentric weights, from a
+    preliminary intersection (Mitsuba's p = (1-u-v) p0 + u p1 + v p2)."""
     import drjit as dr
 
-    f = si.prim_index
-    i0, i1, i2 = (dr.gather(mi.UInt32, faces, 3 * f + k, active) for k in range(3))
-    p0, p1, p2 = (dr.gather(mi.Point3f, V, i, active) for i in (i0, i1, i2))
-    e1, e2, q = p1 - p0, p2 - p0, si.p - p0
-    d11, d12, d22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
-    q1, q2 = dr.dot(q, e1), dr.dot(q, e2)
-    den = d11 * d22 - d12 * d12
-    b1 = dr.clip((d22 * q1 - d12 * q2) / den, 0, 1)
-    b2 = dr.clip((d11 * q2 - d12 * q1) / den, 0, 1 - b1)
-    return (i0, i1, i2), (1 - b1 - b2, b1, b2)
+    corners = tuple(dr.gather(mi.UInt32, faces, 3 * pi.prim_index + k, active) for k in range(3))
+    return corners, (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
 
 
 def _interfaces(mi, scene) -> list[tuple[object, float]]:
@@ -204,20 +195,27 @@ def _dielectric(mi, dr, si, surface, interfaces):
     return hit, eta
 
 
+def _fresnel_branches(mi, dr, d, n, eta):
+    """Fresnel reflectance F, eta_ti and the refracted and reflected directions of d
+    at a smooth interface of normal n (world space, geometric normal)."""
+    wi = -d
+    cos_i = dr.dot(wi, n)
+    F, cos_t, _, eta_ti = mi.fresnel(cos_i, eta)
+    refracted = dr.normalize(-eta_ti * (wi - n * cos_i) + n * cos_t)
+    reflected = 2 * cos_i * n - wi
+    return F, eta_ti, refracted, reflected
+
+
 def _sample_dielectric(mi, dr, d, n, eta, u):
     """Fresnel-sampled reflection or refraction of direction d at a smooth interface of
-    normal n (world space, geometric normal): (new direction, transmitted, eta_ti).
+    normal n: (new direction, transmitted, F, eta_ti).
 
     In importance transport the sampled weight is exactly 1 (the eta^2 factor applies
     to radiance only), as in Mitsuba's ``dielectric``.
     """
-    wi = -d
-    cos_i = dr.dot(wi, n)
-    F, cos_t, _, eta_ti = mi.fresnel(cos_i, eta)
+    F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, d, n, eta)
     transmitted = u >= F
-    refracted = -eta_ti * (wi - n * cos_i) + n * cos_t
-    reflected = 2 * cos_i * n - wi
-    return dr.normalize(dr.select(transmitted, refracted, reflected)), transmitted, F, eta_ti
+    return dr.select(transmitted, refracted, reflected), transmitted, F, eta_ti
 
 
 def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: dict, sampler, photons: int,
@@ -246,8 +244,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
         scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
         surface = active & ~scatter & si.is_valid()
         hit_coating = surface & (si.shape == c.coating)
-        corners = [dr.gather(mi.UInt32, c.faces, 3 * pi.prim_index + k, hit_coating) for k in range(3)]
-        bary = (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
+        corners, bary = _corners(mi, c.faces, pi, hit_coating)
         for i, b in zip(corners, bary):
             dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating,
                               mode=dr.ReduceMode.Expand)
@@ -377,23 +374,6 @@ def weight_window(irradiance_pilot: np.ndarray, vertex_area: np.ndarray, photons
     return np.maximum(pilot, floor) * vertex_area.sum() / (deposits_per_photon * photons)
 
 
-def irradiance_maps(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-                    photons: int, seed: int = 0, radius: float = 0.0, kernel=None,
-                    window: np.ndarray | None = None) -> np.ndarray:
-    """Per source, irradiance on the coating's vertices per unit emitted flux.
-
-    radius : the density estimate's kernel radius, m (0: each vertex's own deposits over
-        its own area); kernel : a prebuilt ``density_kernel`` for this scene, reused
-        across passes; window : the photons' weight window (``deposits``).
-    Returns (S, V) float64, 1/m^2, V the coating mesh's vertex count.
-    """
-    c = _coating(mi, scene)
-    flux = deposits(mi, scene, sources, sigma_t, albedo, coating_albedo, photons, seed, window)
-    if kernel is None:
-        kernel = density_kernel(coating_vertices(scene), radius)
-    return irradiance(flux, c.vertex_area, kernel)
-
-
 def coating_areas(scene) -> np.ndarray:
     """(V,) area attributed to each coating vertex, m^2 (a third of each adjacent face)."""
     import mitsuba as mi
@@ -492,14 +472,11 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
         ray = mi.Ray3f(ray.o, ray.d)
         # First hit: both Fresnel branches, as two lanes per camera sample.
-        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, False)
-        T = _camera_hit(mi, dr, c, E, emitters, inv_area, si, si.is_valid(), mi.Float(1.0), coating_albedo)
+        pi = scene.ray_intersect_preliminary(ray, False)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
+        T = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, si.is_valid(), mi.Float(1.0), coating_albedo)
         dielectric, eta = _dielectric(mi, dr, si, si.is_valid(), interfaces)
-        wi = -ray.d
-        cos_i = dr.dot(wi, si.n)
-        F, cos_t, _, eta_ti = mi.fresnel(cos_i, eta)
-        refracted = dr.normalize(-eta_ti * (wi - si.n * cos_i) + si.n * cos_t)
-        reflected = 2 * cos_i * si.n - wi
+        F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
         enters = (si.shape == c.core)
         o_t, o_r = si.spawn_ray(refracted).o, si.spawn_ray(reflected).o
 
@@ -533,11 +510,11 @@ def _concat(mi, dr, a, b):
     return dr.select(first, dr.gather(type(a), a, index, first), dr.gather(type(a), b, index - n, ~first))
 
 
-def _camera_hit(mi, dr, c, E, emitters, inv_area, si, surface, beta, coating_albedo, count_leds=True):
+def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, count_leds=True):
     """Radiance per unit flux of each source, seen at a hit: the coating's (rho/pi) e_m
     interpolated on the hit face, or an LED's 1 / (pi A_m) where ``count_leds``."""
     hit_coating = surface & (si.shape == c.coating)
-    corners, bary = _corners(mi, c.faces, c.V, si, hit_coating)
+    corners, bary = _corners(mi, c.faces, pi, hit_coating)
     out = []
     for e, emitter, inv in zip(E, emitters, inv_area):
         irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
@@ -585,13 +562,14 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, samp
         return active
 
     def body(ray, beta, in_el, after, active, depth, sampler, *T):
-        si = scene.ray_intersect(ray, mi.RayFlags.Minimal, False, active)
+        pi = scene.ray_intersect_preliminary(ray, False, active)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
         scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_s)
         if sigma_a > 0:
             travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
             beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
         surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, si, surface, beta, coating_albedo, ~after)
+        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, ~after)
         T = [t + dt for t, dt in zip(T, seen)]
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
         wo, transmitted, _, eta_ti = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))

@@ -122,7 +122,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     The transport is grey, so each source's image is weighted by the film's exact
     response to that source's spectrum (pbr_tactile.spectra.film_response).
     """
-    from .photons import (camera_pass, coating_areas, coating_vertices, density_kernel, deposits, irradiance_maps,
+    from .photons import (camera_pass, coating_areas, coating_vertices, density_kernel, deposits, irradiance,
                           sources_from, weight_window)
     from .spectra import film_response
 
@@ -136,38 +136,42 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
                          "apt-get install libllvm19, or use the volpath estimator")
-    lit = loaded if light_scene is None else load(light_scene, variant)[1]
-    n_lit, n_seen = len(coating_vertices(lit)), len(coating_vertices(loaded))
-    if n_lit != n_seen:
-        raise ValueError(f"light_scene's coating has {n_lit} vertices but the camera scene's has {n_seen}: "
-                         "both must be the same mesh, displaced")
+    def same_mesh(role: str, other: dict | None):
+        """The loaded ``other`` scene (``loaded`` when None), checked to share the camera
+        scene's coating vertices, in order: maps carry over vertex by vertex."""
+        if other is None:
+            return loaded
+        scene_ = load(other, variant)[1]
+        n_other, n_seen = len(coating_vertices(scene_)), len(coating_vertices(loaded))
+        if n_other != n_seen:
+            raise ValueError(f"{role}'s coating has {n_other} vertices but the camera scene's has {n_seen}: "
+                             "both must be the same mesh, displaced")
+        return scene_
+
+    lit = same_mesh("light_scene", light_scene)
     srcs = sources_from(sources)
     # Pixel value per unit flux-normalised radiance: pi A_m times the film's response to
     # the source's radiance spectrum (flux = pi A L for a Lambertian sphere).
     response = np.stack([np.pi * 4 * np.pi * s["radius"] ** 2 * film_response(s["spectrum"], effects.camera_response)
                          for s in sources])
     sigma_t, albedo = effects.sigma_t, effects.albedo
-    positions = coating_vertices(lit)
-    kernel = density_kernel(positions, kernel_radius)
-    # A pilot pass (an eighth of the photons, a wide kernel) sets the weight window that
-    # spreads the photons' deposits evenly over the coating.
-    # The pilot's kernel is the main kernel applied twice (about 1.4 times as wide).
+    kernel = density_kernel(coating_vertices(lit), kernel_radius)
     area = coating_areas(lit)
-    pilot_lit, pilot_kernel = lit, kernel
-    if pilot_scene is not None:
-        pilot_lit = load(pilot_scene, variant)[1]
-        if len(coating_vertices(pilot_lit)) != n_seen:
-            raise ValueError("pilot_scene's coating must have the camera scene's vertices, displaced")
-        pilot_kernel = density_kernel(coating_vertices(pilot_lit), kernel_radius)
-    pilot_area = coating_areas(pilot_lit)
+    # A pilot pass (an eighth of the photons) sets the weight window that spreads the
+    # deposits evenly over the coating. Its density is the kernel applied twice (about
+    # 1.4 times as wide): E = K (K Phi) / K (K A).
+    pilot_lit = lit if pilot_scene is None else same_mesh("pilot_scene", pilot_scene)
+    pilot_kernel, pilot_area = kernel, area
+    if pilot_lit is not lit:
+        pilot_kernel, pilot_area = density_kernel(coating_vertices(pilot_lit), kernel_radius), coating_areas(pilot_lit)
     pilot_flux = deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
                           seed * 7919 + passes)
-    pilot = (pilot_kernel @ (pilot_kernel @ pilot_flux.T)).T / (pilot_kernel @ (pilot_kernel @ pilot_area))
+    pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
     images = []
     for k in range(passes):
-        maps = irradiance_maps(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
-                               kernel=kernel, window=window)
+        flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k, window)
+        maps = irradiance(flux, area, kernel)
         per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp,
                                  seed * 7919 + k)
         images.append(per_source @ response)
