@@ -499,9 +499,9 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
     a, b = np.ravel(a).astype(np.float64), np.ravel(b).astype(np.float64)
     if a.shape != b.shape or a.size < 2:
         raise ValueError(f"a and b must hold the same number (>= 2) of values, got {a.size} and {b.size}")
-    a, b = a - a.mean(), b - b.mean()
-    norm = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
-    return float((a * b).sum() / norm) if norm > 0 else 0.0
+    if a.std() == 0 or b.std() == 0:
+        return 0.0
+    return float(np.corrcoef(a, b)[0, 1])
 
 
 def no_change_metrics(ref: np.ndarray, mask: np.ndarray, region: np.ndarray, near: np.ndarray) -> list[dict]:
