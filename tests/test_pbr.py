@@ -144,6 +144,10 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
         reference(None, None, mesh, spec, camera, Effects(), estimator="magic")
     with pytest.raises(ValueError, match="contact_shadow=False. needs the photon estimator"):
         reference(None, None, mesh, spec, camera, Effects(contact_shadow=False), estimator="volpath")
+    from pbr_tactile.render import render_photons
+
+    with pytest.raises(ValueError, match="kernel_radius must be >= 0 m, got -0.001"):
+        render_photons({}, [], Effects(), kernel_radius=-1e-3)
 
 
 def _vectorised(scene: dict):
