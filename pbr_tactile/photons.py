@@ -479,6 +479,8 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
         enters = (si.shape == c.core)
         o_t, o_r = si.spawn_ray(refracted).o, si.spawn_ray(reflected).o
+        # _concat gathers, which evaluates its sources: all in one kernel, not one each.
+        dr.eval(T, dielectric, enters, F, eta_ti, refracted, reflected, o_t, o_r)
 
         def both(a, b):
             return _concat(mi, dr, a, b)
@@ -490,6 +492,9 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
                                  sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
                                  coating_albedo=coating_albedo)
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
+        # One kernel for every source's output (converting them one by one would trace
+        # the walk once per source).
+        dr.eval(T, T2, scattered)
         per_lane = np.stack([np.asarray(t, dtype=np.float64) for t in T2], axis=-1)  # (2n, S)
         if scatter_split > 1:
             nee = functools.partial(_led_nee, mi, dr, scene, sources, emitters, inv_area, sigma_t=sigma_t)
@@ -630,6 +635,7 @@ def _split_scatter(mi, dr, walk, nee, stopped: dict, k: int, seed: int, n_lanes:
     # The LEDs' direct light at each event, one estimate per direction's stratum sample.
     direct = nee(ray.o, weight, sampler, dr.full(mi.Bool, True, m))
     T = [t + d for t, d in zip(T, direct)]
+    dr.eval(T)
     per = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1).reshape(len(lanes), k, -1).sum(1)
     out = np.zeros((n_lanes, per.shape[1]))
     out[lanes] = per
