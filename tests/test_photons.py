@@ -36,14 +36,23 @@ def test_kernel_density_averages_noise_down_as_one_over_radius():
     assert 0.3 < noise[1] / noise[0] < 0.65
 
 
-def test_weight_window_targets_even_deposits():
+def test_weight_window_sets_the_deposit_density_analytically():
     area = np.full(4, 1e-6)
     pilot = np.array([[1000.0, 100.0, 10.0, 0.0]])
-    w = weight_window(pilot, area, photons=1000, deposits_per_photon=2.0)
-    # Deposit density E / w is the same wherever the pilot saw light.
+    # Exponent 1: the deposit density E / w is the same wherever the pilot saw light.
+    w = weight_window(pilot, area, photons=1000, deposits_per_photon=2.0, exponent=1.0)
     density = pilot[0, :3] / w[0, :3]
     assert np.allclose(density, density[0]) and density[0] == pytest.approx(2.0 * 1000 / area.sum())
     assert w[0, 3] > 0  # an unlit vertex still gets a positive (finite) target
+    # The default, 1/2: density ~ sqrt(E), so 10x the light gets sqrt(10)x the deposits
+    # and a photon from the brightest vertex is only sqrt(100) = 10x the dimmest's target.
+    w = weight_window(pilot, area, photons=1000, deposits_per_photon=2.0)
+    density = pilot[0, :3] / w[0, :3]
+    assert np.allclose(density[:-1] / density[1:], np.sqrt(10.0))
+    assert w[0, 0] / w[0, 2] == pytest.approx(10.0)
+    # Exponent 0: one weight everywhere, the light-weighted mean's.
+    w = weight_window(pilot, area, photons=1000, deposits_per_photon=2.0, exponent=0.0)
+    assert np.allclose(w, w[0, 0])
 
 
 def test_film_response_follows_specfilm_convention_analytically():
