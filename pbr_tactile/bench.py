@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
@@ -36,13 +37,32 @@ def contact_rse(est: Estimate, region: np.ndarray) -> float:
     return float(np.sqrt(np.mean(rel_var[np.isfinite(rel_var)])))
 
 
+@contextlib.contextmanager
+def _cache_at(folder: str):
+    """scenes.cache at ``folder`` for the duration."""
+    from scenes.cache import CACHE_ENV
+
+    before = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = folder
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(CACHE_ENV)
+        else:
+            os.environ[CACHE_ENV] = before
+
+
 def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: int = 1 << 20,
               camera_spp: int = 16, volpath_spp: int = 16, passes: int = 2, seed: int = 0,
-              kernel_radius: float = KERNEL_RADIUS_M) -> dict:
+              kernel_radius: float = KERNEL_RADIUS_M, no_contact_runs: int = 0, cache: str | None = None) -> dict:
     """Time both estimators on one contact and extrapolate each to TARGET_RSE.
 
     Monte Carlo error falls as 1/sqrt(work), so time_to_target = T (rse / target)^2,
     with T and rse measured in the same run. Both figures are extrapolations, stated so.
+    With no_contact_runs, the same contact is also timed with the no-contact control
+    variate (pbr_tactile.nocontact), its cache in ``cache`` (default: a fresh folder, so
+    the cold first contact is measured too).
     """
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
@@ -60,10 +80,22 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
         # As pbr_tactile.render.reference does: the undeformed membrane sets the window.
         pilot_scene = geltip_scene(write_meshes(flat, f"{folder}/undeformed"), spec, camera, effects, width,
                                    height, spp=4, seed=seed)
-        t0 = time.perf_counter()
-        est = render_photons(scene, led_sources(spec, effects), effects, photons=photons, spp=camera_spp,
-                             passes=passes, seed=seed, kernel_radius=kernel_radius, pilot_scene=pilot_scene)
-        t_photons = time.perf_counter() - t0
+
+        def run(runs: int):
+            t0 = time.perf_counter()
+            est = render_photons(scene, led_sources(spec, effects), effects, photons=photons, spp=camera_spp,
+                                 passes=passes, seed=seed, kernel_radius=kernel_radius, pilot_scene=pilot_scene,
+                                 no_contact_runs=runs)
+            return est, time.perf_counter() - t0
+
+        est, t_photons = run(0)
+        cached = None
+        if no_contact_runs:
+            # A contact whose sensor's no-contact runs are cached (every contact after a
+            # sensor's first): one run fills the cache, the next is timed.
+            with _cache_at(cache or os.path.join(folder, "cache")):
+                _, t_first = run(no_contact_runs)
+                cached, t_cached = run(no_contact_runs)
         t0 = time.perf_counter()
         vol = render(scene, spp=volpath_spp, passes=passes, seed=seed)
         t_volpath = time.perf_counter() - t0
@@ -84,6 +116,16 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
         },
         "contact_pixels": int(region.sum()),
         "photons_median_rse_whole_image": float(np.nanmedian(est.relative_error[est.mean > 0])),
+        "no_contact_cache": None if cached is None else {
+            "no_contact_runs": no_contact_runs,
+            "seconds": t_cached,
+            "contact_rse": contact_rse(cached, region),
+            "seconds_to_2pct": t_cached * (contact_rse(cached, region) / TARGET_RSE) ** 2,
+            "median_rse_whole_image": float(np.nanmedian(cached.relative_error[cached.mean > 0])),
+            "cold_seconds": t_first,
+            "method": "the same render with pbr_tactile.nocontact's control variate, timed with the sensor's "
+            "no-contact runs cached (cold_seconds: the first contact, which fills the cache)",
+        },
         "method": "both extrapolated from one measured run by time x (rse / 0.02)^2 (error ~ 1/sqrt(work)); "
         "rse = root of the mean over the contact region of per-pixel variance / mean^2 (RMS relative "
         "standard error; the variance across passes is unbiased, its square root is not)",

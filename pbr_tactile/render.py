@@ -103,7 +103,7 @@ KERNEL_RADIUS_M = 0.75e-3
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
                    passes: int = 4, seed: int = 0, variant: str | None = None, progress=None,
                    kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None,
-                   pilot_scene: dict | None = None) -> Estimate:
+                   pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
     light_scene : the scene the photons are traced in, when it differs from the one the
@@ -115,6 +115,12 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         makes the window independent of the contact, so a contact and the no-contact
         frame rendered with the same seed share their random walks wherever the dent
         does not change them (common random numbers: low-noise change images).
+    no_contact_runs : with a pilot_scene (the undeformed membrane), estimate each pass's
+        map as the sensor's no-contact map plus the contact's change
+        (``pbr_tactile.nocontact``): no_contact_runs no-contact runs per pass make that
+        map. They are cached on disk (``use_cache``), so only the first contact of a
+        sensor traces them; later contacts cost what they did without it, with less
+        photon noise (see that module for what was measured). 0: off.
 
     Each pass traces its own photons and its own camera samples, so the variance across
     passes is that of the whole estimator. kernel_radius (m) is the photon density
@@ -132,6 +138,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         raise ValueError(f"passes must be >= 2 for a variance estimate, got {passes}")
     if kernel_radius < 0:
         raise ValueError(f"kernel_radius must be >= 0 m, got {kernel_radius}")
+    if no_contact_runs < 0:
+        raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
     mi, loaded = load(scene, variant)
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
@@ -164,14 +172,42 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     pilot_kernel, pilot_area = kernel, area
     if pilot_lit is not lit:
         pilot_kernel, pilot_area = density_kernel(coating_vertices(pilot_lit), kernel_radius), coating_areas(pilot_lit)
-    pilot_flux = deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
-                          seed * 7919 + passes)
+    no_contact = None
+    if no_contact_runs:
+        if pilot_scene is None:
+            raise ValueError("no_contact_runs needs pilot_scene, the undeformed membrane's scene")
+        from .nocontact import NoContact
+
+        no_contact = NoContact(mi, pilot_lit, [[(s.name, s.centre, s.radius, s.in_elastomer) for s in srcs],
+                                               sigma_t, albedo, effects.coating_albedo, photons],
+                               no_contact_runs, use_cache)
+    pilot_seed = seed * 7919 + passes
+
+    def trace_pilot():
+        return deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
+                        pilot_seed)
+
+    # With the no-contact cache, the pilot is cached too: it is a no-contact run.
+    pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)
     pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
+
+    def trace_no_contact(run_seed):
+        return deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, run_seed, window)
+
     images = []
     for k in range(passes):
-        flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k, window)
-        maps = irradiance(flux, area, kernel)
+        if no_contact is None:
+            flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
+                            window)
+            maps = irradiance(flux, area, kernel)
+        else:
+            flux_0, flux_g = no_contact.pass_flux(seed * 7919 + k, pilot_seed, trace_no_contact)
+            maps = irradiance(flux_g, pilot_area, pilot_kernel)
+            if lit is not pilot_lit:  # the contact's change, with the same random numbers
+                flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
+                                window)
+                maps = maps + irradiance(flux, area, kernel) - irradiance(flux_0, pilot_area, pilot_kernel)
         per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp,
                                  seed * 7919 + k)
         images.append(per_source @ response)
@@ -197,6 +233,7 @@ def reference(
     estimator: str = "photons",
     photons: int = 1 << 20,
     kernel_radius: float = KERNEL_RADIUS_M,
+    no_contact_runs: int = 0,
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
@@ -204,12 +241,18 @@ def reference(
         (Mitsuba's brute-force volumetric path tracer).
     photons : photons per LED per pass, for the photon estimator.
     kernel_radius : the photon density estimate's radius, m (bias ~ radius^2).
+    no_contact_runs : for a contact, estimate its photon map as the sensor's cached
+        no-contact map plus the contact's change (``pbr_tactile.nocontact``), from this
+        many no-contact runs per pass; worth it when rendering many contacts of one
+        sensor (the first pays for the cache). 0: off.
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
     if not effects.contact_shadow and estimator != "photons":
         raise ValueError("Effects(contact_shadow=False) needs the photon estimator: volpath cannot trace light "
                          "and camera paths in different geometry")
+    if no_contact_runs < 0:
+        raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
     solid = elastomer(membrane, spec, camera, depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)
@@ -228,7 +271,7 @@ def reference(
             est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
-                                 pilot_scene=flat_scene)
+                                 pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
     return sensor_effects(est, camera, effects, seed)

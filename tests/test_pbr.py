@@ -304,3 +304,62 @@ def test_sensor_effects_analytically(camera, rng):
     noisy = add_noise(np.zeros((200, 200, 3), np.float32), 0.05, np.random.default_rng(1))
     assert noisy.std() == pytest.approx(0.05, rel=0.05)
     assert np.array_equal(noisy, add_noise(np.zeros((200, 200, 3), np.float32), 0.05, np.random.default_rng(1)))
+
+
+def test_no_contact_control_variate(tmp_path, monkeypatch, mesh, spec, camera, ref, pressed):
+    """A contact's map as the cached no-contact map plus the contact's change (same
+    seeds): the same image in expectation, far quieter away from the dent (there the
+    change is zero and the no-contact map has runs x the photons), and a second contact
+    of the sensor traces only its own photons."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from scipy.ndimage import binary_dilation
+
+    from pbr_tactile import photons as ph
+    from pbr_tactile.render import reference
+    from pbr_tactile.variant import VariantError, choose_variant
+
+    try:
+        if not choose_variant().variant().startswith(("llvm_", "cuda_")):
+            pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
+    except VariantError as exc:
+        pytest.skip(str(exc))
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    traced = []
+    real = ph.deposits
+
+    def counting(*args, **kwargs):
+        traced.append(args[1])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ph, "deposits", counting)
+    W, H, runs = 40, 30, 4
+    kw = {"spp": 32, "width": W, "height": H, "passes": 4, "photons": 1 << 14}
+    plain = reference(pressed, ref, mesh, spec, camera, Effects(), seed=3, **kw)
+    traced.clear()
+    cv = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, no_contact_runs=runs, **kw)
+    cold = len(traced)
+    assert cold == 1 + 4 * (2 + runs)  # pilot; per pass the contact, its no-contact twin and the runs
+    traced.clear()
+    again = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, no_contact_runs=runs, **kw)
+    assert len(traced) == 4  # the contact's own photons: the pilot and the no-contact runs are cached
+    np.testing.assert_allclose(again.mean, cv.mean, rtol=0.05, atol=1e-3 * float(cv.mean.max()))
+
+    rows = (np.arange(H) * camera.height / H).astype(int)
+    cols = (np.arange(W) * camera.width / W).astype(int)
+    dent = (ref - pressed)[np.ix_(rows, cols)] > 1e-6
+    lit = plain.mean.sum(-1) > 1e-3 * plain.mean.sum(-1).max()
+    far = ~binary_dilation(dent, iterations=6) & lit
+    for region in (far, dent & lit):
+        a, b = plain.mean[region].mean(), cv.mean[region].mean()
+        # Pixels are correlated through the kernel: bound the region mean's error by the
+        # mean per-pixel standard error (the fully correlated case).
+        se = np.sqrt(plain.variance[region]).mean() + np.sqrt(cv.variance[region]).mean()
+        assert abs(a - b) < 4 * se, (a, b, se)
+    # The median pixel: 4 passes make single pixels' variances heavy-tailed.
+    ratio = np.median(cv.variance[far] / plain.variance[far])
+    print(f"far-field variance, control variate / plain: median pixel {ratio:.3f}, "
+          f"means {cv.variance[far].mean() / plain.variance[far].mean():.3f}")
+    assert ratio < 0.6
+
+    with pytest.raises(ValueError, match="no_contact_runs must be >= 0, got -1"):
+        reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, no_contact_runs=-1, **kw)

@@ -221,6 +221,8 @@ def stub_render(monkeypatch):
         (["--indenter", "sphere", "--pose", "p.npy", "--depth-mm", "1"], "--depth-mm: only with --at"),
         (["d.npy", "--pose", "p.npy"], "--pose: only with --indenter"),
         (["d.npy", "--spin-deg", "10"], "--spin-deg: only with --indenter"),
+        (["d.npy", "--no-contact-runs", "-1"], "expected a whole number >= 0, got '-1'"),
+        (["d.npy", "--no-contact-runs", "many"], "expected a whole number >= 0, got 'many'"),
     ],
 )
 def test_reference_needs_exactly_one_contact(argv, message, capsys):
