@@ -150,6 +150,18 @@ def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
         render_photons({}, [], Effects(), kernel_radius=-1e-3)
 
 
+def _needs_vectorised_variant():
+    """Skip unless Mitsuba loads in an llvm_ or cuda_ variant (the photon estimator's)."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.variant import VariantError, choose_variant
+
+    try:
+        if not choose_variant().variant().startswith(("llvm_", "cuda_")):
+            pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
+    except VariantError as exc:
+        pytest.skip(str(exc))
+
+
 def _vectorised(scene: dict):
     """(mi, loaded scene), or skip: the photon estimator needs an llvm_ or cuda_ variant."""
     from pbr_tactile.render import load
@@ -261,17 +273,11 @@ def test_contact_and_no_contact_share_random_walks(mesh, spec, camera, ref, pres
     """Same seed, contact vs no contact: photons and camera rays keep their own streams
     (keyed by identity, with the undeformed membrane setting the weight window), so far
     from the dent the change image is much quieter than between two independent seeds."""
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    _needs_vectorised_variant()
     from scipy.ndimage import binary_dilation
 
     from pbr_tactile.render import reference
-    from pbr_tactile.variant import VariantError, choose_variant
 
-    try:
-        if not choose_variant().variant().startswith(("llvm_", "cuda_")):
-            pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
-    except VariantError as exc:
-        pytest.skip(str(exc))
     W, H = 40, 30
     kw = {"spp": 4, "width": W, "height": H, "passes": 2, "photons": 1 << 14}
     contact = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, **kw).mean
@@ -311,18 +317,12 @@ def test_no_contact_control_variate(tmp_path, monkeypatch, mesh, spec, camera, r
     seeds): the same image in expectation, far quieter away from the dent (there the
     change is zero and the no-contact map has runs x the photons), and a second contact
     of the sensor traces only its own photons."""
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    _needs_vectorised_variant()
     from scipy.ndimage import binary_dilation
 
     from pbr_tactile import photons as ph
     from pbr_tactile.render import reference
-    from pbr_tactile.variant import VariantError, choose_variant
 
-    try:
-        if not choose_variant().variant().startswith(("llvm_", "cuda_")):
-            pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
-    except VariantError as exc:
-        pytest.skip(str(exc))
     monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
     traced = []
     real = ph.deposits
