@@ -45,7 +45,7 @@ def scene_fingerprint(mi, scene) -> list:
             parts.append(np.asarray(shape.vertex_positions_buffer()))
             parts.append(np.asarray(shape.faces_buffer()))
         params = mi.traverse(shape.bsdf())
-        if "eta" in params.keys():
+        if "eta" in params:
             parts.append(float(params["eta"]))
     return parts
 
