@@ -183,7 +183,7 @@ def register(registry) -> None:
     p.add_argument("--no-contact-runs", type=_non_negative, default=0, metavar="M",
                    help="for a contact: its photon map as the sensor's cached no-contact map (M runs per pass) "
                         "plus the contact's change; the first contact of a sensor fills the cache, later ones "
-                        "are about 3x less noisy near the contact at the same cost (default 0: off)")
+                        "cost the same with less noise, most of all away from the contact (default 0: off)")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
     p.add_argument("--out", required=True, help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png")
 
