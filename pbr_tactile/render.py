@@ -183,33 +183,29 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                                no_contact_runs, use_cache)
     pilot_seed = seed * 7919 + passes
 
+    def trace(in_scene, count: int, run_seed: int, window_=None):
+        return deposits(mi, in_scene, srcs, sigma_t, albedo, effects.coating_albedo, count, run_seed, window_)
+
     def trace_pilot():
-        return deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, max(1, photons // 8),
-                        pilot_seed)
+        return trace(pilot_lit, max(1, photons // 8), pilot_seed)
 
     # With the no-contact cache, the pilot is cached too: it is a no-contact run.
     pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)
     pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
-
-    def trace_no_contact(run_seed):
-        return deposits(mi, pilot_lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, run_seed, window)
-
     images = []
     for k in range(passes):
-        if no_contact is None:
-            flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
-                            window)
-            maps = irradiance(flux, area, kernel)
-        else:
-            flux_0, flux_g = no_contact.pass_flux(seed * 7919 + k, pilot_seed, trace_no_contact)
-            maps = irradiance(flux_g, pilot_area, pilot_kernel)
-            if lit is not pilot_lit:  # the contact's change, with the same random numbers
-                flux = deposits(mi, lit, srcs, sigma_t, albedo, effects.coating_albedo, photons, seed * 7919 + k,
-                                window)
-                maps = maps + irradiance(flux, area, kernel) - irradiance(flux_0, pilot_area, pilot_kernel)
-        per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp,
-                                 seed * 7919 + k)
+        pass_seed = seed * 7919 + k
+        traced = no_contact is None or lit is not pilot_lit  # else E_c = E_0: the map is G
+        if traced:
+            maps = irradiance(trace(lit, photons, pass_seed, window), area, kernel)
+        if no_contact is not None:
+            flux_0, flux_g = no_contact.pass_flux(pass_seed, pilot_seed,
+                                                  lambda run_seed: trace(pilot_lit, photons, run_seed, window))
+            no_contact_map = irradiance(flux_g, pilot_area, pilot_kernel)
+            # G plus the contact's change, with the same random numbers.
+            maps = no_contact_map + (maps - irradiance(flux_0, pilot_area, pilot_kernel) if traced else 0.0)
+        per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed)
         images.append(per_source @ response)
         if progress is not None:
             progress(k + 1, passes)
