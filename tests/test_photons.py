@@ -104,3 +104,10 @@ def test_contact_rse_is_unbiased_with_two_passes():
     assert contact_rse(est, region) == pytest.approx(truth, rel=0.02)
     naive = float(np.mean(est.relative_error[region]))
     assert naive < 0.85 * truth  # what the bench used to report
+
+
+def test_no_contact_cache_needs_at_least_one_run():
+    from pbr_tactile.nocontact import NoContact
+
+    with pytest.raises(ValueError, match="no-contact runs must be >= 1, got 0"):
+        NoContact(None, None, [], runs=0)
