@@ -1,0 +1,107 @@
+"""``tactile-sim diagnose`` and ``tactile-sim bench diagnose``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from . import effects as fx
+
+
+def _effects(text: str) -> tuple[str, ...] | None:
+    if text == "all":
+        return None
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    unknown = [n for n in names if n not in fx.EFFECTS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"effects must be 'all' or a comma-separated list of {', '.join(fx.EFFECTS)}; "
+                                         f"unknown: {', '.join(unknown) or '(none given)'}")
+    return names
+
+
+def _fraction(text: str) -> float:
+    value = float(text)
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"must be a fraction in (0, 1), got {text}")
+    return value
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
+    return value
+
+
+def cmd_diagnose(args) -> int:
+    if args.real == "benchmark":
+        return cmd_benchmark(args)
+    if args.sim is None or args.out is None:
+        print("tactile-sim diagnose: error: give REAL_DIR SIM_DIR --out REPORT_DIR "
+              "(or 'diagnose benchmark --cases N --seed S --json PATH')", file=sys.stderr)
+        return 2
+    from .diagnose import run
+    from .report import headline
+
+    report = run(args.real, args.sim, args.out, heldout_fraction=args.heldout, seed=args.seed, factor=args.factor,
+                 effects=args.effects, progress=not args.quiet)
+    for line in headline(report):
+        print(line)
+    print(f"wrote {args.out}/report.html and {args.out}/report.json")
+    return 0
+
+
+def cmd_benchmark(args) -> int:
+    if args.json is None:
+        print("tactile-sim diagnose benchmark: error: --json PATH is required", file=sys.stderr)
+        return 2
+    from .benchmark import run_benchmark
+
+    result = run_benchmark(cases=args.cases, seed=args.seed, work=args.work, pairs=args.pairs,
+                           progress=not args.quiet)
+    from pathlib import Path
+
+    from .report import write_json
+
+    write_json(Path(args.json), result)
+    print(json.dumps({k: result[k] for k in ("cases", "top1", "top3", "mean_heldout_shrink")}, indent=1))
+    if result["failed"]:
+        print(f"failed cases: {', '.join(str(c['case']) for c in result['failed'])}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from pathlib import Path
+
+    from .benchmark import bench_diagnose
+    from .report import write_json
+
+    result = bench_diagnose(pairs=args.pairs, work=args.work, progress=not args.quiet)
+    write_json(Path(args.json), result)
+    print(json.dumps({k: result[k] for k in ("seconds", "pairs", "effects")}))
+    return 0
+
+
+def register(registry) -> None:
+    p = registry.command("diagnose", cmd_diagnose,
+                         "sim-to-real gap diagnosis: where the gap lies, which unmodelled effect causes it, how far "
+                         "it shrinks on held-out samples (REAL_DIR SIM_DIR --out DIR), or its blind benchmark "
+                         "(benchmark --cases N --seed S --json PATH)")
+    p.add_argument("real", metavar="REAL_DIR", help="the real dataset (or 'benchmark')")
+    p.add_argument("sim", metavar="SIM_DIR", nargs="?", help="its simulated counterpart (same protocol)")
+    p.add_argument("--out", metavar="REPORT_DIR", help="where report.html, report.json and figures go")
+    p.add_argument("--heldout", type=_fraction, default=0.5, help="share of samples held out (default 0.5)")
+    p.add_argument("--seed", type=int, default=0, help="split seed (benchmark: case seed)")
+    p.add_argument("--factor", type=_positive, default=2,
+                   help="fits run at 1/FACTOR of the image resolution (default 2); results are measured at full size")
+    p.add_argument("--effects", type=_effects, default=None, help="'all' (default) or a comma-separated subset")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--cases", type=_positive, default=20, help="benchmark: number of cases (default 20)")
+    p.add_argument("--pairs", type=_positive, default=48, help="benchmark: pairs per case (default 48)")
+    p.add_argument("--work", metavar="DIR", default=None, help="benchmark: keep the case datasets here")
+    p.add_argument("--json", metavar="PATH", default=None, help="benchmark: where to write the results")
+    b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
+    b.add_argument("--pairs", type=_positive, default=144, help="pairs (default 144, the base protocol)")
+    b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")
+    b.add_argument("--quiet", action="store_true")

@@ -1,0 +1,156 @@
+"""The whole diagnosis of one real dataset against its simulated counterpart.
+
+``diagnose`` answers three questions and returns them as one JSON-ready dict (the
+content of ``report.json``):
+
+- where the gap lies: MAE, SSIM and PSNR per sample, object and tap position (full
+  frame as the paper measured, and masked to the image circle), and the error split by
+  region, contact, channel and contact depth;
+- which effect causes it: every effect of the catalogue fitted on the training split and
+  judged on the held-out split, ranked by the held-out MAE it removes (significant ones
+  only), then greedy forward selection of combinations;
+- how far it shrinks: held-out metrics before and after each effect and each step, with
+  confidence intervals, and the share of the gap closed.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import effects as fx
+from . import metrics
+from .fit import RANK_BY, Diagnosis, Judged
+from .pairs import Pairs, load_pairs, split
+from .regions import error_maps, where
+
+
+def _judged(j: Judged) -> dict:
+    return {"effects": list(j.fit.effects), "params": j.fit.params,
+            "train_mse": {"before": j.fit.train_mse_before, "after": j.fit.train_mse},
+            "fit_seconds": j.fit.seconds, "evaluations": j.fit.evaluations,
+            "heldout": {"after": metrics.summarise(j.after), "improvement": j.improvement},
+            "significant": j.significant, "share_closed": {k: j.improvement[k]["mae"]["share"] for k in j.improvement}}
+
+
+def _per_sample(pairs: Pairs, values: dict, index: np.ndarray) -> list[dict]:
+    rows = []
+    for k, i in enumerate(index):
+        r = pairs.records[i]
+        rows.append({"id": pairs.ids[i], "object": r.get("object"), "path": r.get("path"),
+                     "position": r.get("position"),
+                     **{f"{scope}_{m}": float(values[scope][m][k]) for scope in values for m in metrics.METRICS}})
+    return rows
+
+
+def _groups(pairs: Pairs, values: dict, index: np.ndarray, key) -> dict:
+    keys = [key(pairs.records[i]) for i in index]
+    return {scope: {m: metrics.group_means(values[scope][m], keys) for m in metrics.METRICS} for scope in values}
+
+
+def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor: int = 2,
+             effects: tuple[str, ...] | None = None, progress=None) -> tuple[dict, dict]:
+    """Run the diagnosis; returns (report, artefacts) where artefacts holds the arrays
+    the figures need (error maps, region labels, example predictions)."""
+    t0 = time.perf_counter()
+    train, heldout = split(pairs, heldout_fraction, seed)
+    every = np.arange(len(pairs))
+    gap_all = metrics.per_sample(pairs.real, pairs.sim, _mask(pairs))
+    located, labels = where(pairs.real, pairs.sim, pairs.depth, pairs.records, pairs.spec, seed)
+    maps = error_maps(pairs.real, pairs.sim)
+
+    diagnosis = Diagnosis(pairs, train, heldout, factor=factor, effects=effects, seed=seed, progress=progress)
+    singles = diagnosis.singles()
+    ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+    steps = diagnosis.select(singles)
+    final = steps[-1] if steps else None
+    best_params = final.fit.params if final is not None else {}
+    noise = diagnosis.noise(best_params)
+
+    report = {
+        "real_dir": str(pairs.real_dir), "sim_dir": str(pairs.sim_dir), "pairs": len(pairs),
+        "image_size": [pairs.shape[1], pairs.shape[0]],
+        "split": {"train": int(train.sum()), "heldout": int(heldout.sum()), "heldout_fraction": heldout_fraction,
+                  "seed": seed, "stratified_by": "object",
+                  "heldout_ids": [pairs.ids[i] for i in np.flatnonzero(heldout)]},
+        "settings": {"working_resolution": [pairs.shape[1] // factor, pairs.shape[0] // factor],
+                     "rank_by": "/".join(RANK_BY), "confidence": 0.95, "bootstrap_resamples": 2000,
+                     "significant": "95% bootstrap interval of the paired held-out MAE improvement above 0"},
+        "gap": {"all": metrics.summarise(gap_all, seed=seed),
+                "heldout": metrics.summarise(diagnosis.before, seed=seed),
+                "per_object": _groups(pairs, gap_all, every, lambda r: r.get("object")),
+                "per_position": _groups(pairs, gap_all, every, lambda r: f"path {r.get('path')} position {r.get('position')}"),
+                "per_sample": _per_sample(pairs, gap_all, every)},
+        "where": located,
+        "effects": {n: _judged(j) for n, j in singles.items()},
+        "not_applicable": diagnosis.not_applicable,
+        "ranking": ranked,
+        "not_significant": [n for n in singles if n not in ranked],
+        "selection": [{"added": s.added, **_judged(s)} for s in steps],
+        "explained": {"effects": list(final.fit.effects) if final else [],
+                      "share_closed": ({k: final.improvement[k]["mae"]["share"] for k in final.improvement}
+                                       if final else {"full": 0.0, "masked": 0.0})},
+        "noise": {"std": noise, "mae_floor": noise * float(np.sqrt(2 / np.pi)),
+                  "note": "estimated from held-out residuals after the selected effects (differences of adjacent "
+                          "pixels, robust spread); noise cannot be predicted, so it stays in the gap"},
+        "catalogue": {n: {"stage": fx.STAGES[n], "doc": diagnosis.catalogue[n].doc,
+                          "params": {p.name: {"low": p.low, "high": p.high, "identity": p.identity, "unit": p.unit,
+                                              "doc": p.doc} for p in diagnosis.catalogue[n].params}}
+                      for n in fx.EFFECTS},
+    }
+    report["seconds"] = time.perf_counter() - t0
+    examples = _examples(diagnosis, final)
+    return report, {"maps": maps, "labels": labels, "mask": diagnosis.mask, "examples": examples}
+
+
+def _mask(pairs: Pairs) -> np.ndarray:
+    from scenes.camera import Camera
+
+    return Camera.from_spec(pairs.spec).mask
+
+
+def _examples(diagnosis: Diagnosis, final: Judged | None, count: int = 4) -> dict:
+    """A few held-out samples (the worst gaps): real, simulated, and with the selected effects."""
+    before = diagnosis.before["masked"]["mae"]
+    order = np.argsort(-before)[:count]
+    pred = diagnosis.predict_heldout(final.fit.params)[order] if final is not None else diagnosis.sim_h[order]
+    return {"ids": [diagnosis.pairs.ids[diagnosis.heldout_index[i]] for i in order], "real": diagnosis.real_h[order],
+            "sim": diagnosis.sim_h[order], "model": pred}
+
+
+def run(real_dir: str | Path, sim_dir: str | Path, out: str | Path, heldout_fraction: float = 0.5, seed: int = 0,
+        factor: int = 2, effects: tuple[str, ...] | None = None, progress: bool = True) -> dict:
+    """Load, diagnose, and write ``out/report.json``, ``out/report.html`` and figures."""
+    from .report import write_report
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=0, unit="step", desc="loading", leave=False)
+
+    def loading(done, total):
+        if bar is not None:
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+
+    pairs = load_pairs(real_dir, sim_dir, progress=loading)
+
+    def fitting(done, total, name):
+        if bar is not None:
+            bar.set_description(f"fitting ({name})")
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+
+    if bar is not None:
+        bar.reset(total=len(fx.EFFECTS))
+        bar.set_description("fitting")
+    report, artefacts = diagnose(pairs, heldout_fraction, seed, factor, effects, fitting)
+    if bar is not None:
+        bar.close()
+    write_report(Path(out), report, artefacts)
+    return report

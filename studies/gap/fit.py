@@ -1,0 +1,323 @@
+"""Fit candidate effects on training samples, measure them on held-out ones, rank them,
+and select combinations greedily.
+
+Each effect's parameters are fitted by bounded quasi-Newton (scipy's L-BFGS-B on
+parameters scaled to [0, 1]) minimising the mean squared error between the real images
+and the predicted ones over the training samples, at the working resolution, from a few
+starting points (phase correlation for shifts, small grids where the loss has several
+basins). The fitted effect is then judged on held-out samples only, at full resolution:
+the paired improvement of each sample's MAE, SSIM and PSNR, with bootstrap confidence
+intervals. Effects whose MAE improvement is not significant (interval reaching 0) are
+reported as such and not ranked. Forward selection then adds, one at a time, the effect
+that most improves the held-out MAE of the combination fitted jointly, while the step's
+paired improvement is significant.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+from skimage.registration import phase_cross_correlation
+
+from . import effects as fx
+from . import metrics
+from .model import FastModel
+from .pairs import Pairs
+
+#: Ranking metric: the masked MAE (the image circle; the black border holds no signal).
+RANK_BY = ("masked", "mae")
+#: At most this many L-BFGS-B iterations per fit.
+MAX_ITERATIONS = 40
+#: Fits stop when an iteration lowers the loss by less than this fraction.
+FTOL = 1e-4
+#: Fits use at most this many training samples (an even spread over objects): a few
+#: parameters per effect need no more, and it bounds the time of a diagnosis.
+MAX_FIT_SAMPLES = 32
+#: At most this many effects in a selected combination.
+MAX_COMBINATION = 4
+
+
+@dataclass
+class Fit:
+    """One fitted effect or combination."""
+
+    effects: tuple[str, ...]
+    params: dict
+    train_mse: float
+    train_mse_before: float
+    evaluations: int
+    seconds: float
+
+
+@dataclass
+class Judged:
+    """A fit judged on the held-out samples."""
+
+    fit: Fit
+    after: dict  # metrics.per_sample of the prediction
+    improvement: dict = field(default_factory=dict)  # {full|masked: {metric: improvement}}
+
+    @property
+    def significant(self) -> bool:
+        return self.improvement[RANK_BY[0]][RANK_BY[1]]["significant"]
+
+    @property
+    def gain(self) -> float:
+        return self.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
+
+
+class Diagnosis:
+    """Fitting and judging effects on one pair of datasets.
+
+    pairs : the matched datasets; train, heldout : boolean masks over them;
+    factor : the working resolution of fits (1/factor of the images');
+    effects : the names to consider (default: every one that applies).
+    """
+
+    def __init__(self, pairs: Pairs, train: np.ndarray, heldout: np.ndarray, factor: int = 2,
+                 effects: tuple[str, ...] | None = None, seed: int = 0, progress=None):
+        self.pairs = pairs
+        self.seed = seed
+        self.progress = progress
+        renderer = dict(pairs.sim_meta.get("renderer") or {})
+        self.work = FastModel(pairs.spec, renderer, factor)
+        self.full = FastModel(pairs.spec, renderer, 1) if factor != 1 else self.work
+        self.catalogue = self.work.catalogue
+        self.train_index = _fit_subset(pairs, np.flatnonzero(train), MAX_FIT_SAMPLES, seed)
+        self.heldout_index = np.flatnonzero(heldout)
+        self.real_w = self.work.working_images(pairs.real[self.train_index])
+        self.sim_w = self.work.working_images(pairs.sim[self.train_index])
+        self.depth_w = None if pairs.depth is None else self.work.working_depth(pairs.depth[self.train_index])
+        self.mask_w = self.work.mask
+        r, c = np.nonzero(self.mask_w)
+        self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
+        self._box_mask = self.mask_w[self._box][None, ..., None].astype(np.float32)
+        self._box_count = float(self._box_mask.sum()) * 3 * len(self.train_index)
+        self.real_h = pairs.real[self.heldout_index]
+        self.sim_h = pairs.sim[self.heldout_index]
+        self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
+        self.mask = self.full.mask
+        self.not_applicable = self._not_applicable(renderer)
+        wanted = fx.EFFECTS if effects is None else tuple(effects)
+        unknown = [e for e in wanted if e not in fx.EFFECTS]
+        if unknown:
+            raise ValueError(f"unknown effect(s) {unknown}; the catalogue has {list(fx.EFFECTS)}")
+        self.effects = tuple(e for e in wanted if e not in self.not_applicable)
+        self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask)
+        self.train_mse_before = self._mse(self.sim_w)
+
+    def _not_applicable(self, renderer: dict) -> dict[str, str]:
+        out = {}
+        if self.pairs.depth is None:
+            for name in fx.EFFECTS:
+                if fx.STAGES[name] in ("membrane", "light"):
+                    out[name] = "the simulated dataset has no depth maps to re-render its contacts from"
+        if renderer.get("renderer", "phong") != "phong":
+            for name in fx.EFFECTS:
+                if fx.STAGES[name] in ("membrane", "light"):
+                    out.setdefault(name, f"the simulated dataset was not rendered by the fast path "
+                                         f"(renderer {renderer.get('renderer')!r}), so it cannot be re-rendered")
+        if any(led.peak_nm is None or led.fwhm_nm is None for led in self.pairs.spec.leds):
+            out.setdefault("led_spectrum", "the sensor spec gives no LED peak_nm / fwhm_nm")
+        return out
+
+    # --- fitting --------------------------------------------------------------------------
+
+    def _mse(self, pred: np.ndarray) -> float:
+        rows, cols = self._box
+        err = pred[:, rows, cols] - self.real_w[:, rows, cols]
+        err *= self._box_mask
+        return float(np.einsum("nhwc,nhwc->", err, err, dtype=np.float64)) / self._box_count
+
+    def predict_train(self, params: dict) -> np.ndarray:
+        return self.work.predict(self.sim_w, self.depth_w, params, keys=self.train_index)
+
+    def _space(self, names: tuple[str, ...]):
+        plist = [(name, p) for name in names for p in self.catalogue[name].params]
+        low = np.array([p.low for _, p in plist])
+        high = np.array([p.high for _, p in plist])
+
+        def to_params(z: np.ndarray) -> dict:
+            x = low + np.clip(z, 0, 1) * (high - low)
+            out: dict = {name: {} for name in names}
+            for (name, p), value in zip(plist, x):
+                out[name][p.name] = float(value)
+            return out
+
+        def to_z(params: dict) -> np.ndarray:
+            x = np.array([params[name][p.name] for name, p in plist])
+            return (x - low) / (high - low)
+
+        return plist, to_params, to_z
+
+    def starts(self, name: str) -> list[dict]:
+        """Starting points of one effect's fit (the best of them is refined)."""
+        effect = self.catalogue[name]
+        base = dict(effect.identity)
+        # Start just off the identity where the identity is a flat spot of the loss.
+        nudges = {"core_light_leak": {k: 0.1 for k in base if k.startswith("amplitude")},
+                  "path_attenuation": {"mu_per_m": 20.0}, "coating_gloss": {"k_g": 0.2},
+                  "contact_shadow": {"darkness": 0.5}, "vignetting": {"a": 0.2},
+                  "blur_noise": {"sigma_px": 1.0}, "camera_response": {"crosstalk": 0.02}}
+        base.update(nudges.get(name, {}))
+        if name == "misalignment":
+            return self._misalignment_starts(base)
+        if name == "lens_distortion":
+            return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
+        if name == "membrane_compliance":
+            return [{**base, "scale": s} for s in (0.5, 0.8, 1.1)]
+        if name == "elastic_spread":
+            sigma = base["sigma_px"]
+            return [{**base, "sigma_px": sigma * k} for k in (0.5, 0.8, 1.25, 1.8)]
+        if name == "contact_shadow":
+            return [{**base, "elevation_rad": e} for e in (0.1, 0.3, 0.6)]
+        if name == "coating_gloss":
+            return [{**base, "shininess": s} for s in (8.0, 30.0, 100.0)]
+        if name == "camera_response":
+            return [{**base, "gamma": g} for g in (0.7, 1.0, 1.4)]
+        return [base]
+
+    def _misalignment_starts(self, base: dict) -> list[dict]:
+        """Rotation from a coarse grid (every 10 degrees, then 1 degree around the best)
+        and shift by phase correlation, both on the mean images of the fitting samples
+        (one image, so the search is cheap); the best is refined on every sample."""
+        real = self.real_w.mean(axis=0)
+        sim = self.sim_w.mean(axis=0)[None]
+
+        def registered(angle: float) -> tuple[float, dict]:
+            params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0}
+            rotated = self.work.optics(sim, {"misalignment": params})[0]
+            shift, _, _ = phase_cross_correlation(real.mean(-1), rotated.mean(-1), upsample_factor=4,
+                                                  normalization=None)
+            # The model samples the simulated frame at x + (du, dv), full-resolution pixels.
+            du, dv = (float(np.clip(-v * self.work.factor, -59.0, 59.0)) for v in (shift[1], shift[0]))
+            params.update(du_px=du, dv_px=dv)
+            pred = self.work.optics(sim, {"misalignment": params})[0]
+            return float(np.mean(np.square(pred - real)[self.mask_w])), params
+
+        coarse = [registered(a) for a in np.deg2rad(np.arange(-180, 180, 10))]
+        best = min(coarse, key=lambda t: t[0])[1]["rotation_rad"]
+        fine = [registered(best + a) for a in np.deg2rad(np.arange(-4, 5, 1))]
+        return [p for _, p in sorted(fine + coarse, key=lambda t: t[0])[:3]]
+
+    def fit(self, names: tuple[str, ...], start: dict | None = None, starts_per_effect: bool = True) -> Fit:
+        """Fit the effects ``names`` jointly on the training samples."""
+        t0 = time.perf_counter()
+        names = tuple(n for n in fx.EFFECTS if n in names)
+        plist, to_params, to_z = self._space(names)
+        count = [0]
+        scale = max(self.train_mse_before, 1e-12)
+
+        def loss(z: np.ndarray) -> float:
+            count[0] += 1
+            # Relative to the gap before, so that L-BFGS-B's tolerances (relative to
+            # max(|f|, 1)) mean a share of the gap.
+            return self._mse(self.predict_train(to_params(z))) / scale
+
+        candidates = []
+        if start is not None:
+            candidates.append({n: dict(start[n]) for n in names})
+        if starts_per_effect or start is None:
+            if len(names) == 1:
+                candidates += [{names[0]: s} for s in self.starts(names[0])]
+            elif start is None:
+                candidates.append({n: dict(self.catalogue[n].identity) for n in names})
+        scored = sorted(((loss(to_z(c)), i) for i, c in enumerate(candidates)), key=lambda t: t[0])
+        res = optimize.minimize(loss, to_z(candidates[scored[0][1]]), method="L-BFGS-B",
+                                bounds=[(0.0, 1.0)] * len(plist),
+                                options={"maxiter": MAX_ITERATIONS, "eps": 1e-3, "ftol": FTOL})
+        params, mse = to_params(res.x), float(res.fun) * scale
+        if mse > self.train_mse_before:  # never worse than leaving the effect out
+            params = {n: dict(self.catalogue[n].identity) for n in names}
+            if start is not None:
+                params.update({n: dict(start[n]) for n in names if n in start and start is not None})
+            mse = self._mse(self.predict_train(params))
+        return Fit(names, params, mse, self.train_mse_before, count[0], time.perf_counter() - t0)
+
+    # --- judging --------------------------------------------------------------------------
+
+    def predict_heldout(self, params: dict) -> np.ndarray:
+        return self.full.predict(self.sim_h, self.depth_h, params, keys=self.heldout_index)
+
+    def judge(self, fit: Fit, against: dict | None = None, complete: bool = True) -> Judged:
+        """Held-out metrics of a fit and their paired improvement over ``against`` (a
+        ``metrics.per_sample`` result; default: the simulator as it is). ``complete=False``
+        measures MAE and PSNR only (no SSIM), for trials that are only compared."""
+        after = metrics.per_sample(self.real_h, self.predict_heldout(fit.params), self.mask, ssim=complete)
+        against = self.before if against is None else against
+        names = metrics.METRICS if complete else ("mae", "psnr")
+        improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed) for m in names}
+                       for k in after}
+        return Judged(fit, after, improvement)
+
+    def singles(self) -> dict[str, Judged]:
+        out = {}
+        for i, name in enumerate(self.effects):
+            out[name] = self.judge(self.fit((name,)))
+            if self.progress is not None:
+                self.progress(i + 1, len(self.effects), name)
+        return out
+
+    def select(self, singles: dict[str, Judged]) -> list[Judged]:
+        """Greedy forward selection among the significant effects."""
+        candidates = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+        steps: list[Judged] = []
+        chosen: tuple[str, ...] = ()
+        current = None
+        while candidates and len(chosen) < MAX_COMBINATION:
+            trials = []
+            for name in candidates:
+                if not chosen:
+                    trials.append(singles[name])
+                    continue
+                start = {**current.fit.params, name: singles[name].fit.params[name]}
+                fit = self.fit(chosen + (name,), start=start, starts_per_effect=False)
+                trials.append(self.judge(fit, against=current.after, complete=False))
+            best = max(trials, key=lambda j: j.gain)
+            if not best.significant:
+                break
+            if chosen:
+                # The step was significant against the previous one; report it against
+                # the simulator as it is, with every metric.
+                step = best.improvement
+                best = self.judge(best.fit)
+                best.step_improvement = step
+            added = next(n for n in best.fit.effects if n not in chosen)
+            chosen = tuple(n for n in fx.EFFECTS if n in chosen + (added,))
+            steps.append(best)
+            best.added = added
+            current = best
+            candidates.remove(added)
+        return steps
+
+    def noise(self, params: dict) -> float:
+        """Sensor noise estimated from the held-out residual of a prediction."""
+        return fx.noise_std(self.real_h - self.predict_heldout(params), self.mask)
+
+
+def _fit_subset(pairs: Pairs, index: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """At most ``count`` of the training samples, taken round-robin over objects."""
+    if len(index) <= count:
+        return index
+    rng = np.random.default_rng(seed)
+    objects = [str(pairs.records[i].get("object", "")) for i in index]
+    groups = [list(rng.permutation(index[[o == obj for o in objects]])) for obj in sorted(set(objects))]
+    out = []
+    while len(out) < count:
+        for g in groups:
+            if g and len(out) < count:
+                out.append(g.pop())
+    return np.sort(np.array(out))
+
+
+def shares(judged: Judged) -> dict:
+    """The share of the held-out gap (MAE, full frame and masked) a fit closed."""
+    return {k: judged.improvement[k]["mae"]["share"] for k in judged.improvement}
+
+
+def db(x: float) -> float:
+    return 10 * math.log10(x) if x > 0 else float("-inf")

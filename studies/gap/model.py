@@ -1,0 +1,284 @@
+"""The fast simulator, decomposed so that candidate effects can be added to it.
+
+The fast path renders I = k_a B + sum_m (k_d,m (L_m . N) + k_s,m (R_m . V)^alpha) c_m from
+a contact's depth (``phong_reference.render``). ``FastModel`` rebuilds that chain from a
+simulated dataset's own settings (sensor, light field, background) at a working
+resolution, keeps each sample's geometry and per-LED shading terms, and re-renders with
+any set of effects switched on (``studies.gap.effects``).
+
+A prediction of the real image is the simulated image plus what the effects change:
+
+    pred = optics_and_sensor(sim + M(theta) - M(identity))
+
+with M the rebuilt simulator. At the identity it is the simulated image itself, whatever
+renderer made it, so the rebuilt chain only has to get the *change* right; that also
+lets fits run at a lower working resolution than the one the result is measured at.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from phong_reference.background import make_background
+from phong_reference.bake import bake
+from phong_reference.normals import normals
+from phong_reference.render import light_vectors
+from scenes.camera import Camera, cast_rays, reference_depth
+from scenes.geometry import membrane_mesh
+from scenes.spec import SensorSpec
+
+from . import effects as fx
+
+#: Depth differences below this are rasterisation noise, not contact (metres).
+CONTACT_NOISE_M = 1e-6
+
+
+def block_mean(images: np.ndarray, factor: int) -> np.ndarray:
+    """Average ``factor`` x ``factor`` pixel blocks of (N, H, W, ...) arrays."""
+    if factor == 1:
+        return images
+    n, h, w = images.shape[:3]
+    if h % factor or w % factor:
+        raise ValueError(f"image size {w}x{h} is not divisible by the working-resolution factor {factor}")
+    shape = (n, h // factor, factor, w // factor, factor) + images.shape[3:]
+    return images.reshape(shape).mean(axis=(2, 4), dtype=np.float64).astype(images.dtype)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+class FastModel:
+    """The fast simulator of a dataset's sensor and renderer settings at 1/``factor`` of
+    the dataset's resolution.
+
+    spec : the sensor; renderer : the dataset's renderer settings (``field``,
+    ``background``, ``rectify``); factor : integer downsampling of the working resolution.
+    """
+
+    def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1):
+        self.spec = spec
+        self.factor = int(factor)
+        full = Camera.from_spec(spec)
+        if full.width % self.factor or full.height % self.factor:
+            raise ValueError(f"{full.width}x{full.height} px is not divisible by factor {factor}")
+        self.full_camera = full
+        self.camera = full if self.factor == 1 else full.scaled(full.width // self.factor, full.height // self.factor)
+        self.mesh = membrane_mesh(spec)
+        field = renderer.get("field", "plane")
+        fields = bake(self.mesh, self.camera, spec.leds, field)
+        self.ref = fields.depth.astype(np.float32)
+        self.full_ref = self.ref if self.factor == 1 else reference_depth(self.mesh, full)[0].astype(np.float32)
+        self.L = light_vectors(fields, bool(renderer.get("rectify", False)))
+        background = str(renderer.get("background", "none"))
+        self.B = _background(background, full, self.camera, self.factor)
+        self.mask = self.camera.mask
+        self.rays = self.camera.rays_channels_first
+        self.colours = np.array([led.colour for led in spec.leds], np.float64)
+        self.k_d = np.array([led.k_d for led in spec.leds], np.float32)
+        self.k_s = np.array([led.k_s for led in spec.leds], np.float32)
+        self.led_positions = np.array([led.position for led in spec.leds], np.float64)
+        self.sigma_px = float(spec.elastic.sigma_px)
+        self.truncate = spec.elastic.radius_px / spec.elastic.sigma_px
+        self.catalogue = fx.catalogue(len(spec.leds), self.sigma_px)
+        self._geodesic = None
+        self._cache: dict[int, dict] = {}
+
+    # --- inputs -------------------------------------------------------------------------
+
+    def working_depth(self, depth: np.ndarray) -> np.ndarray:
+        """(N, H, W) full-resolution depth maps -> working resolution: the indentation
+        D_ref - D is averaged over pixel blocks, so no-contact pixels stay at D_ref."""
+        delta = self.full_ref[None] - np.asarray(depth, np.float32)
+        delta[np.abs(delta) <= CONTACT_NOISE_M] = 0.0
+        return self.ref[None] - block_mean(delta, self.factor)
+
+    def working_images(self, images: np.ndarray) -> np.ndarray:
+        return block_mean(np.asarray(images, np.float32), self.factor)
+
+    @property
+    def geodesic(self) -> np.ndarray:
+        """(M, H, W) path length over the undeformed membrane from each LED, metres, at
+        every pixel of the image circle (0 elsewhere).
+
+        Shortest paths along the mesh's edges (scipy's Dijkstra): on a mesh of near-
+        equilateral triangles they run a few per cent longer than true geodesics, a
+        constant factor that the fitted absorption coefficient takes up.
+        """
+        if self._geodesic is None:
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import dijkstra
+
+            from phong_reference.sources import snap_leds
+
+            sources = snap_leds(self.mesh, self.spec.leds)
+            edges = np.asarray(self.mesh.edges_unique)
+            n = len(self.mesh.vertices)
+            graph = coo_matrix((np.asarray(self.mesh.edges_unique_length), (edges[:, 0], edges[:, 1])), shape=(n, n))
+            distance = dijkstra(graph.tocsr(), directed=False, indices=np.asarray(sources.vertices).reshape(-1))
+            samples = cast_rays(self.mesh, self.camera)
+            self._geodesic = np.stack([samples.scatter(samples.interpolate(self.mesh, d).astype(np.float32))
+                                       for d in distance])
+        return self._geodesic
+
+    # --- the chain ----------------------------------------------------------------------
+
+    def geometry(self, depth: np.ndarray, scale: float = 1.0, sigma_px: float | None = None) -> dict:
+        """Deformed surface of one working-resolution depth map, and its shading terms.
+
+        scale : membrane_compliance; sigma_px : elastic_spread (full-resolution pixels).
+        Returns P, N (3, H, W), delta = D_ref - D_def (H, W), and per LED: LN, the
+        clamped L_m . N, RV, the clamped R_m . V, both (M, H, W).
+        """
+        D = fx.compliant_depth(self.ref, depth, scale) if scale != 1.0 else depth
+        sigma = (self.sigma_px if sigma_px is None else sigma_px) / self.factor
+        D_def = fx.elastic_deform(D, self.ref, sigma, self.truncate)
+        P = D_def[None] * self.rays
+        N, _ = normals(P)
+        V = P * (-1.0 / np.sqrt(_dot(P, P)))
+        NV = _dot(N, V)
+        LN = np.maximum(np.einsum("mchw,chw->mhw", self.L, N), 0.0)
+        LV = np.einsum("mchw,chw->mhw", self.L, V)
+        RV = np.maximum(2.0 * LN * NV[None] - LV, 0.0)
+        return {"P": P, "N": N, "delta": (self.ref - D_def).astype(np.float32), "LN": LN.astype(np.float32),
+                "RV": RV.astype(np.float32)}
+
+    def _base_geometry(self, key: int, depth: np.ndarray) -> dict:
+        g = self._cache.get(key)
+        if g is None:
+            g = self.geometry(depth)
+            g["spec"] = np.power(g["RV"], self.spec.material.shininess) if self.spec.material.clamp_specular else None
+            self._cache[key] = g
+        return g
+
+    def _horizons(self, g: dict) -> np.ndarray:
+        if "horizon" not in g:
+            grow = math.ceil(self.spec.elastic.radius_px / self.factor) + 2
+            from scipy import ndimage
+
+            where = ndimage.binary_dilation(g["delta"] > CONTACT_NOISE_M, iterations=grow) & self.mask
+            out = []
+            for L in self.L:
+                direction, speed = fx.image_directions(g["P"], L, self.camera.f)
+                out.append(fx.horizon(g["delta"], direction, speed, where))
+            g["horizon"] = np.stack(out)
+        return g["horizon"]
+
+    def _leak(self, g: dict, length_m: float) -> np.ndarray:
+        if "leak_terms" not in g:  # |N . w| and d^2 per LED, which the length does not change
+            cos, d2 = [], []
+            for p in self.led_positions:
+                D = g["P"] - p.reshape(3, 1, 1).astype(np.float32)
+                dd = _dot(D, D)
+                d2.append(dd)
+                cos.append(np.abs(_dot(g["N"], D)) / np.sqrt(np.maximum(dd, 1e-18)))
+            g["leak_terms"] = (np.stack(cos).astype(np.float32), np.stack(d2).astype(np.float32))
+        cos, d2 = g["leak_terms"]
+        return fx.leak_kernel_from(cos, d2, length_m)
+
+    def physical(self, depth: np.ndarray, params: dict, key: int | None = None) -> np.ndarray:
+        """The simulator's image (H, W, 3) of one working-resolution depth map with the
+        membrane and light effects in ``params`` ({effect: {param: value}})."""
+        membrane = {k: params[k] for k in ("membrane_compliance", "elastic_spread") if k in params}
+        if membrane or key is None:
+            g = self.geometry(depth, membrane.get("membrane_compliance", {}).get("scale", 1.0),
+                              membrane.get("elastic_spread", {}).get("sigma_px"))
+            g["spec"] = None
+        else:
+            g = self._base_geometry(key, depth)
+        material = self.spec.material
+        spec = g["spec"] if g.get("spec") is not None else (
+            np.power(g["RV"], material.shininess) if material.clamp_specular else None)
+        if spec is None:  # unclamped specular, as the published code had it
+            raise ValueError("the diagnosis needs clamp_specular = true in the sensor's material")
+        I = self.k_d[:, None, None] * g["LN"] + self.k_s[:, None, None] * spec
+        if "coating_gloss" in params:
+            p = params["coating_gloss"]
+            I = I + p["k_g"] * np.power(g["RV"], p["shininess"])
+        if "contact_shadow" in params:
+            p = params["contact_shadow"]
+            I = I * fx.shadow_factor(self._horizons(g), p["elevation_rad"], p["darkness"])
+        if "path_attenuation" in params:
+            I = I * fx.attenuation(self.geodesic, params["path_attenuation"]["mu_per_m"])
+        colours = self.colours
+        if "led_spectrum" in params:
+            p = params["led_spectrum"]
+            n = len(self.spec.leds)
+            colours = fx.spectral_colours(colours, [led.peak_nm for led in self.spec.leds],
+                                          [led.fwhm_nm for led in self.spec.leds],
+                                          [p[f"shift_nm_{m}"] for m in range(n)], [p[f"power_{m}"] for m in range(n)])
+        if "core_light_leak" in params:
+            p = params["core_light_leak"]
+            amplitude = np.array([p[f"amplitude_{m}"] for m in range(len(self.spec.leds))], np.float32)
+            I = I + amplitude[:, None, None] * self._leak(g, p["length_m"])
+        image = np.einsum("mhw,mc->hwc", I, colours.astype(np.float32)) + material.ambient * self.B
+        return np.clip(image, 0.0, 1.0) * self.mask[..., None]
+
+    def optics(self, images: np.ndarray, params: dict) -> np.ndarray:
+        """The optics and sensor effects in ``params`` applied to (N, H, W, 3) images."""
+        f = self.camera.f
+        centre = (self.camera.cy, self.camera.cx)
+        out = images
+        mis = params.get("misalignment")
+        dist = params.get("lens_distortion")
+        if mis is not None or dist is not None:
+            if mis is not None:
+                mis = {**mis, "du_px": mis["du_px"] / self.factor, "dv_px": mis["dv_px"] / self.factor}
+            out = fx.resample(out, fx.source_coordinates(self.camera.shape, f, centre, mis, dist))
+        if "vignetting" in params:
+            p = params["vignetting"]
+            c = (centre[0] + p["centre_dv_px"] / self.factor, centre[1] + p["centre_du_px"] / self.factor)
+            out = out * fx.vignette(self.camera.shape, f, c, p["a"], p["b"])[None, ..., None]
+        if "blur_noise" in params:
+            out = fx.blur(out, params["blur_noise"]["sigma_px"] / self.factor)
+        if "camera_response" in params:
+            p = params["camera_response"]
+            out = fx.camera_response(out, (p["gain_r"], p["gain_g"], p["gain_b"]), p["gamma"], p["crosstalk"])
+        return np.clip(out, 0.0, 1.0)
+
+    def predict(self, sim: np.ndarray, depth: np.ndarray | None, params: dict, keys=None) -> np.ndarray:
+        """Predicted real images (N, H, W, 3) from simulated ones and their working-
+        resolution depth maps, with the effects in ``params``.
+
+        keys : per-sample cache keys (ints) for the no-effect geometry; None: no cache.
+        """
+        physical = [k for k in params if fx.STAGES[k] in ("membrane", "light")]
+        out = np.asarray(sim, np.float32)
+        if physical:
+            if depth is None:
+                raise ValueError(f"the effects {physical} change the simulated contact and need its depth maps; "
+                                 "the simulated dataset has none")
+            out = out.copy()
+            chosen = {k: params[k] for k in physical}
+
+            def one(i: int) -> None:
+                key = None if keys is None else int(keys[i])
+                out[i] += self.physical(depth[i], chosen, key) - self._plain(depth[i], key)
+
+            # numpy and scipy release the GIL in the heavy operations: samples in threads.
+            with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+                list(pool.map(one, range(len(out))))
+        return self.optics(out, params)
+
+    def _plain(self, depth: np.ndarray, key: int | None) -> np.ndarray:
+        if key is None:
+            return self.physical(depth, {}, None)
+        g = self._base_geometry(key, depth)
+        if "plain" not in g:
+            g["plain"] = self.physical(depth, {}, key)
+        return g["plain"]
+
+
+def _background(kind: str, full: Camera, camera: Camera, factor: int) -> np.ndarray:
+    if kind in ("none", "solid"):
+        return make_background(kind, camera)
+    try:
+        image = make_background(kind, full)
+    except (FileNotFoundError, ValueError) as exc:
+        raise ValueError(f"the simulated dataset's background {kind!r} cannot be read here ({exc}); the "
+                         "diagnosis re-renders with it") from None
+    return block_mean(image[None], factor)[0]

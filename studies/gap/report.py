@@ -1,0 +1,261 @@
+"""report.json, figures and report.html of a diagnosis."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+
+from scenes.dataset import atomic_write_bytes
+
+from .regions import CHANNELS, REGIONS
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def write_json(path: Path, data: dict) -> None:
+    atomic_write_bytes(path, (json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n").encode())
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _bars(ax, items: dict, title: str, key: str = "mae") -> None:
+    names = [k for k, v in items.items() if v.get("samples", 0)]
+    means = [items[k][key]["mean"] for k in names]
+    lo = [items[k][key]["mean"] - items[k][key]["low"] for k in names]
+    hi = [items[k][key]["high"] - items[k][key]["mean"] for k in names]
+    ax.bar(range(len(names)), means, yerr=[lo, hi], capsize=3, color="#5b7fbd")
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
+    ax.set_title(title, fontsize=9)
+    ax.set_ylabel("MAE (fraction of full scale)", fontsize=8)
+
+
+def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
+    """Write the report's figures; returns {name: file name}."""
+    plt = _plt()
+    out.mkdir(parents=True, exist_ok=True)
+    files = {}
+    maps, mask = artefacts["maps"], artefacts["mask"]
+
+    fig, axes = plt.subplots(1, 5, figsize=(20, 3.6))
+    im = axes[0].imshow(np.where(mask, maps["mean_abs"].mean(-1), np.nan), cmap="magma")
+    axes[0].set_title("mean |real - sim| (all channels)", fontsize=9)
+    fig.colorbar(im, ax=axes[0], fraction=0.04)
+    for labels_name, colour in zip(REGIONS, ("#ffffff", "#00ffff", "#ffff00")):
+        axes[0].contour(artefacts["labels"][labels_name], levels=[0.5], colors=colour, linewidths=0.6)
+    limit = float(np.nanmax(np.abs(maps["mean"][mask]))) or 1e-3
+    for c, name in enumerate(CHANNELS):
+        im = axes[1 + c].imshow(np.where(mask, maps["mean"][..., c], np.nan), cmap="RdBu_r", vmin=-limit, vmax=limit)
+        axes[1 + c].set_title(f"mean real - sim, {name}", fontsize=9)
+        fig.colorbar(im, ax=axes[1 + c], fraction=0.04)
+    im = axes[4].imshow(np.where(mask, maps["spread"].mean(-1), np.nan), cmap="viridis")
+    axes[4].set_title("spread of real - sim over samples", fontsize=9)
+    fig.colorbar(im, ax=axes[4], fraction=0.04)
+    for ax in axes:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(out / "gap_maps.png", dpi=80)
+    plt.close(fig)
+    files["maps"] = "gap_maps.png"
+
+    w = report["where"]
+    parts = [(w["regions"], "by region (tip: white, body: cyan, near LEDs: yellow)"),
+             (w["contact"], "contact vs no contact"), (w["channels"], "by colour channel"),
+             (w["depth"], "by contact depth")]
+    parts = [(items, title) for items, title in parts if any(v.get("samples", 0) for v in items.values())]
+    fig, axes = plt.subplots(1, len(parts), figsize=(4.2 * len(parts), 3.4), squeeze=False)
+    for ax, (items, title) in zip(axes[0], parts):
+        _bars(ax, items, title)
+    fig.tight_layout()
+    fig.savefig(out / "gap_split.png", dpi=80)
+    plt.close(fig)
+    files["split"] = "gap_split.png"
+
+    fig, axes = plt.subplots(1, 2, figsize=(14, 3.6))
+    for ax, key, title in ((axes[0], "per_object", "masked MAE per object"),
+                           (axes[1], "per_position", "masked MAE per tap position")):
+        groups = report["gap"][key]["masked"]["mae"]
+        names = list(groups)
+        ax.bar(range(len(names)), [groups[n]["mean"] for n in names], color="#5b7fbd")
+        ax.set_xticks(range(len(names)), names, rotation=60, ha="right", fontsize=7)
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "gap_groups.png", dpi=80)
+    plt.close(fig)
+    files["groups"] = "gap_groups.png"
+
+    eff = report["effects"]
+    if eff:
+        names = sorted(eff, key=lambda n: -eff[n]["heldout"]["improvement"]["masked"]["mae"]["share"])
+        imp = [eff[n]["heldout"]["improvement"]["masked"]["mae"] for n in names]
+        fig, ax = plt.subplots(figsize=(9, 0.4 * len(names) + 1.2))
+        y = np.arange(len(names))[::-1]
+        share = np.array([i["share"] for i in imp]) * 100
+        err = np.array([[i["share"] - i["share_low"], i["share_high"] - i["share"]] for i in imp]).T * 100
+        colours = ["#2a9d5b" if eff[n]["significant"] else "#b0b0b0" for n in names]
+        ax.barh(y, share, xerr=err, color=colours, capsize=3)
+        ax.set_yticks(y, names, fontsize=8)
+        ax.axvline(0, color="k", lw=0.6)
+        ax.set_xlabel("share of the held-out masked MAE gap closed, % (95% CI); grey: not significant", fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "effects.png", dpi=80)
+        plt.close(fig)
+        files["effects"] = "effects.png"
+
+    sel = report["selection"]
+    if sel:
+        before = report["gap"]["heldout"]["masked"]["mae"]
+        points = [before] + [s["heldout"]["after"]["masked"]["mae"] for s in sel]
+        labels = ["simulator"] + ["+ " + s["added"] for s in sel]
+        fig, ax = plt.subplots(figsize=(1.6 * len(points) + 2, 3.2))
+        ax.errorbar(range(len(points)), [p["mean"] for p in points],
+                    yerr=[[p["mean"] - p["low"] for p in points], [p["high"] - p["mean"] for p in points]],
+                    marker="o", capsize=3)
+        ax.set_xticks(range(len(points)), labels, fontsize=8, rotation=20, ha="right")
+        ax.set_ylabel("held-out masked MAE", fontsize=8)
+        ax.set_ylim(bottom=0)
+        fig.tight_layout()
+        fig.savefig(out / "selection.png", dpi=80)
+        plt.close(fig)
+        files["selection"] = "selection.png"
+
+    ex = artefacts.get("examples")
+    if ex is not None and len(ex["ids"]):
+        rows = len(ex["ids"])
+        fig, axes = plt.subplots(rows, 5, figsize=(15, 2.4 * rows), squeeze=False)
+        for r in range(rows):
+            panels = [ex["real"][r], ex["sim"][r], ex["model"][r], np.abs(ex["real"][r] - ex["sim"][r]),
+                      np.abs(ex["real"][r] - ex["model"][r])]
+            titles = ["real", "simulated", "with selected effects", "|real - sim|", "|real - with effects|"]
+            for c, (img, title) in enumerate(zip(panels, titles)):
+                axes[r, c].imshow(np.clip(img * (4 if c >= 3 else 1), 0, 1))
+                axes[r, c].set_title(f"{ex['ids'][r]}: {title}" if c == 0 else title + (" (x4)" if c >= 3 else ""),
+                                     fontsize=8)
+                axes[r, c].axis("off")
+        fig.tight_layout()
+        fig.savefig(out / "examples.png", dpi=70)
+        plt.close(fig)
+        files["examples"] = "examples.png"
+    return files
+
+
+def _fmt(ci: dict, scale: float = 1.0, digits: int = 4) -> str:
+    return f"{ci['mean'] * scale:.{digits}f} [{ci['low'] * scale:.{digits}f}, {ci['high'] * scale:.{digits}f}]"
+
+
+def headline(report: dict) -> list[str]:
+    """The answer in a few sentences."""
+    lines = []
+    gap = report["gap"]["heldout"]
+    lines.append(f"Held-out gap: masked MAE {_fmt(gap['masked']['mae'])}, SSIM {_fmt(gap['masked']['ssim'], digits=3)}, "
+                 f"PSNR {_fmt(gap['masked']['psnr'], digits=1)} dB (full frame MAE {_fmt(gap['full']['mae'])}).")
+    regions = {k: v for k, v in report["where"]["regions"].items() if v.get("samples")}
+    if regions:
+        worst = max(regions, key=lambda k: regions[k]["mae"]["mean"])
+        lines.append(f"The error is largest in the {worst.replace('_', ' ')} region "
+                     f"(MAE {_fmt(regions[worst]['mae'])}).")
+    contact = report["where"].get("contact", {})
+    if contact.get("contact", {}).get("samples") and contact.get("no_contact", {}).get("samples"):
+        lines.append(f"Contact areas: MAE {_fmt(contact['contact']['mae'])}; elsewhere {_fmt(contact['no_contact']['mae'])}.")
+    if report["ranking"]:
+        top = report["ranking"][0]
+        share = report["effects"][top]["heldout"]["improvement"]["masked"]["mae"]
+        lines.append(f"The effect that explains most of it is {top}: it closes {share['share'] * 100:.1f}% "
+                     f"[{share['share_low'] * 100:.1f}, {share['share_high'] * 100:.1f}] of the held-out gap on its own.")
+    else:
+        lines.append("No effect of the catalogue closes a significant part of the held-out gap.")
+    if report["selection"]:
+        last = report["selection"][-1]
+        lines.append(f"Together, {' + '.join(last['effects'])} close {last['share_closed']['masked'] * 100:.1f}% of it "
+                     f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])}).")
+    if report["noise"]["std"] > 0:
+        lines.append(f"Estimated sensor noise: {report['noise']['std']:.4f} (an MAE floor of about "
+                     f"{report['noise']['mae_floor']:.4f} that no effect can remove).")
+    return lines
+
+
+def _table(header: list[str], rows: list[list]) -> str:
+    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def render_html(report: dict, files: dict[str, str]) -> str:
+    e = report["effects"]
+    effect_rows = []
+    order = report["ranking"] + [n for n in e if n not in report["ranking"]]
+    for n in order:
+        imp = e[n]["heldout"]["improvement"]["masked"]
+        effect_rows.append([
+            (report["ranking"].index(n) + 1) if n in report["ranking"] else "-", n,
+            f"{imp['mae']['share'] * 100:.1f}% [{imp['mae']['share_low'] * 100:.1f}, {imp['mae']['share_high'] * 100:.1f}]",
+            _fmt(imp["ssim"], digits=4), _fmt(imp["psnr"], digits=2),
+            "yes" if e[n]["significant"] else "no",
+            ", ".join(f"{k}={v:.4g}" for k, v in e[n]["params"][n].items())])
+    sel_rows = [[i + 1, "+ " + s["added"], " + ".join(s["effects"]), _fmt(s["heldout"]["after"]["masked"]["mae"]),
+                 _fmt(s["heldout"]["after"]["masked"]["ssim"], digits=3),
+                 _fmt(s["heldout"]["after"]["masked"]["psnr"], digits=1), f"{s['share_closed']['masked'] * 100:.1f}%",
+                 f"{s['share_closed']['full'] * 100:.1f}%"] for i, s in enumerate(report["selection"])]
+    where_rows = []
+    for group in ("regions", "contact", "channels", "depth"):
+        for name, v in report["where"][group].items():
+            if v.get("samples"):
+                where_rows.append([group, name, v["samples"], _fmt(v["mae"]), f"{v['signed']:+.4f}", f"{v['spread']:.4f}"])
+    gap = report["gap"]
+    gap_rows = [[scope, split_name, _fmt(gap[split_name][scope]["mae"]), _fmt(gap[split_name][scope]["ssim"], digits=3),
+                 _fmt(gap[split_name][scope]["psnr"], digits=1)]
+                for split_name in ("all", "heldout") for scope in ("full", "masked")]
+    na = "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in report["not_applicable"].items())
+    img = "".join(f'<p><img src="{html.escape(f)}" style="max-width:100%"></p>' for f in files.values())
+    heads = "".join(f"<li>{html.escape(line)}</li>" for line in headline(report))
+    return f"""<!doctype html><html><head><meta charset="utf-8"><title>Sim-to-real gap diagnosis</title>
+<style>body{{font-family:sans-serif;max-width:1250px;margin:auto;padding:1em}}table{{border-collapse:collapse;margin:.5em 0}}
+td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px}}th{{background:#eee}}</style></head><body>
+<h1>Sim-to-real gap diagnosis</h1>
+<p>Real: <code>{html.escape(report['real_dir'])}</code>; simulated: <code>{html.escape(report['sim_dir'])}</code>;
+{report['pairs']} pairs, {report['split']['train']} for fitting and {report['split']['heldout']} held out
+(stratified by object, seed {report['split']['seed']}). Every "after" number is on held-out samples only.
+Intervals are 95% bootstrap intervals over samples.</p>
+<h2>Answer</h2><ul>{heads}</ul>
+<h2>How big the gap is</h2>{_table(["scope", "samples", "MAE", "SSIM", "PSNR (dB)"], gap_rows)}
+<h2>Where it lies</h2>
+<p>Per-sample MAE over each area (mean [95% CI]); signed = mean of real - sim; spread = SD of the per-sample MAE.</p>
+{_table(["split", "area", "samples", "MAE", "signed", "spread"], where_rows)}
+<h2>Which effect causes it</h2>
+<p>Each effect fitted alone on the training samples, judged on the held-out ones: the share of the held-out masked MAE
+it closes, and the change of SSIM and PSNR (positive is better). Only significant effects are ranked.</p>
+{_table(["rank", "effect", "gap closed (MAE)", "SSIM change", "PSNR change (dB)", "significant", "fitted parameters"], effect_rows)}
+{"<p>Not applicable here:</p><ul>" + na + "</ul>" if na else ""}
+<h2>How far it shrinks</h2>
+<p>Greedy forward selection: each step adds the effect that most improves the jointly fitted combination on the
+held-out samples, while that step's improvement is significant.</p>
+{_table(["step", "added", "combination", "MAE", "SSIM", "PSNR (dB)", "gap closed (masked)", "gap closed (full frame)"], sel_rows) if sel_rows else "<p>No effect was selected.</p>"}
+<p>Sensor noise estimated from the remaining residual: {report['noise']['std']:.4f}. {html.escape(report['noise']['note'])}.</p>
+<h2>Figures</h2>{img}
+<p>Finished in {report['seconds']:.1f} s.</p></body></html>
+"""
+
+
+def write_report(out: Path, report: dict, artefacts: dict) -> None:
+    """report.json, report.html and the figures into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = figures(out, report, artefacts)
+    write_json(out / "report.json", report)
+    atomic_write_bytes(out / "report.html", render_html(report, files).encode())
