@@ -1,0 +1,270 @@
+"""The sim-to-real gap diagnosis: paired datasets, metrics, effects, fitting, report, CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from scenes.camera import reference_depth
+from scenes.cli import main
+from scenes.contact import press
+from scenes.dataset import DatasetError, DatasetWriter, write_sample_files
+from studies.gap import effects as fx
+from studies.gap import metrics
+from studies.gap.benchmark import score
+from studies.gap.model import FastModel
+from studies.gap.pairs import load_pairs, split
+
+PROTOCOL = {"name": "test", "taps": 16}
+#: Contact pixels spread over the image: on the axis, the tip, the body, near the LEDs.
+PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240), (320, 90), (320, 400),
+          (520, 260), (120, 150), (380, 420), (260, 120)]
+
+
+@pytest.fixture(scope="module")
+def contacts(spec, mesh, camera):
+    """Depth maps of spheres and a cylinder pressed 1.5 mm into the membrane."""
+    ref, _ = reference_depth(mesh, camera)
+    shapes = [trimesh.primitives.Sphere(radius=0.004), trimesh.creation.cylinder(radius=0.003, height=0.01)]
+    out = []
+    for i, pixel in enumerate(PIXELS):
+        out.append(press(ref, camera, mesh, shapes[i % 2], pixel, 0.0015))
+    return np.stack(out)
+
+
+def write_dataset(root: Path, source: str, spec, images, depths=None, protocol=PROTOCOL, renderer=None,
+                  objects=("sphere", "cylinder")) -> Path:
+    meta = {"source": source, "sensor": dataclasses.asdict(spec),
+            "protocol": {"name": protocol["name"], "seed": None, "taps": len(images)},
+            "renderer": renderer or {"renderer": "phong", "field": "plane", "background": "none", "rectify": False},
+            "image_size": [images.shape[2], images.shape[1]]}
+    writer = DatasetWriter(root, meta, protocol)
+    for i, image in enumerate(images):
+        sid = f"{i:06d}_{objects[i % len(objects)]}"
+        files = write_sample_files(root, sid, image, None if depths is None else depths[i])
+        writer.append({"id": sid, "object": objects[i % len(objects)], "path": i // 4, "position": i % 4,
+                       "tap_index": i, "measured_depth": 0.0015, **files})
+    return root
+
+
+@pytest.fixture(scope="module")
+def injector(spec):
+    from studies.gap.inject import Injector
+
+    return Injector(spec, field="plane", background="solid")
+
+
+@pytest.fixture(scope="module")
+def sim_images(injector, contacts):
+    return np.stack([injector.render(d) for d in contacts])
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory, spec, sim_images, contacts):
+    renderer = {"renderer": "phong", "field": "plane", "background": "solid", "rectify": False}
+    return write_dataset(tmp_path_factory.mktemp("gap") / "sim", "sim", spec, sim_images, contacts, renderer=renderer)
+
+
+def real_dataset(root: Path, spec, injector, contacts, effects: list) -> Path:
+    rng = np.random.default_rng(0)
+    images = np.stack([injector.render(d, effects, rng) for d in contacts])
+    return write_dataset(root, "real", spec, images)
+
+
+# --- metrics ------------------------------------------------------------------------------
+
+
+def test_metrics_of_known_images(camera):
+    a = np.full((2, 480, 640, 3), 0.5, np.float32)
+    b = a + 0.1
+    m = metrics.per_sample(a, b, camera.mask)
+    assert np.allclose(m["full"]["mae"], 0.1, atol=1e-6)
+    assert np.allclose(m["masked"]["mae"], 0.1, atol=1e-6)
+    assert np.allclose(m["full"]["psnr"], 20.0, atol=1e-3)  # 10 log10(1 / 0.01)
+    same = metrics.per_sample(a, a, camera.mask)
+    assert np.allclose(same["full"]["ssim"], 1.0) and np.all(same["full"]["psnr"] == metrics.PSNR_CAP_DB)
+
+
+def test_improvement_is_significant_only_when_it_is():
+    rng = np.random.default_rng(1)
+    before = rng.uniform(0.05, 0.06, 30)
+    better = metrics.improvement(before, before * 0.5, "mae")
+    assert better["significant"] and better["share"] == pytest.approx(0.5, rel=1e-6)
+    noise = metrics.improvement(before, before + rng.normal(0, 0.005, 30), "mae")
+    assert not noise["significant"] or noise["low"] < 0.002
+    worse = metrics.improvement(before, before * 1.2, "mae")
+    assert not worse["significant"] and worse["share"] < 0
+    assert metrics.improvement(np.full(5, 20.0), np.full(5, 25.0), "psnr")["mean"] == pytest.approx(5.0)
+
+
+# --- effects, analytic ----------------------------------------------------------------------
+
+
+def test_optics_functions_analytic():
+    f, centre = 240.0, (239.5, 319.5)
+    v = fx.vignette((480, 640), f, centre, a=1.0, b=0.0)
+    assert v[240, 320] == pytest.approx(1.0, abs=1e-5)
+    assert v[240, 320 + 240] == pytest.approx(0.5, abs=2e-3)  # r = f: 1 / (1 + 1)
+    grid = fx.source_coordinates((480, 640), f, centre, None, None)
+    assert np.allclose(grid[0], np.arange(480)[:, None]) and np.allclose(grid[1], np.arange(640)[None])
+    shifted = fx.source_coordinates((480, 640), f, centre,
+                                    {"du_px": 3.0, "dv_px": -2.0, "rotation_rad": 0.0, "scale": 1.0}, None)
+    assert np.allclose(shifted[1] - grid[1], 3.0) and np.allclose(shifted[0] - grid[0], -2.0)
+    barrel = fx.source_coordinates((480, 640), f, centre, None, {"k1": 0.1, "k2": 0.0})
+    r2 = (240.5**2 + 0.5**2) / f**2  # pixel (row 240, col 560) from the centre (239.5, 319.5)
+    assert barrel[1][240, 560] == pytest.approx(319.5 + 240.5 * (1 + 0.1 * r2), abs=1e-6)
+    img = np.random.default_rng(0).random((1, 48, 64, 3)).astype(np.float32)
+    assert np.allclose(fx.resample(img, fx.source_coordinates((48, 64), 60.0, (23.5, 31.5), None, None)), img)
+    assert np.allclose(fx.camera_response(img, (1, 1, 1), 1.0, 0.0), img)
+    assert np.allclose(fx.camera_response(img, (1, 1, 1), 2.0, 0.0), np.sqrt(img), atol=1e-6)
+    assert fx.shadow_factor(np.array([0.0, 10.0]), 0.2, 1.0).tolist() == pytest.approx([1.0, 0.0])
+
+
+def test_light_functions_analytic():
+    P = np.zeros((3, 1, 2))
+    P[:, 0, 0] = (0.0, 0.0, 0.01)
+    P[:, 0, 1] = (0.0, 0.0, 0.02)
+    N = np.zeros_like(P)
+    N[2] = -1.0
+    k = fx.leak_kernel(P, N, (0.0, 0.0, 0.0), length_m=0.01)
+    assert k[0].tolist() == pytest.approx([0.5, 0.2])  # 1 / (1 + (d / l)^2), cos = 1
+    assert fx.attenuation(np.array([0.0, 0.01]), 100.0).tolist() == pytest.approx([1.0, math.exp(-1.0)])
+    colours = np.eye(3)
+    same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1])
+    assert np.allclose(same, np.diag([1, 2, 1]))
+    ref = np.full((4, 4), 0.03)
+    depth = ref - 0.001
+    assert np.allclose(fx.compliant_depth(ref, depth, 1.0), depth)
+    assert np.allclose(fx.compliant_depth(ref, depth, 0.5), ref - 0.0005)
+
+
+def test_catalogue_names_and_identity(spec):
+    cat = fx.catalogue(len(spec.leds), spec.elastic.sigma_px)
+    assert tuple(cat) == fx.EFFECTS == ("core_light_leak", "path_attenuation", "membrane_compliance",
+                                        "elastic_spread", "coating_gloss", "contact_shadow", "camera_response",
+                                        "vignetting", "lens_distortion", "misalignment", "blur_noise",
+                                        "led_spectrum")
+    for effect in cat.values():
+        for p in effect.params:
+            assert p.low <= p.identity <= p.high, (effect.name, p.name)
+
+
+# --- the decomposed simulator --------------------------------------------------------------
+
+
+def test_model_reproduces_the_fast_path_and_identity_changes_nothing(spec, sim_images, contacts):
+    model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=1)
+    for i in (0, 3):
+        assert np.abs(model.physical(contacts[i], {}) - sim_images[i]).max() < 1e-5
+    cat = model.catalogue
+    sim = np.round(sim_images[:2] * 255) / 255
+    for name in fx.EFFECTS:
+        pred = model.predict(sim, contacts[:2], {name: cat[name].identity}, keys=[0, 1])
+        assert np.abs(pred - sim).max() < 1e-5, name
+    changed = model.predict(sim, contacts[:2], {"membrane_compliance": {"scale": 0.5}}, keys=[0, 1])
+    assert np.abs(changed - sim).max() > 0.05
+
+
+# --- bad input -----------------------------------------------------------------------------
+
+
+def test_pairs_refuse_bad_datasets(tmp_path, spec, sim_dir, sim_images):
+    other = write_dataset(tmp_path / "other", "real", spec, sim_images[:3], protocol={"name": "else", "taps": 3})
+    with pytest.raises(DatasetError, match="different protocols"):
+        load_pairs(other, sim_dir)
+    short = write_dataset(tmp_path / "short", "real", spec, sim_images[:5])
+    with pytest.raises(DatasetError, match=r"short lacks 7 sample\(s\).*000005_cylinder"):
+        load_pairs(short, sim_dir)
+    corrupt = write_dataset(tmp_path / "corrupt", "real", spec, sim_images)
+    (corrupt / "images" / "000004_sphere.png").write_bytes(b"not a png")
+    with pytest.raises(DatasetError, match="sample 000004_sphere.*could not be read"):
+        load_pairs(corrupt, sim_dir)
+    missing = write_dataset(tmp_path / "missing", "real", spec, sim_images)
+    (missing / "images" / "000002_sphere.png").unlink()
+    with pytest.raises(DatasetError, match="sample 000002_sphere: image images/000002_sphere.png is missing"):
+        load_pairs(missing, sim_dir)
+    small = write_dataset(tmp_path / "small", "real", spec, sim_images[:, ::2, ::2])
+    with pytest.raises(DatasetError, match=r"\[320, 240\] px images .* same image size"):
+        load_pairs(small, sim_dir)
+    wrong = write_dataset(tmp_path / "wrong", "real", spec, sim_images)
+    from PIL import Image
+
+    Image.new("RGB", (64, 48)).save(wrong / "images" / "000001_cylinder.png")
+    with pytest.raises(DatasetError, match="sample 000001_cylinder.*must be 640x480"):
+        load_pairs(wrong, sim_dir)
+    with pytest.raises(DatasetError, match="not a dataset"):
+        load_pairs(tmp_path / "nowhere", sim_dir)
+
+
+def test_split_is_stratified_and_refuses_an_empty_side(tmp_path, spec, sim_images, contacts):
+    one = write_dataset(tmp_path / "one", "sim", spec, sim_images[:1], contacts[:1])
+    pairs = load_pairs(one, one)
+    with pytest.raises(DatasetError, match="held-out split .* is empty"):
+        split(pairs)
+    full = load_pairs(write_dataset(tmp_path / "all", "sim", spec, sim_images, contacts),
+                      tmp_path / "all")
+    train, heldout = split(full, 0.5, seed=3)
+    assert train.sum() == heldout.sum() == 6 and not (train & heldout).any()
+    objects = np.array([r["object"] for r in full.records])
+    for obj in ("sphere", "cylinder"):
+        assert train[objects == obj].sum() == heldout[objects == obj].sum() == 3
+
+
+# --- the diagnosis, end to end ----------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("hidden", ["camera_response", "membrane_compliance"])
+def test_diagnosis_names_a_hidden_effect(tmp_path, spec, injector, contacts, sim_dir, hidden):
+    """A strong hidden effect, injected by the benchmark's own injector, is ranked first
+    and most of the held-out gap closes."""
+    rng = np.random.default_rng(5)
+    effect = injector.sample(hidden, rng, strength=0.8)
+    real = real_dataset(tmp_path / "real", spec, injector, contacts, [effect])
+    code = main(["diagnose", str(real), str(sim_dir), "--out", str(tmp_path / "report"), "--quiet"])
+    assert code == 0
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert report["ranking"][0] == hidden, report["ranking"]
+    assert report["effects"][hidden]["share_closed"]["masked"] > 0.5
+    assert report["explained"]["share_closed"]["masked"] > 0.5
+    assert set(report["effects"]) == set(fx.EFFECTS)
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert hidden in html and "Which effect causes it" in html
+    for name in ("gap_maps.png", "gap_split.png", "effects.png", "examples.png"):
+        assert (tmp_path / "report" / name).stat().st_size > 1000
+
+
+def test_diagnosis_without_a_gap_ranks_nothing(tmp_path, sim_dir):
+    code = main(["diagnose", str(sim_dir), str(sim_dir), "--out", str(tmp_path / "same"), "--quiet",
+                 "--effects", "camera_response,vignetting,led_spectrum"])
+    assert code == 0
+    report = json.loads((tmp_path / "same" / "report.json").read_text())
+    assert report["ranking"] == [] and report["selection"] == []
+    assert report["gap"]["heldout"]["masked"]["mae"]["mean"] == 0.0
+
+
+def test_cli_refuses_bad_arguments(tmp_path, sim_dir, capsys):
+    assert main(["diagnose", str(sim_dir)]) == 2
+    with pytest.raises(SystemExit):
+        main(["diagnose", str(sim_dir), str(sim_dir), "--out", str(tmp_path), "--effects", "sparkle"])
+    assert "unknown: sparkle" in capsys.readouterr().err
+    assert main(["diagnose", str(tmp_path / "nowhere"), str(sim_dir), "--out", str(tmp_path / "r")]) == 1
+    assert "is not a dataset" in capsys.readouterr().err
+    assert main(["diagnose", "benchmark", "--cases", "1"]) == 2
+
+
+def test_benchmark_scoring():
+    report = {"ranking": ["vignetting", "blur_noise", "misalignment"],
+              "explained": {"effects": ["vignetting"], "share_closed": {"masked": 0.7}},
+              "effects": {"vignetting": {"share_closed": {"masked": 0.6}}}}
+    s = score(["vignetting"], report)
+    assert s["top1"] and s["top3"] and s["shrink"] == 0.7 and s["shrink_top1"] == 0.6
+    s = score(["misalignment", "led_spectrum"], report)
+    assert not s["top1"] and not s["top3"]
+    assert not score(["vignetting"], {**report, "ranking": []})["top1"]
