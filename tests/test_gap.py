@@ -268,3 +268,27 @@ def test_benchmark_scoring():
     s = score(["misalignment", "led_spectrum"], report)
     assert not s["top1"] and not s["top3"]
     assert not score(["vignetting"], {**report, "ranking": []})["top1"]
+
+
+def test_sector_areas_partition_the_image_circle(camera):
+    from studies.real_background_gap import sector_areas
+
+    areas = sector_areas(camera, 12)
+    assert areas.shape == (12,) + camera.shape
+    assert np.array_equal(areas.sum(axis=0), camera.mask.astype(int))
+    sizes = areas.sum(axis=(1, 2))
+    assert sizes.min() > 0.95 * sizes.max()
+
+
+@pytest.mark.slow
+def test_real_background_study(tmp_path, reference_dir):
+    """The one real capture: the light leaking through the core explains most of it."""
+    from studies.real_background_gap import run
+
+    summary = run(tmp_path, fields=("plane",), reference_dir=reference_dir)
+    plane = summary["fields"]["plane"]
+    assert plane["ranking"] and plane["ranking"][0] == "core_light_leak"
+    assert plane["share_closed"]["masked"] > 0.5
+    for name in ("membrane_compliance", "elastic_spread", "contact_shadow"):
+        assert not plane["single"][name]["significant"]
+    assert (tmp_path / "plane" / "report.html").exists() and "cannot tell" in (tmp_path / "summary.md").read_text()

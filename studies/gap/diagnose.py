@@ -51,11 +51,16 @@ def _groups(pairs: Pairs, values: dict, index: np.ndarray, key) -> dict:
 
 
 def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor: int = 2,
-             effects: tuple[str, ...] | None = None, progress=None) -> tuple[dict, dict]:
+             effects: tuple[str, ...] | None = None, progress=None,
+             sides: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, dict]:
     """Run the diagnosis; returns (report, artefacts) where artefacts holds the arrays
-    the figures need (error maps, region labels, example predictions)."""
+    the figures need (error maps, region labels, example predictions).
+
+    sides : an explicit (train, held-out) pair of boolean masks over the samples, in
+        place of the stratified ``split``.
+    """
     t0 = time.perf_counter()
-    train, heldout = split(pairs, heldout_fraction, seed)
+    train, heldout = split(pairs, heldout_fraction, seed) if sides is None else sides
     every = np.arange(len(pairs))
     gap_all = metrics.per_sample(pairs.real, pairs.sim, _mask(pairs))
     located, labels = where(pairs.real, pairs.sim, pairs.depth, pairs.records, pairs.spec, seed)

@@ -100,10 +100,20 @@ class Diagnosis:
         self.sim_w = self.work.working_images(pairs.sim[self.train_index])
         self.depth_w = None if pairs.depth is None else self.work.working_depth(pairs.depth[self.train_index])
         self.mask_w = self.work.mask
-        r, c = np.nonzero(self.mask_w)
+        # Samples that are parts of one image (pairs.extra["areas"], (N, H, W) bool) are
+        # compared only there.
+        areas = pairs.extra.get("areas")
+        self.areas_h = None if areas is None else np.asarray(areas, bool)[self.heldout_index]
+        weights = np.broadcast_to(self.mask_w, (len(self.train_index),) + self.mask_w.shape).astype(np.float32)
+        self.areas_hw = None
+        if areas is not None:
+            down = self.work.working_images(np.asarray(areas, np.float32)[..., None])[..., 0] >= 0.5
+            weights = weights * down[self.train_index]
+            self.areas_hw = down[self.heldout_index] & self.mask_w
+        r, c = np.nonzero(weights.any(axis=0))
         self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
-        self._box_mask = self.mask_w[self._box][None, ..., None].astype(np.float32)
-        self._box_count = float(self._box_mask.sum()) * 3 * len(self.train_index)
+        self._box_mask = weights[(slice(None),) + self._box][..., None]
+        self._box_count = float(self._box_mask.sum()) * 3
         self.real_h = pairs.real[self.heldout_index]
         self.sim_h = pairs.sim[self.heldout_index]
         self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
@@ -117,7 +127,7 @@ class Diagnosis:
         if unknown:
             raise ValueError(f"unknown effect(s) {unknown}; the catalogue has {list(fx.EFFECTS)}")
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
-        self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask)
+        self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h)
         self.train_mse_before = self._mse(self.sim_w)
 
     def _not_applicable(self, renderer: dict) -> dict[str, str]:
@@ -264,7 +274,8 @@ class Diagnosis:
         """Held-out metrics of a fit and their paired improvement over ``against`` (a
         ``metrics.per_sample`` result; default: the simulator as it is). ``complete=False``
         measures MAE and PSNR only (no SSIM), for trials that are only compared."""
-        after = metrics.per_sample(self.real_h, self.predict_heldout(fit.params), self.mask, ssim=complete)
+        after = metrics.per_sample(self.real_h, self.predict_heldout(fit.params), self.mask, ssim=complete,
+                                   areas=self.areas_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
         improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed) for m in names}
@@ -283,7 +294,8 @@ class Diagnosis:
         """Mean masked MAE of a prediction of the held-out samples at the working
         resolution: for comparing forward-selection trials cheaply."""
         pred = self.work.predict(self.sim_hw, self.depth_hw, params, keys=self.heldout_index)
-        return float(np.abs(pred - self.real_hw)[:, self.mask_w].mean())
+        where = self.areas_hw if self.areas_hw is not None else np.broadcast_to(self.mask_w, pred.shape[:3])
+        return float(np.abs(pred - self.real_hw)[where].mean())
 
     def select(self, singles: dict[str, Judged]) -> list[Judged]:
         """Greedy forward selection among the significant effects.

@@ -27,13 +27,16 @@ def _psnr(mse: np.ndarray) -> np.ndarray:
         return np.minimum(10.0 * np.log10(1.0 / np.maximum(mse, 1e-300)), PSNR_CAP_DB)
 
 
-def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool = True) -> dict[str, np.ndarray]:
+def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool = True,
+               areas: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Metrics of each sample: {"full": {mae, ssim, psnr}, "masked": {...}}, arrays (N,).
 
     real, pred : (N, H, W, 3) or (H, W, 3) float in [0, 1]; mask : (H, W) bool, the
     sensor's image circle. SSIM is scikit-image's (7x7 window, data range 1); its masked
     value is the mean of the SSIM map over the mask. ``ssim=False`` leaves SSIM out (NaN),
-    for quick comparisons: it costs most of the time.
+    for quick comparisons: it costs most of the time. ``areas`` (N, H, W) bool, optional:
+    each sample is measured only there ("full") and there within the mask ("masked"),
+    for samples that are parts of one image.
     """
     real, pred = np.asarray(real), np.asarray(pred)
     if real.shape != pred.shape:
@@ -42,6 +45,8 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         real, pred = real[None], pred[None]
     if real.ndim != 4 or real.shape[-1] != 3 or mask.shape != real.shape[1:3]:
         raise ValueError(f"images must be (N, H, W, 3) with an (H, W) mask, got {real.shape} and {mask.shape}")
+    if areas is not None and areas.shape != real.shape[:3]:
+        raise ValueError(f"areas must be (N, H, W) like the images, got {areas.shape} for {real.shape}")
     n = len(real)
     out = {k: {m: np.empty(n) for m in METRICS} for k in ("full", "masked")}
 
@@ -55,12 +60,14 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         else:
             smap = np.full(a.shape[:2], np.nan)
         sq = np.square(err)
-        out["full"]["mae"][i] = np.abs(err).mean()
-        out["full"]["psnr"][i] = _psnr(sq.mean())
-        out["full"]["ssim"][i] = smap.mean()
-        out["masked"]["mae"][i] = np.abs(err[mask]).mean()
-        out["masked"]["psnr"][i] = _psnr(sq[mask].mean())
-        out["masked"]["ssim"][i] = smap[mask].mean()
+        frame = slice(None) if areas is None else areas[i]
+        inner = mask if areas is None else mask & areas[i]
+        out["full"]["mae"][i] = np.abs(err[frame]).mean()
+        out["full"]["psnr"][i] = _psnr(sq[frame].mean())
+        out["full"]["ssim"][i] = smap[frame].mean()
+        out["masked"]["mae"][i] = np.abs(err[inner]).mean()
+        out["masked"]["psnr"][i] = _psnr(sq[inner].mean())
+        out["masked"]["ssim"][i] = smap[inner].mean()
 
     # scikit-image's filters release the GIL: samples in threads use every core.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
