@@ -105,11 +105,9 @@ class Diagnosis:
         areas = pairs.extra.get("areas")
         self.areas_h = None if areas is None else np.asarray(areas, bool)[self.heldout_index]
         weights = np.broadcast_to(self.mask_w, (len(self.train_index),) + self.mask_w.shape).astype(np.float32)
-        self.areas_hw = None
         if areas is not None:
             down = self.work.working_images(np.asarray(areas, np.float32)[..., None])[..., 0] >= 0.5
             weights = weights * down[self.train_index]
-            self.areas_hw = down[self.heldout_index] & self.mask_w
         r, c = np.nonzero(weights.any(axis=0))
         self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
         self._box_mask = weights[(slice(None),) + self._box][..., None]
@@ -118,9 +116,6 @@ class Diagnosis:
         self.sim_h = pairs.sim[self.heldout_index]
         self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
         self.mask = self.full.mask
-        self.real_hw = self.work.working_images(self.real_h)
-        self.sim_hw = self.work.working_images(self.sim_h)
-        self.depth_hw = None if self.depth_h is None else self.work.working_depth(self.depth_h)
         self.not_applicable = self._not_applicable(renderer)
         wanted = fx.EFFECTS if effects is None else tuple(effects)
         unknown = [e for e in wanted if e not in fx.EFFECTS]
@@ -290,39 +285,40 @@ class Diagnosis:
                 self.progress(i + 1, len(self.effects), name)
         return out
 
-    def _quick(self, params: dict) -> float:
-        """Mean masked MAE of a prediction of the held-out samples at the working
-        resolution: for comparing forward-selection trials cheaply."""
-        pred = self.work.predict(self.sim_hw, self.depth_hw, params, keys=self.heldout_index)
-        where = self.areas_hw if self.areas_hw is not None else np.broadcast_to(self.mask_w, pred.shape[:3])
-        return float(np.abs(pred - self.real_hw)[where].mean())
-
     def select(self, singles: dict[str, Judged]) -> list[Judged]:
-        """Greedy forward selection among the significant effects.
+        """Greedy forward selection, chosen on the training samples, stopped on the
+        held-out ones.
 
-        The first step is the best single effect. Each later step fits each of the
-        ``MAX_TRIALS`` best remaining candidates on top of the current combination (held
-        fixed), keeps the one with the lowest held-out MAE at the working resolution,
-        refits the combination jointly, and accepts it if, at full resolution, its paired
-        held-out improvement over the current combination is significant and closes at
-        least ``MIN_STEP_SHARE`` of the original gap.
+        The first step is the best significant single effect. At each later step every
+        remaining effect is screened by the training loss of the current combination
+        plus that effect with its single-fit parameters; the ``MAX_TRIALS`` best are
+        fitted on top of the combination (held fixed), the one with the lowest training
+        loss is refitted jointly with it, and the step is kept if its paired held-out
+        improvement over the current combination (full resolution) is significant and
+        closes at least ``MIN_STEP_SHARE`` of the original gap; otherwise selection stops.
+        Held-out samples only decide when to stop and measure every step.
         """
-        candidates = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+        ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
         steps: list[Judged] = []
-        if not candidates:
+        if not ranked:
             return steps
-        current = singles[candidates.pop(0)]
-        current.added = current.fit.effects[0]
+        current = singles[ranked[0]]
+        current.added = ranked[0]
         steps.append(current)
+        candidates = [n for n in singles if n != ranked[0]]
         gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
         while candidates and len(current.fit.effects) < MAX_COMBINATION:
             chosen = current.fit.effects
+
+            def screened(name: str, params=current.fit.params) -> float:
+                return self._mse(self.predict_train({**params, name: singles[name].fit.params[name]}))
+
+            order = sorted(candidates, key=screened)
             trials = []
-            for name in candidates[:MAX_TRIALS]:
+            for name in order[:MAX_TRIALS]:
                 start = {**current.fit.params, name: singles[name].fit.params[name]}
-                fit = self.fit(chosen + (name,), start=start, free=(name,))
-                trials.append((self._quick(fit.params), name, fit))
-            _, added, fit = min(trials, key=lambda t: t[0])
+                trials.append((name, self.fit(chosen + (name,), start=start, free=(name,))))
+            added, fit = min(trials, key=lambda t: t[1].train_mse)
             joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
             if joint.train_mse < fit.train_mse:
                 fit = joint
