@@ -78,6 +78,7 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
         "real_dir": str(pairs.real_dir), "sim_dir": str(pairs.sim_dir), "pairs": len(pairs),
         "image_size": [pairs.shape[1], pairs.shape[0]],
         "split": {"train": int(train.sum()), "heldout": int(heldout.sum()), "heldout_fraction": heldout_fraction,
+                  "fit_samples": len(diagnosis.train_index),
                   "seed": seed, "stratified_by": "object",
                   "heldout_ids": [pairs.ids[i] for i in np.flatnonzero(heldout)]},
         "settings": {"working_resolution": [pairs.shape[1] // factor, pairs.shape[0] // factor],

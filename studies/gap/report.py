@@ -230,8 +230,9 @@ def render_html(report: dict, files: dict[str, str]) -> str:
 td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px}}th{{background:#eee}}</style></head><body>
 <h1>Sim-to-real gap diagnosis</h1>
 <p>Real: <code>{html.escape(report['real_dir'])}</code>; simulated: <code>{html.escape(report['sim_dir'])}</code>;
-{report['pairs']} pairs, {report['split']['train']} for fitting and {report['split']['heldout']} held out
-(stratified by object, seed {report['split']['seed']}). Every "after" number is on held-out samples only.
+{report['pairs']} pairs: {report['split']['train']} in the training split (fits use
+{report['split'].get('fit_samples', report['split']['train'])} of them, spread over objects) and
+{report['split']['heldout']} held out (stratified by object, seed {report['split']['seed']}). Every "after" number is on held-out samples only.
 Intervals are 95% bootstrap intervals over samples.</p>
 <h2>Answer</h2><ul>{heads}</ul>
 <h2>How big the gap is</h2>{_table(["scope", "samples", "MAE", "SSIM", "PSNR (dB)"], gap_rows)}
