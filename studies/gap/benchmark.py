@@ -75,9 +75,8 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
         writer = DatasetWriter(root, {**{k: meta[k] for k in ("sensor", "image_size", "depth", "image")},
                                       "source": source, "protocol": meta["protocol"], "renderer": renderer},
                                protocol)
-        noise_rng = np.random.default_rng([seed, case, 7])
 
-        def one(record: dict, source=source, root=root, rng=noise_rng) -> dict:
+        def one(record: dict, source=source, root=root) -> dict:
             depth = np.load(base / record["depth"])
             if source == "real":
                 image = injector.render(depth, injections, np.random.default_rng([seed, case, record["tap_index"]]))

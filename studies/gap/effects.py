@@ -148,9 +148,8 @@ def leak_kernel(P: np.ndarray, N: np.ndarray, led_position, length_m: float) -> 
     surface points P (3, H, W) of normals N straight, d = |P - p|, w = (P - p) / d; the
     inverse-square law, finite at the source."""
     D = P - np.asarray(led_position, dtype=P.dtype).reshape(3, 1, 1)
-    d = np.sqrt((D * D).sum(axis=0))
-    cos = np.abs((N * D).sum(axis=0)) / np.maximum(d, 1e-9)
-    return cos / (1.0 + np.square(d / length_m))
+    d2 = (D * D).sum(axis=0)
+    return leak_kernel_from(np.abs((N * D).sum(axis=0)) / np.sqrt(np.maximum(d2, 1e-18)), d2, length_m)
 
 
 def leak_kernel_from(cos: np.ndarray, d2: np.ndarray, length_m: float) -> np.ndarray:

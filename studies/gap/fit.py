@@ -15,7 +15,6 @@ paired improvement is significant.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -353,12 +352,3 @@ def _fit_subset(pairs: Pairs, index: np.ndarray, count: int, seed: int) -> np.nd
             if g and len(out) < count:
                 out.append(g.pop())
     return np.sort(np.array(out))
-
-
-def shares(judged: Judged) -> dict:
-    """The share of the held-out gap (MAE, full frame and masked) a fit closed."""
-    return {k: judged.improvement[k]["mae"]["share"] for k in judged.improvement}
-
-
-def db(x: float) -> float:
-    return 10 * math.log10(x) if x > 0 else float("-inf")
