@@ -76,10 +76,12 @@ class Material:
 
 @dataclass(frozen=True)
 class Elastic:
-    """Gaussian G of the elastic smoothing, in pixels at the camera's resolution."""
+    """The membrane's elasticity: the published model's Gaussian G, in pixels at the
+    camera's resolution, and the elastic layer's Poisson ratio (scenes.elastic)."""
 
     sigma_px: float = 5.0
     radius_px: int = 27
+    poisson_ratio: float = 0.5  # -, of the elastomer; sets the layer model's decay length
 
 
 @dataclass(frozen=True)
@@ -234,7 +236,10 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     elastic = Elastic(
         sigma_px=_positive(_take(t, "sigma_px", float, f"{source}: elastic", 5.0), "elastic.sigma_px"),
         radius_px=_take(t, "radius_px", int, f"{source}: elastic", 27),
+        poisson_ratio=_take(t, "poisson_ratio", float, f"{source}: elastic", 0.5),
     )
+    if not 0.0 <= elastic.poisson_ratio <= 0.5:
+        raise ValueError(f"{source}: elastic.poisson_ratio must be in [0, 0.5], got {elastic.poisson_ratio}")
     return SensorSpec(
         name=_take(data, "name", str, source, "sensor"),
         membrane=membrane,

@@ -17,7 +17,7 @@ FORBIDDEN = {
 #: Heavy optional libraries and the only modules allowed to import them.
 HEAVY = {
     "pygeodesic": {"phong_reference/geodesic.py"},
-    "potpourri3d": {"phong_reference/transport.py"},
+    "potpourri3d": {"phong_reference/transport.py", "scenes/elastic.py"},
 }
 
 
