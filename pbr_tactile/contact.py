@@ -17,11 +17,12 @@ import trimesh
 
 from scenes.camera import Camera, check_depth, reference_depth
 from scenes.contact import indenter_depth
+from scenes.elastic import CONTACT_EPS_M, LAYER_EDGE_M
 from scenes.geometry import validate_mesh
 from scenes.indenters import MAX_INDENTER_EXTENT_M, check_closed
 from scenes.spec import MAX_SENSOR_SIZE_M, SensorSpec
 
-from .membrane import CONTACT_EPS_M, REFINED_EDGE_M, Elastomer, elastomer
+from .membrane import Elastomer, elastomer
 
 #: Largest |R^T R - I| entry of a rigid pose: a rotation typed to four decimals passes.
 ROTATION_TOLERANCE = 1e-4
@@ -115,8 +116,7 @@ def contact_elastomer(
     shape: trimesh.Trimesh,
     pose: np.ndarray | None = None,
     ref_depth: np.ndarray | None = None,
-    edge: float = REFINED_EDGE_M,
-    smooth: bool = True,
+    edge: float = LAYER_EDGE_M,
 ) -> Elastomer:
     """The elastomer solid dented by an indenter mesh at a pose (see :func:`contact_depth`).
 
@@ -125,4 +125,4 @@ def contact_elastomer(
     if ref_depth is None:
         ref_depth = reference_depth(membrane, camera)[0]
     depth = contact_depth(shape, camera, ref_depth, pose)
-    return elastomer(membrane, spec, camera, depth, ref_depth, edge=edge, smooth=smooth)
+    return elastomer(membrane, spec, camera, depth, ref_depth, edge=edge)

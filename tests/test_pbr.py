@@ -40,17 +40,16 @@ def test_undeformed_elastomer_is_a_closed_shell_of_the_membrane_thickness(mesh, 
     assert np.allclose(gap, m.radius - m.core_radius)
 
 
-def test_contact_dents_the_outer_surface_inwards_along_camera_rays(mesh, spec, camera, ref, pressed):
+def test_contact_dents_the_outer_surface_inwards_along_its_normals(mesh, spec, camera, ref, pressed):
     flat = elastomer(mesh, spec, camera, edge=0.5e-3)
     dented = elastomer(mesh, spec, camera, pressed, ref, edge=0.5e-3)
     assert dented.solid().is_watertight
     moved = np.linalg.norm(dented.outer.vertices - flat.outer.vertices, axis=1)
     assert moved.max() > 0.5e-3 and (moved > 1e-6).sum() < len(moved) // 4
-    # Vertices move along their camera rays: direction unchanged.
+    # Vertices move inwards along the undeformed surface's normals (the layer model).
     k = moved > 1e-6
-    a = dented.outer.vertices[k] / np.linalg.norm(dented.outer.vertices[k], axis=1, keepdims=True)
-    b = flat.outer.vertices[k] / np.linalg.norm(flat.outer.vertices[k], axis=1, keepdims=True)
-    assert np.allclose(a, b, atol=1e-9)
+    step = (dented.outer.vertices[k] - flat.outer.vertices[k]) / moved[k, None]
+    assert np.allclose(step, -np.asarray(flat.outer.vertex_normals)[k], atol=1e-9)
     assert np.allclose(dented.inner.vertices, flat.inner.vertices)  # the glass does not move
 
 
@@ -62,10 +61,17 @@ def test_bad_depth_maps_for_the_reference(mesh, spec, camera, ref):
         elastomer(mesh, spec, camera, ref, None, edge=0.5e-3)
     with pytest.raises(ValueError, match=r"must be \(480, 640\) float"):
         elastomer(mesh, spec, camera, ref[:10], ref, edge=0.5e-3)
+
+
+def test_a_needle_dents_without_folding(mesh, spec, camera, ref):
+    """A vertical cliff in the depth map (a needle 2 mm deep, 3 px wide), which the
+    published model turned into a fold, is a dent the layer drapes over."""
     spike = ref.copy()
-    spike[200:203, 300:303] -= 0.002  # a needle: a vertical cliff no membrane can follow
-    with pytest.raises(ValueError, match="folds over"):
-        elastomer(mesh, spec, camera, spike, ref, edge=0.25e-3, smooth=False)
+    spike[200:203, 300:303] -= 0.002
+    flat = elastomer(mesh, spec, camera, edge=0.25e-3)
+    dented = elastomer(mesh, spec, camera, spike, ref, edge=0.25e-3)
+    moved = np.linalg.norm(dented.outer.vertices - flat.outer.vertices, axis=1)
+    assert 0.3e-3 < moved.max() < 2e-3
 
 
 def test_scene_dict_is_plain_data_with_consistent_media(tmp_path, mesh, spec, camera):
