@@ -2,7 +2,9 @@
 
     image = shade(normals(back_project(deform(depth, ref), camera)), L, material, background)
 
-1. ``deform``: elastic smoothing D_def = min(D, D_ref - G * (D_ref - D));
+1. ``deform``: elastic smoothing D_def = min(D, D_ref - G * (D_ref - D)) (the published
+   model), or, given a ``scenes.elastic.MembraneLayer``, the depth map of the membrane
+   deformed as an elastic layer: the surface the physically based reference renders;
 2. ``back_project``: the point cloud P of D_def (planar z-depth, pinhole camera);
 3. ``normals``: N from Sobel derivatives of P, facing the camera;
 4. ``shade``: Phong per LED with the baked light field, L_m = -field;
@@ -21,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from scenes.camera import Camera, back_project, check_depth
-from scenes.elastic import deform, smooth
+from scenes.elastic import MembraneLayer, deform, smooth
 from scenes.spec import SensorSpec
 
 from .background import check_background
@@ -63,6 +65,7 @@ def render(
     spec: SensorSpec,
     L: np.ndarray,
     background: np.ndarray,
+    layer: MembraneLayer | None = None,
 ) -> np.ndarray:
     """Render one tactile image on the whole frame.
 
@@ -72,6 +75,8 @@ def render(
     ref_depth : (H, W) float, metres, the no-contact depth D_ref.
     L : (M, 3, H, W) float32, light vectors per LED (see ``light_vectors``).
     background : (H, W, 3) float32, linear RGB in [0, 1].
+    layer : the membrane's elastic layer model (scenes.elastic); None: the published
+        smoothing.
 
     Returns
     -------
@@ -81,7 +86,11 @@ def render(
     ref_depth = check_depth(ref_depth, camera, "ref_depth").astype(np.float32, copy=False)
     _check_lights(L, camera, spec)
     B = check_background(background, camera).transpose(2, 0, 1)
-    P = back_project(deform(depth, ref_depth, spec.elastic), camera, channels_first=True)
+    if layer is None:
+        d_def = deform(depth, ref_depth, spec.elastic)
+    else:
+        d_def = layer.depth(depth, ref_depth).astype(np.float32)
+    P = back_project(d_def, camera, channels_first=True)
     N, _ = normals(P)
     return finish(shade(P, N, L, spec.leds, spec.material, B), camera.mask)
 
@@ -91,6 +100,15 @@ def _check_lights(L: np.ndarray, camera: Camera, spec: SensorSpec) -> None:
     if not isinstance(L, np.ndarray) or L.shape != expected or L.dtype != np.float32:
         got = getattr(L, "shape", type(L).__name__), getattr(L, "dtype", "")
         raise ValueError(f"L must be {expected} float32 light vectors, got {got[0]} {got[1]}")
+
+
+def _changed_box(delta: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(r0, r1, c0, c1) bounding the non-zero pixels of an (H, W) map; None if none."""
+    rows = np.flatnonzero(delta.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(delta[rows[0] : rows[-1] + 1].any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def _grow(box: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
@@ -112,7 +130,8 @@ class Renderer:
 
     Gives the same image as ``render`` (up to float rounding), re-rendering only the
     window that a contact can change: the pixels where D != D_ref, grown by the Gaussian's
-    radius (where D_def can change) and by one pixel (the Sobel stencil).
+    radius (where D_def can change) and by one pixel (the Sobel stencil). With the layer
+    model, the window is where the deformed surface's depth differs from D_ref.
     """
 
     def __init__(
@@ -122,8 +141,10 @@ class Renderer:
         ref_depth: np.ndarray,
         L: np.ndarray,
         background: np.ndarray,
+        layer: MembraneLayer | None = None,
     ):
         self.spec = spec
+        self.layer = layer
         self.camera = camera
         self.ref_depth = check_depth(ref_depth, camera, "ref_depth").astype(np.float32)
         _check_lights(L, camera, spec)
@@ -131,7 +152,7 @@ class Renderer:
         self.background = check_background(background, camera)
         self._B = np.ascontiguousarray(self.background.transpose(2, 0, 1))
         self.mask = camera.mask
-        self.base = render(self.ref_depth, self.ref_depth, camera, spec, L, self.background)
+        self.base = render(self.ref_depth, self.ref_depth, camera, spec, L, self.background, layer)
 
     @classmethod
     def from_fields(
@@ -142,28 +163,35 @@ class Renderer:
     def render(self, depth: np.ndarray) -> np.ndarray:
         """(H, W) float metres -> (H, W, 3) float32 linear RGB in [0, 1]."""
         depth = check_depth(depth, self.camera).astype(np.float32, copy=False)
-        delta = self.ref_depth - depth
-        rows = np.flatnonzero(delta.any(axis=1))
-        if rows.size == 0:
-            return self.base.copy()
-        cols = np.flatnonzero(delta[rows[0] : rows[-1] + 1].any(axis=0))
-        box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
         shape = self.camera.shape
-        r = self.spec.elastic.radius_px
-        changed = _grow(box, r, shape)  # where D_def can differ from D_ref
-        support = _grow(box, 2 * r, shape)  # input G needs there, exactly (see deform)
-        shaded = _grow(changed, 1, shape)  # where the Sobel normals can change
-        stencil = _grow(shaded, 1, shape)  # points the Sobel stencil reads
+        if self.layer is None:
+            delta = self.ref_depth - depth
+            box = _changed_box(delta)
+            if box is None:
+                return self.base.copy()
+            r = self.spec.elastic.radius_px
+            changed = _grow(box, r, shape)  # where D_def can differ from D_ref
+            support = _grow(box, 2 * r, shape)  # input G needs there, exactly (see deform)
+            shaded = _grow(changed, 1, shape)  # where the Sobel normals can change
+            stencil = _grow(shaded, 1, shape)  # points the Sobel stencil reads
 
-        # Elastic smoothing on the support window. Beyond `box` delta is 0, so the zero
-        # padding implied at the window's inner edges is exact; at image edges the window
-        # ends where the image does and the border mode is the same as on the full frame.
-        spread = smooth(delta[_slices(support)], self.spec.elastic)
-        d_def = self.ref_depth[_slices(stencil)].copy()
-        window = _slices(changed)
-        d_def[_inner(stencil, changed)] = np.minimum(
-            depth[window], self.ref_depth[window] - spread[_inner(support, changed)]
-        )
+            # Elastic smoothing on the support window. Beyond `box` delta is 0, so the zero
+            # padding implied at the window's inner edges is exact; at image edges the window
+            # ends where the image does and the border mode is the same as on the full frame.
+            spread = smooth(delta[_slices(support)], self.spec.elastic)
+            d_def = self.ref_depth[_slices(stencil)].copy()
+            window = _slices(changed)
+            d_def[_inner(stencil, changed)] = np.minimum(
+                depth[window], self.ref_depth[window] - spread[_inner(support, changed)]
+            )
+        else:
+            full = self.layer.depth(depth, self.ref_depth).astype(np.float32)
+            box = _changed_box(self.ref_depth - full)
+            if box is None:
+                return self.base.copy()
+            shaded = _grow(box, 1, shape)
+            stencil = _grow(shaded, 1, shape)
+            d_def = full[_slices(stencil)]
         P = d_def * self.camera.rays_channels_first[(slice(None),) + _slices(stencil)]
         N, _ = normals(P)
         # The window's own edge rows hold Sobel values with a wrong border unless they are
