@@ -12,6 +12,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -24,6 +25,9 @@ VERSION = 1
 SOURCES = ("sim", "pbr", "real")
 #: Keys of dataset.json that must match when a run resumes into an existing folder.
 IDENTITY_KEYS = ("format", "version", "source", "sensor", "protocol", "renderer")
+#: Names an extra array may not take: they are record keys or folders of the format already.
+RESERVED_ARRAY_NAMES = ("id", "image", "depth", "images")
+ARRAY_NAME = re.compile(r"[a-z][a-z0-9_]*")
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -100,19 +104,20 @@ class DatasetWriter:
             if protocol is not None:
                 atomic_write_json(self.root / "protocol.json", protocol)
             atomic_write_json(existing, meta)
-        self.done = set(r["id"] for r in read_samples(self.root, repair=True))
+        self.done = {r["id"] for r in read_samples(self.root, repair=True)}
         # Temporary files of writes an interruption cut short; their samples are redone.
-        for folder in ("images", "depth", "."):
-            for tmp in (self.root / folder).glob(".*.tmp"):
-                tmp.unlink(missing_ok=True)
+        for tmp in [*self.root.glob(".*.tmp"), *self.root.glob("*/.*.tmp")]:
+            tmp.unlink(missing_ok=True)
 
     def append(self, record: dict) -> None:
         """Record a finished sample (its files must exist): one line, flushed to disk."""
-        if record["id"] in self.done:
-            raise DatasetError(f"sample {record['id']} is already in {self.root / 'samples.jsonl'}")
-        for key in ("image", "depth"):
-            if key in record and not (self.root / record[key]).exists():
-                raise DatasetError(f"sample {record['id']}: {record[key]} was not written")
+        sid = record["id"]
+        if sid in self.done:
+            raise DatasetError(f"sample {sid} is already in {self.root / 'samples.jsonl'}")
+        for key, value in record.items():
+            is_file = key in ("image", "depth") or value == f"{key}/{sid}.npy"  # an extra array's file
+            if is_file and value is not None and not (self.root / value).exists():
+                raise DatasetError(f"sample {sid}: {value} was not written")
         line = json.dumps(record, sort_keys=True) + "\n"
         with open(self.root / "samples.jsonl", "a") as fh:
             fh.write(line)
@@ -124,17 +129,36 @@ class DatasetWriter:
         write_rgb(self.root / "background.png", image)
 
 
-def write_sample_files(root: str | Path, sid: str, image: np.ndarray, depth: np.ndarray | None) -> dict:
-    """Write a sample's image (and depth) atomically; returns their paths relative to root.
+def check_array_name(name) -> str:
+    """An extra array's name, checked: it names a folder and a record key."""
+    if not isinstance(name, str) or not ARRAY_NAME.fullmatch(name) or name in RESERVED_ARRAY_NAMES:
+        raise ValueError(f"array name must match {ARRAY_NAME.pattern} and not be one of {RESERVED_ARRAY_NAMES}, "
+                         f"got {name!r}")
+    return name
 
-    Safe to call from worker processes: only the parent appends to samples.jsonl.
+
+def write_sample_files(root: str | Path, sid: str, image: np.ndarray, depth: np.ndarray | None,
+                       arrays: dict[str, np.ndarray] | None = None) -> dict:
+    """Write a sample's files atomically; returns their paths relative to root, by record key.
+
+    Parameters
+    ----------
+    image : (H, W, 3) float in [0, 1], written as ``images/<sid>.png``.
+    depth : (H, W) float, metres, written as ``depth/<sid>.npy`` (float32), or None.
+    arrays : extra arrays by name, each written as ``<name>/<sid>.npy`` (float32).
+
+    Only the process that appends to samples.jsonl calls it, after the files it returns.
     """
     root = Path(root)
+    arrays = {check_array_name(name): a for name, a in (arrays or {}).items()}
     files = {"image": f"images/{sid}.png"}
     write_rgb(root / files["image"], image, compress_level=1)
     if depth is not None:
         files["depth"] = f"depth/{sid}.npy"
         atomic_write_bytes(root / files["depth"], npy_bytes(np.asarray(depth, np.float32)))
+    for name, array in arrays.items():
+        files[name] = f"{name}/{sid}.npy"
+        atomic_write_bytes(root / files[name], npy_bytes(np.asarray(array, np.float32)))
     return files
 
 

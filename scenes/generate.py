@@ -1,18 +1,30 @@
 """Dataset generation: run a tapping protocol on the MuJoCo rig, capture depth, render.
 
-Renderers are plugins (entry point group ``tactile_sim.renderers``: a module with
-``prepare(spec, mesh, camera, options) -> settings`` and
-``make_renderer(spec, mesh, camera, ref_depth, options)``), so this module never imports
-one. Work runs in local processes; the parent alone appends to ``samples.jsonl``.
+A tap is one task, ``run_tap(job, tap, shared)``: it presses the indenter, captures the
+depth map and renders it, and returns arrays; it writes nothing. The same task runs in
+local processes or on a Ray cluster (``scenes.executors``), and the driver alone writes
+the sample's files and appends its line to ``samples.jsonl``.
+
+Renderers are plugins (entry point group ``tactile_sim.renderers``), so this module never
+imports one. A plugin is a module with
+
+- ``prepare(spec, mesh, camera, options) -> settings``, run once on the driver;
+- ``make_renderer(spec, mesh, camera, ref_depth, options)``, run once per worker process,
+  returning an object with ``.render(depth) -> (H, W, 3) float image`` and
+  ``.no_contact``, and optionally ``.render_sample(depth) -> {"image": ..., "arrays":
+  {name: array}, "record": {field: value}}``, whose arrays are written as
+  ``<name>/<id>.npy`` and whose record fields join the sample's line;
+- optionally ``shared(spec, mesh, camera, options) -> picklable``: large inputs every
+  worker needs (e.g. cached photon maps). The driver computes them once; each worker gets
+  them as ``make_renderer(..., shared=value)`` (through Ray's object store on a cluster).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing
-import os
 import time
 from dataclasses import dataclass
+from importlib import import_module
 from importlib.metadata import entry_points
 from pathlib import Path
 
@@ -28,10 +40,19 @@ RENDERER_GROUP = "tactile_sim.renderers"
 
 
 def renderer_plugin(name: str):
+    """The renderer plugin module called ``name`` in the entry point group, or, for a
+    name with a dot, the module of that import path (a plugin not registered, e.g. in
+    tests)."""
     found = {ep.name: ep for ep in entry_points(group=RENDERER_GROUP)}
-    if name not in found:
-        raise ValueError(f"renderer must be one of {sorted(found)}, got {name!r}")
-    return found[name].load()
+    if name in found:
+        return found[name].load()
+    if "." in name:
+        try:
+            return import_module(name)
+        except ImportError as exc:
+            raise ValueError(f"renderer {name!r} is not an importable module: {exc}") from None
+    raise ValueError(f"renderer must be one of {sorted(found)} or an importable module path "
+                     f"'package.module', got {name!r}")
 
 
 def measured_depth(depth: np.ndarray, ref_depth: np.ndarray, camera: Camera, tap: Tap, noise: float) -> float:
@@ -49,19 +70,48 @@ def measured_depth(depth: np.ndarray, ref_depth: np.ndarray, camera: Camera, tap
 
 @dataclass(frozen=True)
 class Job:
-    """Everything a worker needs, picklable."""
+    """What a tap task needs besides the tap, picklable. It never holds the dataset
+    folder: tasks run wherever the executor puts them, with no disk shared."""
 
-    root: str
     spec: SensorSpec
     renderer: str
     options: dict
+    objects: tuple[str, ...]
     noise_m: float = 1e-6
 
 
-class Worker:
-    """Per-process state: one compiled rig carrying every object, the renderer, D_ref."""
+def tap_fields(tap: Tap) -> dict:
+    """The protocol's fields of a tap's sample record (docs/dataset-format.md)."""
+    return {
+        "id": sample_id(tap.index, tap.object),
+        "object": tap.object,
+        "path": tap.row,
+        "position": tap.position,
+        "replica": tap.replica,
+        "tap_index": tap.index,
+        "sensor_roll": tap.sensor_roll,
+        "indenter_pitch": tap.indenter_pitch,
+        "spin": tap.spin,
+        "contact_point": list(tap.point),
+        "normal": list(tap.normal),
+        "commanded_depth": tap.depth,
+    }
 
-    def __init__(self, job: Job, objects: tuple[str, ...]):
+
+def render_sample(renderer, depth: np.ndarray) -> dict:
+    """``{"image", "arrays", "record"}`` of one depth map, from ``render_sample`` when the
+    renderer has it, else from ``render`` alone."""
+    if hasattr(renderer, "render_sample"):
+        out = renderer.render_sample(depth)
+        return {"image": out["image"], "arrays": dict(out.get("arrays") or {}), "record": dict(out.get("record") or {})}
+    return {"image": renderer.render(depth), "arrays": {}, "record": {}}
+
+
+class TapRunner:
+    """Per-process state of tap tasks: one compiled rig carrying every object, D_ref and
+    the renderer. Expensive to build, so each process keeps one (``runner``)."""
+
+    def __init__(self, job: Job, shared=None):
         from .indenters import indenter
         from .rig import Rig, rig_scene
 
@@ -69,58 +119,78 @@ class Worker:
         self.spec = job.spec
         self.mesh = membrane_mesh(job.spec)
         self.camera = Camera.from_spec(job.spec)
-        meshes = {name: indenter(name) for name in objects}
+        meshes = {name: indenter(name) for name in job.objects}
         self.rig = Rig(rig_scene(self.spec, meshes, membrane=self.mesh), self.spec)
         self.rig.home()
         self.ref_depth = self.rig.depth()
         plugin = renderer_plugin(job.renderer)
-        self.renderer = plugin.make_renderer(self.spec, self.mesh, self.camera, self.ref_depth, job.options)
+        args = (self.spec, self.mesh, self.camera, self.ref_depth, job.options)
+        # Only plugins that define shared() take it.
+        self.renderer = plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else \
+            plugin.make_renderer(*args)
 
     def capture(self, tap: Tap) -> np.ndarray:
         self.rig.press(tap)
         return self.rig.depth()
 
     def run(self, tap: Tap) -> dict:
-        depth = self.capture(tap)
-        image = self.renderer.render(depth)
-        sid = sample_id(tap.index, tap.object)
-        files = write_sample_files(self.job.root, sid, image, depth)
+        """One tap -> ``{"record", "image" (H, W, 3) float32, "depth" (H, W) float32
+        metres, "arrays" {name: float32 array}}``."""
+        depth = np.asarray(self.capture(tap), np.float32)
+        out = render_sample(self.renderer, depth)
+        record = {**tap_fields(tap),
+                  "measured_depth": measured_depth(depth, self.ref_depth, self.camera, tap, self.job.noise_m)}
+        clash = sorted((set(out["record"]) | set(out["arrays"])) & (set(record) | {"image", "depth"}))
+        if clash:
+            raise ValueError(f"renderer {self.job.renderer!r} returned fields {clash} that a sample record already "
+                             f"has; rename them")
         return {
-            "id": sid,
-            "object": tap.object,
-            "path": tap.row,
-            "position": tap.position,
-            "replica": tap.replica,
-            "tap_index": tap.index,
-            "sensor_roll": tap.sensor_roll,
-            "indenter_pitch": tap.indenter_pitch,
-            "spin": tap.spin,
-            "contact_point": list(tap.point),
-            "normal": list(tap.normal),
-            "commanded_depth": tap.depth,
-            "measured_depth": measured_depth(depth, self.ref_depth, self.camera, tap, self.job.noise_m),
-            **files,
+            "record": {**record, **out["record"]},
+            "image": np.asarray(out["image"], np.float32),
+            "depth": depth,
+            "arrays": {name: np.asarray(a, np.float32) for name, a in out["arrays"].items()},
         }
 
-
-_WORKER: Worker | None = None
-
-
-def _init_worker(job: Job, objects: tuple[str, ...], gl_threads: str | None = None) -> None:
-    global _WORKER
-    if gl_threads is not None:
-        # Mesa's software rasteriser starts a thread per core in every process; with one
-        # process per core they only contend.
-        os.environ.setdefault("LP_NUM_THREADS", gl_threads)
-    _WORKER = Worker(job, objects)
+    def close(self) -> None:
+        self.rig.close()
 
 
-def _run(tap: Tap) -> dict:
-    return _WORKER.run(tap)
+_RUNNER: TapRunner | None = None
 
 
-def _no_contact(_=None) -> np.ndarray:
-    return _WORKER.renderer.no_contact
+def runner(job: Job, shared=None) -> TapRunner:
+    """This process's TapRunner for ``job``, built on first use and kept.
+
+    ``shared`` is the plugin's ``shared()`` of the same job, so the job alone keys it.
+    """
+    global _RUNNER
+    if _RUNNER is None or _RUNNER.job != job:
+        if _RUNNER is not None:
+            _RUNNER.close()
+            _RUNNER = None
+        _RUNNER = TapRunner(job, shared)
+    return _RUNNER
+
+
+def run_tap(job: Job, tap: Tap, shared=None) -> dict:
+    """The task of one tap: press, capture depth, render; returns arrays, writes nothing.
+
+    Returns ``{"record": {...JSON fields...}, "image": (H, W, 3) float32 in [0, 1],
+    "depth": (H, W) float32 metres planar z, "arrays": {name: float32 array}}``.
+    """
+    return runner(job, shared).run(tap)
+
+
+def no_contact(job: Job, shared=None) -> np.ndarray:
+    """The renderer's no-contact image, (H, W, 3) float in [0, 1]."""
+    return np.asarray(runner(job, shared).renderer.no_contact, np.float32)
+
+
+def record_sample(writer: DatasetWriter, result: dict) -> None:
+    """Write one task's result into the dataset: its files, then its line (driver only)."""
+    record = result["record"]
+    files = write_sample_files(writer.root, record["id"], result["image"], result["depth"], result["arrays"])
+    writer.append({**record, **files})
 
 
 def generate(
@@ -130,17 +200,31 @@ def generate(
     renderer: str = "phong",
     options: dict | None = None,
     workers: int = 2,
-    source: str = "sim",
+    source: str | None = None,
     progress: bool = True,
+    executor: str = "local",
+    address: str | None = None,
 ) -> dict:
     """Run (or resume) a protocol into a dataset folder; returns a summary.
 
     Taps already recorded in ``samples.jsonl`` are skipped, so a killed run continues
     where it stopped.
+
+    Parameters
+    ----------
+    workers : local processes (``executor="local"``), or the CPUs of the Ray cluster
+        started on this machine (``executor="ray"`` without ``address``).
+    executor : ``"local"`` (a process pool on this machine) or ``"ray"``.
+    address : a Ray cluster's ``HOST:PORT`` to connect to (``executor="ray"`` only).
+    source : the dataset's ``source`` (scenes.dataset.SOURCES); None: the plugin's
+        ``SOURCE`` ("pbr" for the physically based reference), else "sim".
     """
+    from .executors import make_executor
+
     options = dict(options or {})
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    tasks = make_executor(executor, workers, address)
     mesh = membrane_mesh(spec)
     camera = Camera.from_spec(spec)
     from .indenters import indenter
@@ -151,7 +235,7 @@ def generate(
     plugin = renderer_plugin(renderer)
     settings = plugin.prepare(spec, mesh, camera, options)
     meta = {
-        "source": source,
+        "source": source if source is not None else getattr(plugin, "SOURCE", "sim"),
         "sensor": dataclasses.asdict(spec),
         "protocol": {"name": protocol.name, "seed": protocol.seed, "taps": len(protocol.taps),
                      "objects": list(protocol.objects)},
@@ -162,27 +246,23 @@ def generate(
     }
     writer = DatasetWriter(root, meta, protocol.to_dict())
     todo = [t for t in protocol.taps if sample_id(t.index, t.object) not in writer.done]
-    job = Job(str(Path(root).resolve()), spec, renderer, options)
-    objects = tuple(protocol.objects)
+    job = Job(spec, renderer, options, tuple(protocol.objects))
     t0 = time.perf_counter()
     from tqdm import tqdm
 
     bar = tqdm(total=len(protocol.taps), initial=len(protocol.taps) - len(todo), desc="dataset", unit="sample",
                disable=not progress)
-    need_background = not (writer.root / "background.png").exists() and bool(objects)
-    if workers == 1 or len(todo) <= 1:
-        if need_background or todo:
-            _init_worker(job, objects)
-        if need_background:
-            writer.write_background(_no_contact())
-        stamps = _finish(writer, map(_run, todo), bar)
-    else:
-        ctx = multiprocessing.get_context("spawn")  # EGL contexts must not cross a fork
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(job, objects, "1")) as pool:
-            background = pool.apply_async(_no_contact) if need_background else None
-            stamps = _finish(writer, pool.imap_unordered(_run, todo, chunksize=4), bar)
-            if background is not None:
-                writer.write_background(background.get())
+    need_background = not (writer.root / "background.png").exists() and bool(job.objects)
+    stamps = []
+    if todo or need_background:
+        shared = plugin.shared(spec, mesh, camera, options) if hasattr(plugin, "shared") else None
+        for kind, value in tasks.run(job, todo, shared, need_background):
+            if kind == "background":
+                writer.write_background(value)
+                continue
+            record_sample(writer, value)
+            stamps.append(time.perf_counter())
+            bar.update(1)
     bar.close()
     seconds = time.perf_counter() - t0
     steady = (len(stamps) - 1) / (stamps[-1] - stamps[0]) if len(stamps) > 2 and stamps[-1] > stamps[0] else None
@@ -191,16 +271,7 @@ def generate(
         "new": len(todo),
         "seconds": seconds,
         "workers": workers,
+        "executor": executor,
         "start_up_seconds": (stamps[0] - t0) if stamps else None,
         "steady_frames_per_second": steady,
     }
-
-
-def _finish(writer: DatasetWriter, results, bar) -> list[float]:
-    """Record results as they come; returns when each was recorded (perf_counter)."""
-    stamps = []
-    for record in results:
-        writer.append(record)
-        stamps.append(time.perf_counter())
-        bar.update(1)
-    return stamps

@@ -53,6 +53,26 @@ def test_a_line_cut_short_is_dropped_and_repaired(tmp_path):
     assert [r["id"] for r in read_samples(tmp_path)] == ["a", "b"]
 
 
+def test_extra_arrays_are_written_beside_the_image(tmp_path):
+    w = DatasetWriter(tmp_path, META)
+    image = np.full((4, 6, 3), 0.5)
+    arrays = {"linear": np.ones((4, 6, 3)), "variance": np.full((4, 6, 3), 1e-4)}
+    files = write_sample_files(tmp_path, "a", image, None, arrays)
+    assert files == {"image": "images/a.png", "linear": "linear/a.npy", "variance": "variance/a.npy"}
+    w.append({"id": "a", **files})
+    linear = np.load(tmp_path / read_samples(tmp_path)[0]["linear"])
+    assert linear.dtype == np.float32 and linear.shape == (4, 6, 3)
+    for bad in ("depth", "images", "../up", "Linear", 3):
+        with pytest.raises(ValueError, match="array name must match"):
+            write_sample_files(tmp_path, "b", image, None, {bad: arrays["linear"]})
+    files = write_sample_files(tmp_path, "c", image, None)
+    with pytest.raises(DatasetError, match="sample c: linear/c.npy was not written"):
+        w.append({"id": "c", **files, "linear": "linear/c.npy"})
+    (tmp_path / "linear" / ".c.npy.123.tmp").write_bytes(b"partial")  # killed mid-write
+    DatasetWriter(tmp_path, META)
+    assert not list(tmp_path.glob("*/.*.tmp"))
+
+
 def test_corrupt_datasets_are_named(tmp_path):
     with pytest.raises(DatasetError, match="dataset.json is missing"):
         read_meta(tmp_path)

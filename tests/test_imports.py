@@ -18,6 +18,7 @@ FORBIDDEN = {
 HEAVY = {
     "pygeodesic": {"phong_reference/geodesic.py"},
     "potpourri3d": {"phong_reference/transport.py", "scenes/elastic.py"},
+    "ray": {"scenes/executors.py"},
 }
 
 
