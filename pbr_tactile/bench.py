@@ -17,24 +17,11 @@ from scenes.spec import SensorSpec
 
 from .effects import Effects
 from .membrane import elastomer
-from .render import KERNEL_RADIUS_M, Estimate, render, render_photons
+from .render import KERNEL_RADIUS_M, contact_rse, render, render_photons
 from .scene import geltip_scene, led_sources, write_meshes
 
 #: The goal's noise level: relative standard error averaged over the contact region.
 TARGET_RSE = 0.02
-
-
-def contact_rse(est: Estimate, region: np.ndarray) -> float:
-    """Root-mean-square relative standard error over the region's lit pixels.
-
-    The per-pixel variance across passes is unbiased, so its mean over the region is
-    too; its square root is not (with 2 passes the mean of per-pixel standard errors
-    reads 0.8 of the truth, which would flatter the time to target by 1.6x). The root of
-    the mean relative variance is what is reported: the RMS of the per-pixel RSE.
-    """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rel_var = est.variance[region] / np.square(est.mean[region])
-    return float(np.sqrt(np.mean(rel_var[np.isfinite(rel_var)])))
 
 
 def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: int = 1 << 20,

@@ -20,8 +20,10 @@ the dent and 0.30 far from it: far from the contact the gain is about ``runs``-f
 at the contact G's share limits it.
 
 E_0 and G depend only on the sensor, the effects, the photon count and the seed, not on
-the contact, so they are cached on disk (``scenes.cache``): the first contact of a
-sensor pays for them, every later one traces only its own photons.
+the contact, so they are cached on disk (``scenes.cache``, one entry for E_0 and one for
+G per pass, float32 as traced): the first contact of a sensor pays for them, every later
+one traces only its own photons. A memo (a plain dict by cache key) sits in front of the
+disk cache: filled by one render, it carries the deposits to workers with no shared disk.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 #: Bump when the photon tracer changes what it deposits: stale cache entries then miss.
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 #: Default no-contact runs per pass that make G.
 DEFAULT_RUNS = 8
 
@@ -53,24 +55,33 @@ def scene_fingerprint(mi, scene) -> list:
 class NoContact:
     """Cached no-contact photon deposits of one undeformed scene (see module doc)."""
 
-    def __init__(self, mi, scene, key_parts: list, runs: int = DEFAULT_RUNS, use_cache: bool = True):
+    def __init__(self, mi, scene, key_parts: list, runs: int = DEFAULT_RUNS, use_cache: bool = True,
+                 memo: dict | None = None):
         """key_parts: what else than the scene the deposits depend on (sources, medium,
-        photons per run)."""
+        photons per run). memo: a dict of deposits by cache key, read before the disk
+        cache and given every deposit this object returns (None: none)."""
         from scenes.cache import make_key
 
         if runs < 1:
             raise ValueError(f"no-contact runs must be >= 1, got {runs}")
         self.runs = runs
         self._use_cache = use_cache
+        self._memo = memo
         self._base = make_key(CACHE_VERSION, mi.variant(), *scene_fingerprint(mi, scene), *key_parts)
 
     def flux(self, name, trace) -> np.ndarray:
         """The no-contact deposits called ``name`` (JSON-able: a seed, with what the
-        run is for), from the cache, or ``trace()`` stored."""
+        run is for), from the memo, the cache, or ``trace()`` stored; (S, V) float32."""
         from scenes.cache import cached, make_key
 
         key = make_key(self._base, name)
-        return cached("pbr-nocontact", key, lambda: {"flux": trace()}, use_cache=self._use_cache)["flux"]
+        if self._memo is not None and key in self._memo:
+            return self._memo[key]
+        flux = cached("pbr-nocontact", key, lambda: {"flux": np.asarray(trace(), np.float32)},
+                      use_cache=self._use_cache)["flux"]
+        if self._memo is not None:
+            self._memo[key] = flux
+        return flux
 
     def pass_flux(self, seed: int, window_seed: int, trace) -> tuple[np.ndarray, np.ndarray]:
         """(E_0's deposits, G's deposits) for the pass of this seed: the same seed as
@@ -81,8 +92,8 @@ class NoContact:
         from .photons import _seed
 
         same = self.flux([int(seed), int(window_seed)], lambda: trace(seed))
-        others = []
-        for run in range(self.runs):
-            run_seed = _seed(seed, run, 0xC0A7)
-            others.append(self.flux([run_seed, int(window_seed)], lambda s=run_seed: trace(s)))
-        return same, np.mean(others, axis=0)
+
+        def mean_of_runs():
+            return np.mean([trace(_seed(seed, run, 0xC0A7)) for run in range(self.runs)], axis=0)
+
+        return same, self.flux(["G", int(seed), int(window_seed), self.runs], mean_of_runs)

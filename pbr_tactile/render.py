@@ -2,20 +2,23 @@
 
     image = render(load(geltip_scene(write_meshes(elastomer(membrane, depth, ref)))))
 
-1. ``elastomer``: the membrane refined, displaced to the elastically smoothed depth and
-   closed into the elastomer solid (pbr_tactile.membrane);
+1. ``elastomer``: the membrane refined, dented by the elastic layer model
+   (scenes.elastic) and closed into the elastomer solid (pbr_tactile.membrane);
 2. ``write_meshes`` and ``geltip_scene``: the scene as a plain dict (pbr_tactile.scene);
 3. ``load``: the one call of ``mi.load_dict``, after ``to_mitsuba`` turns the dict's plain
    transforms and points into Mitsuba objects;
 4. ``render_photons`` (photons from the LEDs to the coating, then camera rays; see
    pbr_tactile.photons) or ``render`` (brute-force volpath): Monte Carlo estimates in
-   independent passes, giving the mean image and a per-pixel variance of that mean.
+   independent passes (``run_passes``, a fixed number or until the noise over the contact
+   region, ``contact_rse`` over ``contact_region``, meets a target), giving the mean image
+   and a per-pixel variance of that mean.
 """
 
 from __future__ import annotations
 
+import math
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -23,7 +26,7 @@ from scenes.camera import Camera
 from scenes.spec import SensorSpec
 
 from .effects import Effects
-from .membrane import elastomer
+from .membrane import ElastomerBuilder
 from .scene import geltip_scene, led_sources, write_meshes
 from .variant import choose_variant
 
@@ -52,20 +55,39 @@ def load(scene: dict, variant: str | None = None):
     return mi, mi.load_dict(to_mitsuba(scene, mi))
 
 
+#: Fewest passes of any estimate: the variance across passes needs two.
+MIN_PASSES = 2
+#: Default cap on the passes of a render that stops on a noise target.
+MAX_PASSES = 16
+#: Depth differences below this are rasterisation noise, not contact, metres (MuJoCo's
+#: no-contact capture matches the ray-cast D_ref to 3e-8 m at worst).
+CONTACT_DEPTH_M = 1e-6
+#: The contact region reaches this far beyond the pixels whose depth changed, px at the
+#: camera's resolution: the dent's rim, where the elastic layer bends, counts too.
+RIM_PX = 8
+
+
 @dataclass(frozen=True)
 class Estimate:
-    """A Monte Carlo image: mean (H, W, 3) float32 linear, and the variance of that mean."""
+    """A Monte Carlo image: mean (H, W, 3) float32 linear, and the variance of that mean.
+
+    spp : samples per pixel in all; passes : the independent passes averaged (0: not
+    recorded); rse : the RMS relative standard error (``contact_rse``) over the region a
+    noise target was judged on, None when the number of passes was fixed.
+    """
 
     mean: np.ndarray
     variance: np.ndarray
     spp: int
+    passes: int = 0
+    rse: float | None = None
 
     @classmethod
-    def from_passes(cls, images: list[np.ndarray], spp: int) -> "Estimate":
-        """Mean of independent pass images and the variance of that mean."""
+    def from_passes(cls, images: list[np.ndarray], spp: int) -> Estimate:
+        """Mean of independent pass images and the variance of that mean; spp in all."""
         stack = np.stack(images)
         return cls(stack.mean(axis=0).astype(np.float32),
-                   (stack.var(axis=0, ddof=1) / len(images)).astype(np.float32), spp)
+                   (stack.var(axis=0, ddof=1) / len(images)).astype(np.float32), spp, len(images))
 
     @property
     def relative_error(self) -> np.ndarray:
@@ -74,28 +96,121 @@ class Estimate:
             return np.sqrt(self.variance) / self.mean
 
 
+def contact_rse(est: Estimate, region: np.ndarray | None = None) -> float:
+    """Root-mean-square relative standard error over the region's lit pixels.
+
+    region : (H, W) bool, None: the whole image. Pixels (and channels) with a zero mean
+    are left out; nan when none is left.
+
+    The per-pixel variance across passes is unbiased, so its mean over the region is
+    too; its square root is not (with 2 passes the mean of per-pixel standard errors
+    reads 0.8 of the truth, which would flatter the time to target by 1.6x). The root of
+    the mean relative variance is what is reported: the RMS of the per-pixel RSE.
+    """
+    variance, mean = (est.variance, est.mean) if region is None else (est.variance[region], est.mean[region])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel_var = variance / np.square(mean)
+    rel_var = rel_var[np.isfinite(rel_var)]
+    return float(np.sqrt(np.mean(rel_var))) if rel_var.size else float("nan")
+
+
+def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camera: Camera,
+                   width: int | None = None, height: int | None = None) -> np.ndarray:
+    """The pixels a contact's noise is judged on, at the film's resolution.
+
+    depth, ref_depth : (H, W) float, metres, planar z at the camera's resolution (depth
+    None: no contact). Returns (height, width) bool: the pixels whose depth differs from
+    D_ref by more than CONTACT_DEPTH_M, grown by RIM_PX (camera pixels) so the dent's rim
+    counts, inside the image circle; the whole image circle without contact, or when the
+    contact lies outside it.
+    """
+    from scipy import ndimage
+
+    width, height = width or camera.width, height or camera.height
+    circle = camera.scaled(width, height).mask
+    if depth is None:
+        return circle.copy()
+    moved = np.abs(np.asarray(depth, np.float64) - ref_depth) > CONTACT_DEPTH_M
+    if moved.any():
+        moved = ndimage.binary_dilation(moved, iterations=RIM_PX)
+    # Each film pixel reads the camera pixel nearest its centre (the rim spans 2 RIM_PX
+    # camera pixels, so films down to 1/16 of the camera's size cannot miss a contact).
+    rows = np.clip(np.round((np.arange(height) + 0.5) * camera.height / height - 0.5).astype(int), 0, camera.height - 1)
+    cols = np.clip(np.round((np.arange(width) + 0.5) * camera.width / width - 0.5).astype(int), 0, camera.width - 1)
+    region = moved[np.ix_(rows, cols)] & circle
+    return region if region.any() else circle.copy()
+
+
+def check_passes(passes: int, target_rse: float | None = None, max_passes: int = MAX_PASSES) -> None:
+    """Validate a pass count (fixed, or the fewest with a target) and a noise target."""
+    if passes < MIN_PASSES:
+        raise ValueError(f"passes must be >= {MIN_PASSES} for a variance estimate, got {passes}")
+    if target_rse is None:
+        return
+    if not (isinstance(target_rse, (int, float)) and math.isfinite(target_rse) and target_rse > 0):
+        raise ValueError(f"target_rse must be a finite number > 0 (a relative standard error, e.g. 0.05), "
+                         f"got {target_rse!r}")
+    if max_passes < passes:
+        raise ValueError(f"max_passes must be >= passes ({passes}), got {max_passes}")
+
+
+def run_passes(one_pass, spp: int, passes: int = 4, target_rse: float | None = None,
+               region: np.ndarray | None = None, max_passes: int = MAX_PASSES, progress=None) -> Estimate:
+    """The one pass loop of both estimators: independent passes, averaged.
+
+    one_pass : k -> (H, W, 3) image of pass k (independent random numbers per k).
+    spp : samples per pixel of one pass.
+    passes : how many passes (target_rse None), else the fewest (>= MIN_PASSES).
+    target_rse : stop after the first pass at which the RMS relative standard error
+        over ``region`` (``contact_rse``) is at most this, or after ``max_passes``. The
+        error falls as 1/sqrt(passes). Stopping on an estimated error slightly favours
+        passes whose estimate came out low; averaged over a region of many pixels that
+        estimate is steady enough for the bias to be small.
+    progress : called with (passes done, most passes) after each pass.
+
+    Returns the Estimate; with a target, its ``rse`` is the error it stopped at.
+    """
+    check_passes(passes, target_rse, max_passes)
+    most = passes if target_rse is None else max_passes
+    images = []
+    for k in range(most):
+        images.append(one_pass(k))
+        if progress is not None:
+            progress(k + 1, most)
+        if target_rse is not None and k + 1 >= passes:
+            est = Estimate.from_passes(images, spp * len(images))
+            rse = contact_rse(est, region)
+            if rse <= target_rse:
+                break
+    if target_rse is None:
+        return Estimate.from_passes(images, spp * len(images))
+    return replace(est, rse=rse)
+
+
 def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: str | None = None,
-           progress=None) -> Estimate:
-    """Render ``passes`` independent passes of spp/passes samples each.
+           progress=None, target_rse: float | None = None, region: np.ndarray | None = None,
+           max_passes: int = MAX_PASSES) -> Estimate:
+    """Brute-force volpath in independent passes of spp // passes samples each.
 
     The variance of the mean is the sample variance across passes divided by their
-    number (passes >= 2), so every estimate carries its own error bar.
+    number (passes >= 2), so every estimate carries its own error bar. With target_rse,
+    ``passes`` is the fewest and more passes of the same size follow until the noise
+    over ``region`` meets it (``run_passes``).
     """
-    if passes < 2:
-        raise ValueError(f"passes must be >= 2 for a variance estimate, got {passes}")
+    check_passes(passes, target_rse, max_passes)
     if spp < passes:
         raise ValueError(f"spp ({spp}) must be >= passes ({passes})")
     mi, loaded = load(scene, variant)
     per = spp // passes
-    images = []
-    for k in range(passes):
-        img = np.array(mi.render(loaded, spp=per, seed=seed * 7919 + k), dtype=np.float64)
-        images.append(img[..., :3])
-        if progress is not None:
-            progress(k + 1, passes)
-    return Estimate.from_passes(images, per * passes)
+
+    def one_pass(k: int) -> np.ndarray:
+        return np.array(mi.render(loaded, spp=per, seed=seed * 7919 + k), dtype=np.float64)[..., :3]
+
+    return run_passes(one_pass, per, passes, target_rse, region, max_passes, progress)
 
 
+#: The full physical model (Effects is frozen: one shared default).
+FULL_MODEL = Effects()
 #: Default kernel radius of the photon density estimate, m (pbr_tactile.photons.irradiance).
 KERNEL_RADIUS_M = 0.75e-3
 
@@ -103,9 +218,15 @@ KERNEL_RADIUS_M = 0.75e-3
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
                    passes: int = 4, seed: int = 0, variant: str | None = None, progress=None,
                    kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None,
-                   pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True) -> Estimate:
+                   pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True,
+                   target_rse: float | None = None, region: np.ndarray | None = None, max_passes: int = MAX_PASSES,
+                   no_contact_memo: dict | None = None) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
+    spp : camera samples per pixel of one pass.
+    passes : how many passes, or with target_rse the fewest: passes are added until the
+        RMS relative standard error over ``region`` is at most target_rse, or
+        ``max_passes`` are done (``run_passes``).
     light_scene : the scene the photons are traced in, when it differs from the one the
         camera sees (Effects.contact_shadow off: the undeformed membrane). Its coating
         mesh must have the same vertices, in the same order, as the camera scene's: the
@@ -120,7 +241,16 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         (``pbr_tactile.nocontact``): no_contact_runs no-contact runs per pass make that
         map. They are cached on disk (``use_cache``), so only the first contact of a
         sensor traces them; later contacts cost what they did without it, with less
-        photon noise (see that module for what was measured). 0: off.
+        photon noise (see that module for what was measured). 0: off. When pilot_scene
+        is the camera's scene itself (a no-contact frame), each pass's map is the
+        cached no-contact map alone.
+    no_contact_memo : a dict of no-contact deposits by cache key, read before the disk
+        cache and given every deposit used (``pbr_tactile.nocontact.NoContact``): pass an
+        empty dict to collect them, or collected ones to render with no disk cache.
+
+    The pilot's seed follows the last pass's (``passes``, or ``max_passes`` with a
+    target), so a pass never shares its random numbers with the pilot, and every render
+    of a seed and pass cap shares one pilot (and no-contact cache).
 
     Each pass traces its own photons and its own camera samples, so the variance across
     passes is that of the whole estimator. kernel_radius (m) is the photon density
@@ -128,14 +258,21 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     The transport is grey, so each source's image is weighted by the film's exact
     response to that source's spectrum (pbr_tactile.spectra.film_response).
     """
-    from .photons import (camera_pass, coating_areas, coating_vertices, density_kernel, deposits, irradiance,
-                          sources_from, weight_window)
+    from .photons import (
+        camera_pass,
+        coating_areas,
+        coating_vertices,
+        density_kernel,
+        deposits,
+        irradiance,
+        sources_from,
+        weight_window,
+    )
     from .spectra import film_response
 
     if effects.coating_gloss > 0:
         raise ValueError("the photon estimator needs a diffuse coating (coating_gloss = 0); use volpath")
-    if passes < 2:
-        raise ValueError(f"passes must be >= 2 for a variance estimate, got {passes}")
+    check_passes(passes, target_rse, max_passes)
     if kernel_radius < 0:
         raise ValueError(f"kernel_radius must be >= 0 m, got {kernel_radius}")
     if no_contact_runs < 0:
@@ -145,9 +282,10 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
                          "apt-get install libllvm19, or use the volpath estimator")
     def same_mesh(role: str, other: dict | None):
-        """The loaded ``other`` scene (``loaded`` when None), checked to share the camera
-        scene's coating vertices, in order: maps carry over vertex by vertex."""
-        if other is None:
+        """The loaded ``other`` scene (``loaded`` when None or the camera's scene), checked
+        to share the camera scene's coating vertices, in order: maps carry over vertex by
+        vertex."""
+        if other is None or other is scene:
             return loaded
         scene_ = load(other, variant)[1]
         n_other, n_seen = len(coating_vertices(scene_)), len(coating_vertices(loaded))
@@ -180,8 +318,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
 
         no_contact = NoContact(mi, pilot_lit, [[(s.name, s.centre, s.radius, s.in_elastomer) for s in srcs],
                                                sigma_t, albedo, effects.coating_albedo, photons],
-                               no_contact_runs, use_cache)
-    pilot_seed = seed * 7919 + passes
+                               no_contact_runs, use_cache, no_contact_memo)
+    pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
 
     def trace(in_scene, count: int, run_seed: int, window_=None):
         return deposits(mi, in_scene, srcs, sigma_t, albedo, effects.coating_albedo, count, run_seed, window_)
@@ -193,10 +331,10 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)
     pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
-    images = []
-    for k in range(passes):
+    traced = no_contact is None or lit is not pilot_lit  # else E_c = E_0: the map is G
+
+    def one_pass(k: int) -> np.ndarray:
         pass_seed = seed * 7919 + k
-        traced = no_contact is None or lit is not pilot_lit  # else E_c = E_0: the map is G
         if traced:
             maps = irradiance(trace(lit, photons, pass_seed, window), area, kernel)
         if no_contact is not None:
@@ -206,10 +344,9 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
             # G plus the contact's change, with the same random numbers.
             maps = no_contact_map + (maps - irradiance(flux_0, pilot_area, pilot_kernel) if traced else 0.0)
         per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed)
-        images.append(per_source @ response)
-        if progress is not None:
-            progress(k + 1, passes)
-    return Estimate.from_passes(images, spp * passes)
+        return per_source @ response
+
+    return run_passes(one_pass, spp, passes, target_rse, region, max_passes, progress)
 
 
 def reference(
@@ -218,7 +355,7 @@ def reference(
     membrane,
     spec: SensorSpec,
     camera: Camera,
-    effects: Effects = Effects(),
+    effects: Effects = FULL_MODEL,
     spp: int = 64,
     width: int | None = None,
     height: int | None = None,
@@ -230,17 +367,31 @@ def reference(
     photons: int = 1 << 20,
     kernel_radius: float = KERNEL_RADIUS_M,
     no_contact_runs: int = 0,
+    target_rse: float | None = None,
+    max_passes: int = MAX_PASSES,
+    no_contact_memo: dict | None = None,
+    solids: ElastomerBuilder | None = None,
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
+    spp : samples per pixel in ``passes`` passes (spp // passes per pass).
+    passes : independent passes, or with target_rse the fewest.
+    target_rse : add passes of the same size until the RMS relative standard error over
+        the contact region (``contact_region``: the dent and its rim; without contact
+        the image circle) is at most this, or ``max_passes`` are done (``run_passes``).
     estimator : "photons" (two-pass, converges fast; diffuse coating) or "volpath"
         (Mitsuba's brute-force volumetric path tracer).
     photons : photons per LED per pass, for the photon estimator.
     kernel_radius : the photon density estimate's radius, m (bias ~ radius^2).
-    no_contact_runs : for a contact, estimate its photon map as the sensor's cached
-        no-contact map plus the contact's change (``pbr_tactile.nocontact``), from this
-        many no-contact runs per pass; worth it when rendering many contacts of one
-        sensor (the first pays for the cache). 0: off.
+    no_contact_runs : estimate the photon map as the sensor's cached no-contact map plus
+        the contact's change (``pbr_tactile.nocontact``), from this many no-contact runs
+        per pass; worth it when rendering many contacts of one sensor (the first pays for
+        the cache). Without contact the map is the cached no-contact map alone: a
+        no-contact frame rendered with the contacts' seed and pass cap fills the cache
+        they use. 0: off.
+    no_contact_memo : see ``render_photons``.
+    solids : the membrane's ElastomerBuilder, kept across contacts (it refines the
+        membrane and checks its undeformed solid once); None builds one.
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -249,7 +400,11 @@ def reference(
                          "and camera paths in different geometry")
     if no_contact_runs < 0:
         raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
-    solid = elastomer(membrane, spec, camera, depth, ref_depth)
+    check_passes(passes, target_rse, max_passes)
+    region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
+    targets = {"target_rse": target_rse, "region": region, "max_passes": max_passes}
+    build = solids if solids is not None else ElastomerBuilder(membrane, spec, camera)
+    solid = build(depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)
         scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
@@ -260,16 +415,19 @@ def reference(
                 # contact (common random numbers with the no-contact frame) and, with
                 # contact_shadow off, is what the light sees: no shadow, no guiding by
                 # the dent; only the camera sees it.
-                flat = write_meshes(elastomer(membrane, spec, camera), f"{folder}/undeformed")
+                flat = write_meshes(build(), f"{folder}/undeformed")
                 flat_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed)
                 if not effects.contact_shadow:
                     light_scene = flat_scene
+            elif no_contact_runs:
+                flat_scene = scene  # the no-contact frame: its map is the cached one
             est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
-                                 pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0)
+                                 pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,
+                                 no_contact_memo=no_contact_memo, **targets)
         else:
-            est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress)
+            est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
     return sensor_effects(est, camera, effects, seed)
 
 
@@ -287,4 +445,4 @@ def sensor_effects(est: Estimate, camera: Camera, effects: Effects, seed: int = 
     variance = distort(est.variance, camera, k1, k2)
     variance = vignetting(vignetting(variance, camera, effects.vignetting), camera, effects.vignetting)
     mean = add_noise(mean, effects.sensor_noise, np.random.default_rng(seed))
-    return Estimate(mean.astype(np.float32), variance.astype(np.float32), est.spp)
+    return replace(est, mean=mean.astype(np.float32), variance=variance.astype(np.float32))

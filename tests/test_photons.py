@@ -92,8 +92,7 @@ def test_film_response_matches_mitsuba_films():
 def test_contact_rse_is_unbiased_with_two_passes():
     """The bench's noise figure: with 2 passes, the mean of per-pixel standard errors
     reads about 0.8 of the truth; the RMS of the per-pixel variance does not."""
-    from pbr_tactile.bench import contact_rse
-    from pbr_tactile.render import Estimate
+    from pbr_tactile.render import Estimate, contact_rse
 
     rng = np.random.default_rng(0)
     mu, sigma = 2.0, 0.1  # each pass: 5 % noise; the mean of 2 passes: 5 % / sqrt(2)

@@ -1,0 +1,289 @@
+"""The physically based reference as a dataset renderer plugin (entry point ``tactile_sim.renderers``).
+
+Every sample is rendered to a noise target: passes are added until the RMS relative
+standard error over the contact region (``pbr_tactile.render.contact_region``) is at most
+``target_rse``. Contacts use the no-contact control variate (``pbr_tactile.nocontact``):
+``prepare``, which runs once on the driver, renders the no-contact frame with every pass
+a contact may use, which fills the sensor's no-contact photon cache and sets the
+dataset's one exposure; ``shared`` hands the deposits (a dict of arrays) to the workers,
+which then trace only each contact's own photons, with no disk shared between them.
+
+Every sample uses the same seeds, so the contacts share random numbers with the
+no-contact frame and with each other (common random numbers: far from a contact a
+sample's noise is the no-contact frame's, the same in every sample).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from scenes.camera import Camera, check_depth
+from scenes.spec import SensorSpec
+
+from .effects import Effects
+from .membrane import ElastomerBuilder
+from .nocontact import CACHE_VERSION, DEFAULT_RUNS
+from .render import (
+    CONTACT_DEPTH_M,
+    MAX_PASSES,
+    MIN_PASSES,
+    Estimate,
+    contact_rse,
+    reference,
+)
+
+#: The dataset's ``source`` (scenes.dataset.SOURCES) for this renderer.
+SOURCE = "pbr"
+#: Options and their defaults (timed on 2 cores for the fewest seconds to 5 % noise).
+DEFAULTS = {
+    "target_rse": 0.05,
+    "max_passes": MAX_PASSES,
+    "effects": [],
+    "estimator": "photons",
+    "photons": 1 << 19,
+    "camera_spp": 16,
+    "kernel_radius_mm": 0.75,
+    "no_contact_runs": DEFAULT_RUNS,
+    "film": [320, 240],
+    "seed": 0,
+}
+#: The no-contact frame's EXPOSURE_PERCENTILE inside the image circle maps to this value.
+EXPOSURE_LEVEL = 0.8
+EXPOSURE_PERCENTILE = 99.5
+#: Bump when the cached no-contact frame (scenes.cache "pbr-dataset-frame") changes meaning.
+FRAME_VERSION = 1
+#: Cache entries of the frame that hold no-contact deposits start with this.
+DEPOSIT_PREFIX = "deposit_"
+RESAMPLING = ("bilinear (skimage.transform.resize, order 1) from the film to the camera's size; the variance is "
+              "resampled the same way, which bounds the resampled mean's variance from above whatever the "
+              "correlation between film pixels (Jensen: var(sum w_i x_i) <= sum w_i var(x_i))")
+
+
+def _whole(options: dict, name: str, minimum: int) -> int:
+    value = options[name]
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"option {name} must be a whole number >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _real(options: dict, name: str, minimum: float, strict: bool) -> float:
+    value = options[name]
+    ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < minimum or (strict and value == minimum):
+        raise ValueError(f"option {name} must be a finite number {'>' if strict else '>='} {minimum:g}, got {value!r}")
+    return float(value)
+
+
+def _film(value, camera: Camera) -> tuple[int, int]:
+    expected = (f"option film must be [width, height] in pixels with the camera's aspect ratio, at most "
+                f"{camera.width}x{camera.height} (e.g. [{camera.width // 2}, {camera.height // 2}])")
+    try:
+        width, height = value
+        ok = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (width, height))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"{expected}, got {value!r}")
+    if not (0 < width <= camera.width and 0 < height <= camera.height) or width * camera.height != height * camera.width:
+        raise ValueError(f"{expected}, got {width}x{height}")
+    return int(width), int(height)
+
+
+def options_from(options: dict, camera: Camera) -> dict:
+    """Validated options, defaults filled in: effects as an Effects, film as (width, height)."""
+    unknown = sorted(set(options) - set(DEFAULTS))
+    if unknown:
+        raise ValueError(f"the pbr renderer takes no option {', '.join(unknown)}; its options are "
+                         f"{', '.join(DEFAULTS)}")
+    given = {**DEFAULTS, **options}
+    opts = {
+        "target_rse": _real(given, "target_rse", 0.0, strict=True),
+        "max_passes": _whole(given, "max_passes", MIN_PASSES),
+        "photons": _whole(given, "photons", 1),
+        "camera_spp": _whole(given, "camera_spp", 1),
+        "kernel_radius_mm": _real(given, "kernel_radius_mm", 0.0, strict=False),
+        "no_contact_runs": _whole(given, "no_contact_runs", 0),
+        "film": _film(given["film"], camera),
+        "seed": _whole(given, "seed", 0),
+    }
+    estimator = given["estimator"]
+    if estimator not in ("photons", "volpath"):
+        raise ValueError(f"option estimator must be 'photons' or 'volpath', got {estimator!r}")
+    opts["estimator"] = estimator
+    settings = given["effects"]
+    if isinstance(settings, str) or not all(isinstance(item, str) for item in settings):
+        raise ValueError(f"option effects must be a list of NAME=VALUE strings, got {settings!r}")
+    try:
+        effects = Effects().with_settings(list(settings))
+    except ValueError as exc:
+        raise ValueError(f"option effects: {exc}") from None
+    if estimator == "photons" and effects.coating_gloss > 0:
+        raise ValueError("option effects: coating_gloss > 0 needs estimator volpath (the photon estimator needs a "
+                         "diffuse coating)")
+    if estimator == "volpath" and not effects.contact_shadow:
+        raise ValueError("option effects: contact_shadow=false needs estimator photons")
+    opts["effects"] = effects
+    return opts
+
+
+def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.ndarray]:
+    """The no-contact frame rendered as the contacts are, with all max_passes passes, and
+    the no-contact deposits it used (every one a contact may need), cached on disk."""
+    from scenes.cache import cached, make_key
+
+    from .variant import choose_variant
+
+    variant = choose_variant().variant()
+    if opts["estimator"] == "photons" and not variant.startswith(("llvm_", "cuda_")):
+        raise ValueError(f"option estimator: photons needs a vectorised (llvm_ or cuda_) Mitsuba variant, got "
+                         f"{variant}; apt-get install libllvm19, or use estimator volpath")
+    frame_opts = {k: v for k, v in opts.items() if k != "target_rse"}  # the frame has every pass
+    frame_opts["effects"] = opts["effects"].to_dict()
+    key = make_key(FRAME_VERSION, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
+                   np.asarray(mesh.faces), frame_opts)
+    width, height = opts["film"]
+
+    def build():
+        memo: dict = {}
+        est = reference(None, None, mesh, spec, camera, opts["effects"], spp=opts["camera_spp"] * opts["max_passes"],
+                        width=width, height=height, seed=opts["seed"], variant=variant, passes=opts["max_passes"],
+                        estimator=opts["estimator"], photons=opts["photons"],
+                        kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
+                        no_contact_memo=memo)
+        rse = contact_rse(est, camera.scaled(width, height).mask)
+        return {"mean": est.mean, "variance": est.variance, "rse": np.float64(rse), "spp": np.int64(est.spp),
+                "variant": np.array(variant), **{DEPOSIT_PREFIX + k: v for k, v in memo.items()}}
+
+    return cached("pbr-dataset-frame", key, build)
+
+
+def _shared(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict:
+    frame = _frame(spec, mesh, camera, opts)
+    width, height = opts["film"]
+    level = float(np.percentile(frame["mean"][camera.scaled(width, height).mask], EXPOSURE_PERCENTILE))
+    if not level > 0:
+        raise ValueError("the no-contact frame is black inside the image circle: no exposure can be set")
+    return {
+        "variant": str(frame["variant"]),
+        # Rounded: a re-render of the frame (cache cleared) differs in its last bits.
+        "exposure_gain": float(f"{EXPOSURE_LEVEL / level:.3g}"),
+        "no_contact": {key: frame[key] for key in ("mean", "variance", "rse", "spp")},
+        "deposits": {k[len(DEPOSIT_PREFIX):]: v for k, v in frame.items() if k.startswith(DEPOSIT_PREFIX)},
+    }
+
+
+def shared(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
+    """What every worker needs from the driver, picklable: the Mitsuba variant, the
+    exposure gain, the no-contact frame and its photon deposits by cache key (arrays)."""
+    return _shared(spec, mesh, camera, options_from(options, camera))
+
+
+def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
+    """Validate the options, render (or read from the cache) the no-contact frame, which
+    fills the no-contact photon cache and sets the exposure, and return the settings
+    recorded in dataset.json's ``renderer``."""
+    opts = options_from(options, camera)
+    inputs = _shared(spec, mesh, camera, opts)
+    width, height = opts["film"]
+    return {
+        "renderer": "pbr",
+        "estimator": opts["estimator"],
+        "target_rse": opts["target_rse"],
+        "noise": "passes are added until the RMS relative standard error over the contact region (the dent and "
+                 "its rim; the image circle without contact) is at most target_rse, from min_passes to max_passes",
+        "min_passes": MIN_PASSES,
+        "max_passes": opts["max_passes"],
+        "photons": opts["photons"],
+        "camera_spp": opts["camera_spp"],
+        "kernel_radius_mm": opts["kernel_radius_mm"],
+        "no_contact_runs": opts["no_contact_runs"],
+        "seed": opts["seed"],
+        "film": [width, height],
+        "resampling": None if (width, height) == (camera.width, camera.height) else
+        f"rendered at {width}x{height} (a quarter of the camera time per halving of each side) and resampled "
+        f"{RESAMPLING}",
+        "effects": opts["effects"].to_dict(),
+        "exposure_gain": inputs["exposure_gain"],
+        "exposure": f"image = clip(exposure_gain * linear, 0, 1); the gain maps the no-contact frame's "
+                    f"{EXPOSURE_PERCENTILE}th percentile inside the image circle to {EXPOSURE_LEVEL}, set once for "
+                    "the dataset",
+        "linear": "linear/<id>.npy: (H, W, 3) float32 mean radiance in the reference's units (film response to "
+                  "LED-flux-normalised radiance), at the camera's size; variance/<id>.npy: the variance of that mean",
+        "variant": inputs["variant"],
+    }
+
+
+class PbrDatasetRenderer:
+    """Depth map -> tactile image with the physically based reference, to a noise target."""
+
+    def __init__(self, spec: SensorSpec, mesh, camera: Camera, ref_depth: np.ndarray, opts: dict, inputs: dict):
+        self.spec, self.mesh, self.camera, self.opts = spec, mesh, camera, opts
+        self.ref_depth = check_depth(np.asarray(ref_depth), camera, "ref_depth")
+        self.variant = inputs["variant"]
+        self.gain = inputs["exposure_gain"]
+        frame = inputs["no_contact"]
+        self._frame = Estimate(frame["mean"], frame["variance"], int(frame["spp"]), opts["max_passes"],
+                               float(frame["rse"]))
+        self._memo = dict(inputs["deposits"])  # read first, then filled by any miss
+        self._solids = ElastomerBuilder(mesh, spec, camera)  # refined and checked once
+
+    def _camera_size(self, image: np.ndarray) -> np.ndarray:
+        """A film-sized (h, w, 3) image at the camera's (H, W, 3), float32 (see RESAMPLING)."""
+        if image.shape[:2] == self.camera.shape:
+            return np.asarray(image, np.float32)
+        from skimage.transform import resize
+
+        return resize(image, self.camera.shape, order=1, mode="edge", anti_aliasing=False,
+                      preserve_range=True).astype(np.float32)
+
+    def _image(self, linear: np.ndarray) -> np.ndarray:
+        return np.clip(self.gain * linear, 0.0, 1.0).astype(np.float32)
+
+    @property
+    def no_contact(self) -> np.ndarray:
+        """(H, W, 3) float32 in [0, 1]: the no-contact frame, at the dataset's exposure."""
+        return self._image(self._camera_size(self._frame.mean))
+
+    def render_sample(self, depth: np.ndarray) -> dict:
+        """A contact depth map (H, W) float, metres -> image, arrays and record (see
+        the module doc and docs/dataset-format.md)."""
+        t0 = time.perf_counter()
+        depth = check_depth(np.asarray(depth), self.camera)
+        touched = np.abs(depth - self.ref_depth) > CONTACT_DEPTH_M
+        if not touched.any():
+            est = self._frame  # no contact: the no-contact frame, with every pass
+        else:
+            opts = self.opts
+            width, height = opts["film"]
+            est = reference(np.where(touched, depth, self.ref_depth), self.ref_depth, self.mesh, self.spec,
+                            self.camera, opts["effects"], spp=opts["camera_spp"] * MIN_PASSES, width=width,
+                            height=height, seed=opts["seed"], variant=self.variant, passes=MIN_PASSES,
+                            estimator=opts["estimator"], photons=opts["photons"],
+                            kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
+                            target_rse=opts["target_rse"], max_passes=opts["max_passes"], no_contact_memo=self._memo,
+                            solids=self._solids)
+        linear = self._camera_size(est.mean)
+        rse = est.rse if est.rse is not None and math.isfinite(est.rse) else None
+        return {
+            "image": self._image(linear),
+            "arrays": {"linear": linear, "variance": self._camera_size(est.variance)},
+            "record": {"contact_rse": rse, "passes": int(est.passes), "spp": int(est.spp),
+                       "seconds": time.perf_counter() - t0},
+        }
+
+    def render(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W, 3) float32 image in [0, 1] of a contact depth map."""
+        return self.render_sample(depth)["image"]
+
+
+def make_renderer(spec: SensorSpec, mesh, camera: Camera, ref_depth: np.ndarray, options: dict,
+                  shared: dict | None = None) -> PbrDatasetRenderer:
+    """The renderer of one worker; ``shared`` from ``shared()`` on the driver (None:
+    read from this machine's cache, which ``prepare`` filled)."""
+    opts = options_from(options, camera)
+    inputs = shared if shared is not None else _shared(spec, mesh, camera, opts)
+    return PbrDatasetRenderer(spec, mesh, camera, ref_depth, opts, inputs)
