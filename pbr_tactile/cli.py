@@ -117,17 +117,35 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
                     estimator=args.estimator, photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3,
                     no_contact_runs=args.no_contact_runs)
     bar.close()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.save(out.with_suffix(".npy"), est.mean)
-    np.save(out.with_name(out.stem + "_variance.npy"), est.variance)
+    out = output_paths(args.out)
+    out["linear"].parent.mkdir(parents=True, exist_ok=True)
+    np.save(out["linear"], est.mean)
+    np.save(out["variance"], est.variance)
     mask = np.ones(est.mean.shape[:2], bool)
     scale = float(np.percentile(est.mean[mask], 99.5)) or 1.0
-    write_rgb(out.with_suffix(".png"), srgb(est.mean / scale))
+    write_rgb(out["image"], srgb(est.mean / scale))
     rel = np.nanmedian(est.relative_error[est.mean > 0]) if (est.mean > 0).any() else float("nan")
-    print(f"wrote {out.with_suffix('.npy')} (linear), _variance.npy and .png (sRGB, scaled by 1/{scale:.3g}); "
-          f"median relative standard error {rel:.1%} at {est.spp} spp")
+    print(f"wrote {out['linear']} (linear), {out['variance'].name} and {out['image'].name} (sRGB, scaled by "
+          f"1/{scale:.3g}); median relative standard error {rel:.1%} at {est.spp} spp")
     return 0
+
+
+#: Suffixes of the reference's own outputs, dropped from an --out stem that ends in one.
+OUTPUT_SUFFIXES = (".npy", ".png")
+
+
+def output_paths(stem: str) -> dict[str, Path]:
+    """The files of ``reference --out STEM``: STEM.npy, STEM_variance.npy, STEM.png.
+
+    The stem is kept whole, dots and all (``s_0.5`` gives ``s_0.5.npy``), except that a
+    stem ending in one of the outputs' own suffixes (``frame.npy``, ``frame.png``) loses
+    it: the user named one of the files, so all three sit beside it rather than becoming
+    ``frame.npy.npy``.
+    """
+    stem = str(stem)
+    if stem.lower().endswith(OUTPUT_SUFFIXES):
+        stem = stem[: -len(".npy")]
+    return {"linear": Path(stem + ".npy"), "variance": Path(stem + "_variance.npy"), "image": Path(stem + ".png")}
 
 
 def cmd_bench_pbr(args) -> int:
@@ -143,6 +161,43 @@ def cmd_bench_pbr(args) -> int:
     atomic_write_json(Path(args.json), results)
     print(json.dumps({k: results[k] for k in ("seconds_to_2pct", "volpath_seconds_to_2pct", "speedup", "variant")}))
     return 0
+
+
+def cmd_bench_solids(args) -> int:
+    import json
+
+    from scenes.dataset import atomic_write_json
+    from scenes.geometry import membrane_mesh
+    from scenes.indenters import INDENTERS
+    from scenes.protocol import base_protocol, extended_protocol
+    from scenes.spec import load_spec
+
+    from .protocol_check import check_protocol
+
+    spec = load_spec(args.spec)
+    mesh = membrane_mesh(spec)
+    if args.protocol == "base":
+        protocol = base_protocol(spec, mesh, INDENTERS)
+    else:
+        protocol = extended_protocol(spec, mesh, INDENTERS, seed=args.protocol_seed)
+    summary = check_protocol(spec, protocol, sample=args.sample, seed=args.seed, edge=args.edge_mm * 1e-3,
+                             progress=True)
+    atomic_write_json(Path(args.json), summary)
+    print(json.dumps({k: summary[k] for k in ("protocol", "taps", "built", "median_build_seconds", "seconds")}))
+    for r in summary["refused"]:
+        print(f"refused: tap {r['tap_index']} ({r['object']}): {r['error']}")
+    return 0 if not summary["refused"] else 1
+
+
+def _positive_int(value: str) -> int:
+    """A count >= 1, for ``--sample``."""
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value!r}")
+    return n
 
 
 def register(registry) -> None:
@@ -185,7 +240,9 @@ def register(registry) -> None:
                         "plus the contact's change; the first contact of a sensor fills the cache, later ones "
                         "cost the same with less noise, most of all away from the contact (default 0: off)")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
-    p.add_argument("--out", required=True, help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png")
+    p.add_argument("--out", required=True,
+                   help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png (the stem is kept whole, dots "
+                        "and all; a stem ending in .npy or .png drops that suffix)")
 
     p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 %% noise at 320x240, photons vs volpath")
     p.add_argument("--spec", metavar="TOML")
@@ -195,3 +252,13 @@ def register(registry) -> None:
     p.add_argument("--no-contact-runs", type=_non_negative, default=8, metavar="M",
                    help="time a contact with the sensor's no-contact runs cached (M per pass; the cold first run "
                         "is reported too); 0: plain photon maps")
+
+    p = registry.bench("solids", cmd_bench_solids,
+                       "does the reference build every tap of a protocol? elastomer solids from MuJoCo captures")
+    p.add_argument("--spec", metavar="TOML")
+    p.add_argument("--protocol", choices=["base", "extended"], default="extended")
+    p.add_argument("--protocol-seed", type=int, default=0, help="seed of the extended protocol's perturbations")
+    p.add_argument("--sample", type=_positive_int, metavar="N",
+                   help="check a seeded sample of N taps (default: every tap)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sample")
+    p.add_argument("--edge-mm", type=float, default=0.25, help="refined edge of the membrane, mm (the reference's)")

@@ -41,34 +41,24 @@ def check_taps(spec: SensorSpec, taps: list[Tap], edge: float = LAYER_EDGE_M, pr
     """
     from tqdm import tqdm
 
-    from scenes.indenters import indenter
-    from scenes.rig import Rig, rig_scene
+    from scenes.rig import tap_depths
 
     mesh = membrane_mesh(spec)
-    camera = Camera.from_spec(spec)
-    objects = sorted({t.object for t in taps})
-    rig = Rig(rig_scene(spec, {name: indenter(name) for name in objects}, membrane=mesh), spec)
-    try:
-        rig.home()
-        ref = rig.depth()
-        build = ElastomerBuilder(mesh, spec, camera, edge)
-        records = []
-        for tap in tqdm(taps, desc="solids", unit="tap", disable=not progress):
-            rig.press(tap)
-            depth = rig.depth()
-            t0 = time.perf_counter()
-            try:
-                solid = build(depth, ref)
-                error = None
-                displacement = float(np.linalg.norm(solid.outer.vertices - build.layer.vertices, axis=1).max())
-            except ValueError as exc:
-                error, displacement = str(exc), float("nan")
-            records.append({"tap_index": tap.index, "object": tap.object, "ok": error is None, "error": error,
-                            "max_displacement": displacement,
-                            "deformation_seconds": time.perf_counter() - t0})
-        return records
-    finally:
-        rig.close()
+    captures = tap_depths(spec, taps, mesh)
+    ref, _ = next(captures)
+    build = ElastomerBuilder(mesh, spec, Camera.from_spec(spec), edge)
+    records = []
+    for depth, tap in tqdm(captures, total=len(taps), desc="solids", unit="tap", disable=not progress):
+        t0 = time.perf_counter()
+        try:
+            solid = build(depth, ref)
+            error = None
+            displacement = float(np.linalg.norm(solid.outer.vertices - build.layer.vertices, axis=1).max())
+        except ValueError as exc:
+            error, displacement = str(exc), float("nan")
+        records.append({"tap_index": tap.index, "object": tap.object, "ok": error is None, "error": error,
+                        "max_displacement": displacement, "deformation_seconds": time.perf_counter() - t0})
+    return records
 
 
 def check_protocol(spec: SensorSpec, protocol: Protocol, sample: int | None = None, seed: int = 0,

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from scenes.camera import Camera
+from scenes.elastic import MembraneLayer, check_model
 from scenes.spec import SensorSpec
 
 from .background import make_background
@@ -16,12 +19,23 @@ from .render import Renderer, light_vectors
 DEPTH_NOISE_M = 1e-6
 
 
+#: The options this renderer takes.
+OPTIONS = ("field", "background", "rectify", "elastic")
+
+
 def options_from(options: dict) -> dict:
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise ValueError(f"the phong renderer takes no option {', '.join(unknown)}; its options are "
+                         f"{', '.join(OPTIONS)}")
     field = options.get("field", "plane")
     if field not in METHODS:
         raise ValueError(f"field must be one of {METHODS}, got {field!r}")
     background = str(options.get("background", "none"))
-    return {"field": field, "background": background, "rectify": bool(options.get("rectify", False))}
+    # The published smoothing, or the layer model: the surface the reference renders.
+    elastic = check_model(options.get("elastic", "published"), "elastic")
+    return {"field": field, "background": background, "rectify": bool(options.get("rectify", False)),
+            "elastic_model": elastic}
 
 
 def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
@@ -29,7 +43,7 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
     opts = options_from(options)
     bake(mesh, camera, spec.leds, opts["field"])
     make_background(opts["background"], camera)  # fail early on a bad image
-    return {"renderer": "phong", **opts, "elastic": {"sigma_px": spec.elastic.sigma_px, "radius_px": spec.elastic.radius_px}}
+    return {"renderer": "phong", **opts, "elastic": dataclasses.asdict(spec.elastic)}
 
 
 class PhongDatasetRenderer:
@@ -38,8 +52,10 @@ class PhongDatasetRenderer:
     def __init__(self, spec: SensorSpec, mesh, camera: Camera, ref_depth: np.ndarray, options: dict):
         opts = options_from(options)
         fields = bake(mesh, camera, spec.leds, opts["field"])
+        layer = MembraneLayer(mesh, spec, camera) if opts["elastic_model"] == "layer" else None
         self._renderer = Renderer(
-            spec, camera, ref_depth, light_vectors(fields, opts["rectify"]), make_background(opts["background"], camera)
+            spec, camera, ref_depth, light_vectors(fields, opts["rectify"]), make_background(opts["background"], camera),
+            layer,
         )
         self.ref_depth = self._renderer.ref_depth
 

@@ -355,3 +355,25 @@ class Rig:
         for r in self._renderers.values():
             r.close()
         self._renderers.clear()
+
+
+def tap_depths(spec: SensorSpec, taps, membrane: trimesh.Trimesh | None = None):
+    """Press each tap on a rig carrying its objects and capture the depth maps.
+
+    Yields (D_ref, None) first (the no-contact capture), then (depth, tap) per tap: (H, W)
+    float32 metres, planar z. The rig is closed when the generator is.
+    """
+    from .indenters import indenter
+
+    taps = list(taps)
+    membrane = membrane_mesh(spec) if membrane is None else membrane
+    objects = sorted({t.object for t in taps}) or ["sphere"]
+    rig = Rig(rig_scene(spec, {name: indenter(name) for name in objects}, membrane=membrane), spec)
+    try:
+        rig.home()
+        yield rig.depth(), None
+        for tap in taps:
+            rig.press(tap)
+            yield rig.depth(), tap
+    finally:
+        rig.close()
