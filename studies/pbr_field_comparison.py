@@ -1,7 +1,9 @@
 """Which light field brings the fast Phong path closest to physically guided light?
 
-For ten contacts (the six published depth maps ``sim_depth/0..5.npy`` and four analytic
-indenters pressed as in ``tactile-sim demo``), this study renders the fast path
+For each contact (eight base-protocol taps, one per paper indenter, captured on the MuJoCo
+rig at the protocol's 2 mm; four analytic indenters pressed as in ``tactile-sim demo``;
+and the six published depth maps ``sim_depth/0..5.npy`` where they stay out of the
+glass), at its real depth, this study renders the fast path
 (``phong_reference``) with each baked light field (linear, plane, geodesic, transport)
 and compares it with the physically based reference (``pbr_tactile.render.reference``,
 photon estimator). The metrics are MAE, SSIM and PSNR (``skimage.metrics``), with
@@ -16,16 +18,17 @@ The fast path gives display values in [0, 1]: the Phong sum plus an ambient back
 clipped. The reference gives linear radiance through the camera's spectral response, with
 Monte Carlo noise. Here is what the study does so that the two can be compared.
 
-* **Geometry.** Both renderers see the same depth map on the same membrane: our generated
-  mesh, with D_ref = ``scenes.camera.reference_depth``. Each published map is moved onto
-  that membrane as D = D_ref − s (bkg − D_published). Its indentation is measured against
-  the authors' ``bkg.npy``, which differs from our D_ref by at most 0.16 mm.
-* **Indentation scale s.** Most of these contacts are too deep or too steep for the
-  reference. The published spheres reach 7.9–12.4 mm along the camera ray, through a
-  2.5 mm membrane and into the glass. The box and cylinder edges, and the textured map 0,
-  fold the membrane over. For each contact, s is the largest of 1, 1/2, 1/4, ... (down
-  to ``MIN_SCALE``) for which ``pbr_tactile.membrane.elastomer`` accepts the depth map.
-  Both renderers get that same scaled map. The JSON records s for each contact.
+* **Geometry.** Both renderers see the same deformed membrane: our generated mesh, with
+  D_ref = ``scenes.camera.reference_depth``, dented by the elastic layer model
+  (``scenes.elastic.MembraneLayer``). The reference builds its elastomer solid from it;
+  the fast path renders the depth map of the same deformed surface (``Renderer(...,
+  layer=...)``), not the published smoothing. Each published map is moved onto our
+  membrane as D = D_ref − (bkg − D_published); its indentation is measured against the
+  authors' ``bkg.npy``, which differs from our D_ref by at most 0.16 mm.
+* **Real depth.** Every contact is rendered at its own depth. The published spheres reach
+  7.9–12.4 mm along the camera ray, through the 2.5 mm membrane and into the glass; the
+  layer model refuses them (as ``scenes.protocol.validate`` refuses a tap deeper than the
+  membrane), and the JSON lists them under ``skipped`` with the reason.
 * **Resolution.** The fast path renders the full 640x480 camera, so its elastic smoothing
   and Sobel normals work at their native pixel scale. Its image is then area-averaged
   down to the reference's film (``skimage.transform.downscale_local_mean``). That is what
@@ -68,8 +71,8 @@ Monte Carlo noise. Here is what the study does so that the two can be compared.
   * *full*: the calibrated fast frame against the reference frame.
   * *change*: (contact − no-contact) over the whole mask, which is what tactile learning
     uses. The offset cancels here.
-  * *contact*: the same change, but only on the pixels within the elastic kernel's reach
-    (``Elastic.radius_px`` + 1 px) of where the depth changes. Farther out, the fast
+  * *contact*: the same change, but only on the pixels within one pixel (the Sobel
+    stencil) of where the deformed surface's depth changes. Farther out, the fast
     path's change is exactly zero for every field, so *change* dilutes the differences
     between fields by the contact's share of the mask, and *contact* does not. This kind
     also reports Pearson's r between the field's uncalibrated change and the
@@ -137,7 +140,9 @@ from scenes.cache import make_key
 from scenes.camera import Camera, check_depth, reference_depth
 from scenes.contact import press
 from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes
+from scenes.elastic import MembraneLayer
 from scenes.geometry import membrane_mesh
+from scenes.indenters import INDENTERS
 from scenes.spec import SensorSpec, load_spec
 
 from .reproduce_published import (
@@ -160,8 +165,10 @@ PRESS_SPIN_RAD = 0.3
 PUBLISHED = tuple(f"published_{k}" for k in range(N_PANELS))
 NO_CONTACT = "no_contact"
 
-#: Smallest indentation scale tried before a contact is dropped (see the docstring).
-MIN_SCALE = 1.0 / 64
+#: Base-protocol taps: (object, row, position), one per paper indenter, alternating a tip
+#: tap at 30 deg and a cylinder tap 9 mm behind the tip (scenes.protocol.base_protocol).
+BASE_TAPS = tuple((name, 0, 1 if k % 2 == 0 else 4) for k, name in enumerate(INDENTERS))
+BASE = tuple(f"base_{name}_r{row}p{position}" for name, row, position in BASE_TAPS)
 
 #: The reference is normalised by this percentile of its no-contact frame inside the mask.
 REFERENCE_PERCENTILE = 99.5
@@ -259,31 +266,33 @@ def published_contacts(reference_dir: Path, ref_depth: np.ndarray, names=PUBLISH
     }
 
 
-def scale_indentation(depth: np.ndarray, ref_depth: np.ndarray, scale: float) -> np.ndarray:
-    """D_ref − scale (D_ref − D): the same contact, ``scale`` times as deep. (H, W) float32."""
-    return (ref_depth - scale * (ref_depth - depth)).astype(np.float32)
+def base_contacts(spec: SensorSpec, mesh: trimesh.Trimesh, names=BASE) -> dict[str, np.ndarray]:
+    """Base-protocol taps captured on the MuJoCo rig: name -> (H, W) float32 depth, metres."""
+    from scenes.protocol import base_protocol
+    from scenes.rig import tap_depths
+
+    unknown = set(names) - set(BASE)
+    if unknown:
+        raise ValueError(f"base contacts must be among {list(BASE)}, got {sorted(unknown)}")
+    protocol = base_protocol(spec, mesh, INDENTERS)
+    wanted = {BASE_TAPS[BASE.index(n)]: n for n in names}
+    taps = [t for t in protocol.taps if (t.object, t.row, t.position) in wanted]
+    captures = tap_depths(spec, taps, mesh)
+    next(captures)  # the rig's no-contact capture; every contact uses the ray-cast D_ref
+    return {wanted[(tap.object, tap.row, tap.position)]: depth for depth, tap in captures}
 
 
-def membrane_scale(
-    depth: np.ndarray, ref_depth: np.ndarray, mesh: trimesh.Trimesh, spec: SensorSpec, camera: Camera
-) -> tuple[float, str]:
-    """The largest scale 2^-k >= MIN_SCALE at which the reference's elastomer accepts the contact.
+def refusal(depth: np.ndarray, ref_depth: np.ndarray, build) -> str | None:
+    """Why the reference cannot build the contact's elastomer (None: it can).
 
-    Returns (scale, why the larger scales were refused); scale 0.0 if none is accepted.
+    build : a ``pbr_tactile.membrane.ElastomerBuilder`` of the membrane.
     """
-    from pbr_tactile.membrane import elastomer
-
-    check_depth(depth, camera)
-    check_depth(ref_depth, camera, "ref_depth")
-    scale, why = 1.0, ""
-    while scale >= MIN_SCALE:
-        try:
-            elastomer(mesh, spec, camera, scale_indentation(depth, ref_depth, scale), ref_depth)
-            return scale, why
-        except ValueError as exc:  # through the glass core, or folds over
-            why = why or str(exc)
-            scale /= 2
-    return 0.0, why
+    check_depth(depth, build.layer.camera)
+    try:
+        build(depth, ref_depth)
+    except ValueError as exc:  # through the glass core
+        return str(exc)
+    return None
 
 
 # --------------------------------------------------------------------------------------
@@ -300,17 +309,18 @@ def downsample(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def fast_frames(
     spec: SensorSpec, camera: Camera, mesh: trimesh.Trimesh, ref_depth: np.ndarray, depths: list[np.ndarray],
-    shape: tuple[int, int],
+    shape: tuple[int, int], layer: MembraneLayer,
 ) -> dict[str, np.ndarray]:
     """The fast path's frames with each field, no background, area-averaged to ``shape``.
 
-    depths : K (H, W) depth maps, metres.  Returns method -> (K, h, w, 3) float32, [0, 1].
+    depths : K (H, W) contact depth maps, metres, deformed by ``layer`` (the surface the
+    reference renders).  Returns method -> (K, h, w, 3) float32, [0, 1].
     """
     fields, _ = bake_all(mesh, camera, spec.leds, METHODS)
     background = make_background("none", camera)
     out = {}
     for method in METHODS:
-        renderer = Renderer(spec, camera, ref_depth, light_vectors(fields[method]), background)
+        renderer = Renderer(spec, camera, ref_depth, light_vectors(fields[method]), background, layer=layer)
         out[method] = np.stack([downsample(renderer.render(d), shape) for d in depths])
     return out
 
@@ -599,18 +609,18 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
         reference_dir: Path | None = None) -> dict:
     """Render, compare and summarise; writes the JSON, Markdown and figures into ``out``.
 
-    contacts : names from ANALYTIC and PUBLISHED (default: all analytic, plus the published
-        ones when ``reference_dir`` holds the data).
+    contacts : names from BASE, ANALYTIC and PUBLISHED (default: all base and analytic ones,
+        plus the published ones when ``reference_dir`` holds the data).
     """
     t_start = time.perf_counter()
     spec = load_spec(None)
     camera = Camera.from_spec(spec)
     check_settings(settings, camera)
     if contacts is None:
-        contacts = tuple(ANALYTIC) + (PUBLISHED if reference_dir is not None else ())
-    unknown = set(contacts) - set(ANALYTIC) - set(PUBLISHED)
+        contacts = BASE + tuple(ANALYTIC) + (PUBLISHED if reference_dir is not None else ())
+    unknown = set(contacts) - set(BASE) - set(ANALYTIC) - set(PUBLISHED)
     if unknown or len(set(contacts)) < 2:
-        raise ValueError(f"contacts must be >= 2 distinct names from {list(ANALYTIC) + list(PUBLISHED)}, "
+        raise ValueError(f"contacts must be >= 2 distinct names from {list(BASE) + list(ANALYTIC) + list(PUBLISHED)}, "
                          f"got {list(contacts)}")
     wanted_published = tuple(c for c in contacts if c in PUBLISHED)
     if wanted_published and reference_dir is None:
@@ -622,19 +632,23 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
     raw = analytic_contacts(mesh, camera, ref_depth, tuple(c for c in contacts if c in ANALYTIC))
     if wanted_published:
         raw.update(published_contacts(reference_dir, ref_depth, wanted_published))
+    if any(c in BASE for c in contacts):
+        raw.update(base_contacts(spec, mesh, tuple(c for c in contacts if c in BASE)))
 
+    from pbr_tactile.membrane import ElastomerBuilder
+
+    build = ElastomerBuilder(mesh, spec, camera)
     depths, info, skipped = {}, {}, {}
-    for name in tqdm(contacts, desc="indentation the reference accepts", unit="contact"):
-        scale, why = membrane_scale(raw[name], ref_depth, mesh, spec, camera)
-        if scale == 0.0:
+    for name in tqdm(contacts, desc="contacts the reference builds", unit="contact"):
+        why = refusal(raw[name], ref_depth, build)
+        if why is not None:
             skipped[name] = why
-            warnings.warn(f"{name}: no indentation scale >= {MIN_SCALE} is accepted by the reference ({why}); "
-                          "dropped", stacklevel=2)
+            warnings.warn(f"{name}: the reference refuses it at its real depth ({why}); dropped", stacklevel=2)
             continue
-        depths[name] = scale_indentation(raw[name], ref_depth, scale)
-        info[name] = {"source": "published" if name in PUBLISHED else "analytic", "scale": scale,
-                      "refused_at_larger_scale": why,
-                      "max_indentation_m": float((ref_depth - depths[name]).max())}
+        depths[name] = raw[name]
+        source = "published" if name in PUBLISHED else "base protocol" if name in BASE else "analytic"
+        info[name] = {"source": source, "max_indentation_m": float((ref_depth - depths[name]).max()),
+                      "max_displacement_m": float(build.layer.deformation(depths[name], ref_depth).displacement.max())}
     names = list(depths)
     if len(names) < 2:
         raise ValueError(f"fewer than 2 contacts left to compare ({names}); dropped: {skipped}")
@@ -664,14 +678,14 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
         raise ValueError(f"the no-contact reference is black inside the mask (p{REFERENCE_PERCENTILE} = {scale})")
     ref = np.where(mask[..., None], mean / scale, 0.0)
 
-    # Pixels near each contact: within the elastic kernel's reach (plus the Sobel pixel) of
-    # where the depth changes; farther out, the fast path's change is exactly zero.
-    margin_px = spec.elastic.radius_px + 1
-    far = np.stack([far_from_contact(depths[n], ref_depth, shape, margin_px) for n in names])
+    # Pixels near each contact: within the Sobel pixel of where the deformed surface's depth
+    # changes; farther out, the fast path's change is exactly zero.
+    layer = build.layer
+    far = np.stack([far_from_contact(layer.depth(depths[n], ref_depth), ref_depth, shape, 1) for n in names])
     near = mask & ~far
     far &= region
 
-    fast = fast_frames(spec, camera, mesh, ref_depth, [ref_depth] + [depths[n] for n in names], shape)
+    fast = fast_frames(spec, camera, mesh, ref_depth, [ref_depth] + [depths[n] for n in names], shape, layer)
     per_contact, calibration, no_contact_fit, calibrated = {}, {}, {}, {}
     tiled = lambda v: np.tile(v, (len(names), 1))
     for method, frames in fast.items():
@@ -781,7 +795,7 @@ def markdown(results: dict) -> str:
         f"| reference noise (MAE) | {_cell(n['full'], 4)} | | | {_cell(n['change_far'], 4)} | | | | | | |",
         "",
         ("Reference noise: full, sqrt(2/pi) x the estimator's standard error; change, the mean |reference change| "
-         "farther than the elastic kernel from the contact (noise left by common random numbers, plus any real "
+         "farther than a pixel from where the deformed surface moved (noise left by common random numbers, plus any real "
          "far-field change, which every field misses alike)."),
         "",
         f"**Conclusion.** {results['conclusion']}",
@@ -791,13 +805,14 @@ def markdown(results: dict) -> str:
         f"Paired differences from {results['best']} in {results['criterion']} (other − best): "
         + ", ".join(f"{f} {_cell(d, 4)}" for f, d in results["best_minus_others"].items()) + ".",
         "",
-        "| contact | source | indentation scale | max indentation (mm) |",
+        "| contact | source | max indentation along the camera ray (mm) | max displacement along the normal (mm) |",
         "|---|---|---|---|",
     ]
     for name, c in results["contacts"].items():
-        lines.append(f"| {name} | {c['source']} | {c['scale']:g} | {c['max_indentation_m'] * 1e3:.2f} |")
+        lines.append(f"| {name} | {c['source']} | {c['max_indentation_m'] * 1e3:.2f} | "
+                     f"{c['max_displacement_m'] * 1e3:.2f} |")
     if results["skipped"]:
-        lines += ["", "Dropped (no accepted scale): " + "; ".join(f"{k}: {v}" for k, v in results["skipped"].items())]
+        lines += ["", "Refused at their real depth: " + "; ".join(f"{k}: {v}" for k, v in results["skipped"].items())]
     lines += ["", "Calibrated on the no-contact frame alone instead (diagnostic; degenerate for tangent fields):",
               "", "| field | gain (R, G, B) | fast no-contact std | change MAE |", "|---|---|---|---|"]
     for method, c in results["no_contact_calibration"].items():
@@ -899,7 +914,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--spp", type=int, help=f"camera samples per pixel in all (default {Settings.spp})")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--contacts", nargs="+", metavar="NAME",
-                        help=f"any of {', '.join(list(ANALYTIC) + list(PUBLISHED))} (default: all available)")
+                        help=f"any of {', '.join(list(BASE) + list(ANALYTIC) + list(PUBLISHED))} (default: all available)")
     parser.add_argument("--reference", type=Path, default=default_reference_dir(),
                         help=f"the published data (default ${REFERENCE_ENV} or ../shared/data/geltip_reference)")
     args = parser.parse_args(argv)
