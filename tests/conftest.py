@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from scenes.camera import Camera
-from scenes.gl import GLPlatformError, choose_gl
 from scenes.geometry import membrane_mesh
+from scenes.gl import GLPlatformError, choose_gl
 from scenes.spec import default_spec
 
 # MuJoCo reads MUJOCO_GL once, when first imported: choose a headless platform first.
@@ -51,6 +51,34 @@ def camera(spec):
 def small_camera(camera):
     """The default camera at 160x120, for fast tests."""
     return camera.scaled(160, 120)
+
+
+@pytest.fixture(scope="session")
+def ref(mesh, camera):
+    """The default sensor's no-contact depth D_ref, ray cast from its mesh."""
+    from scenes.camera import reference_depth
+
+    return reference_depth(mesh, camera)[0]
+
+
+@pytest.fixture(scope="session")
+def pressed(mesh, camera, ref):
+    """A 4 mm sphere pressed 1.5 mm into the membrane where the camera sees pixel (350, 220)."""
+    import trimesh
+
+    from scenes.contact import press
+
+    return press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (350, 220), 0.0015)
+
+
+@pytest.fixture(scope="session")
+def headless_gl():
+    """Skip, saying why, unless MuJoCo and a headless GL platform are here."""
+    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    try:
+        choose_gl()
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture(autouse=True)

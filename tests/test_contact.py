@@ -4,13 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenes.camera import reference_depth
 from scenes.contact import pose_indenter, press, sphere_depth, surface_point
-
-
-@pytest.fixture(scope="module")
-def ref(mesh, camera):
-    return reference_depth(mesh, camera)[0]
 
 
 def test_sphere_on_the_tip_reaches_the_commanded_depth(mesh, camera, ref, spec):

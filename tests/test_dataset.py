@@ -12,7 +12,14 @@ import time
 import numpy as np
 import pytest
 
-from scenes.dataset import DatasetError, DatasetWriter, load_sample, read_meta, read_samples, write_sample_files
+from scenes.dataset import (
+    DatasetError,
+    DatasetWriter,
+    load_sample,
+    read_meta,
+    read_samples,
+    write_sample_files,
+)
 
 META = {"source": "sim", "sensor": {"name": "x"}, "protocol": {"name": "base"}, "renderer": {"renderer": "phong"}}
 
@@ -94,22 +101,12 @@ def test_corrupt_datasets_are_named(tmp_path):
         DatasetWriter(tmp_path / "new", {**META, "source": "dream"})
 
 
-def _gl_or_skip():
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed")
-    from scenes.gl import GLPlatformError, choose_gl
-
-    try:
-        choose_gl()
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-
 
 def _cli(*args):
     return [sys.executable, "-m", "scenes.cli", *args]
 
 
-def test_generation_killed_midway_resumes_with_nothing_lost_or_duplicated(tmp_path):
-    _gl_or_skip()
+def test_generation_killed_midway_resumes_with_nothing_lost_or_duplicated(tmp_path, headless_gl):
     out = tmp_path / "ds"
     args = _cli("dataset", "--protocol", "base", "--objects", "sphere,cone", "--workers", "2", "--out", str(out))
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
@@ -142,8 +139,7 @@ def test_generation_killed_midway_resumes_with_nothing_lost_or_duplicated(tmp_pa
     assert not list(out.rglob(".*.tmp"))
 
 
-def test_dataset_bad_input(tmp_path):
-    _gl_or_skip()
+def test_dataset_bad_input(tmp_path, headless_gl):
     from scenes.cli import main
 
     assert main(["dataset", "--objects", "teapot", "--out", str(tmp_path / "a"), "--workers", "1"]) == 1
@@ -154,8 +150,7 @@ def test_dataset_bad_input(tmp_path):
     assert res.returncode == 1 and "field must be one of" in res.stderr
 
 
-def test_scene_commands(tmp_path):
-    _gl_or_skip()
+def test_scene_commands(tmp_path, headless_gl):
     from scenes.cli import main
     from scenes.images import read_rgb
 
@@ -167,8 +162,7 @@ def test_scene_commands(tmp_path):
     assert 'name="geltip_depth"' in xml and 'name="indenter_pacman"' in xml
 
 
-def test_bench_dataset_writes_json(tmp_path):
-    _gl_or_skip()
+def test_bench_dataset_writes_json(tmp_path, headless_gl):
     from scenes.cli import main
 
     out = tmp_path / "bench.json"

@@ -27,15 +27,6 @@ FAKE = "tests.fake_renderer"  # a plugin by module path, importable from ROOT
 PHONG = {"field": "plane", "background": "none"}
 
 
-def _gl_or_skip():
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed")
-    from scenes.gl import GLPlatformError, choose_gl
-
-    try:
-        choose_gl()
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-
 
 def _protocol(spec, mesh, objects=("sphere", "cone"), taps=6):
     from scenes.protocol import base_protocol
@@ -107,8 +98,7 @@ def test_renderer_plugin_by_name_or_module_path():
 # --- Local processes: the whole plugin interface ---------------------------------------------
 
 
-def test_local_processes_take_shared_inputs_extra_arrays_and_record_fields(tmp_path, spec, mesh):
-    _gl_or_skip()
+def test_local_processes_take_shared_inputs_extra_arrays_and_record_fields(tmp_path, spec, mesh, headless_gl):
     from scenes.generate import generate
     from tests.fake_renderer import shared_array
 
@@ -134,8 +124,7 @@ def test_local_processes_take_shared_inputs_extra_arrays_and_record_fields(tmp_p
 
 
 @pytest.mark.slow
-def test_ray_generation_killed_midway_resumes_with_nothing_lost_or_duplicated(tmp_path):
-    _gl_or_skip()
+def test_ray_generation_killed_midway_resumes_with_nothing_lost_or_duplicated(tmp_path, headless_gl):
     pytest.importorskip("ray")
     out = tmp_path / "ds"
     args = [sys.executable, "-m", "scenes.cli", "dataset", "--protocol", "base", "--objects", "sphere,cone",
@@ -167,9 +156,8 @@ def test_ray_generation_killed_midway_resumes_with_nothing_lost_or_duplicated(tm
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
+def cluster(tmp_path_factory, headless_gl):
     """Two Ray nodes of one CPU each on this machine; the driver is not connected."""
-    _gl_or_skip()
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 

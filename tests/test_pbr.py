@@ -12,18 +12,7 @@ from pbr_tactile.effects import Effects
 from pbr_tactile.membrane import elastomer
 from pbr_tactile.scene import geltip_scene, led_centres, to_xml, write_meshes
 from pbr_tactile.spectra import gaussian, led_spectrum
-from scenes.camera import reference_depth
 from scenes.contact import press
-
-
-@pytest.fixture(scope="module")
-def ref(mesh, camera):
-    return reference_depth(mesh, camera)[0]
-
-
-@pytest.fixture(scope="module")
-def pressed(mesh, camera, ref):
-    return press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (350, 220), 0.0015)
 
 
 def test_undeformed_elastomer_is_a_closed_shell_of_the_membrane_thickness(mesh, spec, camera):

@@ -19,8 +19,13 @@ from pbr_tactile.contact import (
     contact_depth,
     contact_elastomer,
 )
-from pbr_tactile.membrane import Elastomer, check_closed, check_crossings, crossing_faces, elastomer
-from scenes.camera import reference_depth
+from pbr_tactile.membrane import (
+    Elastomer,
+    check_closed,
+    check_crossings,
+    crossing_faces,
+    elastomer,
+)
 from scenes.cli import main
 from scenes.contact import press, surface_point
 
@@ -29,10 +34,6 @@ RADIUS = 0.004  # m, sphere indenter
 PIXEL = (350, 220)
 DEPTH = 0.0015  # m, indentation
 
-
-@pytest.fixture(scope="module")
-def ref(mesh, camera):
-    return reference_depth(mesh, camera)[0]
 
 
 @pytest.fixture(scope="module")

@@ -12,12 +12,9 @@ import math
 
 import numpy as np
 import pytest
-import trimesh
 
 from pbr_tactile.render import Estimate, contact_region, contact_rse, run_passes
-from scenes.camera import reference_depth
 from scenes.cli import main
-from scenes.contact import press
 
 # --- The stopping rule, analytically ------------------------------------------------------
 
@@ -95,14 +92,6 @@ def test_contact_rse_leaves_out_unlit_pixels():
 # --- The contact region -------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def ref(mesh, camera):
-    return reference_depth(mesh, camera)[0]
-
-
-@pytest.fixture(scope="module")
-def pressed(mesh, camera, ref):
-    return press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (350, 220), 0.0015)
 
 
 def test_contact_region_is_the_dent_and_its_rim(camera, ref, pressed):
