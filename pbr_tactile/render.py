@@ -68,12 +68,40 @@ RIM_PX = 8
 
 
 @dataclass(frozen=True)
+class Control:
+    """An image-level control variate: the no-contact frame, pass by pass.
+
+    images : (K, H, W, 3) the frame's pass k rendered with pass k's random numbers (the
+        same seed a contact's pass k uses); mean : (H, W, 3) an unbiased estimate of
+        each image's expectation, more precise than their average (more camera samples);
+        variance : (H, W, 3) the variance of that mean. Linear, before sensor effects.
+
+    A contact's pass k, minus ``images[k]``, plus ``mean``, is unbiased for the contact's
+    image; where the contact does not change a path (every path far from the dent, and
+    the LEDs seen through the glass, a rare and bright camera sample) the two passes
+    share its value and it cancels (``run_passes``).
+    """
+
+    images: np.ndarray
+    mean: np.ndarray
+    variance: np.ndarray
+
+    def __post_init__(self):
+        images, mean, variance = (np.asarray(a) for a in (self.images, self.mean, self.variance))
+        if images.ndim != 4 or mean.shape != images.shape[1:] or variance.shape != mean.shape:
+            raise ValueError(f"a Control needs images (K, H, W, C) and mean and variance (H, W, C), got "
+                             f"{images.shape}, {mean.shape} and {variance.shape}")
+
+
+@dataclass(frozen=True)
 class Estimate:
     """A Monte Carlo image: mean (H, W, 3) float32 linear, and the variance of that mean.
 
     spp : samples per pixel in all; passes : the independent passes averaged (0: not
     recorded); rse : the RMS relative standard error (``contact_rse``) over the region a
-    noise target was judged on, None when the number of passes was fixed.
+    noise target was judged on, None when the number of passes was fixed; control : this
+    estimate as a control for contacts rendered with its seeds (``Control``, before
+    sensor effects), where it was asked for.
     """
 
     mean: np.ndarray
@@ -81,6 +109,7 @@ class Estimate:
     spp: int
     passes: int = 0
     rse: float | None = None
+    control: Control | None = None
 
     @classmethod
     def from_passes(cls, images: list[np.ndarray], spp: int) -> Estimate:
@@ -155,7 +184,8 @@ def check_passes(passes: int, target_rse: float | None = None, max_passes: int =
 
 
 def run_passes(one_pass, spp: int, passes: int = 4, target_rse: float | None = None,
-               region: np.ndarray | None = None, max_passes: int = MAX_PASSES, progress=None) -> Estimate:
+               region: np.ndarray | None = None, max_passes: int = MAX_PASSES, progress=None,
+               control: Control | None = None) -> Estimate:
     """The one pass loop of both estimators: independent passes, averaged.
 
     one_pass : k -> (H, W, 3) image of pass k (independent random numbers per k).
@@ -167,23 +197,39 @@ def run_passes(one_pass, spp: int, passes: int = 4, target_rse: float | None = N
         passes whose estimate came out low; averaged over a region of many pixels that
         estimate is steady enough for the bias to be small.
     progress : called with (passes done, most passes) after each pass.
+    control : a ``Control`` whose ``images[k]`` shares pass k's random numbers: the
+        estimate is then mean_k(pass_k - images[k]) + control.mean, its variance
+        var_k(pass_k - images[k]) / passes + control.variance. Unbiased whatever the
+        correlation; it pays where the two share most of their paths. Its images must
+        cover every pass that may run.
 
     Returns the Estimate; with a target, its ``rse`` is the error it stopped at.
     """
     check_passes(passes, target_rse, max_passes)
     most = passes if target_rse is None else max_passes
+    if control is not None and len(control.images) < most:
+        raise ValueError(f"the control has {len(control.images)} pass images but up to {most} passes may run")
+
+    def estimate() -> Estimate:
+        est = Estimate.from_passes(images, spp * len(images))
+        if control is None:
+            return est
+        return replace(est, mean=(est.mean + control.mean).astype(np.float32),
+                       variance=(est.variance + control.variance).astype(np.float32))
+
     images = []
     for k in range(most):
-        images.append(one_pass(k))
+        image = one_pass(k)
+        images.append(image if control is None else image - control.images[k])
         if progress is not None:
             progress(k + 1, most)
         if target_rse is not None and k + 1 >= passes:
-            est = Estimate.from_passes(images, spp * len(images))
+            est = estimate()
             rse = contact_rse(est, region)
             if rse <= target_rse:
                 break
     if target_rse is None:
-        return Estimate.from_passes(images, spp * len(images))
+        return estimate()
     return replace(est, rse=rse)
 
 
@@ -213,6 +259,8 @@ def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: 
 FULL_MODEL = Effects()
 #: Default kernel radius of the photon density estimate, m (pbr_tactile.photons.irradiance).
 KERNEL_RADIUS_M = 0.75e-3
+#: Stream of a control's extra camera samples (no pass seed maps to it).
+CONTROL_STREAM = 0xC0C0
 
 
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
@@ -220,7 +268,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                    kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None,
                    pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True,
                    target_rse: float | None = None, region: np.ndarray | None = None, max_passes: int = MAX_PASSES,
-                   no_contact_memo: dict | None = None) -> Estimate:
+                   no_contact_memo: dict | None = None, control: Control | None = None,
+                   control_spp: int = 0) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
     spp : camera samples per pixel of one pass.
@@ -247,6 +296,12 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     no_contact_memo : a dict of no-contact deposits by cache key, read before the disk
         cache and given every deposit used (``pbr_tactile.nocontact.NoContact``): pass an
         empty dict to collect them, or collected ones to render with no disk cache.
+    control : the no-contact frame as an image-level control variate (``Control``,
+        ``run_passes``), rendered with this seed, spp and pass cap.
+    control_spp : > 0: return this render as a Control too (``Estimate.control``): the
+        pass images as traced, and a mean that adds control_spp camera samples per pass
+        (same photon map, other camera random numbers), the camera side being where a
+        frame's rare bright samples are (LEDs seen through the glass).
 
     The pilot's seed follows the last pass's (``passes``, or ``max_passes`` with a
     target), so a pass never shares its random numbers with the pilot, and every render
@@ -259,6 +314,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     response to that source's spectrum (pbr_tactile.spectra.film_response).
     """
     from .photons import (
+        _seed,
         camera_pass,
         coating_areas,
         coating_vertices,
@@ -277,6 +333,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         raise ValueError(f"kernel_radius must be >= 0 m, got {kernel_radius}")
     if no_contact_runs < 0:
         raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
+    if control_spp < 0:
+        raise ValueError(f"control_spp must be >= 0, got {control_spp}")
     mi, loaded = load(scene, variant)
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
@@ -343,10 +401,20 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
             no_contact_map = irradiance(flux_g, pilot_area, pilot_kernel)
             # G plus the contact's change, with the same random numbers.
             maps = no_contact_map + (maps - irradiance(flux_0, pilot_area, pilot_kernel) if traced else 0.0)
-        per_source = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed)
-        return per_source @ response
+        image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed) @ response
+        if not control_spp:
+            return image
+        as_traced.append(image)
+        more = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, control_spp,
+                           _seed(pass_seed, CONTROL_STREAM)) @ response
+        return (spp * image + control_spp * more) / (spp + control_spp)
 
-    return run_passes(one_pass, spp, passes, target_rse, region, max_passes, progress)
+    as_traced: list[np.ndarray] = []
+    est = run_passes(one_pass, spp, passes, target_rse, region, max_passes, progress, control)
+    if control_spp:
+        est = replace(est, spp=est.spp + control_spp * est.passes,
+                      control=Control(np.stack(as_traced).astype(np.float32), est.mean, est.variance))
+    return est
 
 
 def reference(
@@ -371,6 +439,8 @@ def reference(
     max_passes: int = MAX_PASSES,
     no_contact_memo: dict | None = None,
     solids: ElastomerBuilder | None = None,
+    control: Control | None = None,
+    control_spp: int = 0,
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
@@ -392,6 +462,8 @@ def reference(
     no_contact_memo : see ``render_photons``.
     solids : the membrane's ElastomerBuilder, kept across contacts (it refines the
         membrane and checks its undeformed solid once); None builds one.
+    control, control_spp : the no-contact frame as a control variate for this contact,
+        and asking for this render as one (see ``render_photons``; photons only).
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -401,6 +473,8 @@ def reference(
     if no_contact_runs < 0:
         raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
     check_passes(passes, target_rse, max_passes)
+    if (control is not None or control_spp) and estimator != "photons":
+        raise ValueError("a control variate (control, control_spp) needs the photon estimator")
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
     targets = {"target_rse": target_rse, "region": region, "max_passes": max_passes}
     build = solids if solids is not None else ElastomerBuilder(membrane, spec, camera)
@@ -425,7 +499,8 @@ def reference(
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
                                  pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,
-                                 no_contact_memo=no_contact_memo, **targets)
+                                 no_contact_memo=no_contact_memo, control=control, control_spp=control_spp,
+                                 **targets)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
     return sensor_effects(est, camera, effects, seed)

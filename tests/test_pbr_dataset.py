@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from pbr_tactile.render import Estimate, contact_region, contact_rse, run_passes
+from pbr_tactile.render import Control, Estimate, contact_region, contact_rse, run_passes
 from scenes.cli import main
 
 # --- The stopping rule, analytically ------------------------------------------------------
@@ -79,6 +79,34 @@ def test_pass_counts_are_checked():
         run_passes(lambda k: np.ones((2, 2, 3)), 1, passes=1)
     with pytest.raises(ValueError, match=r"max_passes must be >= passes \(4\), got 3"):
         run_passes(lambda k: np.ones((2, 2, 3)), 1, passes=4, target_rse=0.1, max_passes=3)
+
+
+def test_a_control_cancels_the_noise_it_shares():
+    """Pass k = 2 + shared_k + own_k; the control's image k = 1 + shared_k, its mean 1
+    known to within variance v. The estimate is 2 on average, its variance
+    var(own) / n + v, and the shared noise (10x the own) is gone."""
+    rng = np.random.default_rng(0)
+    shape, n = (100, 100, 3), 6
+    shared = 0.5 * rng.standard_normal((n, *shape))
+    own = 0.05 * rng.standard_normal((n, *shape))
+    control = Control(1 + shared, np.ones(shape), np.full(shape, 1e-4))
+    est = run_passes(lambda k: 2 + shared[k] + own[k], 1, passes=n, control=control)
+    assert est.passes == n and abs(float(np.mean(est.mean)) - 2) < 0.01
+    assert float(np.mean(est.variance)) == pytest.approx(0.05**2 / n + 1e-4, rel=0.05)
+    plain = run_passes(lambda k: 2 + shared[k] + own[k], 1, passes=n)
+    assert float(np.mean(plain.variance)) > 50 * float(np.mean(est.variance))
+    # To a target: the control's variance is part of the error judged.
+    cheap = run_passes(lambda k: 2 + shared[k] + own[k], 1, passes=2, target_rse=0.015, max_passes=n,
+                       control=control)
+    assert cheap.passes == 4 and cheap.rse <= 0.015  # sqrt(0.05^2 / n + 1e-4) / 2 <= 0.015 first at n = 4
+
+
+def test_a_control_must_cover_every_pass_and_match_the_image():
+    with pytest.raises(ValueError, match="the control has 2 pass images but up to 4 passes may run"):
+        run_passes(lambda k: np.ones((2, 2, 3)), 1, passes=2, target_rse=0.1, max_passes=4,
+                   control=Control(np.ones((2, 2, 2, 3)), np.ones((2, 2, 3)), np.zeros((2, 2, 3))))
+    with pytest.raises(ValueError, match=r"a Control needs images \(K, H, W, C\)"):
+        Control(np.ones((2, 2, 3)), np.ones((2, 2, 3)), np.zeros((2, 2, 3)))
 
 
 def test_contact_rse_leaves_out_unlit_pixels():
@@ -200,7 +228,9 @@ def test_a_contact_reaches_a_loose_target_from_shared_deposits(monkeypatch, tmp_
     # variances overstate the difference's and |z| runs low).
     background = renderer.no_contact
     assert background.shape == (480, 640, 3)
-    assert np.percentile(background[camera.mask], 99.5) == pytest.approx(0.8, rel=0.01)
+    film = camera.scaled(*settings["film"]).mask  # the exposure is set at the film's size
+    level = np.percentile(shared["no_contact"]["mean"][film], 99.5)
+    assert settings["exposure_gain"] * level == pytest.approx(0.8, rel=0.005)  # the gain has 3 digits
     frame_mean, frame_variance = (renderer._camera_size(shared["no_contact"][k]) for k in ("mean", "variance"))
     far = ~contact_region(pressed, ref, camera) & camera.mask
     z = (linear - frame_mean)[far] / np.sqrt(variance + frame_variance)[far]
