@@ -35,6 +35,7 @@ the kernel's blur and the piecewise-linear reconstruction on the coating mesh (e
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import typing
 from dataclasses import dataclass
@@ -396,20 +397,36 @@ def coating_vertices(scene) -> np.ndarray:
 
 def density_kernel(positions: np.ndarray, radius: float):
     """The (V, V) sparse Epanechnikov weights w_ij = 1 - (|x_i - x_j| / radius)^2 over a
-    ball of the given radius (m); radius = 0 gives the identity."""
+    ball of the given radius (m); radius = 0 gives the identity.
+
+    Vertices at the same position (a seam) weigh 1, like the diagonal. The last
+    KERNEL_MEMO kernels are kept by the positions' bytes: every contact of a sensor
+    asks again for the undeformed membrane's.
+    """
     from scipy.sparse import csr_matrix, identity
     from scipy.spatial import cKDTree
 
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
     n = len(positions)
     if radius <= 0:
         return identity(n, format="csr")
-    tree = cKDTree(positions)
-    pairs = tree.sparse_distance_matrix(tree, radius, output_type="coo_matrix")
-    # Distance-0 pairs (the diagonal) are not stored: add them with weight 1.
-    rows = np.concatenate([pairs.row, np.arange(n)])
-    cols = np.concatenate([pairs.col, np.arange(n)])
-    w = np.concatenate([1.0 - (pairs.data / radius) ** 2, np.ones(n)])
-    return csr_matrix((w, (rows, cols)), shape=(n, n))
+    key = (hashlib.sha1(positions.tobytes()).hexdigest(), n, float(radius))
+    if key in _KERNELS:
+        return _KERNELS[key]
+    pairs = cKDTree(positions).query_pairs(radius, output_type="ndarray")  # i < j
+    w = 1.0 - np.sum(np.square(positions[pairs[:, 0]] - positions[pairs[:, 1]]), axis=1) / radius**2
+    rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
+    cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
+    kernel = csr_matrix((np.concatenate([w, w, np.ones(n)]), (rows, cols)), shape=(n, n))
+    _KERNELS[key] = kernel
+    while len(_KERNELS) > KERNEL_MEMO:
+        _KERNELS.pop(next(iter(_KERNELS)))
+    return kernel
+
+
+#: Density kernels kept by ``density_kernel`` (each about 60 MB on the default GelTip mesh).
+KERNEL_MEMO = 2
+_KERNELS: dict = {}
 
 
 def irradiance(flux: np.ndarray, vertex_area: np.ndarray, kernel) -> np.ndarray:

@@ -65,7 +65,7 @@ DEFAULTS = {
 EXPOSURE_LEVEL = 0.8
 EXPOSURE_PERCENTILE = 99.5
 #: Bump when the cached no-contact frame (scenes.cache "pbr-dataset-frame") changes meaning.
-FRAME_VERSION = 2
+FRAME_VERSION = 3
 #: Cache entries of the frame that hold no-contact deposits start with this.
 DEPOSIT_PREFIX = "deposit_"
 #: Cache entries of the frame that hold its control variate (pbr_tactile.render.Control).

@@ -26,6 +26,20 @@ def test_kernel_density_is_exact_for_linear_irradiance_away_from_the_edge():
     assert np.allclose(irradiance(flux, area, density_kernel(positions, 0.0))[0], E_true)
 
 
+def test_kernel_weights_every_pair_within_the_radius_seams_included():
+    rng = np.random.default_rng(1)
+    positions = rng.uniform(0, 3e-3, size=(300, 3))
+    positions[1] = positions[0]  # a seam: two vertices at one point
+    radius = 1e-3
+    d = np.linalg.norm(positions[:, None] - positions[None], axis=-1)
+    brute = np.where(d <= radius, 1.0 - (d / radius) ** 2, 0.0)
+    K = density_kernel(positions, radius)
+    np.testing.assert_allclose(K.toarray(), brute, atol=1e-12)
+    assert K[0, 1] == K[1, 0] == 1.0
+    assert density_kernel(positions.copy(), radius) is K  # kept: the same positions ask again
+    assert density_kernel(positions + 1e-9, radius) is not K
+
+
 def test_kernel_density_averages_noise_down_as_one_over_radius():
     rng = np.random.default_rng(0)
     positions, area = _plane_grid(n=61)
