@@ -211,15 +211,17 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
     opts = options_from(options, camera)
     inputs = _shared(spec, mesh, camera, opts)
     width, height = opts["film"]
+    photons = opts["estimator"] == "photons"  # only it takes the frame as a control
     return {
         "renderer": "pbr",
         "estimator": opts["estimator"],
         "target_rse": opts["target_rse"],
         "noise": "passes are added until the RMS relative standard error over the contact region (the dent and "
-                 "its rim; the image circle without contact) is at most target_rse, from min_passes to max_passes; each "
-                 "contact pass is estimated against the no-contact frame's pass of the same seed (a control "
-                 "variate: pass minus frame pass, plus the frame's mean, whose variance is included)",
-        "control_spp_factor": CONTROL_SPP_FACTOR if opts["estimator"] == "photons" else None,
+                 "its rim; the image circle without contact) is at most target_rse, from min_passes to max_passes"
+                 + ("; each contact pass is estimated against the no-contact frame's pass of the same seed (a "
+                    "control variate: pass minus frame pass, plus the frame's mean, whose variance is included)"
+                    if photons else ""),
+        "control_spp_factor": CONTROL_SPP_FACTOR if photons else None,
         "min_passes": MIN_PASSES,
         "max_passes": opts["max_passes"],
         "photons": opts["photons"],
@@ -254,8 +256,7 @@ class PbrDatasetRenderer:
         self._frame = Estimate(frame["mean"], frame["variance"], int(frame["spp"]), opts["max_passes"],
                                float(frame["rse"]))
         self._memo = dict(inputs["deposits"])  # read first, then filled by any miss
-        control = inputs.get("control")
-        self._control = None if control is None else Control(**control)
+        self._control = None if inputs["control"] is None else Control(**inputs["control"])
         self._solids = ElastomerBuilder(mesh, spec, camera)  # refined and checked once
 
     def _camera_size(self, image: np.ndarray) -> np.ndarray:
