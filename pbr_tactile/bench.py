@@ -10,7 +10,7 @@ from unittest import mock
 import numpy as np
 import trimesh
 
-from scenes.camera import Camera, reference_depth
+from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
 from scenes.contact import press
 from scenes.geometry import membrane_mesh
 from scenes.spec import SensorSpec
@@ -41,7 +41,7 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
     depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004), (camera.cx + 30, camera.cy - 20), 0.0015)
     rows = (np.arange(height) * camera.height / height).astype(int)
     cols = (np.arange(width) * camera.width / width).astype(int)
-    region = (ref - depth)[np.ix_(rows, cols)] > 1e-6
+    region = (ref - depth)[np.ix_(rows, cols)] > CONTACT_EPS_M
     effects = Effects()
     solid = elastomer(mesh, spec, camera, depth, ref)
     results = {}

@@ -15,9 +15,9 @@ import warnings
 import numpy as np
 import trimesh
 
-from scenes.camera import Camera, check_depth, reference_depth
+from scenes.camera import CONTACT_EPS_M, Camera, check_depth, reference_depth
 from scenes.contact import indenter_depth
-from scenes.elastic import CONTACT_EPS_M, LAYER_EDGE_M
+from scenes.elastic import LAYER_EDGE_M
 from scenes.geometry import validate_mesh
 from scenes.indenters import MAX_INDENTER_EXTENT_M, check_closed
 from scenes.spec import MAX_SENSOR_SIZE_M, SensorSpec

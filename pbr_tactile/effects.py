@@ -6,7 +6,30 @@ documented with its unit, and ``Effects()`` is the full physical model.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
+
+#: The accepted range [low, high] of each numeric effect (of each component, for a
+#: pair); an infinite end is open: values must be finite. Effects() refuses the rest.
+RANGES = {
+    "core_light_leak": (0.0, 1.0),
+    "absorption_per_m": (0.0, math.inf),
+    "scattering_per_m": (0.0, math.inf),
+    "coating_gloss": (0.0, 1.0),
+    "coating_albedo": (0.0, 1.0),
+    "vignetting": (0.0, 1.0),
+    "lens_distortion": (-math.inf, math.inf),
+    "sensor_noise": (0.0, math.inf),
+}
+
+
+def describe_range(low: float, high: float) -> str:
+    """'in [0, 1]', 'finite and >= 0' or 'finite', as error messages say it."""
+    if math.isinf(low) and math.isinf(high):
+        return "finite"
+    if math.isinf(high):
+        return f"finite and >= {low:g}"
+    return f"in [{low:g}, {high:g}]"
 
 
 @dataclass(frozen=True)
@@ -41,13 +64,13 @@ class Effects:
     sensor_noise: float = 0.0
 
     def __post_init__(self):
-        for name in ("core_light_leak", "coating_gloss", "coating_albedo", "vignetting"):
+        for name, (low, high) in RANGES.items():
             value = getattr(self, name)
-            if not 0.0 <= value <= 1.0:
-                raise ValueError(f"Effects.{name} must be in [0, 1], got {value}")
-        for name in ("absorption_per_m", "scattering_per_m", "sensor_noise"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"Effects.{name} must be >= 0, got {getattr(self, name)}")
+            parts = value if isinstance(value, tuple) else (value,)
+            if name == "lens_distortion" and len(parts) != 2:
+                raise ValueError(f"Effects.lens_distortion must be a pair (k1, k2), got {value}")
+            if not all(math.isfinite(v) and low <= v <= high for v in parts):
+                raise ValueError(f"Effects.{name} must be {describe_range(low, high)}, got {value}")
 
     @property
     def sigma_t(self) -> float:

@@ -27,14 +27,13 @@ import time
 
 import numpy as np
 
-from scenes.camera import Camera, check_depth
+from scenes.camera import CONTACT_EPS_M, Camera, check_depth
 from scenes.spec import SensorSpec
 
 from .effects import Effects
 from .membrane import ElastomerBuilder
 from .nocontact import CACHE_VERSION
 from .render import (
-    CONTACT_DEPTH_M,
     MIN_PASSES,
     Control,
     Estimate,
@@ -281,7 +280,7 @@ class PbrDatasetRenderer:
         the module doc and docs/dataset-format.md)."""
         t0 = time.perf_counter()
         depth = check_depth(np.asarray(depth), self.camera)
-        touched = np.abs(depth - self.ref_depth) > CONTACT_DEPTH_M
+        touched = np.abs(depth - self.ref_depth) > CONTACT_EPS_M
         if not touched.any():
             est = self._frame  # no contact: the no-contact frame, with every pass
         else:

@@ -131,16 +131,21 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float
     """The LEDs as spherical emitters: name, centre (m), radius (m), radiance spectrum on
     WAVELENGTHS_NM, its (peak_nm, fwhm_nm, scale) and whether it sits in the elastomer.
 
-    With ``core_light_leak`` > 0 each LED also has a ``_leak`` emitter inside the glass.
+    With ``core_light_leak`` > 0 each LED also has a ``_leak`` emitter inside the glass,
+    and at 1 only that one: an emitter of no power is left out (Mitsuba refuses a spectrum
+    without mass, and it would add nothing).
     """
+    if not (math.isfinite(led_power) and led_power > 0):
+        raise ValueError(f"led_power must be a finite radiance scale > 0, got {led_power}")
     sources = []
     for m, (led, centre) in enumerate(zip(spec.leds, led_centres(spec))):
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak
-        sources.append({"name": f"led{m}", "centre": tuple(map(float, centre)), "radius": LED_RADIUS_M,
-                        "spectrum": shape * led_power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
-                        "scale": led_power * (1 - leak), "in_elastomer": True})
+        if leak < 1:
+            sources.append({"name": f"led{m}", "centre": tuple(map(float, centre)), "radius": LED_RADIUS_M,
+                            "spectrum": shape * led_power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
+                            "scale": led_power * (1 - leak), "in_elastomer": True})
         if leak > 0:
             r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
             xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r

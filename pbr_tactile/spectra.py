@@ -55,10 +55,9 @@ def film_response(radiance: np.ndarray, camera_response: bool = True,
     if camera_response:
         return np.array([np.trapezoid(np.interp(fine, wavelengths, gaussian(peak, fwhm)) * L, fine)
                          for peak, fwhm in CAMERA_BANDS_NM.values()])
-    import mitsuba as mi
+    from .variant import any_variant
 
-    if not mi.variant():
-        mi.set_variant("scalar_spectral")
+    mi = any_variant()
     xyz_bar = np.array([np.asarray(mi.cie1931_xyz(float(w))).ravel() for w in fine])
     xyz = np.trapezoid(xyz_bar * L[:, None], fine, axis=0) * mi.MI_CIE_Y_NORMALIZATION
     return np.asarray(mi.xyz_to_srgb(mi.ScalarColor3f(*xyz))).ravel()

@@ -14,6 +14,8 @@ import warnings
 
 VARIANT_ENV = "TACTILE_SIM_MI_VARIANT"
 FALLBACK = ("cuda_ad_spectral", "llvm_ad_spectral", "scalar_spectral")
+#: Set by ``any_variant`` when no variant is set yet: built into every Mitsuba, no JIT backend.
+ANY_VARIANT = "scalar_spectral"
 #: The Debian package that provides a working LLVM for Dr.Jit.
 LLVM_PACKAGE = "libllvm19"
 LLVM_GLOBS = ("/usr/lib/*-linux-gnu/libLLVM.so.19*", "/usr/lib/*-linux-gnu/libLLVM-19.so", "/usr/lib/llvm-19/lib/libLLVM*.so*")
@@ -59,6 +61,16 @@ def _usable(name: str, mi, dr) -> str | None:
         if not dr.has_backend(dr.JitBackend.LLVM):
             return f"Dr.Jit could not load LLVM from {os.environ.get('DRJIT_LIBLLVM_PATH')}; apt-get install {LLVM_PACKAGE}"
     return None
+
+
+def any_variant():
+    """The ``mitsuba`` module with some variant set, for helpers whose results do not
+    depend on it (colour matching functions, colour-space conversions): the variant
+    already set, else ANY_VARIANT. A variant already set is never changed."""
+    mi, _ = _mitsuba()
+    if not mi.variant():
+        mi.set_variant(ANY_VARIANT)
+    return mi
 
 
 def choose_variant(name: str | None = None):

@@ -116,3 +116,26 @@ def bake(
     if arrays["fields"].shape != expected:
         raise ValueError(f"baked fields have shape {arrays['fields'].shape}, expected {expected}")
     return LightFields(method, arrays["fields"], arrays["valid"], arrays["depth"], arrays["normals"])
+
+
+def bake_all(
+    mesh: trimesh.Trimesh,
+    camera: Camera,
+    leds: tuple[LED, ...] | list[LED],
+    methods=METHODS,
+    desc: str = "baking light fields",
+) -> tuple[dict[str, LightFields], dict[str, float]]:
+    """Bake (or load) several methods with a progress bar.
+
+    Returns {method: LightFields} and {method: seconds taken, cache hits included}.
+    """
+    from tqdm import tqdm
+
+    out, seconds = {}, {}
+    with tqdm(methods, desc=desc, unit="field") as bar:
+        for method in bar:
+            bar.set_postfix_str(method)
+            t0 = time.perf_counter()
+            out[method] = bake(mesh, camera, leds, method)
+            seconds[method] = time.perf_counter() - t0
+    return out, seconds

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -14,23 +12,10 @@ from tqdm import tqdm
 from scenes.camera import Camera, check_depth
 from scenes.geometry import load_mesh, membrane_mesh
 from scenes.images import write_rgb
+from scenes.reference_data import reference_dir
 from scenes.spec import load_spec
 
-from .bake import METHODS
-
-#: Where the published GelTip data lives beside a clone of this repository.
-REFERENCE_ENV = "GELTIP_REFERENCE"
-
-
-def reference_dir() -> Path | None:
-    """The published GelTip reference data, if present (never shipped with the project)."""
-    candidates = [os.environ.get(REFERENCE_ENV)] if os.environ.get(REFERENCE_ENV) else []
-    here = Path(__file__).resolve().parents[1]
-    candidates += [here.parent / "shared" / "data" / "geltip_reference", Path.cwd().parent / "shared" / "data" / "geltip_reference"]
-    for c in candidates:
-        if c and (Path(c) / "MANIFEST.txt").exists():
-            return Path(c)
-    return None
+from .bake import METHODS, bake_all
 
 
 def _sensor(args):
@@ -48,20 +33,6 @@ def _add_sensor_args(p: argparse.ArgumentParser, mesh: bool = True) -> None:
 
 def _methods(name: str) -> tuple[str, ...]:
     return METHODS if name == "all" else (name,)
-
-
-def bake_all(mesh, camera, leds, methods, desc="baking light fields"):
-    """Bake several methods with a progress bar; returns {method: LightFields}, {method: s}."""
-    from .bake import bake
-
-    out, seconds = {}, {}
-    with tqdm(methods, desc=desc, unit="field") as bar:
-        for method in bar:
-            bar.set_postfix_str(method)
-            t0 = time.perf_counter()
-            out[method] = bake(mesh, camera, leds, method)
-            seconds[method] = time.perf_counter() - t0
-    return out, seconds
 
 
 def cmd_bake(args) -> int:
@@ -137,8 +108,8 @@ def cmd_demo(args) -> int:
         np.save(out / "depth" / f"{name}.npy", depths[name])
     backgrounds = {"none": "none", "solid": "solid"}
     real = Path(args.real_background) if args.real_background else None
-    if real is None and reference_dir() is not None:
-        real = reference_dir() / "real" / "bkg.png"
+    if real is None and (published := reference_dir()) is not None:
+        real = published / "real" / "bkg.png"
     if real is not None:
         backgrounds["real"] = str(real)
     else:

@@ -6,18 +6,13 @@ import dataclasses
 
 import numpy as np
 
-from scenes.camera import Camera
+from scenes.camera import CONTACT_EPS_M, Camera
 from scenes.elastic import MembraneLayer, check_model
 from scenes.spec import SensorSpec
 
 from .background import make_background
 from .bake import METHODS, bake
 from .render import Renderer, light_vectors
-
-#: Depth differences below this are rasterisation noise, not contact (metres). MuJoCo's
-#: no-contact capture matches the ray-cast D_ref to 3e-9 m RMS, 3e-8 m at worst.
-DEPTH_NOISE_M = 1e-6
-
 
 #: The options this renderer takes.
 OPTIONS = ("field", "background", "rectify", "elastic")
@@ -65,7 +60,7 @@ class PhongDatasetRenderer:
 
     def render(self, depth: np.ndarray) -> np.ndarray:
         depth = np.asarray(depth, dtype=np.float32)
-        depth = np.where(np.abs(depth - self.ref_depth) <= DEPTH_NOISE_M, self.ref_depth, depth)
+        depth = np.where(np.abs(depth - self.ref_depth) <= CONTACT_EPS_M, self.ref_depth, depth)
         return self._renderer.render(depth)
 
 

@@ -11,6 +11,12 @@ import trimesh
 
 from .spec import CameraSpec, SensorSpec
 
+#: The contact threshold, metres: a pixel whose depth lies below the no-contact depth
+#: D_ref by more than this is in contact (or moved, for a deformed surface); smaller
+#: differences are rasterisation noise (MuJoCo's no-contact capture matches the ray-cast
+#: D_ref to 3e-9 m RMS, 3e-8 m at worst). The one threshold of both renderers and the studies.
+CONTACT_EPS_M = 1e-6
+
 
 @dataclass(frozen=True)
 class Camera:

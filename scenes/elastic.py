@@ -40,7 +40,7 @@ import trimesh
 from scipy import ndimage, sparse, spatial
 from scipy.sparse import linalg as sparse_linalg
 
-from .camera import Camera, check_depth, project, reference_depth
+from .camera import CONTACT_EPS_M, Camera, check_depth, project, reference_depth
 from .spec import Elastic, SensorSpec
 
 #: The elastic models, by name.
@@ -51,9 +51,6 @@ BORDER_MODE = "mirror"
 #: Target edge of the refined membrane the layer model works on, metres (a pixel spans
 #: ~0.15 mm at the tip).
 LAYER_EDGE_M = 0.25e-3
-#: Depth changes below this are not contact, metres (MuJoCo's depth matches the ray-cast
-#: D_ref to 3e-8 m at worst).
-CONTACT_EPS_M = 1e-6
 #: The deformed surface stays at least this far from the glass core, metres: the
 #: elastomer does not compress below it (the indenter then rests on the glass through it).
 MIN_GAP_M = 0.1e-3

@@ -3,6 +3,7 @@
 The fast path's intensities are, as in the paper, the camera's output values, so 8-bit
 files map to [0, 1] by a plain division by 255 (no sRGB transfer): a real image read here
 and written back is unchanged. The camera's own response is a separate, explicit model.
+Physically based renders (linear radiance) are sRGB-encoded for viewing (``srgb``).
 """
 
 from __future__ import annotations
@@ -32,6 +33,12 @@ def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarr
     if shape is not None and rgb.shape[:2] != tuple(shape):
         raise ValueError(f"image {path} must be {shape[1]}x{shape[0]} px, got {rgb.shape[1]}x{rgb.shape[0]}")
     return rgb
+
+
+def srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1), for viewing only; clips first."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 def to_uint8(rgb: np.ndarray) -> np.ndarray:

@@ -24,9 +24,10 @@ from phong_reference.bake import METHODS, bake
 from phong_reference.tangent import angle_deg, tangent_unit
 from scenes.camera import Camera
 from scenes.geometry import membrane_mesh
+from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.spec import SensorSpec, default_spec
 
-from .reproduce_published import BAKED_SHAPE, REFERENCE_ENV, default_reference_dir, load_published_fields
+from .reproduce_published import BAKED_SHAPE, load_published_fields
 
 #: Radius of the authors' field mask at 160x120, px. OpenCV's circle centred on the
 #: integer pixel (W / 2, H / 2) = (80, 60), not on our principal point (79.5, 59.5): that
@@ -122,12 +123,14 @@ def print_report(results: dict) -> None:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--reference", type=Path, default=default_reference_dir(),
+    parser.add_argument("--reference", type=Path,
                         help=f"the authors' data (default ${REFERENCE_ENV} or ../shared/data/geltip_reference)")
     parser.add_argument("--json", type=Path, help="also write the numbers here")
     args = parser.parse_args(argv)
-    if not (args.reference / "MANIFEST.txt").exists():
-        parser.error(f"reference data not found at {args.reference} (set ${REFERENCE_ENV} or --reference)")
+    try:
+        args.reference = require_reference_dir(args.reference)
+    except FileNotFoundError as exc:
+        parser.error(f"{exc}; or pass --reference")
     results = run(args.reference)
     print_report(results)
     if args.json:

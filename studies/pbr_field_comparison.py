@@ -133,8 +133,7 @@ from skimage.transform import downscale_local_mean
 from tqdm import tqdm
 
 from phong_reference.background import make_background
-from phong_reference.bake import METHODS
-from phong_reference.cli import bake_all
+from phong_reference.bake import METHODS, bake_all
 from phong_reference.render import Renderer, light_vectors
 from scenes.cache import make_key
 from scenes.camera import Camera, check_depth, reference_depth
@@ -142,15 +141,12 @@ from scenes.contact import press
 from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes
 from scenes.elastic import MembraneLayer
 from scenes.geometry import membrane_mesh
+from scenes.images import srgb
 from scenes.indenters import INDENTERS
+from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.spec import SensorSpec, load_spec
 
-from .reproduce_published import (
-    N_PANELS,
-    REFERENCE_ENV,
-    default_reference_dir,
-    load_depths,
-)
+from .reproduce_published import N_PANELS, load_depths
 
 #: Analytic contacts, as ``tactile-sim demo`` presses them (phong_reference/cli.py):
 #: name -> (indenter, contact pixel offset (du, dv) from the principal point at 640x480 px,
@@ -868,8 +864,6 @@ def grid_figure(path: Path, name: str, ref0: np.ndarray, refk: np.ndarray, fast:
                 per_contact: dict) -> Path:
     """Reference and each calibrated field for one contact: frames (sRGB for viewing) on
     top, contact change (mean over channels) below."""
-    from pbr_tactile.cli import srgb
-
     plt = _pyplot()
     cols = ["reference"] + list(fast)
     fig, axes = plt.subplots(2, len(cols), figsize=(2.8 * len(cols), 5.0), squeeze=False)
@@ -915,17 +909,19 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--contacts", nargs="+", metavar="NAME",
                         help=f"any of {', '.join(list(BASE) + list(ANALYTIC) + list(PUBLISHED))} (default: all available)")
-    parser.add_argument("--reference", type=Path, default=default_reference_dir(),
+    parser.add_argument("--reference", type=Path,
                         help=f"the published data (default ${REFERENCE_ENV} or ../shared/data/geltip_reference)")
     args = parser.parse_args(argv)
     base = QUICK if args.quick else Settings()
     given = {k: getattr(args, k) for k in ("width", "height", "photons", "passes", "spp") if getattr(args, k)}
     settings = dataclasses.replace(base, seed=args.seed, **given)
-    reference_dir = args.reference if (args.reference / "MANIFEST.txt").exists() else None
+    try:
+        reference_dir, missing = require_reference_dir(args.reference), None
+    except FileNotFoundError as exc:
+        reference_dir, missing = None, exc
     contacts = tuple(args.contacts) if args.contacts else (QUICK_CONTACTS if args.quick else None)
-    if reference_dir is None and not args.quick:
-        print(f"published data not found at {args.reference} (set ${REFERENCE_ENV}); analytic contacts only",
-              file=sys.stderr)
+    if missing is not None and not args.quick:
+        print(f"{missing}; analytic contacts only", file=sys.stderr)
     try:
         results = run(args.out, settings, contacts, reference_dir)
     except ValueError as exc:

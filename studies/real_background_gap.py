@@ -22,6 +22,7 @@ import numpy as np
 
 from scenes.camera import Camera
 from scenes.images import read_rgb
+from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.spec import SensorSpec, default_spec
 
 from .gap.diagnose import diagnose
@@ -29,7 +30,6 @@ from .gap.effects import EFFECTS
 from .gap.model import FastModel
 from .gap.pairs import Pairs
 from .gap.report import write_json, write_report
-from .reproduce_published import default_reference_dir
 
 #: Angular sectors of the image circle; even ones fit, odd ones judge.
 SECTORS = 12
@@ -79,10 +79,10 @@ def pairs_for(real: np.ndarray, spec: SensorSpec, field: str, reference_dir: Pat
 
 def run(out: Path, fields: tuple[str, ...] = ("plane", "linear"), reference_dir: Path | None = None,
         spec: SensorSpec | None = None) -> dict:
-    reference_dir = default_reference_dir() if reference_dir is None else reference_dir
+    reference_dir = require_reference_dir(reference_dir)
     path = reference_dir / "real" / "bkg.png"
     if not path.exists():
-        raise FileNotFoundError(f"the real no-contact image {path} is missing (set GELTIP_REFERENCE)")
+        raise FileNotFoundError(f"the real no-contact image {path} is missing (set ${REFERENCE_ENV})")
     spec = default_spec() if spec is None else spec
     real = read_rgb(path, (spec.camera.height, spec.camera.width))
     summary = {"image": str(path), "sectors": SECTORS, "limits": LIMITS, "fields": {}}

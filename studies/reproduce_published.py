@@ -37,7 +37,6 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,10 +53,8 @@ from phong_reference.render import Renderer, light_vectors, rectify_vectors, ren
 from scenes.camera import Camera, back_project
 from scenes.geometry import membrane_mesh
 from scenes.images import read_rgb, write_rgb
+from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.spec import Material, SensorSpec, default_spec
-
-#: Environment variable that moves the reference data (as in tests/conftest.py).
-REFERENCE_ENV = "GELTIP_REFERENCE"
 
 #: Resolution (H, W) of the authors' baked fields, px.
 BAKED_SHAPE = (120, 160)
@@ -94,12 +91,6 @@ DIFF_GAIN = 10.0
 FIGURE_PANEL = 3
 #: Pixels farther than this from any contact are "untouched" in the evidence fits, px.
 UNTOUCHED_MARGIN_PX = 40
-
-
-def default_reference_dir() -> Path:
-    """$GELTIP_REFERENCE, or /work/shared/data/geltip_reference beside the repository."""
-    root = Path(__file__).resolve().parents[2]
-    return Path(os.environ.get(REFERENCE_ENV, root / "shared" / "data" / "geltip_reference"))
 
 
 # --------------------------------------------------------------------------------------
@@ -520,13 +511,15 @@ def figure(path: Path, images: dict, results: dict) -> Path:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--reference", type=Path, default=default_reference_dir(),
+    parser.add_argument("--reference", type=Path,
                         help=f"the authors' data (default ${REFERENCE_ENV} or ../shared/data/geltip_reference)")
     parser.add_argument("--out", type=Path, help="write expected / ours / difference images, a figure and JSON here")
     parser.add_argument("--no-diagnostics", action="store_true", help="skip the one-setting-at-a-time variants")
     args = parser.parse_args(argv)
-    if not (args.reference / "MANIFEST.txt").exists():
-        parser.error(f"reference data not found at {args.reference} (set ${REFERENCE_ENV} or --reference)")
+    try:
+        args.reference = require_reference_dir(args.reference)
+    except FileNotFoundError as exc:
+        parser.error(f"{exc}; or pass --reference")
     results = run(args.reference, args.out, diagnostics=not args.no_diagnostics)
     print_report(results)
     return results

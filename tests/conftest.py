@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +10,7 @@ import pytest
 from scenes.camera import Camera
 from scenes.geometry import membrane_mesh
 from scenes.gl import GLPlatformError, choose_gl
+from scenes.reference_data import require_reference_dir
 from scenes.spec import default_spec
 
 # MuJoCo reads MUJOCO_GL once, when first imported: choose a headless platform first.
@@ -19,17 +19,13 @@ try:
 except GLPlatformError:
     pass
 
-#: The authors' published data lives beside the repository (never copied into it).
-REFERENCE_DIR = Path(
-    os.environ.get("GELTIP_REFERENCE", Path(__file__).resolve().parents[2] / "shared" / "data" / "geltip_reference")
-)
-
-
 @pytest.fixture(scope="session")
 def reference_dir() -> Path:
-    if not (REFERENCE_DIR / "MANIFEST.txt").exists():
-        pytest.skip(f"GelTip reference data not found at {REFERENCE_DIR} (set GELTIP_REFERENCE)")
-    return REFERENCE_DIR
+    """The authors' published data (beside the repository, never copied into it), or skip."""
+    try:
+        return require_reference_dir()
+    except FileNotFoundError as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture(scope="session")

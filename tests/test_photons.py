@@ -79,15 +79,16 @@ def test_film_response_follows_specfilm_convention_analytically():
 
 
 def test_film_response_matches_mitsuba_films():
-    mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from pbr_tactile.effects import Effects
     from pbr_tactile.render import to_mitsuba
     from pbr_tactile.scene import _film
     from pbr_tactile.spectra import mitsuba_spectrum
+    from pbr_tactile.variant import choose_variant
     from scenes.camera import Camera
     from scenes.spec import load_spec
 
-    mi.set_variant("scalar_spectral")
+    mi = choose_variant("scalar_spectral")
     camera = Camera.from_spec(load_spec())
     led = 2.0 * gaussian(530.0, 30.0)
     for response in (True, False):

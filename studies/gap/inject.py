@@ -56,10 +56,9 @@ from phong_reference.background import check_background, make_background
 from phong_reference.bake import METHODS, bake
 from phong_reference.normals import normals
 from phong_reference.phong import shade
-from phong_reference.plugin import DEPTH_NOISE_M
 from phong_reference.render import Renderer, finish, light_vectors
 from phong_reference.sources import snap_leds
-from scenes.camera import Camera, back_project, cast_rays, check_depth
+from scenes.camera import CONTACT_EPS_M, Camera, back_project, cast_rays, check_depth
 from scenes.elastic import deform
 from scenes.geometry import membrane_mesh
 from scenes.spec import LED, Elastic, Material, SensorSpec
@@ -118,8 +117,6 @@ SHADOW_SOFT_ELEVATIONS = (0.7, 0.9, 1.1, 1.3)
 #: its axis); the concave tip ends shadows within a chord 2 R sin(beta). This only caps
 #: the search at the sensor's length.
 SHADOW_MAX_REACH_M = 0.06
-#: contact_shadow: the membrane moved where D_def < D_ref by more than this, m.
-SHADOW_MIN_DISPLACEMENT_M = 1e-6
 #: contact_shadow: a layer dimmer than one 8-bit level (linear RGB) is not traced: too little light to lose.
 SHADOW_MIN_LIGHT = 1.0 / 255
 #: contact_shadow: shadow rays start this far along their direction, m (Embree is float32).
@@ -673,7 +670,7 @@ class Injector:
             raise ValueError(f"rng must be a numpy.random.Generator for blur_noise's sensor noise, got {rng!r}")
         depth = np.asarray(depth, dtype=np.float32)
         # As PhongDatasetRenderer: depth within rasterisation noise of D_ref is no contact.
-        depth = np.where(np.abs(depth - self.ref_depth) <= DEPTH_NOISE_M, self.ref_depth, depth)
+        depth = np.where(np.abs(depth - self.ref_depth) <= CONTACT_EPS_M, self.ref_depth, depth)
         if chosen.keys() & SHADED_EFFECTS:
             image = self._shade(depth, chosen)
         else:
@@ -735,7 +732,7 @@ class Injector:
         """Darken, in place, each LED's layer and the ambient term where the imprint's rim
         occludes the guided light. The ambient term k_a i_a B stands for the no-contact
         guided light of all LEDs, so it keeps the LEDs' mean share, weighted by k_d colour."""
-        moved = d_def < self.ref_depth - SHADOW_MIN_DISPLACEMENT_M
+        moved = d_def < self.ref_depth - CONTACT_EPS_M  # the membrane moved
         occluder = deformed_grid(P, moved)
         if occluder is None:
             return

@@ -13,12 +13,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from scenes.camera import Camera, reference_depth
+from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
 from scenes.geometry import membrane_mesh
 from scenes.spec import SensorSpec
 
 from .metrics import mean_ci
-from .model import CONTACT_NOISE_M
 
 REGIONS = ("tip", "body", "near_leds")
 CHANNELS = ("red", "green", "blue")
@@ -55,7 +54,7 @@ def contact_masks(depth: np.ndarray, ref: np.ndarray, reach_px: int) -> np.ndarr
     ``reach_px``)."""
     out = np.empty(depth.shape, bool)
     for i, d in enumerate(depth):
-        hit = (ref - d) > CONTACT_NOISE_M
+        hit = (ref - d) > CONTACT_EPS_M
         out[i] = ndimage.binary_dilation(hit, iterations=reach_px) if hit.any() else hit
     return out
 

@@ -1,0 +1,52 @@
+"""Locate the authors' published GelTip data (read in place, never shipped with the project).
+
+The data is looked for in ``$GELTIP_REFERENCE`` when that is set (and only there: an
+explicit location is never second-guessed), else in ``shared/data/geltip_reference``
+beside the repository, then beside the working directory. A folder holds the data when
+it has the data's ``MANIFEST.txt``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+#: Environment variable naming the folder of the published data.
+REFERENCE_ENV = "GELTIP_REFERENCE"
+#: The folder's path below a directory that sits beside the repository.
+SIBLING = Path("shared") / "data" / "geltip_reference"
+#: The file that marks a folder as the published data.
+MANIFEST = "MANIFEST.txt"
+
+
+def reference_candidates() -> list[Path]:
+    """Where the data is looked for, in order."""
+    given = os.environ.get(REFERENCE_ENV)
+    if given:
+        return [Path(given)]
+    beside_repo = Path(__file__).resolve().parents[2] / SIBLING
+    beside_cwd = Path.cwd().parent / SIBLING
+    return [beside_repo] if beside_cwd == beside_repo else [beside_repo, beside_cwd]
+
+
+def reference_dir() -> Path | None:
+    """The published data's folder, or None when no candidate holds it
+    (``require_reference_dir`` says why)."""
+    return next((c for c in reference_candidates() if (c / MANIFEST).is_file()), None)
+
+
+def require_reference_dir(path: Path | str | None = None) -> Path:
+    """The published data's folder: ``path`` checked, or (None) the one found.
+
+    Raises FileNotFoundError naming where it looked and how to point at the data.
+    """
+    if path is not None:
+        path = Path(path)
+        if not (path / MANIFEST).is_file():
+            raise FileNotFoundError(f"the GelTip reference data is not at {path} (no {MANIFEST} there)")
+        return path
+    found = reference_dir()
+    if found is None:
+        where = ", ".join(str(c) for c in reference_candidates())
+        raise FileNotFoundError(f"GelTip reference data not found at {where} (set ${REFERENCE_ENV} to its folder)")
+    return found
