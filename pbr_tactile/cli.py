@@ -9,12 +9,6 @@ from pathlib import Path
 import numpy as np
 
 
-def srgb(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1), for viewing only."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def _pixel(value: str) -> tuple[float, float]:
     """``U,V`` in pixels -> (u, v), for ``--at``."""
     try:
@@ -85,15 +79,26 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
 
     from scenes.camera import Camera, check_depth, reference_depth
     from scenes.geometry import membrane_mesh
-    from scenes.images import write_rgb
+    from scenes.images import srgb, write_rgb
     from scenes.spec import load_spec
 
     from .effects import Effects
     from .render import reference
 
     _check_contact_args(args, parser)
-    effects = Effects().with_settings(args.effect or [])
     spec = load_spec(args.spec)
+    profile = None
+    if args.profile:
+        from scenes.profile import load_profile
+
+        from .calibrate import profile_effects
+
+        if args.estimator != "photons":
+            raise ValueError("--profile needs the photon estimator (it renders one image per source)")
+        profile = load_profile(args.profile, spec)
+        effects = profile_effects(profile, args.effect)
+    else:
+        effects = Effects().with_settings(args.effect or [])
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
 
@@ -115,12 +120,21 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     est = reference(depth, ref, mesh, spec, camera, effects, spp=args.spp, width=args.width, height=args.height,
                     seed=args.seed, variant=args.variant, progress=progress, passes=args.passes,
                     estimator=args.estimator, photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3,
-                    no_contact_runs=args.no_contact_runs)
+                    no_contact_runs=args.no_contact_runs, per_source=profile is not None)
     bar.close()
     out = output_paths(args.out)
     out["linear"].parent.mkdir(parents=True, exist_ok=True)
     np.save(out["linear"], est.mean)
     np.save(out["variance"], est.variance)
+    if profile is not None:
+        from .calibrate import profiled_image
+        from .scene import led_sources
+
+        names = [s["name"] for s in led_sources(spec, effects)]
+        write_rgb(out["image"], profiled_image(est.mean, names, profile, camera))
+        print(f"wrote {out['linear']} (linear, one channel per source: {', '.join(names)}), {out['variance'].name} "
+              f"and {out['image'].name} (the calibrated camera's image, profile {args.profile})")
+        return 0
     mask = np.ones(est.mean.shape[:2], bool)
     scale = float(np.percentile(est.mean[mask], 99.5)) or 1.0
     write_rgb(out["image"], srgb(est.mean / scale))
@@ -240,6 +254,9 @@ def register(registry) -> None:
                         "plus the contact's change; the first contact of a sensor fills the cache, later ones "
                         "cost the same with less noise, most of all away from the contact (default 0: off)")
     p.add_argument("--variant", help="Mitsuba variant (default: $TACTILE_SIM_MI_VARIANT, then the fallback chain)")
+    p.add_argument("--profile", metavar="PROFILE.toml",
+                   help="render as the calibrated sensor of this profile (tactile-sim calibrate): its effects, LED "
+                        "gains, alignment and camera response; --effect settings apply on top")
     p.add_argument("--out", required=True,
                    help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png (the stem is kept whole, dots "
                         "and all; a stem ending in .npy or .png drops that suffix)")

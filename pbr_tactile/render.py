@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scenes.camera import Camera
+from scenes.camera import CONTACT_EPS_M, Camera
 from scenes.spec import SensorSpec
 
 from .effects import Effects
@@ -59,9 +59,6 @@ def load(scene: dict, variant: str | None = None):
 MIN_PASSES = 2
 #: Default cap on the passes of a render that stops on a noise target.
 MAX_PASSES = 16
-#: Depth differences below this are rasterisation noise, not contact, metres (MuJoCo's
-#: no-contact capture matches the ray-cast D_ref to 3e-8 m at worst).
-CONTACT_DEPTH_M = 1e-6
 #: The contact region reaches this far beyond the pixels whose depth changed, px at the
 #: camera's resolution: the dent's rim, where the elastic layer bends, counts too.
 RIM_PX = 8
@@ -149,7 +146,7 @@ def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camer
 
     depth, ref_depth : (H, W) float, metres, planar z at the camera's resolution (depth
     None: no contact). Returns (height, width) bool: the pixels whose depth differs from
-    D_ref by more than CONTACT_DEPTH_M, grown by RIM_PX (camera pixels) so the dent's rim
+    D_ref by more than CONTACT_EPS_M, grown by RIM_PX (camera pixels) so the dent's rim
     counts, inside the image circle; the whole image circle without contact, or when the
     contact lies outside it.
     """
@@ -159,7 +156,7 @@ def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camer
     circle = camera.scaled(width, height).mask
     if depth is None:
         return circle.copy()
-    moved = np.abs(np.asarray(depth, np.float64) - ref_depth) > CONTACT_DEPTH_M
+    moved = np.abs(np.asarray(depth, np.float64) - ref_depth) > CONTACT_EPS_M
     if moved.any():
         moved = ndimage.binary_dilation(moved, iterations=RIM_PX)
     # Each film pixel reads the camera pixel nearest its centre (the rim spans 2 RIM_PX
@@ -263,13 +260,23 @@ KERNEL_RADIUS_M = 0.75e-3
 CONTROL_STREAM = 0xC0C0
 
 
+def source_response(sources: list[dict], effects: Effects) -> np.ndarray:
+    """(S, 3): the pixel value per unit flux-normalised radiance of each source (see
+    ``led_sources``): pi A_m times the film's response to the source's radiance spectrum
+    (flux = pi A L for a Lambertian sphere)."""
+    from .spectra import film_response
+
+    return np.stack([np.pi * 4 * np.pi * s["radius"] ** 2 * film_response(s["spectrum"], effects.camera_response)
+                     for s in sources])
+
+
 def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: int = 1 << 20, spp: int = 4,
                    passes: int = 4, seed: int = 0, variant: str | None = None, progress=None,
                    kernel_radius: float = KERNEL_RADIUS_M, light_scene: dict | None = None,
                    pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True,
                    target_rse: float | None = None, region: np.ndarray | None = None, max_passes: int = MAX_PASSES,
                    no_contact_memo: dict | None = None, control: Control | None = None,
-                   control_spp: int = 0) -> Estimate:
+                   control_spp: int = 0, per_source: bool = False) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
     spp : camera samples per pixel of one pass.
@@ -302,6 +309,11 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         pass images as traced, and a mean that adds control_spp camera samples per pass
         (same photon map, other camera random numbers), the camera side being where a
         frame's rare bright samples are (LEDs seen through the glass).
+    per_source : return one grey image per source instead of RGB: the mean is (H, W, S),
+        ``sources``' order, per unit flux of each, before the film's response. The RGB
+        image is that times ``source_response(sources, effects)`` (S, 3): the transport
+        is linear in each source's power and grey, so a source's power and spectrum act
+        only through its row (what calibration fits).
 
     The pilot's seed follows the last pass's (``passes``, or ``max_passes`` with a
     target), so a pass never shares its random numbers with the pilot, and every render
@@ -324,8 +336,6 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         sources_from,
         weight_window,
     )
-    from .spectra import film_response
-
     if effects.coating_gloss > 0:
         raise ValueError("the photon estimator needs a diffuse coating (coating_gloss = 0); use volpath")
     check_passes(passes, target_rse, max_passes)
@@ -354,10 +364,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
 
     lit = same_mesh("light_scene", light_scene)
     srcs = sources_from(sources)
-    # Pixel value per unit flux-normalised radiance: pi A_m times the film's response to
-    # the source's radiance spectrum (flux = pi A L for a Lambertian sphere).
-    response = np.stack([np.pi * 4 * np.pi * s["radius"] ** 2 * film_response(s["spectrum"], effects.camera_response)
-                         for s in sources])
+    response = np.eye(len(sources)) if per_source else source_response(sources, effects)
     sigma_t, albedo = effects.sigma_t, effects.albedo
     kernel = density_kernel(coating_vertices(lit), kernel_radius)
     area = coating_areas(lit)
@@ -441,6 +448,7 @@ def reference(
     solids: ElastomerBuilder | None = None,
     control: Control | None = None,
     control_spp: int = 0,
+    per_source: bool = False,
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
@@ -464,6 +472,8 @@ def reference(
         membrane and checks its undeformed solid once); None builds one.
     control, control_spp : the no-contact frame as a control variate for this contact,
         and asking for this render as one (see ``render_photons``; photons only).
+    per_source : one grey image per source of ``led_sources(spec, effects)`` instead of
+        RGB (see ``render_photons``; photons only).
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -475,6 +485,8 @@ def reference(
     check_passes(passes, target_rse, max_passes)
     if (control is not None or control_spp) and estimator != "photons":
         raise ValueError("a control variate (control, control_spp) needs the photon estimator")
+    if per_source and estimator != "photons":
+        raise ValueError("per_source images need the photon estimator")
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
     targets = {"target_rse": target_rse, "region": region, "max_passes": max_passes}
     build = solids if solids is not None else ElastomerBuilder(membrane, spec, camera)
@@ -500,7 +512,7 @@ def reference(
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
                                  pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,
                                  no_contact_memo=no_contact_memo, control=control, control_spp=control_spp,
-                                 **targets)
+                                 per_source=per_source, **targets)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
     return sensor_effects(est, camera, effects, seed)

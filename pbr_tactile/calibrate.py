@@ -1,0 +1,589 @@
+"""Calibrate the physically based reference to a real sensor unit from its no-contact image.
+
+The image is linear in each emitter's power and the transport is grey, so the reference
+renders one grey basis image per source once (``emitter_basis``: each LED, and each LED's
+leak into the glass core, per unit flux) and a real image is modelled as
+
+    I_c(p) = clip((V(p) sum_s g_sc A_s(T_m(s)^-1 p) + o_c) ** (1 / gamma), 0, sat_c)
+
+- A_s : source s's basis image, rendered with the physical effects (absorption,
+  scattering, coating albedo) of one point of a coarse grid; common random numbers (one
+  seed) across the grid, so differences between grid points are not noise;
+- T_m : the membrane's alignment for the source's LED m: a rotation about the principal
+  point by theta + phi_m (the global rotation and each LED's azimuth offset, which the
+  rotationally symmetric membrane turns into an image rotation), a scale and a shift;
+  the image circle is the lens' and does not move;
+- g_sc >= 0 : each source's gain in each channel, the product of its power, its spectrum
+  under the camera's filters and the white balance, which one image cannot separate: they
+  are fitted together, by non-negative least squares, for every value of the nonlinear
+  parameters (variable projection), and the core leak fraction is read from them;
+- V : the lens' relative illumination 1 + a1 r^2 + a2 r^4, non-increasing and positive;
+- gamma, o_c, sat_c : the camera's response, black offset and clip level. Clipped real
+  pixels are censored: a prediction above the clip level there costs nothing.
+
+The nonlinear parameters (theta, phi_m, scale, shift, a1, a2, gamma) are searched by
+Powell's method from several rotations; the physical ones on the grid. The image is cut
+into SECTORS angular sectors about the image circle's centre: even ones fit, odd ones
+judge (held-out R^2 per unsaturated channel), and the fit is bootstrapped over the
+training sectors for intervals.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage, optimize
+
+from scenes.camera import Camera
+from scenes.profile import Alignment, CameraProfile, Profile
+from scenes.spec import SensorSpec
+
+from .effects import Effects
+
+#: Angular sectors of the image circle: even ones fit, odd ones judge.
+SECTORS = 12
+#: A real pixel at or above this (in [0, 1]) in a channel is clipped there.
+CLIP_LEVEL = 254.0 / 255.0
+#: A channel clipped over more than this share of the image circle is "saturated": it
+#: is censored in the fit and not judged.
+SATURATED_SHARE = 0.5
+#: Pixels above this in any channel are inside the real image circle.
+CIRCLE_THRESHOLD = 8.0 / 255.0
+#: Bounds of the fit: LED azimuth offsets (rad) from the spec's, scale, shift (px at the
+#: camera's resolution), response exponent.
+AZIMUTH_BOUND_RAD = math.radians(25.0)
+SCALE_BOUNDS = (0.8, 1.25)
+SHIFT_BOUND_PX = 40.0
+GAMMA_BOUNDS = (0.5, 3.0)
+#: The lens' fall-off V = 1 + a1 r^2 + a2 r^4 is searched with a1, a2 in [-MAX_FALLOFF, 0]
+#: (non-increasing), and floored at MIN_ILLUMINATION (positive).
+MAX_FALLOFF = 0.98
+MIN_ILLUMINATION = 0.02
+#: Starting rotations of the search (the LEDs repeat every 120 deg but their colours do not).
+ROTATION_STARTS = 12
+#: The default grid of physical effects searched (common random numbers across it).
+GRID = {"absorption_per_m": (5.0, 20.0, 80.0), "scattering_per_m": (10.0, 50.0, 250.0)}
+#: Effects the basis is rendered with besides the grid's: the leak sources exist (their
+#: power is fitted) and the coating albedo is tied (it scales every source like a power).
+BASIS_EFFECTS = {"core_light_leak": 0.5}
+#: Bootstrap resamples of the training sectors.
+BOOTSTRAP = 16
+#: A fit has converged when Powell's method says so and it either moved off its start
+#: (the loss fell by this share) or already leaves less than STUCK_SHARE of the real
+#: image's variance: a fit that leaves a large gap without moving stopped at its start.
+MIN_IMPROVEMENT = 1e-3
+STUCK_SHARE = 0.05
+
+
+# -- the real image -----------------------------------------------------------------------
+
+def check_real(image: np.ndarray, camera: Camera, name: str = "image") -> np.ndarray:
+    """A real (H, W, 3) image in [0, 1] at the camera's size, checked: not blank, not
+    saturated almost everywhere."""
+    image = np.asarray(image)
+    if image.shape != (camera.height, camera.width, 3):
+        raise ValueError(f"{name} must be {camera.width}x{camera.height} RGB (the spec's camera), got shape "
+                         f"{image.shape}")
+    image = image.astype(np.float64)
+    if not np.all(np.isfinite(image)) or image.min() < 0 or image.max() > 1:
+        raise ValueError(f"{name} must hold finite values in [0, 1]")
+    lit = image.max(axis=2) > CIRCLE_THRESHOLD
+    if lit.mean() < 0.05:
+        raise ValueError(f"{name} is blank: {lit.mean():.1%} of its pixels are above {CIRCLE_THRESHOLD:.3f}")
+    clipped = (image >= CLIP_LEVEL).all(axis=2)[lit].mean()
+    if clipped > 0.9:
+        raise ValueError(f"{name} is saturated almost everywhere: {clipped:.0%} of its lit pixels are clipped in "
+                         "every channel; lower the exposure")
+    return image
+
+
+def image_circle(image: np.ndarray) -> tuple[float, float, float] | None:
+    """(cx, cy, radius) px of the lit disc of a real image, or None where the optics
+    fill the frame (the lit area is more than 98 % of it)."""
+    lit = np.asarray(image).max(axis=2) > CIRCLE_THRESHOLD
+    lit = ndimage.binary_opening(lit, iterations=2)
+    if lit.mean() > 0.98:
+        return None
+    v, u = np.nonzero(lit)
+    return float(u.mean()), float(v.mean()), float(math.sqrt(lit.sum() / math.pi))
+
+
+def sector_index(shape: tuple[int, int], centre: tuple[float, float], sectors: int = SECTORS) -> np.ndarray:
+    """(H, W) int: the angular sector of each pixel about ``centre`` (u, v)."""
+    v, u = np.mgrid[0:shape[0], 0:shape[1]]
+    angle = np.mod(np.arctan2(v - centre[1], u - centre[0]), 2 * math.pi)
+    return np.minimum((angle / (2 * math.pi) * sectors).astype(int), sectors - 1)
+
+
+def block_mean(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, C) -> (h, w, C) by averaging whole pixel blocks (H/h == W/w integer)."""
+    H, W = image.shape[:2]
+    k = H // shape[0]
+    if k * shape[0] != H or k * shape[1] != W:
+        raise ValueError(f"the film {shape[1]}x{shape[0]} must divide the camera's {W}x{H} evenly")
+    return image.reshape(shape[0], k, shape[1], k, *image.shape[2:]).mean(axis=(1, 3))
+
+
+# -- the basis ----------------------------------------------------------------------------
+
+def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film: tuple[int, int],
+                  photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
+                  use_cache: bool = True) -> dict:
+    """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
+    no-contact sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,),
+    ``response`` (S, 3) the film's response to each source at the effects' powers.
+    Cached on disk (scenes.cache) by everything it depends on."""
+    from scenes.cache import cached, make_key
+
+    from .nocontact import CACHE_VERSION
+    from .render import reference, source_response
+    from .scene import led_sources
+    from .variant import choose_variant
+
+    variant = choose_variant().variant()
+    width, height = film
+    key = make_key("basis", 1, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
+                   effects.to_dict(), [width, height], photons, spp, passes, seed)
+
+    def build():
+        est = reference(None, None, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
+                        seed=seed, variant=variant, passes=passes, photons=photons, per_source=True)
+        sources = led_sources(spec, effects)
+        return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
+                "response": source_response(sources, effects)}
+
+    return cached("pbr-calibration-basis", key, build, use_cache=use_cache)
+
+
+def led_of_source(names) -> np.ndarray:
+    """(S,) the LED index of each source name (``led<m>`` or ``led<m>_leak``)."""
+    return np.array([int(str(n)[3:].split("_")[0]) for n in names])
+
+
+# -- the model ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Nonlinear:
+    """The nonlinear parameters (see the module doc); lengths in camera pixels. ``leak``
+    is each LED's fraction of power emitted into the glass core."""
+
+    rotation_rad: float
+    led_azimuth_rad: tuple[float, ...]
+    leak: tuple[float, ...]
+    scale: float
+    shift_px: tuple[float, float]
+    vignetting: tuple[float, float]
+    gamma: float
+
+    def vector(self) -> np.ndarray:
+        return np.r_[self.rotation_rad, self.led_azimuth_rad, self.leak, math.log(self.scale), self.shift_px,
+                     self.vignetting, self.gamma]
+
+    @classmethod
+    def from_vector(cls, z: np.ndarray, leds: int) -> Nonlinear:
+        z = np.asarray(z, np.float64)
+        n = leds
+        return cls(float(z[0]), tuple(map(float, z[1:1 + n])), tuple(map(float, z[1 + n:1 + 2 * n])),
+                   float(math.exp(z[1 + 2 * n])), (float(z[2 + 2 * n]), float(z[3 + 2 * n])),
+                   (float(z[4 + 2 * n]), float(z[5 + 2 * n])), float(z[6 + 2 * n]))
+
+    @classmethod
+    def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
+        return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2)
+
+
+def _bounds(leds: int, leak: bool) -> list[tuple[float, float]]:
+    b = AZIMUTH_BOUND_RAD
+    return ([(-4 * math.pi, 4 * math.pi)] + [(-b, b)] * leds + [(0.0, 1.0 if leak else 0.0)] * leds
+            + [tuple(map(math.log, SCALE_BOUNDS))] + [(-SHIFT_BOUND_PX, SHIFT_BOUND_PX)] * 2
+            + [(-MAX_FALLOFF, 0.0)] * 2 + [GAMMA_BOUNDS])
+
+
+class ImageModel:
+    """The image model of the module doc at a film's resolution, for one basis."""
+
+    def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None):
+        self.A = np.asarray(basis, np.float64)
+        self.h, self.w, self.S = self.A.shape
+        self.led = led_of_source(names)
+        self.leds = int(self.led.max()) + 1
+        self.has_leak = np.array([str(n).endswith("_leak") for n in names])
+        self.s = self.h / camera.height  # film px per camera px
+        self.cx, self.cy = (camera.cx + 0.5) * self.s - 0.5, (camera.cy + 0.5) * self.s - 0.5
+        cam = CameraProfile(image_circle=circle)
+        from scenes.profile import lens_falloff
+
+        self.inside = lens_falloff(cam, (self.h, self.w), (camera.height, camera.width)) > 0
+        v, u = np.mgrid[0:self.h, 0:self.w].astype(np.float64)
+        self.u, self.v = u, v
+        if circle is None:
+            ccx, ccy, radius = self.cx, self.cy, math.hypot(self.h, self.w) / 2
+        else:
+            ccx, ccy, radius = ((circle[0] + 0.5) * self.s - 0.5, (circle[1] + 0.5) * self.s - 0.5, circle[2] * self.s)
+        self.r = np.minimum(np.hypot(u - ccx, v - ccy) / radius, 1.0)
+
+    def moved(self, image: np.ndarray, nl: Nonlinear, m: int) -> np.ndarray:
+        """(h, w) ``image`` moved by LED m's alignment: the point seen at p came from
+        T^-1 p (unshift, rotate back, unscale about the principal point)."""
+        x, y = self.u - self.cx - nl.shift_px[0] * self.s, self.v - self.cy - nl.shift_px[1] * self.s
+        a = nl.rotation_rad + nl.led_azimuth_rad[m]
+        c, s = math.cos(a), math.sin(a)
+        xs, ys = (c * x + s * y) / nl.scale + self.cx, (-s * x + c * y) / nl.scale + self.cy
+        return ndimage.map_coordinates(image, [ys, xs], order=1, mode="nearest")
+
+    def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int) -> np.ndarray:
+        out = np.zeros((self.h, self.w, self.leds))
+        for m in range(self.leds):
+            f = nl.leak[m]
+            for k in np.nonzero(self.led == m)[0]:
+                share = (f if self.has_leak[k] else 1.0 - f) ** power
+                if share > 0:
+                    out[..., m] += share * self.moved(images[..., k], nl, m)
+        return out
+
+    def falloff(self, nl: Nonlinear) -> np.ndarray:
+        """(h, w) the lens' relative illumination, 0 outside the image circle."""
+        a1, a2 = nl.vignetting
+        return np.where(self.inside, np.maximum(1 + a1 * self.r**2 + a2 * self.r**4, MIN_ILLUMINATION), 0.0)
+
+    def warped(self, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) each LED's image, (1 - leak) its own source plus leak its core
+        leak's, moved by the LED's alignment."""
+        return self._mixed(self.A, nl, 1)
+
+    def design(self, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) the warped LED images times the lens' fall-off (0 outside the circle)."""
+        return self.warped(nl) * self.falloff(nl)[..., None]
+
+    def design_variance(self, variance: np.ndarray, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) the variance of ``design`` given the basis' (h, w, S) variance
+        (independent sources; interpolation's correlations ignored)."""
+        return self._mixed(np.asarray(variance, np.float64), nl, 2) * np.square(self.falloff(nl))[..., None]
+
+    def render(self, nl: Nonlinear, gains: np.ndarray, offset, saturation) -> np.ndarray:
+        """(h, w, 3) the modelled real image."""
+        lin = self.design(nl) @ gains + np.asarray(offset)
+        lin = np.where(self.inside[..., None], np.clip(lin, 0.0, None), 0.0)
+        return np.minimum(lin ** (1.0 / nl.gamma), np.asarray(saturation))
+
+
+def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float, weight: np.ndarray | None = None,
+                iterations: int = 4) -> tuple[np.ndarray, float]:
+    """One channel's non-negative gains (S,) and offset for pixels X (N, S), real values
+    y (N,) with ``clipped`` (N,) censored: least squares in linear units (y^gamma), the
+    censored pixels entering only where the prediction falls below the clip level."""
+    target = np.power(y, gamma)
+    level = CLIP_LEVEL**gamma
+    sw = np.ones(len(y)) if weight is None else np.sqrt(weight)
+    use = ~clipped
+    Xo = np.c_[X, np.ones(len(y))]
+    coef = np.zeros(Xo.shape[1])
+    for _ in range(iterations):
+        if use.sum() < Xo.shape[1]:
+            break
+        coef, _ = optimize.nnls(Xo[use] * sw[use, None], target[use] * sw[use])
+        below = clipped & (Xo @ coef < level)
+        new = ~clipped | below
+        if np.array_equal(new, use):
+            break
+        use = new
+    offset = min(float(coef[-1]), 1.0)
+    return coef[:-1], offset
+
+
+# -- the fit ------------------------------------------------------------------------------
+
+@dataclass
+class ImageFit:
+    """A fitted image model: nonlinear parameters, gains (L, 3), offset (3,), loss."""
+
+    nl: Nonlinear
+    gains: np.ndarray
+    offset: np.ndarray
+    loss: float
+    start_loss: float
+    converged: bool
+    evaluations: int
+
+
+class ImageFitter:
+    """Fits an ImageModel to a real image on a set of pixels (see the module doc)."""
+
+    def __init__(self, model: ImageModel, real: np.ndarray, fit_pixels: np.ndarray, weight: np.ndarray | None = None,
+                 leak: bool = True):
+        """fit_pixels (h, w) bool; weight (h, w) per-pixel weights (a bootstrap's
+        multiplicities) or None; leak False: no light into the core (the leak fixed at 0)."""
+        self.model, self.real = model, np.asarray(real, np.float64)
+        self.leak = leak
+        self.pixels = fit_pixels & model.inside
+        self.clipped = self.real >= CLIP_LEVEL
+        self.weight = None if weight is None else np.asarray(weight, np.float64)[self.pixels]
+        # the loss of predicting each channel's mean: the real image's variance
+        self.variance = float(np.mean([np.var(self.real[..., c][self.pixels]) for c in range(3)]))
+
+    def solve(self, nl: Nonlinear) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The best gains and offsets for ``nl`` and the weighted, censored residuals,
+        whose sum of squares is the mean squared error over pixels and channels."""
+        X = self.model.design(nl)[self.pixels]
+        w = np.ones(len(X)) if self.weight is None else self.weight
+        sw = np.sqrt(w / (3 * np.sum(w)))
+        gains, offset, residuals = np.zeros((self.model.leds, 3)), np.zeros(3), []
+        for c in range(3):
+            y, clipped = self.real[..., c][self.pixels], self.clipped[..., c][self.pixels]
+            gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, self.weight)
+            pred = np.clip(X @ gains[:, c] + offset[c], 0.0, None) ** (1.0 / nl.gamma)
+            residuals.append(sw * np.where(clipped, np.minimum(pred - y, 0.0), pred - y))
+        return gains, offset, np.concatenate(residuals)
+
+    def loss(self, z: np.ndarray) -> float:
+        """The censored mean squared error at nonlinear parameters ``z``."""
+        return float(np.sum(self.solve(Nonlinear.from_vector(z, self.model.leds))[2] ** 2))
+
+    def fit(self, start: Nonlinear, max_evaluations: int = 1500) -> ImageFit:
+        """Bounded least squares over the nonlinear parameters from ``start`` (the gains
+        solved inside every evaluation: variable projection)."""
+        bounds = np.array(_bounds(self.model.leds, self.leak and self.model.has_leak.any()))
+        free = bounds[:, 1] > bounds[:, 0]
+        z0 = np.clip(start.vector(), bounds[:, 0], bounds[:, 1])
+        start_loss = self.loss(z0)
+
+        def residuals(zf):
+            z = z0.copy()
+            z[free] = zf
+            return self.solve(Nonlinear.from_vector(z, self.model.leds))[2]
+
+        result = optimize.least_squares(residuals, z0[free], bounds=(bounds[free, 0], bounds[free, 1]),
+                                        diff_step=1e-3, max_nfev=max_evaluations, x_scale="jac")
+        z = z0.copy()
+        z[free] = result.x
+        nl = Nonlinear.from_vector(z, self.model.leds)
+        gains, offset, res = self.solve(nl)
+        loss = float(np.sum(res**2))
+        moved = loss < start_loss * (1 - MIN_IMPROVEMENT)
+        small = loss <= STUCK_SHARE * self.variance
+        return ImageFit(nl, gains, offset, loss, start_loss, result.status > 0 and (moved or small), int(result.nfev))
+
+    def search(self, rotations: int = ROTATION_STARTS, max_evaluations: int = 2000, keep: int = 2) -> ImageFit:
+        """Fit from ``rotations`` evenly spaced starting rotations: each start's gains
+        first (a cheap screen), then the ``keep`` best refined in full."""
+        leds = self.model.leds
+        leak = 0.3 if self.leak and self.model.has_leak.any() else 0.0
+        starts = [Nonlinear.start(leds, 2 * math.pi * k / rotations, leak) for k in range(rotations)]
+        screened = sorted(starts, key=lambda nl: self.loss(nl.vector()))[:keep]
+        fits = [self.fit(nl, max_evaluations) for nl in screened]
+        return min(fits, key=lambda f: f.loss)
+
+
+def r2(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray) -> float:
+    """Share of the real pixels' variance the prediction explains."""
+    y, p = real[pixels], pred[pixels]
+    total = float(np.sum((y - y.mean()) ** 2))
+    return float(1 - np.sum((y - p) ** 2) / total) if total > 0 else float("nan")
+
+
+# -- rendering with a profile ------------------------------------------------------------
+
+def profile_effects(profile: Profile, settings: list[str] | None = None) -> Effects:
+    """The reference's effects of a profile (with the leak sources the basis needs),
+    then ``settings`` (NAME=VALUE) on top."""
+    fitted = {k: v for k, v in profile.reference.get("effects", {}).items()}
+    try:
+        effects = dataclasses.replace(Effects(), **fitted)
+    except TypeError as exc:
+        raise ValueError(f"profile reference.effects: {exc}") from None
+    effects = effects.with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    return effects.with_settings(settings or [])
+
+
+def profiled_image(per_source: np.ndarray, names, profile: Profile, camera: Camera) -> np.ndarray:
+    """(h, w, S) per-source linear images (``reference(..., per_source=True)`` with
+    ``profile_effects``) -> (h, w, 3) the calibrated sensor's image in [0, 1]."""
+    ref = profile.reference
+    try:
+        gains = np.asarray(ref["led_gains"], np.float64)
+        nl = Nonlinear(profile.alignment.rotation_rad, tuple(ref["led_azimuth_rad"]), tuple(ref["led_leak"]),
+                       profile.alignment.scale, profile.alignment.shift_px, profile.camera.vignetting,
+                       profile.camera.gamma)
+    except KeyError as exc:
+        raise ValueError(f"the profile has no reference.{exc.args[0]}: it was not calibrated for the reference") from None
+    model = ImageModel(per_source, names, camera, profile.camera.image_circle)
+    if gains.shape != (model.leds, 3) or len(nl.led_azimuth_rad) != model.leds or len(nl.leak) != model.leds:
+        raise ValueError(f"the profile's reference tables are for {gains.shape[0]} LEDs, the render has {model.leds}")
+    return model.render(nl, gains, profile.camera.offset, profile.camera.saturation)
+
+
+# -- calibration from a no-contact image --------------------------------------------------
+
+@dataclass
+class Calibration:
+    """What ``calibrate_background`` found: the profile, the report (JSON-able) and the
+    film-sized images behind it (real, before, after)."""
+
+    profile: Profile
+    report: dict
+    images: dict
+
+
+def _grid_points(grid: dict) -> list[dict]:
+    names = list(grid)
+    points = [{}]
+    for name in names:
+        points = [{**p, name: float(v)} for p in points for v in grid[name]]
+    return points
+
+
+def _interval(values: np.ndarray) -> list[float]:
+    return [float(np.percentile(values, 5)), float(np.percentile(values, 95))]
+
+
+def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, film: tuple[int, int] = (160, 120),
+                         grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
+                         seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
+                         progress=None) -> Calibration:
+    """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1].
+
+    Fits on the even angular sectors of the image circle and judges on the odd ones (see
+    the module doc); ``grid`` maps Effects names to the values searched (default GRID);
+    ``leak`` False fits with no light into the glass core. Raises ValueError for a bad
+    image; a fit that did not converge is reported (``report["converged"]`` False).
+    """
+    grid = GRID if grid is None else grid
+    for name in grid:
+        if name not in Effects.__dataclass_fields__:
+            raise ValueError(f"grid: {name!r} is not an effect of the reference ({', '.join(Effects.__dataclass_fields__)})")
+    real = check_real(real, camera, "the real no-contact image")
+    circle = image_circle(real)
+    width, height = film
+    r = block_mean(real, (height, width))
+    clipped_full = real >= CLIP_LEVEL
+    inside_full = real.max(axis=2) > CIRCLE_THRESHOLD
+    share = [float(clipped_full[..., c][inside_full].mean()) for c in range(3)]
+    saturated = {ch: share[c] > SATURATED_SHARE for c, ch in enumerate("rgb")}
+    clipped = block_mean(clipped_full.astype(np.float64), (height, width)) > 0.5
+    s = height / camera.height
+    centre = (camera.cx, camera.cy) if circle is None else circle[:2]
+    sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
+    points = _grid_points(grid)
+    base = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    fits = []
+    for i, point in enumerate(points):
+        effects = dataclasses.replace(base, **point)
+        basis = emitter_basis(spec, mesh, camera, effects, film, photons, spp, passes, seed, use_cache)
+        model = ImageModel(basis["mean"], basis["names"], camera, circle)
+        train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
+        fit = ImageFitter(model, r, train, leak=leak).search()
+        fits.append((fit, point, basis, model))
+        if progress is not None:
+            progress(i + 1, len(points) + 1)
+    fit, point, basis, model = min(fits, key=lambda f: f[0].loss)
+    train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
+    after = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
+    default = {name: getattr(Effects(), name) for name in grid}
+    same = [b for _, p, b, _ in fits if p == default]
+    default_basis = same[0] if same else emitter_basis(
+        spec, mesh, camera, dataclasses.replace(base, **default), film, photons, spp, passes, seed, use_cache)
+    before = _uncalibrated(spec, camera, default_basis, circle, r, train)
+    judged = {ch: test & ~clipped[..., c] for c, ch in enumerate("rgb")}
+    heldout = {ch: r2(after[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
+    heldout_before = {ch: r2(before[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
+    mae = {ch: float(np.abs(after[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
+    mae_before = {ch: float(np.abs(before[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
+    intervals = _bootstrap(fit, model, r, sector, bootstrap, seed, leak) if bootstrap else {}
+    r2_interval = {ch: heldout_interval(after[..., c], r[..., c], judged[ch], sector, seed) for c, ch in enumerate("rgb")}
+    nl = fit.nl
+    profile = Profile(
+        sensor=spec.name, leds=tuple(led.name for led in spec.leds),
+        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px),
+        camera=CameraProfile(gamma=nl.gamma, offset=tuple(np.clip(fit.offset, 0.0, 1.0)),
+                             saturation=tuple(CLIP_LEVEL if saturated[ch] else 1.0 for ch in "rgb"),
+                             vignetting=nl.vignetting, image_circle=circle),
+        reference={"effects": {**point, "coating_albedo": Effects().coating_albedo},
+                   "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
+                   "led_gains": fit.gains.tolist(), "film": [width, height], "photons": photons,
+                   "spp": spp, "passes": passes, "seed": seed},
+        fit={"data": "one no-contact image", "converged": fit.converged, "heldout_r2": heldout})
+    report = {
+        "converged": fit.converged, "loss": fit.loss, "start_loss": fit.start_loss, "evaluations": fit.evaluations,
+        "heldout_r2": heldout, "heldout_r2_interval": r2_interval, "heldout_r2_before": heldout_before, "heldout_mae": mae,
+        "heldout_mae_before": mae_before, "saturated": saturated, "clipped_share": dict(zip("rgb", share)),
+        "image_circle": circle, "film": [width, height], "sectors": SECTORS,
+        "split": "even angular sectors of the image circle fit, odd ones judge",
+        "grid": [{"effects": p, "loss": f.loss, "converged": f.converged} for f, p, _, _ in fits],
+        "best_effects": point, "parameters": _parameters(fit), "intervals": intervals,
+        "not_identifiable": NOT_IDENTIFIABLE,
+    }
+    return Calibration(profile, report, {"real": r, "before": before, "after": after,
+                                         "judged": np.stack([judged[ch] for ch in "rgb"], -1)})
+
+
+#: What one no-contact image cannot separate, and how the fit ties it.
+NOT_IDENTIFIABLE = [
+    "LED power, LED spectrum under the camera's filters, white balance and coating albedo all scale a source's "
+    "image per channel: fitted together as each LED's RGB gain (led_gains); the coating albedo is tied at its "
+    "default",
+    "the global rotation and the LED azimuths: only their sums are seen (alignment.rotation_rad + led_azimuth_rad)",
+    "the lens' fall-off (vignetting) and the medium's radial transport (absorption, scattering) both shape the "
+    "radial profile; the grid's effects are judged with the fall-off fitted for each",
+]
+
+
+def _parameters(fit: ImageFit) -> dict:
+    nl = fit.nl
+    return {"rotation_rad": nl.rotation_rad, "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
+            "scale": nl.scale, "shift_px": list(nl.shift_px), "vignetting": list(nl.vignetting), "gamma": nl.gamma,
+            "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist()}
+
+
+def _bootstrap(fit: ImageFit, model: ImageModel, r: np.ndarray, sector: np.ndarray, count: int, seed: int,
+               leak: bool) -> dict:
+    """5-95 % intervals of each parameter over refits on resampled training sectors."""
+    rng = np.random.default_rng(seed)
+    even = np.arange(0, SECTORS, 2)
+    samples: dict[str, list] = {}
+    for _ in range(count):
+        drawn = np.bincount(rng.choice(even, len(even)), minlength=SECTORS)
+        weight = drawn[sector].astype(np.float64)
+        refit = ImageFitter(model, r, weight > 0, weight=weight, leak=leak).fit(fit.nl, max_evaluations=300)
+        for name, value in _parameters(refit).items():
+            samples.setdefault(name, []).append(np.asarray(value, np.float64))
+    return {name: np.apply_along_axis(_interval, 0, np.stack(values)).tolist() for name, values in samples.items()}
+
+
+def heldout_interval(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray, sector: np.ndarray, seed: int = 0,
+                     count: int = 1000) -> list[float]:
+    """5-95 % bootstrap interval of the held-out R^2 over the held-out sectors (drawn
+    with replacement, each sector's pixels weighted by how often it was drawn)."""
+    rng = np.random.default_rng(seed)
+    odd = np.arange(1, SECTORS, 2)
+    values = []
+    for _ in range(count):
+        weight = np.bincount(rng.choice(odd, len(odd)), minlength=SECTORS)[sector][pixels].astype(np.float64)
+        y, p = real[pixels], pred[pixels]
+        mean = np.sum(weight * y) / np.sum(weight)
+        total = np.sum(weight * (y - mean) ** 2)
+        if total > 0:
+            values.append(1 - np.sum(weight * (y - p) ** 2) / total)
+    return _interval(np.array(values)) if values else [float("nan")] * 2
+
+
+def _uncalibrated(spec, camera, basis: dict, circle, r, train) -> np.ndarray:
+    """The reference with its default effects (``basis`` rendered with them), mapped to
+    the real image by the best affine map per channel on the training pixels (what
+    uncalibrated means here)."""
+    own = np.array([not str(n).endswith("_leak") for n in basis["names"]])
+    default = Effects()
+    from .render import source_response
+    from .scene import led_sources
+
+    response = source_response(led_sources(spec, default), default)
+    linear = basis["mean"][..., own] @ response
+    out = np.zeros_like(r)
+    for c in range(3):
+        x, y = linear[..., c][train], r[..., c][train]
+        a, b = np.polyfit(x, y, 1)
+        out[..., c] = np.clip(a * linear[..., c] + b, 0.0, 1.0)
+    inside = ImageModel(basis["mean"], basis["names"], camera, circle).inside
+    return np.where(inside[..., None], out, 0.0)

@@ -1,0 +1,235 @@
+"""``tactile-sim calibrate``: fit a sensor profile to real captures, and its report."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def real_background(real: str | None, background_only: str | None) -> tuple[Path, str]:
+    """The no-contact image to calibrate from, and what it is: ``--background-only
+    IMAGE``, or REAL a capture dataset (``source: "real"``) with its background.png."""
+    if (real is None) == (background_only is None):
+        raise ValueError("give exactly one of REAL (a capture dataset directory) or --background-only IMAGE")
+    if background_only is not None:
+        return Path(background_only), "one no-contact image"
+    folder = Path(real)
+    meta = folder / "dataset.json"
+    if not meta.exists():
+        raise FileNotFoundError(f"REAL {folder} is not a dataset: it has no dataset.json (for a single image use "
+                                "--background-only IMAGE)")
+    try:
+        source = json.loads(meta.read_text()).get("source")
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"REAL {meta} is not valid JSON: {exc}") from None
+    if source != "real":
+        raise ValueError(f"REAL {folder} has source {source!r}; calibration needs captures of a real sensor "
+                         "(source: \"real\")")
+    background = folder / "background.png"
+    if not background.exists():
+        raise ValueError(f"REAL {folder} has no background.png: calibration needs the sensor's no-contact capture")
+    return background, f"the background of capture dataset {folder}"
+
+
+def _figure(images: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 4, figsize=(14, 9))
+    for c, ch in enumerate("rgb"):
+        for k, name in enumerate(("real", "before", "after")):
+            axes[c, k].imshow(images[name][..., c], vmin=0, vmax=1, cmap="gray")
+            axes[c, k].set_title(f"{name} ({ch})")
+        diff = np.where(images["judged"][..., c], images["after"][..., c] - images["real"][..., c], np.nan)
+        im = axes[c, 3].imshow(diff, vmin=-0.2, vmax=0.2, cmap="RdBu_r")
+        axes[c, 3].set_title(f"after - real, held-out sectors ({ch})")
+        fig.colorbar(im, ax=axes[c, 3])
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
+    """report.json, report.html, residual images and figure; profile.toml only for a
+    converged fit."""
+    from scenes.images import write_rgb
+    from scenes.profile import write_profile
+
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"data": what, **calibration.report}
+    images = calibration.images
+    np.save(out / "residual.npy", (images["after"] - images["real"]).astype(np.float32))
+    write_rgb(out / "after.png", images["after"])
+    write_rgb(out / "before.png", images["before"])
+    write_rgb(out / "residual.png", np.clip(0.5 + 2.5 * (images["after"] - images["real"]), 0, 1))
+    _figure(images, out / "residuals_figure.png")
+    paths = {"report": out / "report.json", "html": out / "report.html"}
+    if calibration.report["converged"]:
+        paths["profile"] = write_profile(calibration.profile, out / "profile.toml")
+    report["profile"] = str(paths["profile"]) if "profile" in paths else None
+    tmp = out / "report.json.tmp"
+    tmp.write_text(json.dumps(report, indent=2, default=float))
+    tmp.replace(paths["report"])
+    rows = "".join(f"<tr><td>{ch}</td><td>{report['heldout_r2_before'][ch]:.3f}</td><td>{report['heldout_r2'][ch]:.3f}"
+                   f"</td><td>{report['heldout_mae_before'][ch]:.4f}</td><td>{report['heldout_mae'][ch]:.4f}</td>"
+                   f"<td>{'yes' if report['saturated'][ch] else 'no'}</td></tr>" for ch in "rgb")
+    status = ("converged" if report["converged"] else
+              "<b>did NOT converge: no profile was written</b>")
+    paths["html"].write_text(
+        f"<html><head><meta charset='utf-8'><title>Calibration</title></head><body><h1>Calibration of the reference</h1>"
+        f"<p>From {what}. Fit {status}; {report['split']}.</p>"
+        f"<table border=1><tr><th>channel</th><th>held-out R² before</th><th>after</th><th>MAE before</th>"
+        f"<th>after</th><th>saturated</th></tr>{rows}</table>"
+        f"<p>Best effects on the grid: {report['best_effects']}</p>"
+        f"<p>Not identifiable from this data:</p><ul>{''.join(f'<li>{x}</li>' for x in report['not_identifiable'])}</ul>"
+        f"<img src='residuals_figure.png'></body></html>")
+    return paths
+
+
+def cmd_calibrate(args) -> int:
+    if args.real == "benchmark":
+        return cmd_benchmark(args)
+    for name in ("cases", "json"):
+        if getattr(args, name) is not None:
+            raise ValueError(f"--{name} is an option of 'tactile-sim calibrate benchmark'")
+    if args.out is None:
+        raise ValueError("calibrate needs --out DIR")
+    from tqdm import tqdm
+
+    from scenes.camera import Camera
+    from scenes.geometry import membrane_mesh
+    from scenes.images import read_rgb
+    from scenes.spec import load_spec
+
+    from .calibrate import GRID, calibrate_background
+
+    path, what = real_background(args.real, args.background_only)
+    spec = load_spec(args.spec)
+    camera = Camera.from_spec(spec)
+    real = read_rgb(path)
+    grid = GRID if not args.grid else _grid(args.grid)
+    bar = tqdm(desc="calibrating", unit="grid point")
+
+    def progress(done, total):
+        bar.total = total
+        bar.update(done - bar.n)
+
+    t0 = time.perf_counter()
+    cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
+                               grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
+                               bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress)
+    bar.close()
+    cal.report["seconds"] = time.perf_counter() - t0
+    paths = write_outputs(cal, Path(args.out), what)
+    r2 = cal.report["heldout_r2"]
+    print("held-out R^2 " + ", ".join(f"{ch} {r2[ch]:.3f}{' (saturated)' if cal.report['saturated'][ch] else ''}"
+                                      for ch in "rgb") + f"; wrote {', '.join(str(p) for p in paths.values())}")
+    if not cal.report["converged"]:
+        print(f"tactile-sim calibrate: the fit did not converge (loss {cal.report['loss']:.4g} from "
+              f"{cal.report['start_loss']:.4g}); no profile written, see {paths['report']}")
+        return 1
+    return 0
+
+
+def cmd_benchmark(args) -> int:
+    """``tactile-sim calibrate benchmark``: blind recovery on virtual sensors."""
+    from tqdm import tqdm
+
+    from scenes.camera import Camera
+    from scenes.geometry import membrane_mesh
+    from scenes.spec import load_spec
+
+    from .calibrate import GRID
+    from .calibrate_bench import benchmark
+
+    if args.json is None:
+        raise ValueError("calibrate benchmark needs --json PATH")
+    cases = 6 if args.cases is None else args.cases
+    if cases < 1:
+        raise ValueError(f"--cases must be >= 1, got {cases}")
+    spec = load_spec(args.spec)
+    camera = Camera.from_spec(spec)
+    bar = tqdm(total=cases, desc="virtual sensors", unit="case")
+    result = benchmark(spec, membrane_mesh(spec), camera, cases=cases, seed=args.seed,
+                       film=(args.width, args.width * 3 // 4), grid=_grid(args.grid) if args.grid else GRID,
+                       photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n))
+    bar.close()
+    _write_json(result, Path(args.json))
+    print(f"median relative error {result['median_relative_error']:.3f}, share within 10 % "
+          f"{result['share_within_10pct']:.2f} over {cases} cases; wrote {args.json}")
+    return 0
+
+
+def cmd_bench_calibrate(args) -> int:
+    """``tactile-sim bench calibrate``: seconds to calibrate from one no-contact image."""
+    from scenes.camera import Camera
+    from scenes.geometry import membrane_mesh
+    from scenes.spec import load_spec
+
+    from .calibrate_bench import benchmark
+
+    spec = load_spec(args.spec)
+    camera = Camera.from_spec(spec)
+    result = benchmark(spec, membrane_mesh(spec), camera, cases=1, seed=args.seed, cold=True)
+    out = {"seconds": result["seconds_per_case"], "what": "one no-contact image (a virtual sensor), default grid, "
+           "basis renders not cached (cold), bootstrap off; no taps (calibration from taps is not built yet)",
+           "median_relative_error": result["median_relative_error"]}
+    _write_json(out, Path(args.json))
+    print(f"calibrated in {out['seconds']:.0f} s; wrote {args.json}")
+    return 0
+
+
+def _write_json(data: dict, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=float))
+    tmp.replace(path)
+
+
+def _grid(items: list[str]) -> dict:
+    grid = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        try:
+            values = tuple(float(x) for x in text.split(","))
+        except ValueError:
+            values = ()
+        if not sep or not values:
+            raise ValueError(f"--grid {item!r}: expected NAME=V1,V2,... (an effect and its values)")
+        grid[name.strip()] = values
+    return grid
+
+
+def register(registry) -> None:
+    p = registry.command("calibrate", cmd_calibrate,
+                         "fit a sensor profile (profile.toml) of the physically based reference to real captures")
+    p.add_argument("real", nargs="?", metavar="REAL",
+                   help="a capture dataset (source: real) with background.png, or 'benchmark' (see below)")
+    p.add_argument("--background-only", metavar="IMAGE", help="calibrate from one no-contact image instead")
+    p.add_argument("--out", metavar="DIR", help="writes profile.toml, report.json, report.html, "
+                                                               "residual images")
+    p.add_argument("--spec", metavar="TOML")
+    p.add_argument("--width", type=int, default=160, help="film width of the basis renders (height: 3/4 of it)")
+    p.add_argument("--photons", type=int, default=1 << 18, help="photons per LED per pass of each basis render")
+    p.add_argument("--spp", type=int, default=32, help="camera samples per pixel per pass of each basis render")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--bootstrap", type=int, default=16, help="bootstrap resamples of the training sectors")
+    p.add_argument("--grid", action="append", metavar="NAME=V1,V2,...",
+                   help="effects searched and their values (repeatable; default absorption_per_m and "
+                        "scattering_per_m on 3 values each)")
+    p.add_argument("--no-leak", action="store_true", help="no light into the glass core (the leak fixed at 0)")
+    p.add_argument("--cases", type=int, help="with REAL = benchmark: virtual sensors to recover (default 6)")
+    p.add_argument("--json", metavar="PATH", help="with REAL = benchmark: where to write its results")
+    p.epilog = ("'tactile-sim calibrate benchmark --cases N --seed S --json PATH' runs the blind recovery benchmark "
+                "on virtual sensors with hidden parameters instead (pbr_tactile.calibrate_bench)")
+
+    p = registry.bench("calibrate", cmd_bench_calibrate, "seconds to calibrate the reference from one no-contact image")
+    p.add_argument("--spec", metavar="TOML")
+    p.add_argument("--seed", type=int, default=0)

@@ -1,0 +1,223 @@
+"""A sensor profile: what calibration against a real unit fitted, as plain data (TOML).
+
+``tactile-sim calibrate`` writes one (``profile.toml``); every command that renders takes
+it with ``--profile PATH``. It is read here, in ``scenes``, so that no renderer imports
+another: each renderer applies the tables it knows.
+
+Tables (all lengths in the camera's pixels at its full resolution, angles in radians):
+
+- ``sensor``: the spec's name and LED names; a profile is refused for another sensor.
+- ``alignment``: ``rotation_rad`` (about the principal point, the membrane and LEDs turn
+  while the image circle, which belongs to the lens, stays), ``scale`` and ``shift_px``
+  (u, v) of the membrane image against the spec's camera.
+- ``camera``: the real camera's response, applied to a linear render L (per channel c)::
+
+      image_c = clip((V(r) L_c + offset_c) ** (1 / gamma), 0, saturation_c)
+
+  with V(r) = 1 + vignetting[0] r^2 + vignetting[1] r^4, r the distance from the image
+  circle's centre over its radius; ``image_circle`` (cx, cy, radius) or none where the
+  optics fill the frame (pixels outside it are 0).
+- ``reference``: the physically based reference's fitted effects (``effects``, names of
+  pbr_tactile.effects.Effects), each source's RGB gain (``sources``, ``gains``: the
+  film's response times the source's power, rows in source order), and each LED's
+  azimuth offset (``led_azimuth_rad``).
+- ``fit``: how the profile was fitted (data, held-out R^2, intervals, converged).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .spec import SensorSpec
+
+#: Bump when the meaning of a table changes; older profiles are refused.
+PROFILE_VERSION = 1
+#: Physical bounds of the camera table.
+GAMMA_RANGE = (0.3, 4.0)
+SCALE_RANGE = (0.5, 2.0)
+
+
+@dataclass(frozen=True)
+class CameraProfile:
+    """The real camera's response (see the module doc); the identity by default."""
+
+    gamma: float = 1.0
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    saturation: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    vignetting: tuple[float, float] = (0.0, 0.0)
+    image_circle: tuple[float, float, float] | None = None
+
+    def __post_init__(self):
+        if not (GAMMA_RANGE[0] <= self.gamma <= GAMMA_RANGE[1]):
+            raise ValueError(f"profile camera.gamma must be in [{GAMMA_RANGE[0]}, {GAMMA_RANGE[1]}], got {self.gamma}")
+        _vector(self.offset, 3, "camera.offset", lo=0.0, hi=1.0)
+        _vector(self.saturation, 3, "camera.saturation", lo=1e-3, hi=1.0)
+        _vector(self.vignetting, 2, "camera.vignetting")
+        if self.image_circle is not None:
+            cx, cy, radius = _vector(self.image_circle, 3, "camera.image_circle")
+            if not radius > 0:
+                raise ValueError(f"profile camera.image_circle radius must be > 0 px, got {radius}")
+        if np.min(self.falloff(np.linspace(0.0, 1.0, 101))) < 0:
+            raise ValueError(f"profile camera.vignetting {self.vignetting} makes the lens' relative illumination "
+                             "negative inside the image circle")
+
+    def falloff(self, r: np.ndarray) -> np.ndarray:
+        """V(r), r the radius over the image circle's."""
+        a1, a2 = self.vignetting
+        return 1.0 + a1 * r**2 + a2 * r**4
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """The membrane image against the spec's camera (see the module doc)."""
+
+    rotation_rad: float = 0.0
+    scale: float = 1.0
+    shift_px: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        if not (math.isfinite(self.rotation_rad) and SCALE_RANGE[0] <= self.scale <= SCALE_RANGE[1]):
+            raise ValueError(f"profile alignment: rotation_rad must be finite and scale in {list(SCALE_RANGE)}, got "
+                             f"{self.rotation_rad} and {self.scale}")
+        _vector(self.shift_px, 2, "alignment.shift_px")
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A calibrated sensor (see the module doc)."""
+
+    sensor: str
+    leds: tuple[str, ...]
+    alignment: Alignment = field(default_factory=Alignment)
+    camera: CameraProfile = field(default_factory=CameraProfile)
+    reference: dict = field(default_factory=dict)
+    phong: dict = field(default_factory=dict)
+    fit: dict = field(default_factory=dict)
+
+    def check(self, spec: SensorSpec) -> Profile:
+        """This profile, if it was fitted for ``spec``; else a ValueError saying why."""
+        names = tuple(led.name for led in spec.leds)
+        if self.sensor != spec.name or tuple(self.leds) != names:
+            raise ValueError(f"the profile is for sensor {self.sensor!r} with LEDs {list(self.leds)}, not for "
+                             f"{spec.name!r} with LEDs {list(names)}: calibrate this sensor, or pass its spec")
+        return self
+
+    def to_dict(self) -> dict:
+        out = {"version": PROFILE_VERSION, "sensor": {"name": self.sensor, "leds": list(self.leds)},
+               "alignment": asdict(self.alignment), "camera": asdict(self.camera)}
+        if self.camera.image_circle is None:
+            del out["camera"]["image_circle"]
+        for name in ("reference", "phong", "fit"):
+            if getattr(self, name):
+                out[name] = getattr(self, name)
+        return _plain(out)
+
+
+def _vector(value, n: int, name: str, lo: float = -math.inf, hi: float = math.inf) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != n or not all(math.isfinite(v) and lo <= v <= hi for v in values):
+        bounds = "" if lo == -math.inf else f" in [{lo:g}, {hi:g}]"
+        raise ValueError(f"profile {name} must be {n} finite numbers{bounds}, got {value!r}")
+    return values
+
+
+def _plain(value):
+    """numpy scalars and arrays, tuples -> TOML-writable Python values."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value)
+    if isinstance(value, (np.integer,)) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def write_profile(profile: Profile, path: str | Path) -> Path:
+    """Write ``profile`` as TOML, atomically (a temporary file, then a rename)."""
+    import tomli_w
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(tomli_w.dumps(profile.to_dict()))
+    tmp.replace(path)
+    return path
+
+
+def profile_from_dict(data: dict, where: str = "profile") -> Profile:
+    """A Profile from its TOML tables; a ValueError naming what is wrong."""
+    if data.get("version") != PROFILE_VERSION:
+        raise ValueError(f"{where}: version {data.get('version')!r} is not {PROFILE_VERSION}; re-run tactile-sim "
+                         "calibrate")
+    try:
+        sensor = data["sensor"]
+        camera = dict(data.get("camera", {}))
+        if "image_circle" in camera:
+            camera["image_circle"] = tuple(camera["image_circle"])
+        for key in ("offset", "saturation", "vignetting"):
+            if key in camera:
+                camera[key] = tuple(camera[key])
+        alignment = dict(data.get("alignment", {}))
+        if "shift_px" in alignment:
+            alignment["shift_px"] = tuple(alignment["shift_px"])
+        return Profile(sensor=str(sensor["name"]), leds=tuple(sensor["leds"]), alignment=Alignment(**alignment),
+                       camera=CameraProfile(**camera), reference=dict(data.get("reference", {})),
+                       phong=dict(data.get("phong", {})), fit=dict(data.get("fit", {})))
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{where}: malformed profile ({exc!r}); expected the tables sensor, alignment, camera, "
+                         "reference, fit (see scenes.profile)") from None
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+
+
+def load_profile(path: str | Path, spec: SensorSpec | None = None) -> Profile:
+    """Read a profile.toml, checked against ``spec`` when given."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"profile {path} does not exist") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"profile {path} is not valid TOML: {exc}") from None
+    profile = profile_from_dict(data, f"profile {path}")
+    return profile.check(spec) if spec is not None else profile
+
+
+def camera_response(linear: np.ndarray, camera: CameraProfile, falloff: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 3) linear image -> the real camera's image in [0, 1] (module doc);
+    ``falloff`` (H, W) the lens' V(r) and the image circle (0 outside), None: none."""
+    lin = np.asarray(linear, np.float64)
+    if falloff is not None:
+        lin = lin * falloff[..., None]
+    lin = np.clip(lin + np.asarray(camera.offset), 0.0, None)
+    if falloff is not None:
+        lin = np.where(falloff[..., None] > 0, lin, 0.0)
+    return np.minimum(lin ** (1.0 / camera.gamma), np.asarray(camera.saturation))
+
+
+def lens_falloff(camera: CameraProfile, shape: tuple[int, int], full_shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) V(r) inside the image circle and 0 outside, at ``shape``; the circle is in
+    pixels of ``full_shape`` (the camera's (H, W)). Without a circle, r is taken over the
+    frame's half diagonal and nothing is cut."""
+    h, w = shape
+    s = h / full_shape[0]
+    v, u = np.mgrid[0:h, 0:w]
+    if camera.image_circle is None:
+        cx, cy, radius = (full_shape[1] - 1) / 2, (full_shape[0] - 1) / 2, math.hypot(*full_shape) / 2
+    else:
+        cx, cy, radius = camera.image_circle
+    r = np.hypot(u - ((cx + 0.5) * s - 0.5), v - ((cy + 0.5) * s - 0.5)) / (radius * s)
+    inside = r <= 1.0 if camera.image_circle is not None else np.ones((h, w), bool)
+    return np.where(inside, camera.falloff(np.minimum(r, 1.0)), 0.0)

@@ -1,0 +1,269 @@
+"""Calibration: the sensor profile (scenes.profile) and the reference's image fit
+(pbr_tactile.calibrate), analytic cases first; one small end-to-end run with Mitsuba."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pbr_tactile import calibrate as cal
+from pbr_tactile.calibrate_cli import real_background
+from scenes.camera import Camera
+from scenes.profile import Alignment, CameraProfile, Profile, load_profile, write_profile
+from scenes.spec import default_spec
+
+
+@pytest.fixture(scope="module")
+def spec():
+    return default_spec()
+
+
+@pytest.fixture(scope="module")
+def camera(spec):
+    return Camera.from_spec(spec)
+
+
+def _profile(spec, **camera):
+    return Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds), alignment=Alignment(0.1, 1.05, (2, -3)),
+                   camera=CameraProfile(gamma=1.8, vignetting=(-0.3, 0.0), image_circle=(320, 240, 240), **camera),
+                   reference={"led_gains": [[1.0, 0.5, 0.2]] * 3}, fit={"converged": True})
+
+
+# -- the profile ----------------------------------------------------------------------------
+
+def test_profile_round_trip(tmp_path, spec):
+    profile = _profile(spec)
+    path = write_profile(profile, tmp_path / "profile.toml")
+    again = load_profile(path, spec)
+    assert again == profile
+
+
+def test_profile_for_another_sensor_is_refused(tmp_path, spec):
+    path = write_profile(_profile(spec), tmp_path / "profile.toml")
+    other = default_spec()
+    import dataclasses
+
+    other = dataclasses.replace(other, name="another")
+    with pytest.raises(ValueError, match="is for sensor"):
+        load_profile(path, other)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"gamma": 9.0}, "camera.gamma"),
+    ({"vignetting": (-2.0, 0.0)}, "relative illumination negative"),
+    ({"offset": (0.0, -0.1, 0.0)}, "camera.offset"),
+    ({"image_circle": (320.0, 240.0, -1.0)}, "radius must be > 0"),
+])
+def test_profile_out_of_physical_bounds_is_refused(change, message):
+    with pytest.raises(ValueError, match=message):
+        CameraProfile(**change)
+
+
+def test_corrupt_or_old_profile_is_refused(tmp_path, spec):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("this is = = not toml")
+    with pytest.raises(ValueError, match="not valid TOML"):
+        load_profile(bad)
+    path = write_profile(_profile(spec), tmp_path / "p.toml")
+    path.write_text(path.read_text().replace("version = 1", "version = 0"))
+    with pytest.raises(ValueError, match="version"):
+        load_profile(path)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_profile(tmp_path / "missing.toml")
+
+
+# -- the real image -----------------------------------------------------------------------
+
+def _disc(camera, centre=(322.0, 236.0), radius=230.0, value=0.5):
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    inside = np.hypot(u - centre[0], v - centre[1]) <= radius
+    return np.where(inside[..., None], value, 0.0) * np.ones(3)
+
+
+def test_image_circle_is_found(camera):
+    cx, cy, radius = cal.image_circle(_disc(camera))
+    assert abs(cx - 322) < 0.5 and abs(cy - 236) < 0.5 and abs(radius - 230) < 1.0
+    assert cal.image_circle(np.full((camera.height, camera.width, 3), 0.4)) is None
+
+
+def test_bad_real_images_are_refused(camera):
+    with pytest.raises(ValueError, match="640x480 RGB"):
+        cal.check_real(np.zeros((240, 320, 3)), camera)
+    with pytest.raises(ValueError, match="blank"):
+        cal.check_real(np.zeros((camera.height, camera.width, 3)), camera)
+    with pytest.raises(ValueError, match="saturated almost everywhere"):
+        cal.check_real(np.ones((camera.height, camera.width, 3)), camera)
+    nan = _disc(camera)
+    nan[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        cal.check_real(nan, camera)
+
+
+def test_real_background_inputs(tmp_path):
+    with pytest.raises(ValueError, match="exactly one"):
+        real_background(None, None)
+    with pytest.raises(ValueError, match="exactly one"):
+        real_background(str(tmp_path), "x.png")
+    with pytest.raises(FileNotFoundError, match="no dataset.json"):
+        real_background(str(tmp_path), None)
+    (tmp_path / "dataset.json").write_text(json.dumps({"source": "sim"}))
+    with pytest.raises(ValueError, match="source 'sim'"):
+        real_background(str(tmp_path), None)
+    (tmp_path / "dataset.json").write_text(json.dumps({"source": "real"}))
+    with pytest.raises(ValueError, match="no background.png"):
+        real_background(str(tmp_path), None)
+    (tmp_path / "background.png").write_bytes(b"")
+    assert real_background(str(tmp_path), None)[0] == tmp_path / "background.png"
+
+
+# -- the image model and its fit ------------------------------------------------------------
+
+def test_censored_gains_ignore_clipped_pixels_above_the_level():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(0, 1, (400, 2))
+    truth = np.array([0.9, 0.6])
+    y = X @ truth + 0.05
+    clipped = y >= cal.CLIP_LEVEL
+    assert 20 < clipped.sum() < 380
+    gains, offset = cal.solve_gains(X, np.minimum(y, cal.CLIP_LEVEL), clipped, gamma=1.0)
+    np.testing.assert_allclose(gains, truth, atol=1e-6)
+    assert abs(offset - 0.05) < 1e-6
+    naive, _ = cal.solve_gains(X, np.minimum(y, cal.CLIP_LEVEL), np.zeros_like(clipped), gamma=1.0)
+    assert np.abs(naive - truth).max() > 0.02  # without censoring the clip pulls the gains down
+
+
+def _synthetic_basis(h=60, w=80, camera=None):
+    """Smooth per-source images: each LED lights the rim near its azimuth, its leak the
+    middle ring; sources led0, led0_leak, led1, ..."""
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    s = h / camera.height
+    cx, cy = (camera.cx + 0.5) * s - 0.5, (camera.cy + 0.5) * s - 0.5
+    rho, phi = np.hypot(u - cx, v - cy) / (camera.mask_radius_px * s), np.arctan2(v - cy, u - cx)
+    images, names = [], []
+    for m, azimuth in enumerate((0.0, 2.1, 4.2)):
+        images.append((0.1 + rho**2) * (1.2 + np.cos(phi - azimuth)) ** 2)
+        images.append(np.exp(-((rho - 0.5) / 0.2) ** 2) * (1.1 + np.cos(phi - azimuth)))
+        names += [f"led{m}", f"led{m}_leak"]
+    return np.stack(images, -1), np.array(names)
+
+
+def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
+    A, names = _synthetic_basis(camera=camera)
+    circle = (321.0, 241.0, 236.0)
+    model = cal.ImageModel(A, names, camera, circle)
+    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.05, -0.08, 0.1), leak=(0.3, 0.5, 0.2), scale=1.05,
+                          shift_px=(6.0, -4.0), vignetting=(-0.4, 0.0), gamma=1.8)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
+    real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, cal.CLIP_LEVEL))
+    sector = cal.sector_index(real.shape[:2], (40, 30))
+    train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
+    fit = cal.ImageFitter(model, real, train).search(rotations=6)
+    assert fit.converged
+    pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
+    for c in range(2):
+        assert cal.r2(pred[..., c], real[..., c], test) > 0.99
+    # The three synthetic LEDs differ only in gains, so a turn by a third is the same
+    # sensor with its LEDs renamed: the rotation is known modulo 2 pi / 3, the LEDs'
+    # parameters up to that renaming.
+    turn = fit.nl.rotation_rad - truth.rotation_rad
+    shift = int(round(turn / (2 * math.pi / 3))) % 3
+    assert abs(math.remainder(turn, 2 * math.pi / 3)) < 0.05
+    assert abs(fit.nl.gamma - 1.8) < 0.1
+    assert abs(fit.nl.scale - 1.05) < 0.02
+    np.testing.assert_allclose(np.roll(fit.nl.leak, shift), truth.leak, atol=0.08)
+
+
+def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
+    A, names = _synthetic_basis(camera=camera)
+    model = cal.ImageModel(A, names, camera, None)
+    rng = np.random.default_rng(1)
+    real = rng.uniform(0.2, 0.8, (A.shape[0], A.shape[1], 3))  # no structure the model can follow
+    fitter = cal.ImageFitter(model, real, model.inside)
+    fit = fitter.fit(cal.Nonlinear.start(3), max_evaluations=3)
+    assert not fit.converged
+
+
+# -- end to end, with Mitsuba ---------------------------------------------------------------
+
+@pytest.mark.slow
+def test_calibrate_background_end_to_end(tmp_path, spec, camera):
+    pytest.importorskip("mitsuba")
+    from pbr_tactile.calibrate_cli import write_outputs
+    from scenes.geometry import membrane_mesh
+
+    mesh = membrane_mesh(spec)
+    effects_grid = {"absorption_per_m": (20.0,), "scattering_per_m": (50.0,)}
+    # a "real" sensor: the reference itself, rendered with other seeds, turned and gained
+    basis = cal.emitter_basis(spec, mesh, camera, cal.Effects(core_light_leak=0.5), (40, 30), photons=1 << 12,
+                              spp=4, passes=2, seed=7, use_cache=False)
+    circle = (320.0, 240.0, 240.0)
+    model = cal.ImageModel(basis["mean"], basis["names"], camera, circle)
+    truth = cal.Nonlinear(0.4, (0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 1.0, (0.0, 0.0), (-0.2, 0.0), 2.0)
+    gains = np.full((3, 3), 0.5 / np.percentile(basis["mean"], 90))
+    real_small = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    real = np.repeat(np.repeat(real_small, 16, axis=0), 16, axis=1)
+    real *= (cal.image_circle(np.where(_disc(camera, (320, 240), 240) > 0, 1.0, 0.0)) is not None)
+    result = cal.calibrate_background(real, spec, mesh, camera, film=(40, 30), grid=effects_grid, photons=1 << 12,
+                                      spp=4, passes=2, seed=0, bootstrap=2, use_cache=False)
+    paths = write_outputs(result, tmp_path, "a synthetic image")
+    report = json.loads(paths["report"].read_text())
+    assert set(report["heldout_r2"]) == {"r", "g", "b"} and set(report["saturated"]) == {"r", "g", "b"}
+    assert report["heldout_r2"]["g"] > 0.5
+    assert (tmp_path / "report.html").exists() and (tmp_path / "residual.npy").exists()
+    assert report["converged"], report
+    assert load_profile(paths["profile"], spec).camera.image_circle is not None
+
+    # the profile renders: a no-contact frame of the calibrated sensor
+    from scenes.cli import main
+    from scenes.images import read_rgb
+
+    depth = tmp_path / "ref.npy"
+    from scenes.camera import reference_depth
+
+    np.save(depth, reference_depth(mesh, camera)[0])
+    code = main(["reference", str(depth), "--ref-depth", str(depth), "--profile", str(paths["profile"]), "--width",
+                 "40", "--height", "30", "--spp", "4", "--passes", "2", "--photons", "4096", "--out",
+                 str(tmp_path / "frame")])
+    assert code == 0
+    frame = read_rgb(tmp_path / "frame.png")
+    assert frame.shape == (30, 40, 3) and frame[15, 20].max() > 0 and frame[0, 0].max() == 0  # circle cut
+    assert np.load(tmp_path / "frame.npy").shape == (30, 40, 6)  # one linear image per source
+
+
+# -- the blind benchmark's scoring ------------------------------------------------------------
+
+def test_benchmark_scoring_forgives_only_the_led_renaming():
+    from pbr_tactile.calibrate_bench import _errors
+
+    truth = cal.Nonlinear(0.3, (0.01, -0.02, 0.03), (0.2, 0.4, 0.0), 1.02, (3.0, -2.0), (-0.3, 0.0), 2.0)
+    gains = np.array([[0.9, 0.2, 0.3], [0.1, 0.8, 0.2], [0.3, 0.3, 0.7]])
+    effects = {"absorption_per_m": 20.0}
+    k = 1  # the fit turned by one LED spacing: its LED j is the true LED j + 1
+    perm = [(j + k) % 3 for j in range(3)]
+    fit = {"rotation_rad": 0.3 + 2 * math.pi / 3, "gamma": 2.0, "scale": 1.02, "shift_px": [3.0, -2.0],
+           "vignetting": [-0.3, 0.0], "led_leak": [truth.leak[p] for p in perm],
+           "led_gains": gains[perm] * 5.0, "effects": effects}
+    errors = _errors(fit, truth, gains, effects, 3)
+    assert max(errors.values()) < 1e-9
+    fit["led_gains"] = gains * 5.0  # not renamed: the gains no longer match
+    assert max(_errors(fit, truth, gains, effects, 3).values()) > 0.5
+
+
+def test_calibrate_command_refuses_bad_input(tmp_path, capsys):
+    from scenes.cli import main
+    from scenes.images import write_rgb
+
+    assert main(["calibrate", "--out", str(tmp_path / "o")]) == 1
+    assert "exactly one of REAL" in capsys.readouterr().err
+    small = tmp_path / "small.png"
+    write_rgb(small, np.full((240, 320, 3), 0.5, np.float32))
+    assert main(["calibrate", "--background-only", str(small), "--out", str(tmp_path / "o")]) == 1
+    assert "must be 640x480" in capsys.readouterr().err
+    assert main(["calibrate", "benchmark", "--out", str(tmp_path / "o")]) == 1
+    assert "needs --json" in capsys.readouterr().err
+    assert main(["calibrate", "--background-only", str(small), "--cases", "2", "--out", str(tmp_path / "o")]) == 1
+    assert "--cases is an option of" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "profile.toml").exists()
