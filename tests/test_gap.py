@@ -158,6 +158,42 @@ def test_catalogue_names_and_identity(spec):
 # --- the decomposed simulator --------------------------------------------------------------
 
 
+def test_phong_terms_by_hand_and_shade_composes_them():
+    """On the axis, N = V = (0, 0, -1): light at angle t from N gives L . N = cos t and
+    R . V = 2 cos t - cos t = cos t; from behind the surface L . N clamps to 0 and
+    R . V = -L . V = -cos t. shade is exactly the composition of those terms."""
+    from phong_reference.phong import compose, led_intensities, shade, shading_terms
+    from scenes.spec import LED, Material
+
+    t = np.array([0.0, 0.6, 2.0])  # the last comes from behind the surface: clamped to 0
+    P = np.tile(np.array([0.0, 0.0, 0.02], np.float32)[:, None], (1, 3))
+    N = np.tile(np.array([0.0, 0.0, -1.0], np.float32)[:, None], (1, 3))
+    L = np.stack([np.sin(t), 0 * t, -np.cos(t)]).astype(np.float32)[None]
+    background = np.full((3, 3), 0.2, np.float32)
+    material = Material(ambient=0.5, shininess=3.0)
+    terms = shading_terms(P, N, L, material, background)
+    cos = np.maximum(np.cos(t), 0)
+    RV = np.abs(np.cos(t))
+    assert terms.LN[0] == pytest.approx(cos, abs=1e-6) and terms.RV[0] == pytest.approx(RV, abs=1e-6)
+    assert terms.specular[0] == pytest.approx(RV**3, abs=1e-6) and terms.ambient == pytest.approx(0.1)
+    assert terms.LN.dtype == np.float32
+    led = LED("l", (0, 0, 0), (0, 0, 1), (1.0, 0.5, 0.25), k_d=0.9, k_s=0.3)
+    composed = compose(led_intensities(terms, [0.9], [0.3]), [led.colour], terms.ambient)
+    assert np.array_equal(composed, shade(P, N, L, [led], material, background))
+    assert composed[:, 1] == pytest.approx(0.1 + (0.9 * cos[1] + 0.3 * cos[1] ** 3) * np.array([1, 0.5, 0.25]))
+
+
+def test_model_shades_with_the_fast_paths_own_terms(spec, contacts):
+    """The diagnosis' model takes its per-LED terms from phong_reference, not a copy."""
+    from phong_reference.phong import shading_terms
+
+    model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4)
+    g = model.geometry(model.working_depth(contacts[:1])[0])
+    expected = shading_terms(g["P"], g["N"], model.L, spec.material, model.B.transpose(2, 0, 1))
+    for got, want in zip(g["terms"], expected):
+        assert np.array_equal(got, want)
+
+
 def test_model_reproduces_the_fast_path_and_identity_changes_nothing(spec, sim_images, contacts):
     model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=1)
     for i in (0, 3):
@@ -268,6 +304,35 @@ def test_benchmark_scoring():
     s = score(["misalignment", "led_spectrum"], report)
     assert not s["top1"] and not s["top3"]
     assert not score(["vignetting"], {**report, "ranking": []})["top1"]
+
+
+def test_stratified_benchmark_covers_every_cell_and_scores_it():
+    from studies.gap.benchmark import (
+        STRATIFIED_BACKGROUNDS,
+        _draw_stratified,
+        stratified_cells,
+        stratify,
+    )
+    from studies.gap.inject import EFFECTS
+
+    cells = stratified_cells()
+    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS)
+    draws = [_draw_stratified(case, case, 100, 10, 0.5) for case in range(len(cells))]
+    assert {(d["hidden"][0], d["background"]) for d in draws} == set(cells)
+    assert all(d["strength"] == 0.5 and len(d["samples"]) == 10 for d in draws)
+    results = [{"hidden": ["vignetting"], "background": "none", "top1": True, "shrink": 0.8, "shrink_top1": 0.7,
+                "noise_share": 0.0},
+               {"hidden": ["vignetting"], "background": "none", "top1": False, "shrink": 0.4, "shrink_top1": 0.3,
+                "noise_share": 0.0},
+               {"hidden": ["vignetting"], "background": "solid", "top1": True, "shrink": 0.9, "shrink_top1": 0.9,
+                "noise_share": 0.0},
+               {"hidden": ["blur_noise"], "background": "none", "top1": True, "shrink": 0.1, "shrink_top1": 0.1,
+                "noise_share": 0.8}]
+    out = stratify(results, 0.5)
+    assert out["per_cell"]["vignetting"]["none"] == {"cases": 2, "top1": 0.5, "shrink": pytest.approx(0.6),
+                                                     "shrink_top1": pytest.approx(0.5), "noise_share": 0.0}
+    assert out["min_cell_shrink"] == pytest.approx(0.6) and out["min_cell"] == "vignetting x none"
+    assert list(out["noise_cells"]) == ["blur_noise x none"] and "80%" in out["noise_cells"]["blur_noise x none"]
 
 
 def test_sector_areas_partition_the_image_circle(camera):

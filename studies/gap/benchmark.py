@@ -13,6 +13,12 @@ The diagnosis sees only the two dataset folders. A case is scored on
 The contacts come from the MuJoCo tapping rig (the base protocol, all eight indenters),
 captured once; each case draws its own subset of them, its hidden effects, their
 strengths and the simulator's background (none or solid) from its seed.
+
+``stratified=True`` covers the grid instead: every effect alone on every background
+(none, solid, and the real no-contact capture of the published data), at one known
+strength, and scores each cell (``per_cell``) and the worst cell's share closed
+(``min_cell_shrink``), leaving out the cells whose gap is mostly sensor noise, which no
+prediction can remove (``noise_cells``).
 """
 
 from __future__ import annotations
@@ -32,6 +38,24 @@ from scenes.spec import SensorSpec, default_spec
 #: Chance that a case hides two effects rather than one.
 TWO_EFFECTS = 0.4
 BACKGROUNDS = ("none", "solid")
+#: The backgrounds of a stratified run; "real" is the published real no-contact capture.
+STRATIFIED_BACKGROUNDS = ("none", "solid", "real")
+#: Strength of the hidden effect in a stratified run (``inject``'s scale: 0 weak but
+#: clearly visible, 1 strong).
+STRATIFIED_STRENGTH = 0.5
+#: A cell's gap is noise-only when the estimated sensor-noise MAE floor is at least this
+#: share of it: then no prediction can close half of it.
+NOISE_ONLY_SHARE = 0.5
+
+
+def real_background() -> Path:
+    """The real no-contact capture of the published GelTip data (``real/bkg.png``)."""
+    from scenes.reference_data import require_reference_dir
+
+    path = require_reference_dir() / "real" / "bkg.png"
+    if not path.is_file():
+        raise FileNotFoundError(f"the real no-contact image {path} is missing from the reference data")
+    return path
 
 
 def contacts(root: Path, spec: SensorSpec, progress: bool = True) -> Path:
@@ -54,20 +78,44 @@ def _draw(case_seed: int, n_available: int, pairs: int) -> dict:
     count = 2 if rng.random() < TWO_EFFECTS else 1
     hidden = [str(e) for e in rng.choice(EFFECTS, size=count, replace=False)]
     chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
-    return {"hidden": hidden, "samples": chosen, "background": str(rng.choice(BACKGROUNDS)), "rng": rng}
+    return {"hidden": hidden, "samples": chosen, "background": str(rng.choice(BACKGROUNDS)), "rng": rng,
+            "strength": None}
 
 
-def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, pairs: int) -> dict:
-    """Write one case's real and simulated datasets; returns what was hidden."""
+def stratified_cells() -> list[tuple[str, str]]:
+    """(effect, background) for every effect of the injector on every background."""
+    from .inject import EFFECTS
+
+    return [(effect, background) for background in STRATIFIED_BACKGROUNDS for effect in EFFECTS]
+
+
+def _draw_stratified(case: int, case_seed: int, n_available: int, pairs: int, strength: float) -> dict:
+    cells = stratified_cells()
+    effect, background = cells[case % len(cells)]
+    rng = np.random.default_rng(case_seed)
+    chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
+    return {"hidden": [effect], "samples": chosen, "background": background, "rng": rng, "strength": strength}
+
+
+def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, pairs: int,
+              stratified_strength: float | None = None) -> dict:
+    """Write one case's real and simulated datasets; returns what was hidden.
+
+    stratified_strength : None, a random case (``_draw``); else the case-th cell of
+        ``stratified_cells`` with its effect at this strength.
+    """
     from .inject import Injector
 
     meta = read_meta(base)
     records = read_samples(base)
-    draw = _draw(seed * 100_003 + case, len(records), pairs)
+    case_seed = seed * 100_003 + case
+    draw = (_draw(case_seed, len(records), pairs) if stratified_strength is None
+            else _draw_stratified(case, case_seed, len(records), pairs, stratified_strength))
     rng = draw["rng"]
-    injector = Injector(spec, field="plane", background=draw["background"])
-    injections = [injector.sample(effect, rng) for effect in draw["hidden"]]
-    renderer = {**meta["renderer"], "background": draw["background"]}
+    background = str(real_background()) if draw["background"] == "real" else draw["background"]
+    injector = Injector(spec, field="plane", background=background)
+    injections = [injector.sample(effect, rng, draw["strength"]) for effect in draw["hidden"]]
+    renderer = {**meta["renderer"], "background": background}
     protocol = json.loads((base / "protocol.json").read_text())
     chosen = [records[i] for i in draw["samples"]]
     for source in ("real", "sim"):
@@ -96,7 +144,10 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
 
 def score(hidden: list[str], report: dict) -> dict:
     ranking = report["ranking"]
+    gap = float(report["gap"]["heldout"]["masked"]["mae"]["mean"]) if "gap" in report else 0.0
+    noise = float(report["noise"]["mae_floor"]) if "noise" in report else 0.0
     return {"top1": bool(ranking) and ranking[0] in hidden,
+            "noise_share": noise / gap if gap > 0 else 0.0,
             "top3": bool(ranking) and all(h in ranking[:3] for h in hidden),
             "shrink": float(report["explained"]["share_closed"]["masked"]),
             "shrink_top1": (float(report["effects"][ranking[0]]["share_closed"]["masked"]) if ranking else 0.0),
@@ -104,8 +155,14 @@ def score(hidden: list[str], report: dict) -> dict:
 
 
 def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None, pairs: int = 48,
-                  progress: bool = True, spec: SensorSpec | None = None, factor: int = 2) -> dict:
-    """Build ``cases`` blind cases, diagnose each, and score them."""
+                  progress: bool = True, spec: SensorSpec | None = None, factor: int = 2,
+                  stratified: bool = False, strength: float = STRATIFIED_STRENGTH) -> dict:
+    """Build ``cases`` blind cases, diagnose each, and score them.
+
+    stratified : cover every (effect, background) cell of ``stratified_cells`` in turn, each
+        effect alone at ``strength``; ``cases`` None or below the number of cells: one
+        case per cell.
+    """
     from tqdm import tqdm
 
     from .diagnose import diagnose
@@ -113,6 +170,11 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
     from .report import write_json
 
     spec = default_spec() if spec is None else spec
+    if stratified:
+        if not 0.0 <= strength <= 1.0:
+            raise ValueError(f"strength must be in [0, 1], got {strength}")
+        real_background()  # fail now, naming where it looked, rather than at the first real case
+        cases = max(int(cases or 0), len(stratified_cells()))
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-") as tmp:
         root = Path(work) if work is not None else Path(tmp)
@@ -122,14 +184,56 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
         bar = tqdm(range(cases), desc="benchmark cases", unit="case", disable=not progress)
         for case in bar:
             folder = root / f"case_{seed}_{case:03d}"
-            truth = make_case(folder, base, spec, case, seed, pairs)
+            truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None)
             t_case = time.perf_counter()
             report, _ = diagnose(load_pairs(folder / "real", folder / "sim"), seed=seed, factor=factor)
             write_json(folder / "report.json", report)
             results.append({"case": case, **truth, **score(truth["hidden"], report),
+                            "stopped_at_start": sorted(report.get("stopped_at_start", {})),
                             "seconds": time.perf_counter() - t_case})
             bar.set_postfix(top1=f"{np.mean([r['top1'] for r in results]):.2f}")
-    return summarise(results, seed, pairs, time.perf_counter() - t0)
+    out = summarise(results, seed, pairs, time.perf_counter() - t0)
+    out["factor"] = factor
+    if stratified:
+        out.update(stratify(results, strength))
+    return out
+
+
+def stratify(results: list[dict], strength: float) -> dict:
+    """Per (effect, background) cell: cases, top-1 share, mean share closed; the worst
+    cell's share closed over the cells whose gap is not mostly noise."""
+    cells: dict[str, dict[str, dict]] = {}
+    for r in results:
+        for effect in r["hidden"]:
+            c = cells.setdefault(effect, {}).setdefault(r["background"], {"cases": 0, "top1": [], "shrink": [],
+                                                                            "shrink_top1": [], "noise_share": []})
+            c["cases"] += 1
+            for key in ("top1", "shrink", "shrink_top1", "noise_share"):
+                c[key].append(float(r[key]))
+    noise_cells, kept = {}, []
+    for effect, row in cells.items():
+        for background, c in row.items():
+            for key in ("top1", "shrink", "shrink_top1", "noise_share"):
+                c[key] = float(np.mean(c[key]))
+            if c["noise_share"] >= NOISE_ONLY_SHARE:
+                noise_cells[f"{effect} x {background}"] = (
+                    f"the estimated sensor-noise MAE floor is {100 * c['noise_share']:.0f}% of the held-out gap")
+            else:
+                kept.append(c["shrink"])
+    worst = min(((e, b, c["shrink"]) for e, row in cells.items() for b, c in row.items()
+                 if f"{e} x {b}" not in noise_cells), key=lambda t: t[2], default=None)
+    return {"stratified": True, "strength": strength, "backgrounds": list(STRATIFIED_BACKGROUNDS),
+            "per_cell": {e: dict(sorted(row.items())) for e, row in sorted(cells.items())},
+            "min_cell_shrink": float(min(kept)) if kept else 0.0,
+            "min_cell": None if worst is None else f"{worst[0]} x {worst[1]}",
+            "noise_cells": noise_cells,
+            "cell_definitions": {
+                "top1": "share of the cell's cases whose first ranked effect is the hidden one",
+                "shrink": "mean share of the held-out masked MAE gap closed by the selected combination",
+                "shrink_top1": "mean share closed by the first ranked effect alone",
+                "noise_share": "estimated sensor-noise MAE floor / held-out masked MAE gap",
+                "min_cell_shrink": f"smallest cell shrink, over cells whose noise_share is below {NOISE_ONLY_SHARE} "
+                                   "(noise cannot be predicted, so those gaps cannot close; listed in noise_cells)"}}
 
 
 def summarise(results: list[dict], seed: int, pairs: int, seconds: float) -> dict:

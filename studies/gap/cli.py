@@ -59,13 +59,15 @@ def cmd_benchmark(args) -> int:
     from .benchmark import run_benchmark
 
     result = run_benchmark(cases=args.cases, seed=args.seed, work=args.work, pairs=args.pairs,
-                           progress=not args.quiet)
+                           progress=not args.quiet, factor=args.factor, stratified=args.stratified)
     from pathlib import Path
 
     from .report import write_json
 
     write_json(Path(args.json), result)
-    print(json.dumps({k: result[k] for k in ("cases", "top1", "top3", "mean_heldout_shrink")}, indent=1))
+    keys = ("cases", "top1", "top3", "mean_heldout_shrink") + (
+        ("min_cell_shrink", "min_cell", "noise_cells") if args.stratified else ())
+    print(json.dumps({k: result[k] for k in keys}, indent=1))
     if result["failed"]:
         print(f"failed cases: {', '.join(str(c['case']) for c in result['failed'])}")
     return 0
@@ -101,6 +103,9 @@ def register(registry) -> None:
     p.add_argument("--pairs", type=_positive, default=48, help="benchmark: pairs per case (default 48)")
     p.add_argument("--work", metavar="DIR", default=None, help="benchmark: keep the case datasets here")
     p.add_argument("--json", metavar="PATH", default=None, help="benchmark: where to write the results")
+    p.add_argument("--stratified", action="store_true",
+                   help="benchmark: every effect alone on every background (none, solid, real) at strength 0.5, "
+                        "at least one case per cell (--cases below 36 means 36); adds per_cell and min_cell_shrink")
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
     b.add_argument("--pairs", type=_positive, default=144, help="pairs (default 144, the base protocol)")
     b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")

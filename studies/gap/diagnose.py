@@ -30,6 +30,9 @@ from .regions import error_maps, where
 def _judged(j: Judged) -> dict:
     return {"effects": list(j.fit.effects), "params": j.fit.params,
             "train_mse": {"before": j.fit.train_mse_before, "after": j.fit.train_mse},
+            "train_loss": {"before": j.fit.train_loss_before, "after": j.fit.train_loss,
+                           "what": "the fitted loss: smooth MAE over the image circle (Charbonnier, eps one 8-bit level)"},
+            "fit_status": j.fit.status,
             "fit_seconds": j.fit.seconds, "evaluations": j.fit.evaluations,
             "heldout": {"after": metrics.summarise(j.after), "improvement": j.improvement},
             "significant": j.significant, "share_closed": {k: j.improvement[k]["mae"]["share"] for k in j.improvement}}
@@ -94,6 +97,10 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
         "not_applicable": diagnosis.not_applicable,
         "ranking": ranked,
         "not_significant": [n for n in singles if n not in ranked],
+        # Fits whose search ended where it started while leaving most of the gap, and what
+        # the check around the start found (a local optimum, or a restart that moved on).
+        "stopped_at_start": {n: j.fit.status["note"] for n, j in singles.items()
+                             if j.fit.status.get("stopped_at_start")},
         "selection": [{"added": s.added, **_judged(s)} for s in steps],
         "explained": {"effects": list(final.fit.effects) if final else [],
                       "share_closed": ({k: final.improvement[k]["mae"]["share"] for k in final.improvement}

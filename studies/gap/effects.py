@@ -15,7 +15,8 @@ The functions here are pure array functions, in the simulator's order:
    lambda)^2)), ``led_spectrum`` (each LED's peak shifted and its power scaled, seen
    through the camera's spectral response);
 3. optics and sensor: ``misalignment`` and ``lens_distortion`` (one resampling of the
-   image), ``vignetting`` (1 / (1 + a r^2 + b r^4)), ``blur_noise`` (Gaussian blur; the
+   image; a misalignment moves the membrane's image under the lens's fixed image circle
+   and background, or, at ``frame_share`` 1, the whole frame), ``vignetting`` (1 / (1 + a r^2 + b r^4)), ``blur_noise`` (Gaussian blur; the
    noise is estimated, not added, since a prediction is a mean), ``camera_response``
    (white balance, colour cross-talk, gamma).
 """
@@ -109,7 +110,10 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
         Effect("misalignment", "optics", (
             Param("du_px", -60.0, 60.0, 0.0, "px", "shift, columns"), Param("dv_px", -60.0, 60.0, 0.0, "px", "shift, rows"),
             Param("rotation_rad", -math.pi, math.pi, 0.0, "rad", "rotation about the image centre"),
-            Param("scale", 0.7, 1.4, 1.0, "-", "magnification")),
+            Param("scale", 0.7, 1.4, 1.0, "-", "magnification"),
+            Param("frame_share", 0.0, 1.0, 0.0, "-",
+                  "share of the move that carries the image circle and the background too (0: the membrane and "
+                  "LEDs turned against the camera, whose circle stays put; 1: the image itself moved)")),
             "real and simulated frames not registered"),
         Effect("blur_noise", "optics", (
             Param("sigma_px", 0.0, 6.0, 0.0, "px", "Gaussian blur at full resolution"),),
@@ -249,6 +253,23 @@ def source_coordinates(shape: tuple[int, int], f: float, centre: tuple[float, fl
         sc = misalignment["scale"]
         x, y = sc * (c * x - s * y) + misalignment["du_px"], sc * (s * x + c * y) + misalignment["dv_px"]
     return np.stack([y + cv, x + cu])
+
+
+def misalign_membrane(images: np.ndarray, coords: np.ndarray, fixed: np.ndarray, circle: np.ndarray,
+                      frame_share: float) -> np.ndarray:
+    """Images whose membrane moved against the camera: the part that belongs to the
+    membrane and LEDs, images - fixed, is resampled at ``coords`` and seen through the
+    fixed image ``circle``, while ``fixed`` (what the camera and lens add: the background
+    term of a real no-contact capture, already in the real frame) stays put; blended with
+    the whole frame resampled, by ``frame_share``.
+
+    images : (N, H, W, 3); coords : (2, H, W) as ``source_coordinates``; fixed : (H, W, 3)
+    linear RGB; circle : (H, W) in [0, 1], the share of each pixel inside the image circle.
+    """
+    moved = fixed + resample(images - fixed, coords) * circle[..., None]
+    if frame_share <= 0.0:
+        return moved
+    return ((1.0 - frame_share) * moved + frame_share * resample(images, coords)).astype(np.float32)
 
 
 def resample(images: np.ndarray, coords: np.ndarray) -> np.ndarray:

@@ -2,11 +2,18 @@
 and select combinations greedily.
 
 Each effect's parameters are fitted by bounded quasi-Newton (scipy's L-BFGS-B on
-parameters scaled to [0, 1]) minimising the mean squared error between the real images
-and the predicted ones over the training samples, at the working resolution, from a few
-starting points (phase correlation for shifts, small grids where the loss has several
-basins). The fitted effect is then judged on held-out samples only, at full resolution:
-the paired improvement of each sample's MAE, SSIM and PSNR, with bootstrap confidence
+parameters scaled to [0, 1]) minimising a smooth mean absolute error between the real
+images and the predicted ones over the training samples, at the working resolution (the
+held-out judgement is an MAE too: a squared error would let an effect trade many small
+errors for a few large ones and win the fit while losing the judgement). Fits start from
+the best of a few starting points: closed-form ones where the effect is linear in its
+parameters for a fixed exponent (white-balance gains per gamma, vignetting coefficients),
+registration for shifts and rotations, small grids where the loss has several basins. A
+fit that leaves most of the training gap without having moved from its start (a kink or
+flat spot where finite-difference gradients mislead L-BFGS-B) probes a step either side
+of it along each parameter and restarts from the best probe, and its status says so.
+The fitted effect is then judged on held-out samples only, at full resolution: the
+paired improvement of each sample's MAE, SSIM and PSNR, with bootstrap confidence
 intervals. Effects whose MAE improvement is not significant (interval reaching 0) are
 reported as such and not ranked. Forward selection then adds, one at a time, the effect
 that most improves the held-out MAE of the combination fitted jointly, while the step's
@@ -30,7 +37,21 @@ from .pairs import Pairs
 #: Ranking metric: the masked MAE (the image circle; the black border holds no signal).
 RANK_BY = ("masked", "mae")
 #: At most this many L-BFGS-B iterations per fit.
-MAX_ITERATIONS = 40
+MAX_ITERATIONS = 100
+#: The fitted loss: mean of sqrt(e^2 + eps^2) - eps (Charbonnier), an MAE that is smooth
+#: within one 8-bit level of zero.
+LOSS_EPS = 1.0 / 255
+#: A fit "stopped at its start" when no scaled parameter moved by more than this ...
+STUCK_MOVE = 0.01
+#: ... while it still leaves more than this share of the training loss.
+STUCK_LEFT = 0.5
+#: A stuck fit probes this far (scaled units) either side of its start along each
+#: parameter, and restarts L-BFGS-B from the best probe that beats it.
+PROBE_STEP = 0.05
+#: At most this many probe-and-restart rounds.
+PROBE_ROUNDS = 3
+#: Gammas at which closed-form white-balance gains start camera_response fits.
+START_GAMMAS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5)
 #: Fits stop when an iteration lowers the loss by less than this fraction.
 FTOL = 1e-4
 #: Fits use at most this many training samples (an even spread over objects): a few
@@ -57,6 +78,11 @@ class Fit:
     train_mse_before: float
     evaluations: int
     seconds: float
+    train_loss: float = float("nan")  # the fitted loss (smooth MAE), after
+    train_loss_before: float = float("nan")  # and before
+    #: how the search ended: optimizer, message, iterations, start_loss, moved (largest
+    #: scaled parameter change from the start), stopped_at_start, retried, note
+    status: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -123,6 +149,7 @@ class Diagnosis:
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
         self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h)
         self.train_mse_before = self._mse(self.sim_w)
+        self.train_loss_before = self._loss(self.sim_w)
 
     def _not_applicable(self, renderer: dict) -> dict[str, str]:
         out = {}
@@ -146,6 +173,16 @@ class Diagnosis:
         err = pred[:, rows, cols] - self.real_w[:, rows, cols]
         err *= self._box_mask
         return float(np.einsum("nhwc,nhwc->", err, err, dtype=np.float64)) / self._box_count
+
+    def _loss(self, pred: np.ndarray) -> float:
+        """The fitted loss: the smooth MAE (``LOSS_EPS``) over the training samples' circle."""
+        rows, cols = self._box
+        err = pred[:, rows, cols] - self.real_w[:, rows, cols]
+        err *= err
+        # sqrt(e^2 + eps^2) - eps, written so that it is exactly 0 at e = 0 in float32
+        err /= np.sqrt(err + np.float32(LOSS_EPS * LOSS_EPS)) + np.float32(LOSS_EPS)
+        err *= self._box_mask
+        return float(err.sum(dtype=np.float64)) / self._box_count
 
     def predict_train(self, params: dict) -> np.ndarray:
         return self.work.predict(self.sim_w, self.depth_w, params, keys=self.train_index)
@@ -192,31 +229,85 @@ class Diagnosis:
         if name == "coating_gloss":
             return [{**base, "shininess": s} for s in (8.0, 30.0, 100.0)]
         if name == "camera_response":
-            return [{**base, "gamma": g} for g in (0.7, 1.0, 1.4)]
+            return self._response_starts(base)
+        if name == "vignetting":
+            return [base, self._vignetting_start(base)]
         return [base]
+
+    def _pixels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 3) simulated and real training colours inside the circle, where neither is
+        clipped (the closed-form starts' data)."""
+        inside = np.broadcast_to(self._box_mask[..., 0] > 0, self._box_mask.shape[:-1])
+        rows, cols = self._box
+        sim, real = self.sim_w[:, rows, cols][inside], self.real_w[:, rows, cols][inside]
+        keep = (sim.max(axis=1) < 0.99) & (real.max(axis=1) < 0.99) & (sim.min(axis=1) > 0.004)
+        return sim[keep].astype(np.float64), real[keep].astype(np.float64)
+
+    def _response_starts(self, base: dict) -> list[dict]:
+        """Per gamma of ``START_GAMMAS``, the white-balance gains in closed form: out =
+        (g in)^(1/gamma) makes real^gamma = g sim per channel, a least-squares line through
+        the origin, g_c = sum(s_c r_c^gamma) / sum(s_c^2)."""
+        sim, real = self._pixels()
+        if len(sim) < 16:
+            return [{**base, "gamma": g} for g in (0.7, 1.0, 1.4)]
+        bounds = {p.name: (p.low, p.high) for p in self.catalogue["camera_response"].params}
+        out = []
+        for gamma in START_GAMMAS:
+            gains = (sim * real**gamma).sum(axis=0) / np.maximum((sim * sim).sum(axis=0), 1e-12)
+            start = {**base, "gamma": gamma, "crosstalk": 0.0}
+            for c, g in zip("rgb", gains):
+                start[f"gain_{c}"] = float(np.clip(g, *bounds[f"gain_{c}"]))
+            out.append(start)
+        return out
+
+    def _vignetting_start(self, base: dict) -> dict:
+        """a, b in closed form about the image centre: real = sim / (1 + a r^2 + b r^4)
+        makes sim / real - 1 = a r^2 + b r^4, least squares over the training pixels."""
+        rows, cols = self._box
+        h, w = self.work.camera.shape
+        v, u = np.mgrid[0:h, 0:w][:, rows, cols]
+        r2 = ((u - self.work.camera.cx) ** 2 + (v - self.work.camera.cy) ** 2) / self.work.camera.f**2
+        inside = self._box_mask[..., 0] > 0
+        sim = self.sim_w[:, rows, cols].mean(axis=-1)
+        real = self.real_w[:, rows, cols].mean(axis=-1)
+        keep = inside & (sim > 0.05) & (real > 0.05) & (sim < 0.99) & (real < 0.99)
+        if keep.sum() < 16:
+            return base
+        r2 = np.broadcast_to(r2, keep.shape)[keep]
+        A = np.stack([r2, r2 * r2], axis=1)
+        (a, b), *_ = np.linalg.lstsq(A, sim[keep] / real[keep] - 1.0, rcond=None)
+        p = {q.name: q for q in self.catalogue["vignetting"].params}
+        return {**base, "a": float(np.clip(a, p["a"].low, p["a"].high)), "b": float(np.clip(b, p["b"].low, p["b"].high))}
 
     def _misalignment_starts(self, base: dict) -> list[dict]:
         """Rotation from a coarse grid (every 10 degrees, then 1 degree around the best)
         and shift by phase correlation, both on the mean images of the fitting samples
-        (one image, so the search is cheap); the best is refined on every sample."""
+        (one image, so the search is cheap), for the membrane moving under a fixed image
+        circle and for the whole frame moving (``frame_share`` 0 and 1); the best are
+        refined on every sample. Registration compares what the simulated background
+        does not explain (image - ``FastModel.fixed``), so that a real no-contact
+        background, registered already, does not pin the search at the identity."""
+        fixed = self.work.fixed
         real = self.real_w.mean(axis=0)
         sim = self.sim_w.mean(axis=0)[None]
 
-        def registered(angle: float) -> tuple[float, dict]:
-            params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0}
+        def registered(angle: float, share: float) -> tuple[float, dict]:
+            params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0, "frame_share": share}
             rotated = self.work.optics(sim, {"misalignment": params})[0]
-            shift, _, _ = phase_cross_correlation(real.mean(-1), rotated.mean(-1), upsample_factor=4,
-                                                  normalization=None)
+            shift, _, _ = phase_cross_correlation((real - fixed).mean(-1), (rotated - fixed).mean(-1),
+                                                  upsample_factor=4, normalization=None)
             # The model samples the simulated frame at x + (du, dv), full-resolution pixels.
             du, dv = (float(np.clip(-v * self.work.factor, -59.0, 59.0)) for v in (shift[1], shift[0]))
             params.update(du_px=du, dv_px=dv)
             pred = self.work.optics(sim, {"misalignment": params})[0]
-            return float(np.mean(np.square(pred - real)[self.mask_w])), params
+            return float(np.mean(np.abs(pred - real)[self.mask_w])), params
 
-        coarse = [registered(a) for a in np.deg2rad(np.arange(-180, 180, 10))]
-        best = min(coarse, key=lambda t: t[0])[1]["rotation_rad"]
-        fine = [registered(best + a) for a in np.deg2rad(np.arange(-4, 5, 1))]
-        return [p for _, p in sorted(fine + coarse, key=lambda t: t[0])[:3]]
+        found = []
+        for share in (0.0, 1.0):
+            coarse = [registered(a, share) for a in np.deg2rad(np.arange(-180, 180, 10))]
+            best = min(coarse, key=lambda t: t[0])[1]["rotation_rad"]
+            found += coarse + [registered(best + a, share) for a in np.deg2rad(np.arange(-4, 5, 1))]
+        return [p for _, p in sorted(found, key=lambda t: t[0])[:4]]
 
     def fit(self, names: tuple[str, ...], start: dict | None = None, free: tuple[str, ...] | None = None,
             max_iterations: int = MAX_ITERATIONS) -> Fit:
@@ -233,13 +324,13 @@ class Diagnosis:
         fixed = {n: dict(start[n]) for n in names if n not in free} if start is not None else {}
         plist, to_params, to_z = self._space(free)
         count = [0]
-        scale = max(self.train_mse_before, 1e-12)
+        scale = max(self.train_loss_before, 1e-12)
 
         def loss(z: np.ndarray) -> float:
             count[0] += 1
             # Relative to the gap before, so that L-BFGS-B's tolerances (relative to
             # max(|f|, 1)) mean a share of the gap.
-            return self._mse(self.predict_train({**fixed, **to_params(z)})) / scale
+            return self._loss(self.predict_train({**fixed, **to_params(z)})) / scale
 
         candidates = []
         if start is not None and all(n in start for n in free):
@@ -250,14 +341,51 @@ class Diagnosis:
             candidates.append({n: dict(start[n]) if start and n in start else dict(self.catalogue[n].identity)
                                for n in free})
         scored = sorted(((loss(to_z(c)), i) for i, c in enumerate(candidates)), key=lambda t: t[0])
-        res = optimize.minimize(loss, to_z(candidates[scored[0][1]]), method="L-BFGS-B",
-                                bounds=[(0.0, 1.0)] * len(plist),
+        z0 = np.clip(to_z(candidates[scored[0][1]]), 0.0, 1.0)
+        bounds = [(0.0, 1.0)] * len(plist)
+        res = optimize.minimize(loss, z0, method="L-BFGS-B", bounds=bounds,
                                 options={"maxiter": max_iterations, "eps": 1e-3, "ftol": FTOL})
-        params, mse = {**fixed, **to_params(res.x)}, float(res.fun) * scale
-        if mse > self.train_mse_before:  # never worse than leaving the effects out
+        x, value, moved = np.asarray(res.x), float(res.fun), float(np.abs(res.x - z0).max(initial=0.0))
+        status = {"optimizer": "L-BFGS-B", "message": str(res.message), "iterations": int(res.nit),
+                  "start_loss": scored[0][0] * scale, "moved": moved, "stopped_at_start": False, "retried": False}
+        if moved < STUCK_MOVE and value > STUCK_LEFT and len(x):
+            x, value, status = self._unstick(loss, x, value, bounds, max_iterations, status)
+        params, train_loss = {**fixed, **to_params(x)}, value * scale
+        if train_loss > self.train_loss_before:  # never worse than leaving the effects out
             params = {n: dict(self.catalogue[n].identity) for n in names}
-            mse = self.train_mse_before
-        return Fit(names, params, mse, self.train_mse_before, count[0], time.perf_counter() - t0)
+            train_loss = self.train_loss_before
+            status["note"] = "no point found better than leaving the effect out; reported at its identity"
+        mse = self._mse(self.predict_train(params))
+        return Fit(names, params, mse, self.train_mse_before, count[0], time.perf_counter() - t0,
+                   train_loss, self.train_loss_before, status)
+
+    def _unstick(self, loss, x: np.ndarray, value: float, bounds, max_iterations: int, status: dict):
+        """A fit stopped at its start leaving most of the gap: probe ``PROBE_STEP`` either
+        side along each parameter; from the best probe that beats the start, L-BFGS-B
+        again (at most ``PROBE_ROUNDS`` times). Returns (x, value, status)."""
+        z0 = x.copy()
+        status.update(stopped_at_start=True, retried=True)
+        for _ in range(PROBE_ROUNDS):
+            probes = [np.clip(x + sign * PROBE_STEP * np.eye(len(x))[i], 0.0, 1.0)
+                      for i in range(len(x)) for sign in (-1.0, 1.0)]
+            values = [loss(z) for z in probes]
+            best = int(np.argmin(values))
+            if values[best] >= value:
+                break
+            res = optimize.minimize(loss, probes[best], method="L-BFGS-B", bounds=bounds,
+                                    options={"maxiter": max_iterations, "eps": 1e-3, "ftol": FTOL})
+            x, value = (np.asarray(res.x), float(res.fun)) if res.fun < values[best] else (probes[best], values[best])
+            status["iterations"] += int(res.nit)
+            status["message"] = str(res.message)
+        status["moved"] = float(np.abs(x - z0).max())
+        if status["moved"] < STUCK_MOVE:
+            status["note"] = (f"L-BFGS-B stopped at its start, leaving {100 * value:.0f}% of the training loss; no "
+                              f"point {PROBE_STEP} (scaled) either side along any parameter is better: a local optimum")
+        else:
+            status["optimizer"] = "L-BFGS-B, restarted from probes"
+            status["note"] = (f"L-BFGS-B stopped at its start; restarted from a probe {PROBE_STEP} (scaled) away, it "
+                              f"left {100 * value:.0f}% of the training loss")
+        return x, value, status
 
     # --- judging --------------------------------------------------------------------------
 
@@ -310,16 +438,16 @@ class Diagnosis:
             chosen = current.fit.effects
 
             def screened(name: str, params=current.fit.params) -> float:
-                return self._mse(self.predict_train({**params, name: singles[name].fit.params[name]}))
+                return self._loss(self.predict_train({**params, name: singles[name].fit.params[name]}))
 
             order = sorted(candidates, key=screened)
             trials = []
             for name in order[:MAX_TRIALS]:
                 start = {**current.fit.params, name: singles[name].fit.params[name]}
                 trials.append((name, self.fit(chosen + (name,), start=start, free=(name,))))
-            added, fit = min(trials, key=lambda t: t[1].train_mse)
+            added, fit = min(trials, key=lambda t: t[1].train_loss)
             joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
-            if joint.train_mse < fit.train_mse:
+            if joint.train_loss < fit.train_loss:
                 fit = joint
             step = self.judge(fit, against=current.after, complete=False)
             gain = step.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]

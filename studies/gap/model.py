@@ -26,15 +26,14 @@ import numpy as np
 from phong_reference.background import make_background
 from phong_reference.bake import bake
 from phong_reference.normals import normals
+from phong_reference.phong import compose, led_intensities, shading_terms
 from phong_reference.render import light_vectors
+from scenes.camera import CONTACT_EPS_M as CONTACT_NOISE_M  # the one contact threshold
 from scenes.camera import Camera, cast_rays, reference_depth
 from scenes.geometry import membrane_mesh
 from scenes.spec import SensorSpec
 
 from . import effects as fx
-
-#: Depth differences below this are rasterisation noise, not contact (metres).
-CONTACT_NOISE_M = 1e-6
 
 
 def block_mean(images: np.ndarray, factor: int) -> np.ndarray:
@@ -76,7 +75,14 @@ class FastModel:
         self.L = light_vectors(fields, bool(renderer.get("rectify", False)))
         background = str(renderer.get("background", "none"))
         self.B = _background(background, full, self.camera, self.factor)
+        self._B = np.ascontiguousarray(self.B.transpose(2, 0, 1))  # (3, H, W), for the Phong terms
         self.mask = self.camera.mask
+        # (H, W) share of each pixel inside the lens's image circle, and (H, W, 3) what the
+        # ambient term k_a B puts in a simulated image: both stay put under a misalignment.
+        self.circle = block_mean(full.mask[None, ..., None].astype(np.float32), self.factor)[0, ..., 0]
+        full_B = self.B if self.factor == 1 else _background(background, full, full, 1)
+        ambient = np.clip(spec.material.ambient * full_B, 0.0, 1.0) * full.mask[..., None]
+        self.fixed = block_mean(ambient[None].astype(np.float32), self.factor)[0]
         self.rays = self.camera.rays_channels_first
         self.colours = np.array([led.colour for led in spec.leds], np.float64)
         self.k_d = np.array([led.k_d for led in spec.leds], np.float32)
@@ -131,28 +137,22 @@ class FastModel:
         """Deformed surface of one working-resolution depth map, and its shading terms.
 
         scale : membrane_compliance; sigma_px : elastic_spread (full-resolution pixels).
-        Returns P, N (3, H, W), delta = D_ref - D_def (H, W), and per LED: LN, the
-        clamped L_m . N, RV, the clamped R_m . V, both (M, H, W).
+        Returns P, N (3, H, W), delta = D_ref - D_def (H, W), and ``terms``, the Phong
+        terms of the fast path itself (``phong_reference.phong.shading_terms``: per LED
+        the clamped L_m . N, R_m . V and (R_m . V)^alpha, (M, H, W); and k_a B, (3, H, W)).
         """
         D = fx.compliant_depth(self.ref, depth, scale) if scale != 1.0 else depth
         sigma = (self.sigma_px if sigma_px is None else sigma_px) / self.factor
-        D_def = fx.elastic_deform(D, self.ref, sigma, self.truncate)
+        D_def = fx.elastic_deform(D, self.ref, sigma, self.truncate).astype(np.float32, copy=False)
         P = D_def[None] * self.rays
         N, _ = normals(P)
-        V = P * (-1.0 / np.sqrt(_dot(P, P)))
-        NV = _dot(N, V)
-        LN = np.maximum(np.einsum("mchw,chw->mhw", self.L, N), 0.0)
-        LV = np.einsum("mchw,chw->mhw", self.L, V)
-        RV = np.maximum(2.0 * LN * NV[None] - LV, 0.0)
-        return {"P": P, "N": N, "delta": (self.ref - D_def).astype(np.float32), "LN": LN.astype(np.float32),
-                "RV": RV.astype(np.float32)}
+        terms = shading_terms(P, N, self.L, self.spec.material, self._B)
+        return {"P": P, "N": N, "delta": (self.ref - D_def).astype(np.float32), "terms": terms}
 
     def _base_geometry(self, key: int, depth: np.ndarray) -> dict:
         g = self._cache.get(key)
         if g is None:
-            g = self.geometry(depth)
-            g["spec"] = np.power(g["RV"], self.spec.material.shininess) if self.spec.material.clamp_specular else None
-            self._cache[key] = g
+            g = self._cache[key] = self.geometry(depth)
         return g
 
     def _horizons(self, g: dict) -> np.ndarray:
@@ -187,18 +187,15 @@ class FastModel:
         if membrane or key is None:
             g = self.geometry(depth, membrane.get("membrane_compliance", {}).get("scale", 1.0),
                               membrane.get("elastic_spread", {}).get("sigma_px"))
-            g["spec"] = None
         else:
             g = self._base_geometry(key, depth)
-        material = self.spec.material
-        spec = g["spec"] if g.get("spec") is not None else (
-            np.power(g["RV"], material.shininess) if material.clamp_specular else None)
-        if spec is None:  # unclamped specular, as the published code had it
+        if not self.spec.material.clamp_specular:  # unclamped specular, as the published code had it
             raise ValueError("the diagnosis needs clamp_specular = true in the sensor's material")
-        I = self.k_d[:, None, None] * g["LN"] + self.k_s[:, None, None] * spec
+        terms = g["terms"]
+        I = led_intensities(terms, self.k_d, self.k_s)  # (M, H, W), I_m of the fast path
         if "coating_gloss" in params:
             p = params["coating_gloss"]
-            I = I + p["k_g"] * np.power(g["RV"], p["shininess"])
+            I = I + p["k_g"] * np.power(terms.RV, p["shininess"])
         if "contact_shadow" in params:
             p = params["contact_shadow"]
             I = I * fx.shadow_factor(self._horizons(g), p["elevation_rad"], p["darkness"])
@@ -215,7 +212,7 @@ class FastModel:
             p = params["core_light_leak"]
             amplitude = np.array([p[f"amplitude_{m}"] for m in range(len(self.spec.leds))], np.float32)
             I = I + amplitude[:, None, None] * self._leak(g, p["length_m"])
-        image = np.einsum("mhw,mc->hwc", I, colours.astype(np.float32)) + material.ambient * self.B
+        image = compose(I.astype(np.float32, copy=False), colours, terms.ambient).transpose(1, 2, 0)
         return np.clip(image, 0.0, 1.0) * self.mask[..., None]
 
     def optics(self, images: np.ndarray, params: dict) -> np.ndarray:
@@ -228,7 +225,11 @@ class FastModel:
         if mis is not None or dist is not None:
             if mis is not None:
                 mis = {**mis, "du_px": mis["du_px"] / self.factor, "dv_px": mis["dv_px"] / self.factor}
-            out = fx.resample(out, fx.source_coordinates(self.camera.shape, f, centre, mis, dist))
+            coords = fx.source_coordinates(self.camera.shape, f, centre, mis, dist)
+            if mis is not None and mis.get("frame_share", 0.0) < 1.0:
+                out = fx.misalign_membrane(out, coords, self.fixed, self.circle, mis.get("frame_share", 0.0))
+            else:
+                out = fx.resample(out, coords)
         if "vignetting" in params:
             p = params["vignetting"]
             c = (centre[0] + p["centre_dv_px"] / self.factor, centre[1] + p["centre_du_px"] / self.factor)
