@@ -123,7 +123,8 @@ def test_optics_functions_analytic():
     assert np.allclose(fx.resample(img, fx.source_coordinates((48, 64), 60.0, (23.5, 31.5), None, None)), img)
     assert np.allclose(fx.camera_response(img, (1, 1, 1), 1.0, 0.0), img)
     assert np.allclose(fx.camera_response(img, (1, 1, 1), 2.0, 0.0), np.sqrt(img), atol=1e-6)
-    assert fx.shadow_factor(np.array([0.0, 10.0]), 0.2, 1.0).tolist() == pytest.approx([1.0, 0.0])
+    # A source over elevations 0.2 (1 -+ 0.3): a band (0, 10] hides all of it, (0, 0.2] half.
+    assert fx.shadow_factor(np.zeros(3), np.array([0.0, 10.0, 0.2]), 0.2, 1.0).tolist() == pytest.approx([1, 0, 0.5])
 
 
 def test_light_functions_analytic():
@@ -136,12 +137,63 @@ def test_light_functions_analytic():
     assert k[0].tolist() == pytest.approx([0.5, 0.2])  # 1 / (1 + (d / l)^2), cos = 1
     assert fx.attenuation(np.array([0.0, 0.01]), 100.0).tolist() == pytest.approx([1.0, math.exp(-1.0)])
     colours = np.eye(3)
-    same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1])
+    same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1], floor=0.05)
     assert np.allclose(same, np.diag([1, 2, 1]))
+    # A red LED 15 nm bluer: a pure Gaussian blue band's tail grows tenfold; the filter's
+    # out-of-band floor keeps the blue response near what it was.
+    bare = fx.spectral_colours(np.ones((1, 3)), [625], [20], [-15], [1])[0]
+    floored = fx.spectral_colours(np.ones((1, 3)), [625], [20], [-15], [1], floor=0.02)[0]
+    assert bare[2] > 5 and 1.0 < floored[2] < 1.5
+    assert floored[0] == pytest.approx(bare[0], rel=0.05)  # the in-band red barely feels the floor
     ref = np.full((4, 4), 0.03)
     depth = ref - 0.001
     assert np.allclose(fx.compliant_depth(ref, depth, 1.0), depth)
     assert np.allclose(fx.compliant_depth(ref, depth, 0.5), ref - 0.0005)
+
+
+def _flat_membrane(box_rows, box_cols, height_m, ridge_cols=None, ridge_m=0.0):
+    """A flat membrane 20 mm in front of a 40 x 80 px camera (f = 100 px), and a box
+    ``height_m`` high pushed towards the camera over ``box_rows`` x ``box_cols``; an
+    undeformed ridge ``ridge_m`` high over ``ridge_cols`` if given."""
+    h, w, f = 40, 80, 100.0
+    camera = (f, (w - 1) / 2, (h - 1) / 2)
+    v, u = np.mgrid[0:h, 0:w]
+    rays = np.stack([(u - camera[1]) / f, (v - camera[2]) / f, np.ones((h, w))]).astype(np.float32)
+    ref = np.full((h, w), 0.02, np.float32)
+    if ridge_cols is not None:
+        ref[:, ridge_cols] -= ridge_m
+    depth = ref.copy()
+    depth[box_rows, box_cols] -= height_m
+    L = np.zeros((1, 3, h, w), np.float32)
+    L[0, 0] = 1.0  # the LED lies towards +x (increasing columns)
+    inward = np.zeros((3, h, w), np.float32)
+    inward[2] = -1.0  # towards the camera
+    return depth, ref, rays, camera, L, inward, np.ones((h, w), bool)
+
+
+def test_shadow_band_of_a_box_on_a_flat_membrane():
+    """Light from +x at a low elevation: a 0.4 mm box (columns 50-59, 0.2 mm per px)
+    hides the light below atan(0.4 / s) from a point s mm before it, on the side away
+    from the LED, and nothing on the LED's side or beside it."""
+    depth, ref, rays, camera, L, inward, where = _flat_membrane(slice(15, 25), slice(50, 60), 0.0004)
+    low, high = fx.occlusion_band(depth, ref, rays, camera, L, inward, where, 1e-5)
+    for col in (30, 40, 45):
+        s = (49.5 - col) * 0.0002
+        assert low[0, 20, col] == 0.0
+        assert high[0, 20, col] == pytest.approx(math.atan(0.0004 / s), rel=0.15), col
+    assert np.all(high[0, :, 62:] == 0.0)  # the LED's side of the box
+    assert np.all(high[0, 30:, :48] == 0.0)  # beside it: the light passes the box by
+    kept = fx.shadow_factor(low, high, 0.05, 0.8)
+    assert kept[0, 20, 40] == pytest.approx(0.2) and kept[0, 20, 70] == 1.0
+    # The undeformed membrane rising more steeply first (a ridge, columns 42-44, 0.5 mm):
+    # light low enough to meet the box has come off the ridge; only light above the
+    # ridge's elevation and below the box's is blocked, none of it for the column behind.
+    depth, ref, rays, camera, L, inward, where = _flat_membrane(slice(15, 25), slice(50, 60), 0.0009,
+                                                                slice(42, 45), 0.0005)
+    low, high = fx.occlusion_band(depth, ref, rays, camera, L, inward, where, 1e-5)
+    # From column 30 the ridge rises to atan(0.5 / 2.3) = 0.21 rad, the box to atan(0.9 / 3.9) = 0.23.
+    assert 0.15 < low[0, 20, 30] < high[0, 20, 30] < 0.25
+    assert fx.shadow_factor(low, high, 0.05, 1.0)[0, 20, 30] == 1.0
 
 
 def test_catalogue_names_and_identity(spec):
@@ -293,6 +345,8 @@ def test_cli_refuses_bad_arguments(tmp_path, sim_dir, capsys):
     assert main(["diagnose", str(tmp_path / "nowhere"), str(sim_dir), "--out", str(tmp_path / "r")]) == 1
     assert "is not a dataset" in capsys.readouterr().err
     assert main(["diagnose", "benchmark", "--cases", "1"]) == 2
+    assert main(["diagnose", "benchmark", "--json", str(tmp_path / "b.json"), "--hidden", "contact_shadow"]) == 2
+    assert "--hidden needs --stratified" in capsys.readouterr().err
 
 
 def test_benchmark_scoring():
@@ -333,6 +387,18 @@ def test_stratified_benchmark_covers_every_cell_and_scores_it():
                                                      "shrink_top1": pytest.approx(0.5), "noise_share": 0.0}
     assert out["min_cell_shrink"] == pytest.approx(0.6) and out["min_cell"] == "vignetting x none"
     assert list(out["noise_cells"]) == ["blur_noise x none"] and "80%" in out["noise_cells"]["blur_noise x none"]
+
+
+def test_stratified_cases_keep_their_index_when_filtered():
+    from studies.gap.benchmark import stratified_cases, stratified_cells
+
+    cells = stratified_cells()
+    assert stratified_cases(40) == list(range(40))
+    chosen = stratified_cases(len(cells), ("contact_shadow", "led_spectrum"))
+    assert len(chosen) == 6 and {cells[c][0] for c in chosen} == {"contact_shadow", "led_spectrum"}
+    assert {cells[c][1] for c in chosen} == {"none", "solid", "real"}
+    with pytest.raises(ValueError, match="hidden must be"):
+        stratified_cases(36, ("sparkle",))
 
 
 def test_sector_areas_partition_the_image_circle(camera):

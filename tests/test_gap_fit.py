@@ -16,6 +16,7 @@ from scenes.images import to_uint8
 from studies.gap import effects as fx
 from studies.gap.fit import LOSS_EPS, Diagnosis
 from studies.gap.inject import Injector, misalign, respond
+from studies.gap.model import FastModel
 from studies.gap.pairs import Pairs, split
 
 #: Contact pixels spread over the image (as tests/test_gap.py).
@@ -220,3 +221,43 @@ def test_an_effect_that_cannot_help_is_checked_around_its_start(spec, injector, 
     fit = d.fit(("vignetting",), start={"vignetting": d.catalogue["vignetting"].identity})
     assert fit.status["stopped_at_start"] and "local optimum" in fit.status["note"]
     assert fit.train_loss == fit.train_loss_before
+
+
+# --- the light effects against the injector's renders -----------------------------------------
+
+
+def _model_change(model: FastModel, depth: np.ndarray, params: dict) -> np.ndarray:
+    work = model.working_depth(depth)
+    return np.stack([model.physical(d, params) - model.physical(d, {}) for d in work])
+
+
+def test_the_shadow_model_falls_where_the_injected_shadow_does(spec, injector, contacts):
+    """The injector ray-traces the imprint's shadow of the low guided light (and the
+    background it stands for); the model, at the injected elevation and darkness, darkens
+    the same pixels: behind the imprint, away from the LED, not the imprint itself."""
+    shadow = injector.sample("contact_shadow", np.random.default_rng(0), 0.5)
+    model = FastModel(spec, {"field": "plane", "background": "solid"}, FACTOR)
+    depth = contacts[[0, 3, 5]]
+    gap = model.working_images(np.stack([injector.render(d, [shadow]) - injector.render(d) for d in depth]))
+    params = {"contact_shadow": {"elevation_rad": shadow.params["elevation"], "darkness": shadow.params["darkness"]}}
+    residual = gap - _model_change(model, depth, params)
+    assert np.abs(gap).mean() > 0.003
+    assert np.abs(residual).mean() < 0.5 * np.abs(gap).mean()
+
+
+def test_the_spectrum_model_has_the_colour_filters_floor(spec, contacts):
+    """A 15 nm LED shift seen through Bayer filters that pass a little out of band: with
+    the floor at its start value the model, at the injected shifts and powers, leaves
+    under 60% of the change (a pure Gaussian band's tail leaves about 70%)."""
+    injector = Injector(spec, background="none")
+    shift = injector.sample("led_spectrum", np.random.default_rng(0), 0.5)
+    model = FastModel(spec, {"field": "plane", "background": "none"}, FACTOR)
+    depth = contacts[:4]
+    gap = model.working_images(np.stack([injector.render(d, [shift]) - injector.render(d) for d in depth]))
+    names = [led.name for led in spec.leds]
+    params = {"led_spectrum": {**{f"shift_nm_{m}": shift.params[f"peak_shift_nm_{n}"] for m, n in enumerate(names)},
+                               **{f"power_{m}": shift.params[f"intensity_{n}"] for m, n in enumerate(names)},
+                               "filter_floor": fx.FILTER_FLOOR_START}}
+    residual = gap - _model_change(model, depth, params)
+    assert np.abs(gap).mean() > 0.001
+    assert np.abs(residual).mean() < 0.6 * np.abs(gap).mean()

@@ -89,6 +89,17 @@ def stratified_cells() -> list[tuple[str, str]]:
     return [(effect, background) for background in STRATIFIED_BACKGROUNDS for effect in EFFECTS]
 
 
+def stratified_cases(cases: int, hidden: tuple[str, ...] | None = None) -> list[int]:
+    """The case indices of a stratified run of ``cases`` cases whose cell hides one of
+    ``hidden`` (None: every case). A case keeps its index, hence its cell and seed."""
+    from .inject import EFFECTS
+
+    if hidden is not None and (not hidden or any(h not in EFFECTS for h in hidden)):
+        raise ValueError(f"hidden must be a non-empty subset of {EFFECTS}, got {hidden!r}")
+    cells = stratified_cells()
+    return [case for case in range(cases) if hidden is None or cells[case % len(cells)][0] in hidden]
+
+
 def _draw_stratified(case: int, case_seed: int, n_available: int, pairs: int, strength: float) -> dict:
     cells = stratified_cells()
     effect, background = cells[case % len(cells)]
@@ -156,12 +167,15 @@ def score(hidden: list[str], report: dict) -> dict:
 
 def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None, pairs: int = 48,
                   progress: bool = True, spec: SensorSpec | None = None, factor: int = 2,
-                  stratified: bool = False, strength: float = STRATIFIED_STRENGTH) -> dict:
+                  stratified: bool = False, strength: float = STRATIFIED_STRENGTH,
+                  hidden: tuple[str, ...] | None = None) -> dict:
     """Build ``cases`` blind cases, diagnose each, and score them.
 
     stratified : cover every (effect, background) cell of ``stratified_cells`` in turn, each
         effect alone at ``strength``; ``cases`` None or below the number of cells: one
         case per cell.
+    hidden : stratified only: run just the cases whose cell hides one of these effects
+        (None: all). A case keeps its index, so its data and seed are those of the full run.
     """
     from tqdm import tqdm
 
@@ -175,13 +189,16 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
             raise ValueError(f"strength must be in [0, 1], got {strength}")
         real_background()  # fail now, naming where it looked, rather than at the first real case
         cases = max(int(cases or 0), len(stratified_cells()))
+    if hidden is not None and not stratified:
+        raise ValueError(f"hidden selects stratified cells and needs stratified=True, got hidden={hidden!r}")
+    todo = stratified_cases(cases, hidden) if stratified else list(range(cases))
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-") as tmp:
         root = Path(work) if work is not None else Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         base = contacts(root, spec, progress)
         results = []
-        bar = tqdm(range(cases), desc="benchmark cases", unit="case", disable=not progress)
+        bar = tqdm(todo, desc="benchmark cases", unit="case", disable=not progress)
         for case in bar:
             folder = root / f"case_{seed}_{case:03d}"
             truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None)

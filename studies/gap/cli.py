@@ -56,10 +56,14 @@ def cmd_benchmark(args) -> int:
     if args.json is None:
         print("tactile-sim diagnose benchmark: error: --json PATH is required", file=sys.stderr)
         return 2
+    if args.hidden is not None and not args.stratified:
+        print("tactile-sim diagnose benchmark: error: --hidden needs --stratified", file=sys.stderr)
+        return 2
     from .benchmark import run_benchmark
 
     result = run_benchmark(cases=args.cases, seed=args.seed, work=args.work, pairs=args.pairs,
-                           progress=not args.quiet, factor=args.factor, stratified=args.stratified)
+                           progress=not args.quiet, factor=args.factor, stratified=args.stratified,
+                           hidden=args.hidden)
     from pathlib import Path
 
     from .report import write_json
@@ -106,6 +110,9 @@ def register(registry) -> None:
     p.add_argument("--stratified", action="store_true",
                    help="benchmark: every effect alone on every background (none, solid, real) at strength 0.5, "
                         "at least one case per cell (--cases below 36 means 36); adds per_cell and min_cell_shrink")
+    p.add_argument("--hidden", type=_effects, default=None,
+                   help="benchmark --stratified: only the cells hiding these effects (comma-separated; default all); "
+                        "each case keeps its index and seed from the full run")
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
     b.add_argument("--pairs", type=_positive, default=144, help="pairs (default 144, the base protocol)")
     b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")

@@ -8,8 +8,9 @@ The functions here are pure array functions, in the simulator's order:
 1. membrane: ``membrane_compliance`` (the imprint is shallower than commanded),
    ``elastic_spread`` (another width of the elastic smoothing);
 2. light and paint, per LED m: ``path_attenuation`` (absorption along the geodesic
-   path from the LED, I_m exp(-mu g_m)), ``contact_shadow`` (the dent's rim hides the
-   light arriving along the field; horizon test on the indentation height field),
+   path from the LED, I_m exp(-mu g_m)), ``contact_shadow`` (the imprint, pushed into
+   the sensor, hides the light arriving low along the field, from the LED's own term and
+   the background it stands for; a march towards the light over the depth map),
    ``coating_gloss`` (an extra specular lobe k_g (R_m . V)^alpha_g), ``core_light_leak``
    (light crossing the glass core straight from each LED: a_m |N . w_m| / (1 + (d_m /
    lambda)^2)), ``led_spectrum`` (each LED's peak shifted and its power scaled, seen
@@ -120,7 +121,10 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
             "optics blur and sensor noise (the noise level is estimated from the residual, not fitted)"),
         Effect("led_spectrum", "light", tuple(
             [Param(f"shift_nm_{m}", -40.0, 40.0, 0.0, "nm", f"LED {m}'s peak shift") for m in leds]
-            + [Param(f"power_{m}", 0.3, 3.0, 1.0, "-", f"LED {m}'s relative power") for m in leds]),
+            + [Param(f"power_{m}", 0.3, 3.0, 1.0, "-", f"LED {m}'s relative power") for m in leds]
+            + [Param("filter_floor", 0.0, 0.15, FILTER_FLOOR_START, "-",
+                     "out-of-band transmission of the colour filters, a share of their peak (acts only through "
+                     "the shifts, so any value is the identity)")]),
             "LED spectra against the camera's spectral response"),
     ]
     return {e.name: e for e in effects}
@@ -161,69 +165,156 @@ def leak_kernel_from(cos: np.ndarray, d2: np.ndarray, length_m: float) -> np.nda
     return cos / (1.0 + d2 / (length_m * length_m))
 
 
-def image_directions(P: np.ndarray, L: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
-    """Where a 3D direction L (3, H, W) at points P (3, H, W) points in the image.
+#: contact_shadow: distances (m) from a receiving point, along the light's tangent, at
+#: which the membrane ahead is looked up: geometric, 0.1 mm to 30 mm (a 1.5 mm imprint
+#: lit at 3 degrees shadows 29 mm of a flat membrane).
+SHADOW_STEPS_M = tuple(1e-4 * 1.15**k for k in range(42))
+#: contact_shadow: the guided light arrives over elevations beta (1 -+ this), uniformly:
+#: an extended source whose angular spread grows with its elevation.
+SHADOW_SOURCE_SPREAD = 0.3
 
-    Returns the unit image direction (2, H, W) as (d_row, d_col) and the pixels moved per
-    metre travelled along L (H, W).
+
+def occlusion_band(depth: np.ndarray, ref: np.ndarray, rays: np.ndarray, camera: tuple[float, float, float],
+                   L: np.ndarray, inward: np.ndarray, where: np.ndarray,
+                   moved_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Elevations of the guided light that the deformed membrane blocks, per LED and pixel.
+
+    Light from LED m reaches a point x along the tangent t_m (the part of L_m in the
+    undeformed tangent plane at x) tilted by an elevation beta towards the inside, in the
+    plane of t_m and the inward normal n. March along t_m, s metres, and at each step
+    find the membrane in that plane over the foot x + s t_m: the camera ray through the
+    foot gives the surface point, which is moved along n onto the plane once (one
+    fixed-point step). The deformed membrane there, at elevation atan2(h, s) above x's
+    tangent plane, blocks the light below that elevation, unless the undeformed membrane
+    rose higher before it: light at a lower elevation has come off the membrane nearer
+    x (the GelTip's inside is concave), so an occluder farther on is not in its way.
+
+    depth, ref : (H, W) deformed and no-contact planar depth, metres.
+    rays : (3, H, W) camera rays, z = 1.  camera : (f, cx, cy), px.
+    L : (M, 3, H, W) unit light vectors (towards the LED); inward : (3, H, W) unit
+        inward normals of the undeformed membrane; where : (H, W) bool receivers.
+    moved_m : a sample counts as the deformed membrane where it moved by more than this.
+
+    Returns (low, high), (M, H, W) float32 radians: light between the two elevations is
+    blocked (high <= low: none is; the pixels off ``where`` get an empty band).
     """
-    z = np.maximum(P[2], 1e-9)
-    du = f * (L[0] * z - P[0] * L[2]) / (z * z)
-    dv = f * (L[1] * z - P[1] * L[2]) / (z * z)
-    speed = np.sqrt(du * du + dv * dv)
-    safe = np.maximum(speed, 1e-12)
-    return np.stack([dv / safe, du / safe]), speed
+    import cv2
 
-
-#: Steps (px at the map's resolution) at which ``horizon`` looks towards the light.
-HORIZON_STEPS_PX = (1, 2, 3, 4, 6, 8, 11, 15, 20, 26, 34, 44)
-
-
-def horizon(delta: np.ndarray, direction: np.ndarray, px_per_m: np.ndarray, where: np.ndarray) -> np.ndarray:
-    """Steepest rise of the surface towards the light, as a slope (m/m), at ``where``.
-
-    delta : (H, W) indentation D_ref - D_def, metres (how far the surface was pushed
-        away from the camera); direction (2, H, W) unit image direction towards the
-        light; px_per_m (H, W). A point inside a dent sees the rim between it and the
-        light rise by delta(x) - delta(x + t u) over t / px_per_m metres; the light,
-        arriving at a low elevation, is blocked where that slope exceeds its tangent.
-    Returns (H, W) slopes, 0 outside ``where``.
-    """
+    f, cx, cy = camera
+    h, w = depth.shape
+    low = np.zeros((len(L), h, w), np.float32)
+    high = np.zeros((len(L), h, w), np.float32)
     rows, cols = np.nonzero(where)
-    out = np.zeros(delta.shape, np.float32)
-    if len(rows) == 0:
-        return out
-    d0 = delta[rows, cols]
-    dr, dc = direction[0][rows, cols], direction[1][rows, cols]
-    metres_per_px = 1.0 / np.maximum(px_per_m[rows, cols], 1e-6)
-    best = np.zeros(len(rows), np.float32)
-    for t in HORIZON_STEPS_PX:
-        ahead = ndimage.map_coordinates(delta, [rows + t * dr, cols + t * dc], order=1, mode="nearest")
-        best = np.maximum(best, (d0 - ahead) / (t * metres_per_px))
-    out[rows, cols] = best
-    return out
+    if rows.size == 0 or not np.any(ref - depth > moved_m):
+        return low, high
+    depth, ref = np.asarray(depth, np.float32), np.asarray(ref, np.float32)
+    moved = ref - depth
+    # The deformed membrane's bounding sphere: a receiver whose light plane misses it, or
+    # that has it behind, cannot be shadowed, and its march ends past it.
+    occluder = (depth * rays)[:, moved > moved_m]  # (3, K_o)
+    centre = 0.5 * (occluder.min(axis=1) + occluder.max(axis=1))
+    radius = 0.5 * float(np.linalg.norm(occluder.max(axis=1) - occluder.min(axis=1))) + SHADOW_STEPS_M[0]
+    P = depth[rows, cols] * rays[:, rows, cols]  # (3, K) receiving points, float32
+    n = inward[:, rows, cols].astype(np.float32)
+    inside = where.astype(np.float32)
+
+    def lookup(image: np.ndarray, u: np.ndarray, v: np.ndarray, nearest: bool = False) -> np.ndarray:
+        """``image`` (H, W) float32 at (u, v) px: bilinear, edge replicated (OpenCV's remap,
+        much faster than scipy's on scattered points); nearest: 0 outside."""
+        mode, border = (cv2.INTER_NEAREST, cv2.BORDER_CONSTANT) if nearest else (cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
+        count, width = u.size, 1024  # remap wants maps under 32767 px a side: fold the points
+        pad = -count % width
+        maps = [np.pad(x, (0, pad), constant_values=-1.0).reshape(-1, width) for x in (u, v)]
+        return cv2.remap(image, maps[0], maps[1], mode, borderMode=border, borderValue=0).reshape(-1)[:count]
+
+    def pixel(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        z = np.maximum(G[2], 1e-9)
+        return cx + f * G[0] / z, cy + f * G[1] / z
+
+    def elevation(F, u, v, which, P, t, n) -> np.ndarray:
+        """Elevation (rad) above P's tangent plane of the surface of ``which`` in the
+        light's plane over the feet F (3, K), whose pixels are (u, v)."""
+        d = lookup(which, u, v)  # the surface on the camera ray through the foot...
+        Q = np.stack([d * (u - cx) / f, d * (v - cy) / f, d])
+        u, v = pixel(F + ((Q - F) * n).sum(axis=0) * n)  # ... and on the ray through its height over the foot
+        d = lookup(which, u, v)
+        a = np.stack([d * (u - cx) / f, d * (v - cy) / f, d]) - P
+        return np.arctan2((a * n).sum(axis=0), (a * t).sum(axis=0))
+
+    for m, L_m in enumerate(L):
+        t = L_m[:, rows, cols].astype(np.float32)
+        t -= (t * n).sum(axis=0) * n
+        norm = np.linalg.norm(t, axis=0)
+        t /= np.maximum(norm, 1e-12)
+        to_centre = centre[:, None] - P
+        ahead = (to_centre * t).sum(axis=0)  # how far along t the occluder's centre lies
+        side = np.abs((to_centre * np.cross(t, n, axis=0)).sum(axis=0))
+        idx = np.flatnonzero((norm > 1e-6) & (ahead > -radius) & (side < radius))
+        reach = ahead[idx] + radius  # past this, the march has left the occluder behind
+        P_m, n_m, t_m = P[:, idx], n[:, idx], t[:, idx]
+        rise = np.full(idx.size, -np.inf, np.float32)  # highest elevation of the undeformed membrane so far
+        lo = np.full(idx.size, np.inf, np.float32)
+        hi = np.full(idx.size, -np.inf, np.float32)
+        k = np.arange(idx.size)  # the receivers still marching
+        for s in SHADOW_STEPS_M:
+            keep = s <= reach[k]
+            if not keep.all():
+                k = k[keep]
+            if k.size == 0:
+                break
+            Pk, tk, nk = P_m[:, k], t_m[:, k], n_m[:, k]
+            F = Pk + np.float32(s) * tk
+            u, v = pixel(F)
+            ok = (F[2] > 1e-9) & (lookup(inside, u, v, nearest=True) > 0)  # else: left the image circle
+            up = elevation(F, u, v, depth, Pk, tk, nk)
+            up_ref = elevation(F, u, v, ref, Pk, tk, nk)
+            block = ok & (lookup(moved, u, v) > moved_m) & (up > rise[k])
+            lo[k] = np.where(block, np.minimum(lo[k], rise[k]), lo[k])
+            hi[k] = np.where(block, np.maximum(hi[k], up), hi[k])
+            rise[k] = np.where(ok, np.maximum(rise[k], up_ref), rise[k])
+            k = k[ok]
+        blocked = hi > lo
+        low[m, rows[idx], cols[idx]] = np.where(blocked, np.maximum(lo, 0.0), 0.0)
+        high[m, rows[idx], cols[idx]] = np.where(blocked, np.maximum(hi, 0.0), 0.0)
+    return low, high
 
 
-def shadow_factor(slope: np.ndarray, elevation_rad: float, darkness: float) -> np.ndarray:
-    """Light left, 1 - darkness * smoothstep: shadowed where the rim's slope exceeds
-    tan(elevation), with a soft edge as wide as tan(elevation) / 2."""
-    t = math.tan(elevation_rad)
-    x = np.clip((slope - t) / (0.5 * t + 1e-6), 0.0, 1.0)
-    return 1.0 - darkness * x * x * (3.0 - 2.0 * x)
+def shadow_factor(low: np.ndarray, high: np.ndarray, elevation_rad: float, darkness: float,
+                  spread: float = SHADOW_SOURCE_SPREAD) -> np.ndarray:
+    """Light left, 1 - darkness * b: b the share of a source spread uniformly over
+    elevations beta (1 -+ spread) that falls in the blocked band (low, high], radians."""
+    b0, b1 = elevation_rad * (1.0 - spread), elevation_rad * (1.0 + spread)
+    blocked = np.clip((np.minimum(high, b1) - np.maximum(low, b0)) / (b1 - b0), 0.0, 1.0)
+    return (1.0 - darkness * blocked).astype(np.float32)
 
 
-def spectral_colours(colours: np.ndarray, peaks_nm, fwhms_nm, shifts_nm, powers) -> np.ndarray:
+#: led_spectrum: where the fit starts the colour filters' out-of-band transmission, a
+#: share of their peak (absorbing dyes of CMOS Bayer filters pass a few per cent outside
+#: their band).
+FILTER_FLOOR_START = 0.03
+
+
+def spectral_colours(colours: np.ndarray, peaks_nm, fwhms_nm, shifts_nm, powers, floor: float = 0.0) -> np.ndarray:
     """Each LED's colour with its peak shifted and its power scaled, through the camera's
     spectral response R: c'_m = power_m c_m R(peak_m + shift_m) / R(peak_m), channel-wise.
 
+    Channel c's filter passes S_c = G_c + floor, its Gaussian band G_c (unit peak) over a
+    flat out-of-band transmission ``floor``, a share of the peak: R_c(p) = int G_c E_p +
+    floor int E_p, E_p the LED's spectrum peaking at p. The floor term keeps the ratio of a
+    channel deep in the Gaussian's tail finite (a pure Gaussian band makes the blue
+    response to a red LED jump by a factor of ten for a 15 nm shift).
+
     Uses the reference's camera bands (``pbr_tactile.spectra``, numpy only).
     """
-    from pbr_tactile.spectra import film_response, gaussian
+    from pbr_tactile.spectra import WAVELENGTHS_NM, film_response, gaussian
 
     out = np.array(colours, dtype=np.float64)
     for m, (peak, fwhm, shift, power) in enumerate(zip(peaks_nm, fwhms_nm, shifts_nm, powers)):
         if shift:
-            ratio = film_response(gaussian(peak + shift, fwhm)) / np.maximum(film_response(gaussian(peak, fwhm)), 1e-12)
+            before, after = gaussian(peak, fwhm), gaussian(peak + shift, fwhm)
+            flat_before = floor * np.trapezoid(before, WAVELENGTHS_NM)
+            flat_after = floor * np.trapezoid(after, WAVELENGTHS_NM)
+            ratio = (film_response(after) + flat_after) / np.maximum(film_response(before) + flat_before, 1e-12)
             out[m] = out[m] * ratio
         out[m] = out[m] * power
     return out

@@ -17,7 +17,6 @@ lets fits run at a lower working resolution than the one the result is measured 
 
 from __future__ import annotations
 
-import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -71,6 +70,9 @@ class FastModel:
         field = renderer.get("field", "plane")
         fields = bake(self.mesh, self.camera, spec.leds, field)
         self.ref = fields.depth.astype(np.float32)
+        # (3, H, W) unit inward normals of the undeformed membrane (0 off it): the guided
+        # light's elevation is measured from its tangent plane.
+        self.inward = np.ascontiguousarray(-np.asarray(fields.normals, np.float32).transpose(2, 0, 1))
         self.full_ref = self.ref if self.factor == 1 else reference_depth(self.mesh, full)[0].astype(np.float32)
         self.L = light_vectors(fields, bool(renderer.get("rectify", False)))
         background = str(renderer.get("background", "none"))
@@ -155,18 +157,14 @@ class FastModel:
             g = self._cache[key] = self.geometry(depth)
         return g
 
-    def _horizons(self, g: dict) -> np.ndarray:
-        if "horizon" not in g:
-            grow = math.ceil(self.spec.elastic.radius_px / self.factor) + 2
-            from scipy import ndimage
-
-            where = ndimage.binary_dilation(g["delta"] > CONTACT_NOISE_M, iterations=grow) & self.mask
-            out = []
-            for L in self.L:
-                direction, speed = fx.image_directions(g["P"], L, self.camera.f)
-                out.append(fx.horizon(g["delta"], direction, speed, where))
-            g["horizon"] = np.stack(out)
-        return g["horizon"]
+    def _occlusion(self, g: dict) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) (M, H, W): the elevations of each LED's light the deformed membrane
+        blocks (``effects.occlusion_band``), which the shadow's parameters do not change."""
+        if "occlusion" not in g:
+            D_def = self.ref - g["delta"]
+            g["occlusion"] = fx.occlusion_band(D_def, self.ref, self.rays, (self.camera.f, self.camera.cx, self.camera.cy),
+                                               self.L, self.inward, self.mask, CONTACT_NOISE_M)
+        return g["occlusion"]
 
     def _leak(self, g: dict, length_m: float) -> np.ndarray:
         if "leak_terms" not in g:  # |N . w| and d^2 per LED, which the length does not change
@@ -196,9 +194,15 @@ class FastModel:
         if "coating_gloss" in params:
             p = params["coating_gloss"]
             I = I + p["k_g"] * np.power(terms.RV, p["shininess"])
+        ambient = terms.ambient
         if "contact_shadow" in params:
             p = params["contact_shadow"]
-            I = I * fx.shadow_factor(self._horizons(g), p["elevation_rad"], p["darkness"])
+            kept = fx.shadow_factor(*self._occlusion(g), p["elevation_rad"], p["darkness"])  # (M, H, W)
+            I = I * kept
+            # k_a B stands for the no-contact guided light of every LED: it loses each LED's
+            # share, weighted by what that LED puts in each channel, k_d,m c_m.
+            weight = (self.k_d[:, None] * self.colours).astype(np.float32)  # (M, 3)
+            ambient = ambient * (np.tensordot(weight.T, kept, axes=1) / np.maximum(weight.sum(axis=0), 1e-12)[:, None, None])
         if "path_attenuation" in params:
             I = I * fx.attenuation(self.geodesic, params["path_attenuation"]["mu_per_m"])
         colours = self.colours
@@ -207,12 +211,14 @@ class FastModel:
             n = len(self.spec.leds)
             colours = fx.spectral_colours(colours, [led.peak_nm for led in self.spec.leds],
                                           [led.fwhm_nm for led in self.spec.leds],
-                                          [p[f"shift_nm_{m}"] for m in range(n)], [p[f"power_{m}"] for m in range(n)])
+                                          [p[f"shift_nm_{m}"] for m in range(n)], [p[f"power_{m}"] for m in range(n)],
+                                          p.get("filter_floor", 0.0))
         if "core_light_leak" in params:
             p = params["core_light_leak"]
             amplitude = np.array([p[f"amplitude_{m}"] for m in range(len(self.spec.leds))], np.float32)
             I = I + amplitude[:, None, None] * self._leak(g, p["length_m"])
-        image = compose(I.astype(np.float32, copy=False), colours, terms.ambient).transpose(1, 2, 0)
+        image = compose(I.astype(np.float32, copy=False), colours, ambient.astype(np.float32, copy=False))
+        image = image.transpose(1, 2, 0)
         return np.clip(image, 0.0, 1.0) * self.mask[..., None]
 
     def optics(self, images: np.ndarray, params: dict) -> np.ndarray:
