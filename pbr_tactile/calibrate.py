@@ -561,6 +561,8 @@ def heldout_interval(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray, sec
     values = []
     for _ in range(count):
         weight = np.bincount(rng.choice(odd, len(odd)), minlength=SECTORS)[sector][pixels].astype(np.float64)
+        if not weight.sum() > 0:
+            continue  # every drawn sector is empty here (a clipped channel)
         y, p = real[pixels], pred[pixels]
         mean = np.sum(weight * y) / np.sum(weight)
         total = np.sum(weight * (y - mean) ** 2)
