@@ -120,11 +120,13 @@ def sector_index(shape: tuple[int, int], centre: tuple[float, float], sectors: i
 
 def block_mean(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """(H, W, C) -> (h, w, C) by averaging whole pixel blocks (H/h == W/w integer)."""
+    from skimage.measure import block_reduce
+
     H, W = image.shape[:2]
     k = H // shape[0]
     if k * shape[0] != H or k * shape[1] != W:
         raise ValueError(f"the film {shape[1]}x{shape[0]} must divide the camera's {W}x{H} evenly")
-    return image.reshape(shape[0], k, shape[1], k, *image.shape[2:]).mean(axis=(1, 3))
+    return block_reduce(image, (k, k) + (1,) * (image.ndim - 2), np.mean)
 
 
 # -- the basis ----------------------------------------------------------------------------
