@@ -38,7 +38,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from scenes.camera import Camera
-from scenes.profile import Alignment, CameraProfile, Profile
+from scenes.profile import Alignment, CameraProfile, Profile, camera_response, circle_radius, relative_illumination
 from scenes.spec import SensorSpec
 
 from .effects import Effects
@@ -58,10 +58,10 @@ AZIMUTH_BOUND_RAD = math.radians(25.0)
 SCALE_BOUNDS = (0.8, 1.25)
 SHIFT_BOUND_PX = 40.0
 GAMMA_BOUNDS = (0.5, 3.0)
-#: The lens' fall-off V = 1 + a1 r^2 + a2 r^4 is searched with a1, a2 in [-MAX_FALLOFF, 0]
-#: (non-increasing), and floored at MIN_ILLUMINATION (positive).
-MAX_FALLOFF = 0.98
-MIN_ILLUMINATION = 0.02
+#: The lens' fall-off V = 1 + a1 r^2 + a2 r^4 is searched as V(1) = 1 + a1 + a2 in
+#: [MIN_EDGE_ILLUMINATION, 1] and the r^4 share a2 / (a1 + a2) in [0, 1]: every value
+#: searched is a lens a profile accepts (non-increasing, positive).
+MIN_EDGE_ILLUMINATION = 0.02
 #: Starting rotations of the search (the LEDs repeat every 120 deg but their colours do not).
 ROTATION_STARTS = 12
 #: The default grid of physical effects searched (common random numbers across it).
@@ -181,16 +181,21 @@ class Nonlinear:
     gamma: float
 
     def vector(self) -> np.ndarray:
+        """The searched coordinates: the scale as its log, the fall-off as V(1) and its
+        r^4 share (see MIN_EDGE_ILLUMINATION)."""
+        total = -sum(self.vignetting)
+        quartic = -self.vignetting[1] / total if total > 0 else 0.0
         return np.r_[self.rotation_rad, self.led_azimuth_rad, self.leak, math.log(self.scale), self.shift_px,
-                     self.vignetting, self.gamma]
+                     1.0 - total, quartic, self.gamma]
 
     @classmethod
     def from_vector(cls, z: np.ndarray, leds: int) -> Nonlinear:
         z = np.asarray(z, np.float64)
         n = leds
+        total, quartic = 1.0 - float(z[4 + 2 * n]), float(z[5 + 2 * n])
         return cls(float(z[0]), tuple(map(float, z[1:1 + n])), tuple(map(float, z[1 + n:1 + 2 * n])),
                    float(math.exp(z[1 + 2 * n])), (float(z[2 + 2 * n]), float(z[3 + 2 * n])),
-                   (float(z[4 + 2 * n]), float(z[5 + 2 * n])), float(z[6 + 2 * n]))
+                   (-total * (1.0 - quartic), -total * quartic), float(z[6 + 2 * n]))
 
     @classmethod
     def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
@@ -201,7 +206,7 @@ def _bounds(leds: int, leak: bool) -> list[tuple[float, float]]:
     b = AZIMUTH_BOUND_RAD
     return ([(-4 * math.pi, 4 * math.pi)] + [(-b, b)] * leds + [(0.0, 1.0 if leak else 0.0)] * leds
             + [tuple(map(math.log, SCALE_BOUNDS))] + [(-SHIFT_BOUND_PX, SHIFT_BOUND_PX)] * 2
-            + [(-MAX_FALLOFF, 0.0)] * 2 + [GAMMA_BOUNDS])
+            + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS])
 
 
 class ImageModel:
@@ -215,17 +220,10 @@ class ImageModel:
         self.has_leak = np.array([str(n).endswith("_leak") for n in names])
         self.s = self.h / camera.height  # film px per camera px
         self.cx, self.cy = (camera.cx + 0.5) * self.s - 0.5, (camera.cy + 0.5) * self.s - 0.5
-        cam = CameraProfile(image_circle=circle)
-        from scenes.profile import lens_falloff
-
-        self.inside = lens_falloff(cam, (self.h, self.w), (camera.height, camera.width)) > 0
-        v, u = np.mgrid[0:self.h, 0:self.w].astype(np.float64)
-        self.u, self.v = u, v
-        if circle is None:
-            ccx, ccy, radius = self.cx, self.cy, math.hypot(self.h, self.w) / 2
-        else:
-            ccx, ccy, radius = ((circle[0] + 0.5) * self.s - 0.5, (circle[1] + 0.5) * self.s - 0.5, circle[2] * self.s)
-        self.r = np.minimum(np.hypot(u - ccx, v - ccy) / radius, 1.0)
+        r = circle_radius(circle, (self.h, self.w), (camera.height, camera.width))
+        self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
+        self.r = np.minimum(r, 1.0)
+        self.v, self.u = np.mgrid[0:self.h, 0:self.w].astype(np.float64)
 
     def moved(self, image: np.ndarray, nl: Nonlinear, m: int) -> np.ndarray:
         """(h, w) ``image`` moved by LED m's alignment: the point seen at p came from
@@ -248,8 +246,7 @@ class ImageModel:
 
     def falloff(self, nl: Nonlinear) -> np.ndarray:
         """(h, w) the lens' relative illumination, 0 outside the image circle."""
-        a1, a2 = nl.vignetting
-        return np.where(self.inside, np.maximum(1 + a1 * self.r**2 + a2 * self.r**4, MIN_ILLUMINATION), 0.0)
+        return np.where(self.inside, relative_illumination(nl.vignetting, self.r), 0.0)
 
     def warped(self, nl: Nonlinear) -> np.ndarray:
         """(h, w, L) each LED's image, (1 - leak) its own source plus leak its core
@@ -266,10 +263,10 @@ class ImageModel:
         return self._mixed(np.asarray(variance, np.float64), nl, 2) * np.square(self.falloff(nl))[..., None]
 
     def render(self, nl: Nonlinear, gains: np.ndarray, offset, saturation) -> np.ndarray:
-        """(h, w, 3) the modelled real image."""
-        lin = self.design(nl) @ gains + np.asarray(offset)
-        lin = np.where(self.inside[..., None], np.clip(lin, 0.0, None), 0.0)
-        return np.minimum(lin ** (1.0 / nl.gamma), np.asarray(saturation))
+        """(h, w, 3) the modelled real image (scenes.profile.camera_response)."""
+        response = CameraProfile(gamma=nl.gamma, offset=tuple(offset), saturation=tuple(saturation),
+                                 vignetting=nl.vignetting)
+        return camera_response(self.warped(nl) @ gains, response, self.falloff(nl))
 
 
 def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float, weight: np.ndarray | None = None,

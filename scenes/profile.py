@@ -68,8 +68,14 @@ class CameraProfile:
 
     def falloff(self, r: np.ndarray) -> np.ndarray:
         """V(r), r the radius over the image circle's."""
-        a1, a2 = self.vignetting
-        return 1.0 + a1 * r**2 + a2 * r**4
+        return relative_illumination(self.vignetting, r)
+
+
+def relative_illumination(vignetting: tuple[float, float], r: np.ndarray) -> np.ndarray:
+    """The lens' V(r) = 1 + a1 r^2 + a2 r^4 for vignetting (a1, a2), r the radius over
+    the image circle's."""
+    a1, a2 = vignetting
+    return 1.0 + a1 * r**2 + a2 * r**4
 
 
 @dataclass(frozen=True)
@@ -148,11 +154,10 @@ def write_profile(profile: Profile, path: str | Path) -> Path:
     """Write ``profile`` as TOML, atomically (a temporary file, then a rename)."""
     import tomli_w
 
+    from .dataset import atomic_write_bytes
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(tomli_w.dumps(profile.to_dict()))
-    tmp.replace(path)
+    atomic_write_bytes(path, tomli_w.dumps(profile.to_dict()).encode())
     return path
 
 
@@ -207,17 +212,24 @@ def camera_response(linear: np.ndarray, camera: CameraProfile, falloff: np.ndarr
     return np.minimum(lin ** (1.0 / camera.gamma), np.asarray(camera.saturation))
 
 
-def lens_falloff(camera: CameraProfile, shape: tuple[int, int], full_shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) V(r) inside the image circle and 0 outside, at ``shape``; the circle is in
-    pixels of ``full_shape`` (the camera's (H, W)). Without a circle, r is taken over the
-    frame's half diagonal and nothing is cut."""
+def circle_radius(circle: tuple[float, float, float] | None, shape: tuple[int, int],
+                  full_shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) each pixel's distance from the image circle's centre over its radius, at
+    ``shape``; the circle (cx, cy, radius) is in pixels of ``full_shape`` (the camera's
+    (H, W)). Without a circle: from the frame's centre, over its half diagonal."""
     h, w = shape
     s = h / full_shape[0]
     v, u = np.mgrid[0:h, 0:w]
-    if camera.image_circle is None:
+    if circle is None:
         cx, cy, radius = (full_shape[1] - 1) / 2, (full_shape[0] - 1) / 2, math.hypot(*full_shape) / 2
     else:
-        cx, cy, radius = camera.image_circle
-    r = np.hypot(u - ((cx + 0.5) * s - 0.5), v - ((cy + 0.5) * s - 0.5)) / (radius * s)
-    inside = r <= 1.0 if camera.image_circle is not None else np.ones((h, w), bool)
+        cx, cy, radius = circle
+    return np.hypot(u - ((cx + 0.5) * s - 0.5), v - ((cy + 0.5) * s - 0.5)) / (radius * s)
+
+
+def lens_falloff(camera: CameraProfile, shape: tuple[int, int], full_shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) V(r) inside the image circle and 0 outside, at ``shape`` (see
+    ``circle_radius``); without a circle nothing is cut."""
+    r = circle_radius(camera.image_circle, shape, full_shape)
+    inside = r <= 1.0 if camera.image_circle is not None else np.ones(r.shape, bool)
     return np.where(inside, camera.falloff(np.minimum(r, 1.0)), 0.0)

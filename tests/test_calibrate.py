@@ -167,10 +167,14 @@ def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
         assert cal.r2(pred[..., c], real[..., c], test) > 0.99
     # The three synthetic LEDs differ only in gains, so a turn by a third is the same
     # sensor with its LEDs renamed: the rotation is known modulo 2 pi / 3, the LEDs'
-    # parameters up to that renaming.
+    # parameters up to that renaming; and only each LED's whole turn, the rotation plus
+    # its azimuth, is seen (calibrate.NOT_IDENTIFIABLE).
     turn = fit.nl.rotation_rad - truth.rotation_rad
     shift = int(round(turn / (2 * math.pi / 3))) % 3
-    assert abs(math.remainder(turn, 2 * math.pi / 3)) < 0.05
+    whole_fit = fit.nl.rotation_rad + np.array(fit.nl.led_azimuth_rad)
+    whole_true = truth.rotation_rad + np.array(truth.led_azimuth_rad) + shift * 2 * math.pi / 3
+    for j in range(3):
+        assert abs(math.remainder(whole_fit[j] - whole_true[(j + shift) % 3], 2 * math.pi)) < 0.05
     assert abs(fit.nl.gamma - 1.8) < 0.1
     assert abs(fit.nl.scale - 1.05) < 0.02
     np.testing.assert_allclose(np.roll(fit.nl.leak, shift), truth.leak, atol=0.08)
