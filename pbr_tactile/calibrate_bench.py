@@ -69,12 +69,8 @@ def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: in
     """Relative error per scored parameter (module doc)."""
     turn = 2 * math.pi / leds
     d = fit["rotation_rad"] - nl.rotation_rad
-    best = None
-    for shift in range(leds):
-        err = abs(math.remainder(d - shift * turn, 2 * math.pi))
-        if best is None or err < best[0]:
-            best = (err, shift)
-    rot_err, k = best
+    k = min(range(leds), key=lambda shift: abs(math.remainder(d - shift * turn, 2 * math.pi)))
+    rot_err = abs(math.remainder(d - k * turn, 2 * math.pi))
     perm = [(j + k) % leds for j in range(leds)]  # fitted LED j sits where true LED j + k does
     half = lambda name: (RANGES[name][1] - RANGES[name][0]) / 2  # noqa: E731
     out = {"rotation_rad": rot_err / half("rotation_rad"),
@@ -83,16 +79,13 @@ def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: in
            "shift_px": float(np.max(np.abs(np.subtract(fit["shift_px"], nl.shift_px)))) / half("shift_px"),
            "edge_illumination": abs(sum(fit["vignetting"]) - sum(nl.vignetting)) / (1 + sum(nl.vignetting))}
     fitted_gains = np.asarray(fit["led_gains"])
-    for j in range(leds):
-        true = perm[j]
-        leak_true, leak_fit = nl.leak[true], fit["led_leak"][j]
-        out[f"led{true}_leak"] = (abs(leak_fit - leak_true) / leak_true if leak_true >= LEAK_MIN
-                                  else abs(leak_fit - leak_true) / LEAK_MIN)
     rel_fit = fitted_gains / fitted_gains.max()
     rel_true = gains / gains.max()
-    for j in range(leds):
+    for j, true in enumerate(perm):
+        leak_true, leak_fit = nl.leak[true], fit["led_leak"][j]
+        out[f"led{true}_leak"] = abs(leak_fit - leak_true) / max(leak_true, LEAK_MIN)
         for c, ch in enumerate("rgb"):
-            out[f"led{perm[j]}_gain_{ch}"] = abs(rel_fit[j, c] - rel_true[perm[j], c]) / rel_true[perm[j], c]
+            out[f"led{true}_gain_{ch}"] = abs(rel_fit[j, c] - rel_true[true, c]) / rel_true[true, c]
     for name, value in effects.items():
         out[name] = abs(fit["effects"][name] - value) / value if value else abs(fit["effects"][name])
     return out
@@ -110,12 +103,13 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
     for case in range(cases):
         nl, gains, effects = draw(rng, leds, grid)
         fx = Effects().with_settings([f"{k}={v}" for k, v in {**BASIS_EFFECTS, **effects}.items()])
-        # the virtual sensor's own render at the camera's size (its own noise)
+        # the virtual sensor's own render, at the film's size with its own seed (its own noise)
         hidden = emitter_basis(spec, mesh, camera, fx, film, photons, spp, 2, seed + SEED_OFFSET + case,
                                use_cache=not cold)
         circle = (camera.cx, camera.cy, camera.mask_radius_px)
         model = ImageModel(hidden["mean"], hidden["names"], camera, circle)
-        gains_scaled = gains / np.percentile(model.design(nl)[model.inside].sum(axis=1), 95)
+        design = model.design(nl)
+        gains_scaled = gains / np.percentile(design[model.inside].sum(axis=1), 95)
         image = model.render(nl, gains_scaled, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
         k = camera.height // film[1]
         real = np.repeat(np.repeat(image, k, axis=0), k, axis=1)
@@ -127,7 +121,7 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
         for name, err in _errors(fit, nl, gains_scaled, effects, leds).items():
             per_parameter.setdefault(name, []).append(float(err))
         # the virtual image's Monte Carlo standard error, through the response
-        lin = model.design(nl) @ gains_scaled
+        lin = design @ gains_scaled
         var = model.design_variance(hidden["variance"], nl) @ np.square(gains_scaled)
         slope = np.where(lin > 0, np.power(np.maximum(lin, 1e-12), 1 / nl.gamma - 1) / nl.gamma, 0.0)
         noise = float(np.mean(np.sqrt(var * slope**2)[model.inside]))

@@ -59,6 +59,7 @@ def _figure(images: dict, path: Path) -> None:
 def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
     """report.json, report.html, residual images and figure; profile.toml only for a
     converged fit."""
+    from scenes.dataset import atomic_write_json
     from scenes.images import write_rgb
     from scenes.profile import write_profile
 
@@ -74,9 +75,7 @@ def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
     if calibration.report["converged"]:
         paths["profile"] = write_profile(calibration.profile, out / "profile.toml")
     report["profile"] = str(paths["profile"]) if "profile" in paths else None
-    tmp = out / "report.json.tmp"
-    tmp.write_text(json.dumps(report, indent=2, default=float))
-    tmp.replace(paths["report"])
+    atomic_write_json(paths["report"], report)
     rows = "".join(f"<tr><td>{ch}</td><td>{report['heldout_r2_before'][ch]:.3f}</td><td>{report['heldout_r2'][ch]:.3f}"
                    f"</td><td>{report['heldout_mae_before'][ch]:.4f}</td><td>{report['heldout_mae'][ch]:.4f}</td>"
                    f"<td>{'yes' if report['saturated'][ch] else 'no'}</td></tr>" for ch in "rgb")
@@ -143,6 +142,7 @@ def cmd_benchmark(args) -> int:
     from tqdm import tqdm
 
     from scenes.camera import Camera
+    from scenes.dataset import atomic_write_json
     from scenes.geometry import membrane_mesh
     from scenes.spec import load_spec
 
@@ -161,7 +161,7 @@ def cmd_benchmark(args) -> int:
                        film=(args.width, args.width * 3 // 4), grid=_grid(args.grid) if args.grid else GRID,
                        photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n))
     bar.close()
-    _write_json(result, Path(args.json))
+    atomic_write_json(Path(args.json), result)
     print(f"median relative error {result['median_relative_error']:.3f}, share within 10 % "
           f"{result['share_within_10pct']:.2f} over {cases} cases; wrote {args.json}")
     return 0
@@ -170,6 +170,7 @@ def cmd_benchmark(args) -> int:
 def cmd_bench_calibrate(args) -> int:
     """``tactile-sim bench calibrate``: seconds to calibrate from one no-contact image."""
     from scenes.camera import Camera
+    from scenes.dataset import atomic_write_json
     from scenes.geometry import membrane_mesh
     from scenes.spec import load_spec
 
@@ -181,16 +182,9 @@ def cmd_bench_calibrate(args) -> int:
     out = {"seconds": result["seconds_per_case"], "what": "one no-contact image (a virtual sensor), default grid, "
            "basis renders not cached (cold), bootstrap off; no taps (calibration from taps is not built yet)",
            "median_relative_error": result["median_relative_error"]}
-    _write_json(out, Path(args.json))
+    atomic_write_json(Path(args.json), out)
     print(f"calibrated in {out['seconds']:.0f} s; wrote {args.json}")
     return 0
-
-
-def _write_json(data: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=float))
-    tmp.replace(path)
 
 
 def _grid(items: list[str]) -> dict:

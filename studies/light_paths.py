@@ -22,7 +22,6 @@ Run: ``python -m studies.light_paths --out DIR [--width 160]``; writes
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 #: Each variant: (grid of effects, leak on).
@@ -41,6 +40,7 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
     from pbr_tactile.calibrate import calibrate_background
     from pbr_tactile.calibrate_cli import write_outputs
     from scenes.camera import Camera
+    from scenes.dataset import atomic_write_json
     from scenes.geometry import membrane_mesh
     from scenes.images import read_rgb
     from scenes.reference_data import require_reference_dir
@@ -65,7 +65,7 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
                       "saturated": rep["saturated"]}
     summary = {"variants": rows, "untested": UNTESTED}
     out.mkdir(parents=True, exist_ok=True)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_json(out / "summary.json", summary)
     lines = ["| variant | R² red [90 % CI] | R² green [90 % CI] | best effects | LED leak | converged |",
              "|---|---|---|---|---|---|"]
     for name, row in rows.items():
