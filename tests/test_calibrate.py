@@ -271,3 +271,16 @@ def test_calibrate_command_refuses_bad_input(tmp_path, capsys):
     assert main(["calibrate", "--background-only", str(small), "--cases", "2", "--out", str(tmp_path / "o")]) == 1
     assert "--cases is an option of" in capsys.readouterr().err
     assert not (tmp_path / "o" / "profile.toml").exists()
+
+
+def test_reference_with_a_profile_refuses_what_it_cannot_render(tmp_path, spec, capsys):
+    from scenes.cli import main
+
+    path = write_profile(_profile(spec), tmp_path / "profile.toml")
+    depth = tmp_path / "d.npy"
+    np.save(depth, np.zeros((2, 2)))
+    assert main(["reference", str(depth), "--profile", str(path), "--estimator", "volpath", "--out", "x"]) == 1
+    assert "--profile needs the photon estimator" in capsys.readouterr().err
+    path.write_text(path.read_text().replace('name = "geltip"', 'name = "other"'))
+    assert main(["reference", str(depth), "--profile", str(path), "--out", "x"]) == 1
+    assert "is for sensor 'other'" in capsys.readouterr().err
