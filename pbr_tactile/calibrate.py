@@ -197,6 +197,15 @@ class Nonlinear:
                    float(math.exp(z[1 + 2 * n])), (float(z[2 + 2 * n]), float(z[3 + 2 * n])),
                    (-total * (1.0 - quartic), -total * quartic), float(z[6 + 2 * n]))
 
+    def tied(self) -> Nonlinear:
+        """The same image with the LED azimuth offsets' mean moved into the rotation,
+        which is then wrapped to (-pi, pi]: one no-contact image sees only their sums,
+        and this is the tie the profile reports (see NOT_IDENTIFIABLE)."""
+        mean = float(np.mean(self.led_azimuth_rad)) if self.led_azimuth_rad else 0.0
+        rotation = math.remainder(self.rotation_rad + mean, 2 * math.pi)
+        return dataclasses.replace(self, rotation_rad=rotation,
+                                   led_azimuth_rad=tuple(a - mean for a in self.led_azimuth_rad))
+
     @classmethod
     def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
         return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2)
@@ -218,21 +227,17 @@ class ImageModel:
         self.led = led_of_source(names)
         self.leds = int(self.led.max()) + 1
         self.has_leak = np.array([str(n).endswith("_leak") for n in names])
-        self.s = self.h / camera.height  # film px per camera px
-        self.cx, self.cy = (camera.cx + 0.5) * self.s - 0.5, (camera.cy + 0.5) * self.s - 0.5
+        self.camera = camera
         r = circle_radius(circle, (self.h, self.w), (camera.height, camera.width))
         self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
         self.r = np.minimum(r, 1.0)
-        self.v, self.u = np.mgrid[0:self.h, 0:self.w].astype(np.float64)
 
     def moved(self, image: np.ndarray, nl: Nonlinear, m: int) -> np.ndarray:
         """(h, w) ``image`` moved by LED m's alignment: the point seen at p came from
         T^-1 p (unshift, rotate back, unscale about the principal point)."""
-        x, y = self.u - self.cx - nl.shift_px[0] * self.s, self.v - self.cy - nl.shift_px[1] * self.s
-        a = nl.rotation_rad + nl.led_azimuth_rad[m]
-        c, s = math.cos(a), math.sin(a)
-        xs, ys = (c * x + s * y) / nl.scale + self.cx, (-s * x + c * y) / nl.scale + self.cy
-        return ndimage.map_coordinates(image, [ys, xs], order=1, mode="nearest")
+        coords = Alignment(0.0, nl.scale, nl.shift_px).sampling((self.h, self.w), self.camera,
+                                                                nl.rotation_rad + nl.led_azimuth_rad[m])
+        return ndimage.map_coordinates(image, coords, order=1, mode="nearest")
 
     def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int) -> np.ndarray:
         out = np.zeros((self.h, self.w, self.leds))
@@ -398,12 +403,14 @@ def profile_effects(profile: Profile, settings: list[str] | None = None) -> Effe
 
 
 def profiled_image(per_source: np.ndarray, names, profile: Profile, camera: Camera) -> np.ndarray:
-    """(h, w, S) per-source linear images (``reference(..., per_source=True)`` with
-    ``profile_effects``) -> (h, w, 3) the calibrated sensor's image in [0, 1]."""
+    """(h, w, S) per-source linear images (``reference(..., per_source=True)`` of
+    ``profile.sensor_spec``, whose LEDs are already turned, with ``profile_effects``) ->
+    (h, w, 3) the calibrated sensor's image in [0, 1]."""
     ref = profile.reference
     try:
         gains = np.asarray(ref["led_gains"], np.float64)
-        nl = Nonlinear(profile.alignment.rotation_rad, tuple(ref["led_azimuth_rad"]), tuple(ref["led_leak"]),
+        leds = len(ref["led_leak"])
+        nl = Nonlinear(profile.alignment.rotation_rad, (0.0,) * leds, tuple(ref["led_leak"]),
                        profile.alignment.scale, profile.alignment.shift_px, profile.camera.vignetting,
                        profile.camera.gamma)
     except KeyError as exc:
@@ -492,18 +499,21 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     mae_before = {ch: float(np.abs(before[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
     intervals = _bootstrap(fit, model, r, sector, bootstrap, seed, leak) if bootstrap else {}
     r2_interval = {ch: heldout_interval(after[..., c], r[..., c], judged[ch], sector, seed) for c, ch in enumerate("rgb")}
-    nl = fit.nl
+    fast_table, fast_path = _fast_path_background(r, circle, camera, train, test, clipped, judged, sector, seed)
+    nl = fit.nl.tied()
     profile = Profile(
         sensor=spec.name, leds=tuple(led.name for led in spec.leds),
-        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px),
+        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px,
+                            nl.led_azimuth_rad),
         camera=CameraProfile(gamma=nl.gamma, offset=tuple(np.clip(fit.offset, 0.0, 1.0)),
                              saturation=tuple(CLIP_LEVEL if saturated[ch] else 1.0 for ch in "rgb"),
                              vignetting=nl.vignetting, image_circle=circle),
         reference={"effects": {**point, "coating_albedo": Effects().coating_albedo},
-                   "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
-                   "led_gains": fit.gains.tolist(), "film": [width, height], "photons": photons,
+                   "led_leak": list(nl.leak), "led_gains": fit.gains.tolist(), "film": [width, height], "photons": photons,
                    "spp": spp, "passes": passes, "seed": seed},
-        fit={"data": "one no-contact image", "converged": fit.converged, "heldout_r2": heldout})
+        phong={"ambient": 1.0, "background": fast_table},
+        fit={"data": "one no-contact image", "converged": fit.converged, "heldout_r2": heldout,
+             "phong_heldout_r2": fast_path["heldout_r2"]})
     report = {
         "converged": fit.converged, "loss": fit.loss, "start_loss": fit.start_loss, "evaluations": fit.evaluations,
         "heldout_r2": heldout, "heldout_r2_interval": r2_interval, "heldout_r2_before": heldout_before, "heldout_mae": mae,
@@ -512,9 +522,9 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "converged": f.converged} for f, p, _, _ in fits],
         "best_effects": point, "parameters": _parameters(fit), "intervals": intervals,
-        "not_identifiable": NOT_IDENTIFIABLE,
+        "not_identifiable": NOT_IDENTIFIABLE, "fast_path": fast_path,
     }
-    return Calibration(profile, report, {"real": r, "before": before, "after": after,
+    return Calibration(profile, report, {"real": r, "before": before, "after": after, "fast_path": fast_path.pop("image"),
                                          "judged": np.stack([judged[ch] for ch in "rgb"], -1)})
 
 
@@ -523,14 +533,15 @@ NOT_IDENTIFIABLE = [
     "LED power, LED spectrum under the camera's filters, white balance and coating albedo all scale a source's "
     "image per channel: fitted together as each LED's RGB gain (led_gains); the coating albedo is tied at its "
     "default",
-    "the global rotation and the LED azimuths: only their sums are seen (alignment.rotation_rad + led_azimuth_rad)",
+    "the global rotation and the LED azimuths: only their sums are seen (alignment.rotation_rad + led_azimuth_rad); "
+    "tied by giving the azimuth offsets zero mean, so where contacts appear (the membrane's turn) needs taps",
     "the lens' fall-off (vignetting) and the medium's radial transport (absorption, scattering) both shape the "
     "radial profile; the grid's effects are judged with the fall-off fitted for each",
 ]
 
 
 def _parameters(fit: ImageFit) -> dict:
-    nl = fit.nl
+    nl = fit.nl.tied()
     return {"rotation_rad": nl.rotation_rad, "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
             "scale": nl.scale, "shift_px": list(nl.shift_px), "vignetting": list(nl.vignetting), "gamma": nl.gamma,
             "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist()}
@@ -568,6 +579,34 @@ def heldout_interval(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray, sec
         if total > 0:
             values.append(1 - np.sum(weight * (y - p) ** 2) / total)
     return _interval(np.array(values)) if values else [float("nan")] * 2
+
+
+def _fast_path_background(r, circle, camera: Camera, train, test, clipped, judged: dict, sector, seed: int):
+    """The fast path's background term fitted on the training sectors
+    (scenes.background_model) and judged like the reference; with the best solid colour
+    (each channel's training mean) for comparison. Returns the profile table and the
+    report's ``fast_path`` section (with the film-sized ``image``, popped by the caller)."""
+    from scenes import background_model
+
+    full = (camera.height, camera.width)
+    table = background_model.fit(r, circle, train, full, clipped)
+    image = background_model.evaluate(table, circle, r.shape[:2], full).astype(np.float64)
+    solid = np.where(test[..., None], [r[..., c][train].mean() for c in range(3)], 0.0)
+    channels = list(enumerate("rgb"))
+    section = {
+        "background_model": (f"{background_model.MODEL}: Legendre polynomials of the image circle's radius to degree "
+                              f"{table['radial_degree']} times azimuthal harmonics to {table['harmonics']}, "
+                              "least squares per channel on the training sectors, clipped pixels censored"),
+        "heldout_r2": {ch: r2(image[..., c], r[..., c], judged[ch]) for c, ch in channels},
+        "heldout_r2_interval": {ch: heldout_interval(image[..., c], r[..., c], judged[ch], sector, seed)
+                                for c, ch in channels},
+        "heldout_mae": {ch: float(np.abs(image[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in channels},
+        "solid": {"heldout_r2": {ch: r2(solid[..., c], r[..., c], judged[ch]) for c, ch in channels},
+                  "heldout_mae": {ch: float(np.abs(solid[..., c] - r[..., c])[judged[ch]].mean())
+                                  for c, ch in channels}},
+        "image": image,
+    }
+    return {**table, "coefficients": table["coefficients"].tolist()}, section
 
 
 def _uncalibrated(spec, camera, basis: dict, circle, r, train) -> np.ndarray:

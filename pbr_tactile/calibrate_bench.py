@@ -68,7 +68,7 @@ def draw(rng: np.random.Generator, leds: int, grid: dict) -> tuple[Nonlinear, np
 def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: int) -> dict[str, float]:
     """Relative error per scored parameter (module doc)."""
     turn = 2 * math.pi / leds
-    d = fit["rotation_rad"] - nl.rotation_rad
+    d = fit["rotation_rad"] - nl.tied().rotation_rad  # the fit reports the tied rotation
     k = min(range(leds), key=lambda shift: abs(math.remainder(d - shift * turn, 2 * math.pi)))
     rot_err = abs(math.remainder(d - k * turn, 2 * math.pi))
     perm = [(j + k) % leds for j in range(leds)]  # fitted LED j sits where true LED j + k does

@@ -40,20 +40,34 @@ def _figure(images: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 4, figsize=(14, 9))
+    names = [name for name in ("real", "before", "after", "fast_path") if name in images]
+    residuals = [name for name in ("after", "fast_path") if name in images]
+    fig, axes = plt.subplots(3, len(names) + len(residuals), figsize=(3.5 * (len(names) + len(residuals)), 9))
     for c, ch in enumerate("rgb"):
-        for k, name in enumerate(("real", "before", "after")):
+        for k, name in enumerate(names):
             axes[c, k].imshow(images[name][..., c], vmin=0, vmax=1, cmap="gray")
-            axes[c, k].set_title(f"{name} ({ch})")
-        diff = np.where(images["judged"][..., c], images["after"][..., c] - images["real"][..., c], np.nan)
-        im = axes[c, 3].imshow(diff, vmin=-0.2, vmax=0.2, cmap="RdBu_r")
-        axes[c, 3].set_title(f"after - real, held-out sectors ({ch})")
-        fig.colorbar(im, ax=axes[c, 3])
+            axes[c, k].set_title(f"{name.replace('_', ' ')} ({ch})")
+        for k, name in enumerate(residuals, start=len(names)):
+            diff = np.where(images["judged"][..., c], images[name][..., c] - images["real"][..., c], np.nan)
+            im = axes[c, k].imshow(diff, vmin=-0.2, vmax=0.2, cmap="RdBu_r")
+            axes[c, k].set_title(f"{name.replace('_', ' ')} - real, held out ({ch})", fontsize=9)
+            fig.colorbar(im, ax=axes[c, k])
     for ax in axes.ravel():
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
+
+
+def _fast_path_html(fast: dict | None) -> str:
+    if not fast:
+        return ""
+    rows = "".join(f"<tr><td>{ch}</td><td>{fast['solid']['heldout_r2'][ch]:.3f}</td><td>{fast['heldout_r2'][ch]:.3f}"
+                   f"</td><td>{fast['solid']['heldout_mae'][ch]:.4f}</td><td>{fast['heldout_mae'][ch]:.4f}</td></tr>"
+                   for ch in "rgb")
+    return (f"<h2>The fast path's background term</h2><p>{fast['background_model']}; the same split.</p>"
+            f"<table border=1><tr><th>channel</th><th>held-out R² solid colour</th><th>smooth model</th>"
+            f"<th>MAE solid</th><th>smooth</th></tr>{rows}</table>")
 
 
 def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
@@ -86,7 +100,7 @@ def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
         f"<p>From {what}. Fit {status}; {report['split']}.</p>"
         f"<table border=1><tr><th>channel</th><th>held-out R² before</th><th>after</th><th>MAE before</th>"
         f"<th>after</th><th>saturated</th></tr>{rows}</table>"
-        f"<p>Best effects on the grid: {report['best_effects']}</p>"
+        f"<p>Best effects on the grid: {report['best_effects']}</p>{_fast_path_html(report.get('fast_path'))}"
         f"<p>Not identifiable from this data:</p><ul>{''.join(f'<li>{x}</li>' for x in report['not_identifiable'])}</ul>"
         f"<img src='residuals_figure.png'></body></html>")
     return paths

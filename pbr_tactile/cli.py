@@ -96,6 +96,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
         if args.estimator != "photons":
             raise ValueError("--profile needs the photon estimator (it renders one image per source)")
         profile = load_profile(args.profile, spec)
+        spec = profile.sensor_spec(spec)  # the unit's LEDs, turned as fitted
         effects = profile_effects(profile, args.effect)
     else:
         effects = Effects().with_settings(args.effect or [])

@@ -9,7 +9,9 @@ Tables (all lengths in the camera's pixels at its full resolution, angles in rad
 - ``sensor``: the spec's name and LED names; a profile is refused for another sensor.
 - ``alignment``: ``rotation_rad`` (about the principal point, the membrane and LEDs turn
   while the image circle, which belongs to the lens, stays), ``scale`` and ``shift_px``
-  (u, v) of the membrane image against the spec's camera.
+  (u, v) of the membrane image against the spec's camera (``align_image``), and
+  ``led_azimuth_rad``, each LED's turn about the sensor's axis from the spec's position
+  (``Profile.sensor_spec`` moves the LEDs, so contacts stay where they are).
 - ``camera``: the real camera's response, applied to a linear render L (per channel c)::
 
       image_c = clip((V(r) L_c + offset_c) ** (1 / gamma), 0, saturation_c)
@@ -19,13 +21,16 @@ Tables (all lengths in the camera's pixels at its full resolution, angles in rad
   optics fill the frame (pixels outside it are 0).
 - ``reference``: the physically based reference's fitted effects (``effects``, names of
   pbr_tactile.effects.Effects), each source's RGB gain (``sources``, ``gains``: the
-  film's response times the source's power, rows in source order), and each LED's
-  azimuth offset (``led_azimuth_rad``).
+  film's response times the source's power, rows in source order).
+- ``phong``: the fast path's constants: its background term (``background``, a smooth
+  model in the image circle's polar coordinates, ``phong_reference.background``) and the
+  ambient weight k_a i_a that multiplies it.
 - ``fit``: how the profile was fitted (data, held-out R^2, intervals, converged).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from dataclasses import asdict, dataclass, field
@@ -33,10 +38,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera import Camera
 from .spec import SensorSpec
 
 #: Bump when the meaning of a table changes; older profiles are refused.
-PROFILE_VERSION = 1
+PROFILE_VERSION = 2
 #: Physical bounds of the camera table.
 GAMMA_RANGE = (0.3, 4.0)
 SCALE_RANGE = (0.5, 2.0)
@@ -85,12 +91,29 @@ class Alignment:
     rotation_rad: float = 0.0
     scale: float = 1.0
     shift_px: tuple[float, float] = (0.0, 0.0)
+    #: Each LED's turn about the sensor's axis (rad), in the spec's LED order; () none.
+    led_azimuth_rad: tuple[float, ...] = ()
 
     def __post_init__(self):
         if not (math.isfinite(self.rotation_rad) and SCALE_RANGE[0] <= self.scale <= SCALE_RANGE[1]):
             raise ValueError(f"profile alignment: rotation_rad must be finite and scale in {list(SCALE_RANGE)}, got "
                              f"{self.rotation_rad} and {self.scale}")
         _vector(self.shift_px, 2, "alignment.shift_px")
+        _vector(self.led_azimuth_rad, len(self.led_azimuth_rad), "alignment.led_azimuth_rad", lo=-math.pi, hi=math.pi)
+
+    def sampling(self, shape: tuple[int, int], camera: Camera, rotation_rad: float | None = None) -> np.ndarray:
+        """(2, h, w) where each pixel of an aligned image at ``shape`` samples the spec's
+        image (rows, columns; for scipy.ndimage.map_coordinates): the inverse of the
+        rotation (``rotation_rad``, default this alignment's), scale and shift about the
+        principal point of ``camera`` (the spec's, at its full resolution)."""
+        h, w = shape
+        s = h / camera.height
+        cx, cy = (camera.cx + 0.5) * s - 0.5, (camera.cy + 0.5) * s - 0.5
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        x, y = u - cx - self.shift_px[0] * s, v - cy - self.shift_px[1] * s
+        a = self.rotation_rad if rotation_rad is None else rotation_rad
+        c, sn = math.cos(a), math.sin(a)
+        return np.stack([(-sn * x + c * y) / self.scale + cy, (c * x + sn * y) / self.scale + cx])
 
 
 @dataclass(frozen=True)
@@ -113,6 +136,23 @@ class Profile:
                              f"{spec.name!r} with LEDs {list(names)}: calibrate this sensor, or pass its spec")
         return self
 
+    def sensor_spec(self, spec: SensorSpec) -> SensorSpec:
+        """``spec`` as this unit is built: each LED (position and direction) turned about
+        the camera's axis by its ``alignment.led_azimuth_rad`` and the camera's image
+        circle the profile's. Renderers render this spec, then ``align_image``."""
+        self.check(spec)
+        turns = self.alignment.led_azimuth_rad or (0.0,) * len(spec.leds)
+        if len(turns) != len(spec.leds):
+            raise ValueError(f"profile alignment.led_azimuth_rad has {len(turns)} values for {len(spec.leds)} LEDs")
+        leds = tuple(dataclasses.replace(led, position=_turn(led.position, a), direction=_turn(led.direction, a))
+                     for led, a in zip(spec.leds, turns))
+        camera = spec.camera
+        circle = self.camera.image_circle
+        if circle is not None:
+            camera = dataclasses.replace(camera, mask_center_px=(float(circle[0]), float(circle[1])),
+                                         mask_radius_px=float(circle[2]))
+        return spec.replace(leds=leds, camera=camera)
+
     def to_dict(self) -> dict:
         out = {"version": PROFILE_VERSION, "sensor": {"name": self.sensor, "leds": list(self.leds)},
                "alignment": asdict(self.alignment), "camera": asdict(self.camera)}
@@ -122,6 +162,27 @@ class Profile:
             if getattr(self, name):
                 out[name] = getattr(self, name)
         return _plain(out)
+
+
+def _turn(v, angle: float) -> tuple[float, float, float]:
+    """A 3-vector turned by ``angle`` about the camera's z axis."""
+    c, s = math.cos(angle), math.sin(angle)
+    return (c * v[0] - s * v[1], s * v[0] + c * v[1], float(v[2]))
+
+
+def align_image(image: np.ndarray, alignment: Alignment, camera: Camera, fill: float = 0.0) -> np.ndarray:
+    """(h, w[, C]) an image of the spec's membrane -> as the real camera sees it: turned,
+    scaled and shifted by ``alignment`` about the principal point of ``camera`` (the
+    spec's, full resolution; the image may be smaller), bilinear; ``fill`` where it
+    samples outside the image."""
+    from scipy import ndimage
+
+    image = np.asarray(image)
+    coords = alignment.sampling(image.shape[:2], camera)
+    if image.ndim == 2:
+        return ndimage.map_coordinates(image, coords, order=1, mode="constant", cval=fill)
+    return np.stack([ndimage.map_coordinates(image[..., c], coords, order=1, mode="constant", cval=fill)
+                     for c in range(image.shape[2])], axis=-1)
 
 
 def _vector(value, n: int, name: str, lo: float = -math.inf, hi: float = math.inf) -> tuple[float, ...]:
@@ -175,8 +236,9 @@ def profile_from_dict(data: dict, where: str = "profile") -> Profile:
             if key in camera:
                 camera[key] = tuple(camera[key])
         alignment = dict(data.get("alignment", {}))
-        if "shift_px" in alignment:
-            alignment["shift_px"] = tuple(alignment["shift_px"])
+        for key in ("shift_px", "led_azimuth_rad"):
+            if key in alignment:
+                alignment[key] = tuple(alignment[key])
         return Profile(sensor=str(sensor["name"]), leds=tuple(sensor["leds"]), alignment=Alignment(**alignment),
                        camera=CameraProfile(**camera), reference=dict(data.get("reference", {})),
                        phong=dict(data.get("phong", {})), fit=dict(data.get("fit", {})))
@@ -212,11 +274,12 @@ def camera_response(linear: np.ndarray, camera: CameraProfile, falloff: np.ndarr
     return np.minimum(lin ** (1.0 / camera.gamma), np.asarray(camera.saturation))
 
 
-def circle_radius(circle: tuple[float, float, float] | None, shape: tuple[int, int],
-                  full_shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) each pixel's distance from the image circle's centre over its radius, at
-    ``shape``; the circle (cx, cy, radius) is in pixels of ``full_shape`` (the camera's
-    (H, W)). Without a circle: from the frame's centre, over its half diagonal."""
+def circle_polar(circle: tuple[float, float, float] | None, shape: tuple[int, int],
+                 full_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) each pixel's distance from the image circle's centre over its radius, and
+    its azimuth about the centre (rad, atan2 of v and u), at ``shape``; the circle (cx, cy,
+    radius) is in pixels of ``full_shape`` (the camera's (H, W)). Without a circle: from
+    the frame's centre, over its half diagonal."""
     h, w = shape
     s = h / full_shape[0]
     v, u = np.mgrid[0:h, 0:w]
@@ -224,7 +287,14 @@ def circle_radius(circle: tuple[float, float, float] | None, shape: tuple[int, i
         cx, cy, radius = (full_shape[1] - 1) / 2, (full_shape[0] - 1) / 2, math.hypot(*full_shape) / 2
     else:
         cx, cy, radius = circle
-    return np.hypot(u - ((cx + 0.5) * s - 0.5), v - ((cy + 0.5) * s - 0.5)) / (radius * s)
+    x, y = u - ((cx + 0.5) * s - 0.5), v - ((cy + 0.5) * s - 0.5)
+    return np.hypot(x, y) / (radius * s), np.arctan2(y, x)
+
+
+def circle_radius(circle: tuple[float, float, float] | None, shape: tuple[int, int],
+                  full_shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) the radius of ``circle_polar``."""
+    return circle_polar(circle, shape, full_shape)[0]
 
 
 def lens_falloff(camera: CameraProfile, shape: tuple[int, int], full_shape: tuple[int, int]) -> np.ndarray:

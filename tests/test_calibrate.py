@@ -12,7 +12,7 @@ import pytest
 from pbr_tactile import calibrate as cal
 from pbr_tactile.calibrate_cli import real_background
 from scenes.camera import Camera
-from scenes.profile import Alignment, CameraProfile, Profile, load_profile, write_profile
+from scenes.profile import PROFILE_VERSION, Alignment, CameraProfile, Profile, load_profile, write_profile
 from scenes.spec import default_spec
 
 
@@ -68,7 +68,7 @@ def test_corrupt_or_old_profile_is_refused(tmp_path, spec):
     with pytest.raises(ValueError, match="not valid TOML"):
         load_profile(bad)
     path = write_profile(_profile(spec), tmp_path / "p.toml")
-    path.write_text(path.read_text().replace("version = 1", "version = 0"))
+    path.write_text(path.read_text().replace(f"version = {PROFILE_VERSION}", "version = 0"))
     with pytest.raises(ValueError, match="version"):
         load_profile(path)
     with pytest.raises(FileNotFoundError, match="does not exist"):
@@ -236,6 +236,15 @@ def test_calibrate_background_end_to_end(tmp_path, spec, camera):
     assert frame.shape == (30, 40, 3) and frame[15, 20].max() > 0 and frame[0, 0].max() == 0  # circle cut
     assert np.load(tmp_path / "frame.npy").shape == (30, 40, 6)  # one linear image per source
 
+    # the fast path's background term, judged on the same split, and rendered from the profile
+    fast = report["fast_path"]
+    assert set(fast["heldout_r2"]) == {"r", "g", "b"} and set(fast["solid"]["heldout_r2"]) == {"r", "g", "b"}
+    assert fast["heldout_r2"]["g"] > fast["solid"]["heldout_r2"]["g"]
+    code = main(["render", str(depth), "--profile", str(paths["profile"]), "-o", str(tmp_path / "fast.png")])
+    assert code == 0
+    fast_frame = read_rgb(tmp_path / "fast.png")
+    assert fast_frame[0, 0].max() == 0 and fast_frame[240, 320].max() > 0
+
 
 # -- the blind benchmark's scoring ------------------------------------------------------------
 
@@ -247,7 +256,7 @@ def test_benchmark_scoring_forgives_only_the_led_renaming():
     effects = {"absorption_per_m": 20.0}
     k = 1  # the fit turned by one LED spacing: its LED j is the true LED j + 1
     perm = [(j + k) % 3 for j in range(3)]
-    fit = {"rotation_rad": 0.3 + 2 * math.pi / 3, "gamma": 2.0, "scale": 1.02, "shift_px": [3.0, -2.0],
+    fit = {"rotation_rad": truth.tied().rotation_rad + 2 * math.pi / 3, "gamma": 2.0, "scale": 1.02, "shift_px": [3.0, -2.0],
            "vignetting": [-0.3, 0.0], "led_leak": [truth.leak[p] for p in perm],
            "led_gains": gains[perm] * 5.0, "effects": effects}
     errors = _errors(fit, truth, gains, effects, 3)
