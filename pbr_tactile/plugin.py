@@ -112,6 +112,10 @@ def _film(value, camera: Camera) -> tuple[int, int]:
 
 def options_from(options: dict, camera: Camera) -> dict:
     """Validated options, defaults filled in: effects as an Effects, film as (width, height)."""
+    if "profile" in options:
+        raise ValueError("option profile: the pbr dataset renderer does not take a calibrated unit's profile yet (its "
+                         "no-contact frame and control variate are RGB, not per source); render single frames of "
+                         "the unit with tactile-sim reference --profile, or datasets with --renderer phong")
     unknown = sorted(set(options) - set(DEFAULTS))
     if unknown:
         raise ValueError(f"the pbr renderer takes no option {', '.join(unknown)}; its options are "

@@ -59,6 +59,22 @@ def _background(kind: str, camera):
     return make_background(kind, camera)
 
 
+def _profile(args, spec):
+    """The calibrated unit's profile of ``--profile``, checked against the spec, or None."""
+    if not getattr(args, "profile", None):
+        return None
+    if getattr(args, "background", None):
+        raise ValueError("give --background or --profile, not both: the profile's background term is the "
+                         "calibrated unit's (phong.background)")
+    from scenes.profile import load_profile
+
+    from .profiled import profile_background
+
+    profile = load_profile(args.profile, spec)
+    profile_background(profile, Camera.from_spec(spec))  # refuse a profile without the fast path's table
+    return profile
+
+
 def cmd_render(args) -> int:
     from .render import Renderer
 
@@ -68,14 +84,22 @@ def cmd_render(args) -> int:
     except (OSError, ValueError) as exc:
         raise ValueError(f"depth file {args.depth} could not be read as .npy: {exc}") from None
     check_depth(depth, camera, f"depth file {args.depth}")
-    fields = bake_all(mesh, camera, spec.leds, (args.field,))[0][args.field]
+    profile = _profile(args, spec)
+    unit = spec if profile is None else profile.sensor_spec(spec)
+    fields = bake_all(mesh, camera, unit.leds, (args.field,))[0][args.field]
     if args.ref_depth:
         ref = check_depth(np.load(args.ref_depth, allow_pickle=False), camera, f"ref depth {args.ref_depth}")
     else:
         ref = fields.depth
     from .render import light_vectors
 
-    renderer = Renderer(spec, camera, ref, light_vectors(fields, args.rectify), _background(args.background, camera))
+    if profile is not None:
+        from .profiled import ProfiledRenderer
+
+        renderer = ProfiledRenderer(spec, ref, light_vectors(fields, args.rectify), profile)
+    else:
+        renderer = Renderer(spec, camera, ref, light_vectors(fields, args.rectify),
+                            _background(args.background or "none", camera))
     image = renderer.render(depth)
     write_rgb(args.output, image)
     print(f"wrote {args.output}")
@@ -94,6 +118,7 @@ def cmd_demo(args) -> int:
     out = Path(args.out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
+    profile = _profile(args, spec)
     fields, _ = bake_all(mesh, camera, spec.leds, METHODS)
     ref = fields["linear"].depth
     contacts = {
@@ -115,9 +140,18 @@ def cmd_demo(args) -> int:
     else:
         print("no real no-contact image found (pass --real-background PATH); skipping that background")
     sheet = {}
+    if profile is not None:
+        backgrounds["profile"] = "profile"
+        unit_fields, _ = bake_all(mesh, camera, profile.sensor_spec(spec).leds, METHODS)
     jobs = [(m, b) for m in METHODS for b in backgrounds]
     for method, bkg in tqdm(jobs, desc="rendering", unit="renderer"):
-        renderer = Renderer.from_fields(spec, camera, fields[method], _background(backgrounds[bkg], camera))
+        if bkg == "profile":
+            from .profiled import ProfiledRenderer
+            from .render import light_vectors
+
+            renderer = ProfiledRenderer(spec, ref, light_vectors(unit_fields[method]), profile)
+        else:
+            renderer = Renderer.from_fields(spec, camera, fields[method], _background(backgrounds[bkg], camera))
         for name, depth in depths.items():
             image = renderer.render(depth)
             write_rgb(out / "images" / f"{method}_{bkg}_{name}.png", image)
@@ -152,6 +186,8 @@ def register(registry) -> None:
     _add_sensor_args(p)
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--real-background", metavar="PNG", help="real no-contact image (default: the published one, if found)")
+    p.add_argument("--profile", metavar="PROFILE.toml",
+                   help="also render the calibrated unit of this profile (tactile-sim calibrate), as background 'profile'")
 
     p = registry.command("bake", cmd_bake, "bake light fields (cached) for the sensor or any membrane mesh")
     _add_sensor_args(p)
@@ -162,7 +198,10 @@ def register(registry) -> None:
     _add_sensor_args(p)
     p.add_argument("depth", metavar="DEPTH.npy", help="(H, W) float depth map, metres, planar z")
     p.add_argument("--field", choices=METHODS, default="plane")
-    p.add_argument("--background", default="none", help="none, solid, or the path of a no-contact image")
+    p.add_argument("--background", default=None, help="none (default), solid, or the path of a no-contact image")
+    p.add_argument("--profile", metavar="PROFILE.toml",
+                   help="render the calibrated unit of this profile (tactile-sim calibrate): its LEDs, alignment, "
+                        "image circle and background term")
     p.add_argument("--ref-depth", metavar="REF.npy", help="no-contact depth D_ref (default: ray cast from the mesh)")
     p.add_argument("--rectify", action="store_true", help="project the field onto the undeformed tangent plane")
     p.add_argument("-o", "--output", required=True, metavar="OUT.png")

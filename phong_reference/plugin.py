@@ -15,7 +15,7 @@ from .bake import METHODS, bake
 from .render import Renderer, light_vectors
 
 #: The options this renderer takes.
-OPTIONS = ("field", "background", "rectify", "elastic")
+OPTIONS = ("field", "background", "rectify", "elastic", "profile")
 
 
 def options_from(options: dict) -> dict:
@@ -26,19 +26,40 @@ def options_from(options: dict) -> dict:
     field = options.get("field", "plane")
     if field not in METHODS:
         raise ValueError(f"field must be one of {METHODS}, got {field!r}")
+    profile = options.get("profile")
+    if profile is not None and "background" in options:
+        raise ValueError("the phong renderer takes a background or a profile, not both: the profile's background "
+                         "term is the calibrated unit's (phong.background)")
     background = str(options.get("background", "none"))
     # The published smoothing, or the layer model: the surface the reference renders.
     elastic = check_model(options.get("elastic", "published"), "elastic")
     return {"field": field, "background": background, "rectify": bool(options.get("rectify", False)),
-            "elastic_model": elastic}
+            "elastic_model": elastic, "profile": None if profile is None else str(profile)}
+
+
+def unit_spec(spec: SensorSpec, opts: dict):
+    """(the spec the fields are baked for, the Profile or None) of validated options."""
+    if opts["profile"] is None:
+        return spec, None
+    from scenes.profile import load_profile
+
+    profile = load_profile(opts["profile"], spec)
+    return profile.sensor_spec(spec), profile
 
 
 def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
     """Bake what the renderer needs (cached on disk) and return its settings."""
     opts = options_from(options)
-    bake(mesh, camera, spec.leds, opts["field"])
-    make_background(opts["background"], camera)  # fail early on a bad image
-    return {"renderer": "phong", **opts, "elastic": dataclasses.asdict(spec.elastic)}
+    unit, profile = unit_spec(spec, opts)
+    bake(mesh, camera, unit.leds, opts["field"])
+    if profile is None:
+        make_background(opts["background"], camera)  # fail early on a bad image
+        return {"renderer": "phong", **opts, "elastic": dataclasses.asdict(spec.elastic)}
+    from .profiled import profile_background
+
+    profile_background(profile, camera)  # fail early on a profile without the fast path's table
+    return {"renderer": "phong", **opts, "background": "profile", "profile_data": profile.to_dict(),
+            "elastic": dataclasses.asdict(spec.elastic)}
 
 
 class PhongDatasetRenderer:
@@ -46,12 +67,16 @@ class PhongDatasetRenderer:
 
     def __init__(self, spec: SensorSpec, mesh, camera: Camera, ref_depth: np.ndarray, options: dict):
         opts = options_from(options)
-        fields = bake(mesh, camera, spec.leds, opts["field"])
+        unit, profile = unit_spec(spec, opts)
+        fields = bake(mesh, camera, unit.leds, opts["field"])
         layer = MembraneLayer(mesh, spec, camera) if opts["elastic_model"] == "layer" else None
-        self._renderer = Renderer(
-            spec, camera, ref_depth, light_vectors(fields, opts["rectify"]), make_background(opts["background"], camera),
-            layer,
-        )
+        L = light_vectors(fields, opts["rectify"])
+        if profile is None:
+            self._renderer = Renderer(spec, camera, ref_depth, L, make_background(opts["background"], camera), layer)
+        else:
+            from .profiled import ProfiledRenderer
+
+            self._renderer = ProfiledRenderer(spec, ref_depth, L, profile, layer)
         self.ref_depth = self._renderer.ref_depth
 
     @property

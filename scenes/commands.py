@@ -88,7 +88,7 @@ RENDERER_OPTIONS = {
     "field": "field", "background": "background", "rectify": "rectify", "elastic": "elastic",
     "target_rse": "target_rse", "max_passes": "max_passes", "effects": "effect", "estimator": "estimator",
     "photons": "photons", "camera_spp": "camera_spp", "kernel_radius_mm": "kernel_radius_mm",
-    "no_contact_runs": "no_contact_runs", "film": "film",
+    "no_contact_runs": "no_contact_runs", "film": "film", "profile": "profile",
 }
 
 
@@ -325,6 +325,8 @@ def register(registry) -> None:
     p.add_argument("--kernel-radius-mm", type=float, help="pbr: radius of the photon density estimate, mm")
     p.add_argument("--no-contact-runs", type=int, metavar="M",
                    help="pbr: no-contact photon runs per pass in the cached no-contact map (0: off)")
+    p.add_argument("--profile", metavar="PROFILE.toml",
+                   help="render the calibrated unit of this profile (tactile-sim calibrate)")
     p.add_argument("--film", type=_film_size, metavar="WxH",
                    help="pbr: render at WxH (the camera's aspect) and resample to the camera's size")
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))

@@ -59,6 +59,18 @@ class FastModel:
     """
 
     def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1):
+        # A dataset rendered for a calibrated unit (``--profile``) records its profile: the
+        # chain is then the unit's (phong_reference.profiled): its LEDs and image circle,
+        # its background term, and the membrane's shading moved by its alignment.
+        self.profile = None
+        if renderer.get("profile_data") is not None:
+            from dataclasses import replace
+
+            from scenes.profile import profile_from_dict
+
+            self.profile = profile_from_dict(renderer["profile_data"], "the simulated dataset's profile")
+            spec = self.profile.sensor_spec(spec)
+            spec = spec.replace(material=replace(spec.material, ambient=1.0))  # k_a is in the profile's B
         self.spec = spec
         self.factor = int(factor)
         full = Camera.from_spec(spec)
@@ -76,13 +88,13 @@ class FastModel:
         self.full_ref = self.ref if self.factor == 1 else reference_depth(self.mesh, full)[0].astype(np.float32)
         self.L = light_vectors(fields, bool(renderer.get("rectify", False)))
         background = str(renderer.get("background", "none"))
-        self.B = _background(background, full, self.camera, self.factor)
+        self.B = _background(background, full, self.camera, self.factor, self.profile)
         self._B = np.ascontiguousarray(self.B.transpose(2, 0, 1))  # (3, H, W), for the Phong terms
         self.mask = self.camera.mask
         # (H, W) share of each pixel inside the lens's image circle, and (H, W, 3) what the
         # ambient term k_a B puts in a simulated image: both stay put under a misalignment.
         self.circle = block_mean(full.mask[None, ..., None].astype(np.float32), self.factor)[0, ..., 0]
-        full_B = self.B if self.factor == 1 else _background(background, full, full, 1)
+        full_B = self.B if self.factor == 1 else _background(background, full, full, 1, self.profile)
         ambient = np.clip(spec.material.ambient * full_B, 0.0, 1.0) * full.mask[..., None]
         self.fixed = block_mean(ambient[None].astype(np.float32), self.factor)[0]
         self.rays = self.camera.rays_channels_first
@@ -202,7 +214,8 @@ class FastModel:
             # k_a B stands for the no-contact guided light of every LED: it loses each LED's
             # share, weighted by what that LED puts in each channel, k_d,m c_m.
             weight = (self.k_d[:, None] * self.colours).astype(np.float32)  # (M, 3)
-            ambient = ambient * (np.tensordot(weight.T, kept, axes=1) / np.maximum(weight.sum(axis=0), 1e-12)[:, None, None])
+            share = np.tensordot(weight.T, kept, axes=1) / np.maximum(weight.sum(axis=0), 1e-12)[:, None, None]
+            ambient = ambient * self._aligned(share.transpose(1, 2, 0), fill=1.0).transpose(2, 0, 1)
         if "path_attenuation" in params:
             I = I * fx.attenuation(self.geodesic, params["path_attenuation"]["mu_per_m"])
         colours = self.colours
@@ -217,9 +230,22 @@ class FastModel:
             p = params["core_light_leak"]
             amplitude = np.array([p[f"amplitude_{m}"] for m in range(len(self.spec.leds))], np.float32)
             I = I + amplitude[:, None, None] * self._leak(g, p["length_m"])
-        image = compose(I.astype(np.float32, copy=False), colours, ambient.astype(np.float32, copy=False))
-        image = image.transpose(1, 2, 0)
+        if self.profile is None:
+            image = compose(I.astype(np.float32, copy=False), colours, ambient.astype(np.float32, copy=False))
+            image = image.transpose(1, 2, 0)
+        else:  # the membrane's shading moves with the unit's alignment, its background does not
+            shading = compose(I.astype(np.float32, copy=False), colours, np.zeros_like(ambient, np.float32))
+            image = self._aligned(np.clip(shading, 0.0, 1.0).transpose(1, 2, 0)) + ambient.transpose(1, 2, 0)
         return np.clip(image, 0.0, 1.0) * self.mask[..., None]
+
+    def _aligned(self, image: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """(H, W, C) membrane-frame values as the unit's camera sees them (its profile's
+        alignment); unchanged without a profile."""
+        if self.profile is None:
+            return image
+        from scenes.profile import align_image
+
+        return align_image(image, self.profile.alignment, self.full_camera, fill).astype(np.float32)
 
     def optics(self, images: np.ndarray, params: dict) -> np.ndarray:
         """The optics and sensor effects in ``params`` applied to (N, H, W, 3) images."""
@@ -280,7 +306,11 @@ class FastModel:
         return g["plain"]
 
 
-def _background(kind: str, full: Camera, camera: Camera, factor: int) -> np.ndarray:
+def _background(kind: str, full: Camera, camera: Camera, factor: int, profile=None) -> np.ndarray:
+    if profile is not None:
+        from phong_reference.profiled import profile_background
+
+        return profile_background(profile, camera, full)
     if kind in ("none", "solid"):
         return make_background(kind, camera)
     try:

@@ -1,0 +1,102 @@
+"""The fast path of a calibrated unit (a ``scenes.profile.Profile``).
+
+    image = clip(align(sum_m I_m colour_m) + k_a i_a B, 0, 1) inside the image circle
+
+- the LEDs are the unit's (``Profile.sensor_spec``: each turned by its fitted azimuth),
+  so the light fields are baked for where they are;
+- the membrane's shading (``phong_reference.render`` with no background) is moved as the
+  real camera sees the membrane (``scenes.profile.align_image``: the fitted rotation,
+  scale and shift), and the image circle is the lens' (it does not move);
+- the background term is the profile's (``phong.background``, a smooth model fitted to
+  the unit's no-contact image, ``scenes.background_model``) times its ``phong.ambient``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import ndimage
+
+from scenes.background_model import evaluate
+from scenes.camera import Camera
+from scenes.elastic import MembraneLayer
+from scenes.profile import Profile, align_image
+from scenes.spec import SensorSpec
+
+from .render import Renderer
+
+
+def profile_background(profile: Profile, camera: Camera, full: Camera | None = None) -> np.ndarray:
+    """(H, W, 3) float32: the profile's background term k_a i_a B at ``camera``'s size;
+    ``full`` the spec's camera at its own resolution (default ``camera``), in whose
+    pixels the image circle is."""
+    table = profile.phong.get("background")
+    if table is None:
+        raise ValueError("the profile has no phong.background table: it was not calibrated for the fast path "
+                         "(re-run tactile-sim calibrate)")
+    ambient = float(profile.phong.get("ambient", 1.0))
+    if not (np.isfinite(ambient) and ambient >= 0):
+        raise ValueError(f"profile phong.ambient must be a finite number >= 0, got {ambient}")
+    return ambient * evaluate(table, profile.camera.image_circle, camera.shape, (full or camera).shape)
+
+
+class ProfiledRenderer:
+    """Depth map -> the calibrated unit's image with the fast path (module doc).
+
+    spec : the sensor spec (not yet the unit's: ``profile.sensor_spec`` is applied here);
+    L : (M, 3, H, W) light vectors baked for ``profile.sensor_spec(spec)``'s LEDs.
+    """
+
+    def __init__(self, spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile,
+                 layer: MembraneLayer | None = None):
+        unit = profile.sensor_spec(spec)
+        self.profile = profile
+        self.camera = Camera.from_spec(unit)  # the unit's image circle
+        # The membrane's shading, not yet cut by the circle (the lens cuts it after the move).
+        whole = dataclasses.replace(self.camera, mask_radius_px=float(np.hypot(*self.camera.shape)))
+        zeros = np.zeros(self.camera.shape + (3,), np.float32)
+        self._membrane = Renderer(unit, whole, ref_depth, L, zeros, layer)
+        self.ref_depth = self._membrane.ref_depth
+        self.background = profile_background(profile, self.camera)
+        self._mask = self.camera.mask[..., None]
+        self._coords = profile.alignment.sampling(self.camera.shape, self.camera)
+        moved = align_image(self._membrane.base, profile.alignment, self.camera)
+        self.base = (np.clip(moved + self.background, 0.0, 1.0) * self._mask).astype(np.float32)
+
+    def render(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W) float metres -> (H, W, 3) float32 in [0, 1]. Only the window where the
+        moved membrane changes is moved again (the rest is the no-contact image)."""
+        membrane = self._membrane.render(depth)
+        rows = np.flatnonzero(np.any(membrane != self._membrane.base, axis=(1, 2)))
+        if rows.size == 0:
+            return self.base.copy()
+        cols = np.flatnonzero(np.any(membrane[rows[0]:rows[-1] + 1] != self._membrane.base[rows[0]:rows[-1] + 1],
+                                     axis=(0, 2)))
+        window = self._window((rows[0], rows[-1] + 1, cols[0], cols[-1] + 1))
+        if window is None:
+            return self.base.copy()
+        coords = self._coords[(slice(None),) + window]
+        moved = np.stack([ndimage.map_coordinates(membrane[..., c], coords, order=1, mode="constant")
+                          for c in range(3)], axis=-1)
+        image = self.base.copy()
+        image[window] = np.clip(moved + self.background[window], 0.0, 1.0) * self._mask[window]
+        return image
+
+    def _window(self, box) -> tuple[slice, slice] | None:
+        """The output pixels that sample the membrane's changed ``box`` (r0, r1, c0, c1):
+        its corners moved by the alignment, grown by two pixels (bilinear reads)."""
+        a = self.profile.alignment
+        r0, r1, c0, c1 = box
+        v = np.array([r0 - 1, r0 - 1, r1, r1], np.float64)
+        u = np.array([c0 - 1, c1, c0 - 1, c1], np.float64)
+        cx, cy = self.camera.cx, self.camera.cy
+        c, s = np.cos(a.rotation_rad), np.sin(a.rotation_rad)
+        x, y = (u - cx) * a.scale, (v - cy) * a.scale
+        uo, vo = c * x - s * y + cx + a.shift_px[0], s * x + c * y + cy + a.shift_px[1]
+        h, w = self.camera.shape
+        top, bottom = max(int(np.floor(vo.min())) - 2, 0), min(int(np.ceil(vo.max())) + 3, h)
+        left, right = max(int(np.floor(uo.min())) - 2, 0), min(int(np.ceil(uo.max())) + 3, w)
+        if top >= bottom or left >= right:
+            return None
+        return slice(top, bottom), slice(left, right)

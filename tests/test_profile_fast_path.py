@@ -1,0 +1,205 @@
+"""The calibrated unit's fast path: the background model, the unit's spec and alignment,
+the profiled renderer and its dataset option (analytic checks first)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from scenes import background_model as bm
+from scenes.camera import Camera, project
+from scenes.profile import Alignment, CameraProfile, Profile, align_image, circle_polar, write_profile
+from scenes.spec import default_spec
+
+CIRCLE = (322.0, 238.0, 235.0)
+
+
+@pytest.fixture(scope="module")
+def spec():
+    return default_spec()
+
+
+@pytest.fixture(scope="module")
+def camera(spec):
+    return Camera.from_spec(spec)
+
+
+def _table(coefficients: np.ndarray) -> dict:
+    return {"model": bm.MODEL, "harmonics": bm.HARMONICS, "radial_degree": bm.RADIAL_DEGREE,
+            "coefficients": np.asarray(coefficients).tolist()}
+
+
+def _profile(spec, alignment=Alignment(), background=(0.4, 0.3, 0.9), phong=True) -> Profile:
+    coefficients = np.zeros((3, (bm.RADIAL_DEGREE + 1) * (2 * bm.HARMONICS + 1)))
+    coefficients[:, 0] = background
+    return Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds), alignment=alignment,
+                   camera=CameraProfile(image_circle=CIRCLE),
+                   phong={"ambient": 1.0, "background": _table(coefficients)} if phong else {})
+
+
+# -- the background model -------------------------------------------------------------------
+
+def test_background_model_recovers_its_own_coefficients_from_half_the_sectors():
+    rng = np.random.default_rng(0)
+    shape, full = (120, 160), (480, 640)
+    terms = (bm.RADIAL_DEGREE + 1) * (2 * bm.HARMONICS + 1)
+    truth = rng.normal(0.0, 0.01, (3, terms))
+    truth[:, 0] = 0.5
+    image = bm.evaluate(_table(truth), CIRCLE, shape, full).astype(np.float64)
+    r, theta = circle_polar(CIRCLE, shape, full)
+    inside = r <= 1.0
+    assert 0.0 < image[inside].min() and image[inside].max() < 1.0  # nothing clipped: the fit is exact
+    even = (np.floor(np.mod(theta, 2 * math.pi) / (math.pi / 6)).astype(int) % 2 == 0) & inside
+    table = bm.fit(image, CIRCLE, even, full)
+    again = bm.evaluate(table, CIRCLE, shape, full)
+    assert np.abs(again - image)[inside & ~even].max() < 1e-4  # the held-out half too
+    assert np.all(again[~inside] == 0)
+
+
+def test_background_model_leaves_clipped_pixels_out():
+    shape, full = (60, 80), (480, 640)
+    r, _ = circle_polar(CIRCLE, shape, full)
+    inside = r <= 1.0
+    truth = np.stack([0.2 + 1.2 * r**2, 0.2 + 0.5 * r**2, 0.3 + 0.1 * r], axis=-1)
+    image = np.minimum(truth, 1.0)  # red clips in an outer ring: there it says only "at least 1"
+    clipped = image >= 1.0
+    assert clipped[..., 0][inside].mean() > 0.2 and not clipped[..., 1:][inside].any()
+    table = bm.fit(image, CIRCLE, inside, full, clipped)
+    r_full = np.asarray(table["coefficients"]) @ bm.design(r, _)[inside].T  # unclipped model values
+    ring = clipped[..., 0][inside]
+    assert np.abs(r_full[0] - truth[..., 0][inside])[~ring].max() < 3e-3  # the ring does not pull red down
+    assert r_full[0][ring].min() > 1.0 - 3e-3  # and is predicted at least at the clip level
+    assert np.abs(bm.evaluate(table, CIRCLE, shape, full) - image)[inside].max() < 3e-3
+    # not censored, the ring at 1 bends the fit away from the truth
+    plain = np.asarray(bm.fit(image, CIRCLE, inside, full)["coefficients"]) @ bm.design(r, _)[inside].T
+    assert np.abs(plain[0] - truth[..., 0][inside])[~ring].max() > 0.01
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"model": "spline"}, "model must be"),
+    ({"coefficients": [[0.0] * 5] * 3}, "coefficients must be 3 rows of"),
+    ({"harmonics": "many"}, "malformed"),
+])
+def test_malformed_background_tables_are_refused(change, message):
+    table = {**_table(np.zeros((3, (bm.RADIAL_DEGREE + 1) * (2 * bm.HARMONICS + 1)))), **change}
+    with pytest.raises(ValueError, match=message):
+        bm.evaluate(table, CIRCLE, (30, 40), (480, 640))
+
+
+# -- the unit's spec and alignment -----------------------------------------------------------
+
+def test_turned_leds_and_align_image_turn_the_same_way(spec, camera):
+    """An LED turned by a (Profile.sensor_spec) lands where align_image moves its image
+    under a rotation of a: the two halves of an alignment agree on the sign."""
+    a = 0.4
+    profile = _profile(spec, Alignment(led_azimuth_rad=(a, 0.0, 0.0)))
+    unit = profile.sensor_spec(spec)
+    led, turned = np.array(spec.leds[0].position), np.array(unit.leds[0].position)
+    assert np.linalg.norm(turned[:2]) == pytest.approx(np.linalg.norm(led[:2]))
+    assert math.atan2(turned[1], turned[0]) - math.atan2(led[1], led[0]) == pytest.approx(a)
+    # a point on the membrane above the LED, seen by the camera, turned both ways
+    point = np.array([led[0] * 0.8, led[1] * 0.8, 0.02])
+    point_turned = np.array([turned[0] * 0.8, turned[1] * 0.8, 0.02])
+    u, v = project(point, camera)
+    image = np.zeros(camera.shape)
+    image[int(round(v)) - 2:int(round(v)) + 3, int(round(u)) - 2:int(round(u)) + 3] = 1.0
+    moved = align_image(image, Alignment(rotation_rad=a), camera)
+    vv, uu = np.unravel_index(np.argmax(moved), moved.shape)
+    ut, vt = project(point_turned, camera)
+    assert abs(uu - ut) <= 2 and abs(vv - vt) <= 2
+    assert unit.camera.mask_center_px == CIRCLE[:2] and unit.camera.mask_radius_px == CIRCLE[2]
+
+
+def test_sensor_spec_refuses_a_wrong_number_of_azimuths(spec):
+    with pytest.raises(ValueError, match="led_azimuth_rad has 2 values for 3 LEDs"):
+        _profile(spec, Alignment(led_azimuth_rad=(0.1, 0.2))).sensor_spec(spec)
+
+
+def test_led_azimuths_beyond_a_half_turn_are_refused():
+    with pytest.raises(ValueError, match="led_azimuth_rad"):
+        Alignment(led_azimuth_rad=(4.0, 0.0, 0.0))
+
+
+# -- the profiled renderer -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def contact(spec, camera):
+    import trimesh
+
+    from phong_reference.bake import bake
+    from scenes.contact import press
+    from scenes.geometry import membrane_mesh
+
+    mesh = membrane_mesh(spec)
+    ref = bake(mesh, camera, spec.leds, "plane").depth
+    return mesh, ref, press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004),
+                            (camera.cx + 20, camera.cy - 10), 0.0015, spin=0.3)
+
+
+def test_profiled_renderer_is_the_fast_path_moved_onto_the_units_background(spec, camera, contact):
+    from phong_reference.bake import bake
+    from phong_reference.profiled import ProfiledRenderer
+    from phong_reference.render import Renderer, light_vectors
+
+    mesh, ref, depth = contact
+    # identity alignment, black background: the fast path itself, cut by the unit's circle
+    profile = _profile(spec, background=(0.0, 0.0, 0.0))
+    L = light_vectors(bake(mesh, camera, spec.leds, "plane"))
+    fast_path = Renderer(spec, camera, ref, L, np.zeros(camera.shape + (3,), np.float32))
+    plain = fast_path.render(depth)
+    fast = ProfiledRenderer(spec, ref, L, profile).render(depth)
+    unit_mask = Camera.from_spec(profile.sensor_spec(spec)).mask
+    both = unit_mask & camera.mask
+    assert np.abs(fast - plain)[both].max() < 1e-5
+    assert np.all(fast[~unit_mask] == 0)
+
+    # turned and shifted, on a grey background: the contact's change is the plain one, moved
+    alignment = Alignment(rotation_rad=0.3, scale=1.1, shift_px=(12.0, -7.0), led_azimuth_rad=(0.0, 0.0, 0.0))
+    profile = _profile(spec, alignment, background=(0.3, 0.3, 0.3))
+    renderer = ProfiledRenderer(spec, ref, L, profile)
+    # without contact: the background plus the plane field's own faint no-contact shading, moved
+    no_contact = np.clip(align_image(renderer._membrane.base, alignment, camera) + 0.3, 0, 1)
+    assert np.abs(renderer.base - no_contact)[unit_mask].max() < 1e-6
+    image = renderer.render(depth)
+    whole = np.clip(align_image(renderer._membrane.render(depth), alignment, camera) + 0.3, 0, 1) * unit_mask[..., None]
+    assert np.abs(image - whole).max() < 1e-6  # the window is the whole frame's
+    change = np.abs(image - renderer.base).sum(axis=2) > 0.02
+    v, u = np.nonzero(change)
+    expected = align_image((np.abs(plain - fast_path.base).sum(axis=2) > 0.02).astype(float), alignment, camera)
+    ve, ue = np.nonzero(expected > 0.5)
+    assert abs(v.mean() - ve.mean()) < 3 and abs(u.mean() - ue.mean()) < 3
+
+
+def test_phong_dataset_option_profile(tmp_path, spec, camera):
+    from phong_reference import plugin
+
+    path = write_profile(_profile(spec), tmp_path / "profile.toml")
+    with pytest.raises(ValueError, match="a background or a profile, not both"):
+        plugin.options_from({"profile": str(path), "background": "solid"})
+    no_phong = write_profile(_profile(spec, phong=False), tmp_path / "no_phong.toml")
+    from scenes.geometry import membrane_mesh
+
+    mesh = membrane_mesh(spec)
+    with pytest.raises(ValueError, match="no phong.background table"):
+        plugin.prepare(spec, mesh, camera, {"profile": str(no_phong)})
+    settings = plugin.prepare(spec, mesh, camera, {"profile": str(path)})
+    assert settings["background"] == "profile" and settings["profile_data"]["sensor"]["name"] == spec.name
+    renderer = plugin.make_renderer(spec, mesh, camera, plugin.bake(mesh, camera, spec.leds, "plane").depth,
+                                    {"profile": str(path)})
+    assert np.abs(renderer.no_contact[240, 322] - [0.4, 0.3, 0.9]).max() < 0.01  # plus the faint plane shading
+
+    # the diagnosis rebuilds the unit's chain from the dataset's recorded settings
+    from studies.gap.model import FastModel
+
+    model = FastModel(spec, settings, factor=4)
+    assert model.profile is not None
+    assert np.abs(model.B[60, 80] - [0.4, 0.3, 0.9]).max() < 1e-5
+
+
+def test_pbr_dataset_refuses_a_profile_clearly(spec, camera):
+    from pbr_tactile.plugin import options_from
+
+    with pytest.raises(ValueError, match="option profile: the pbr dataset renderer does not take"):
+        options_from({"profile": "p.toml"}, camera)
