@@ -11,19 +11,15 @@ import pytest
 
 from pbr_tactile import calibrate as cal
 from pbr_tactile.calibrate_cli import real_background
-from scenes.camera import Camera
-from scenes.profile import PROFILE_VERSION, Alignment, CameraProfile, Profile, load_profile, write_profile
+from scenes.profile import (
+    PROFILE_VERSION,
+    Alignment,
+    CameraProfile,
+    Profile,
+    load_profile,
+    write_profile,
+)
 from scenes.spec import default_spec
-
-
-@pytest.fixture(scope="module")
-def spec():
-    return default_spec()
-
-
-@pytest.fixture(scope="module")
-def camera(spec):
-    return Camera.from_spec(spec)
 
 
 def _profile(spec, **camera):

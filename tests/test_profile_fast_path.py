@@ -10,20 +10,16 @@ import pytest
 
 from scenes import background_model as bm
 from scenes.camera import Camera, project
-from scenes.profile import Alignment, CameraProfile, Profile, align_image, circle_polar, write_profile
-from scenes.spec import default_spec
+from scenes.profile import (
+    Alignment,
+    CameraProfile,
+    Profile,
+    align_image,
+    circle_polar,
+    write_profile,
+)
 
 CIRCLE = (322.0, 238.0, 235.0)
-
-
-@pytest.fixture(scope="module")
-def spec():
-    return default_spec()
-
-
-@pytest.fixture(scope="module")
-def camera(spec):
-    return Camera.from_spec(spec)
 
 
 def _table(coefficients: np.ndarray) -> dict:
@@ -31,10 +27,10 @@ def _table(coefficients: np.ndarray) -> dict:
             "coefficients": np.asarray(coefficients).tolist()}
 
 
-def _profile(spec, alignment=Alignment(), background=(0.4, 0.3, 0.9), phong=True) -> Profile:
+def _profile(spec, alignment: Alignment | None = None, background=(0.4, 0.3, 0.9), phong=True) -> Profile:
     coefficients = np.zeros((3, (bm.RADIAL_DEGREE + 1) * (2 * bm.HARMONICS + 1)))
     coefficients[:, 0] = background
-    return Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds), alignment=alignment,
+    return Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds), alignment=alignment or Alignment(),
                    camera=CameraProfile(image_circle=CIRCLE),
                    phong={"ambient": 1.0, "background": _table(coefficients)} if phong else {})
 
@@ -125,14 +121,12 @@ def test_led_azimuths_beyond_a_half_turn_are_refused():
 # -- the profiled renderer -------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def contact(spec, camera):
+def contact(spec, camera, mesh):
     import trimesh
 
     from phong_reference.bake import bake
     from scenes.contact import press
-    from scenes.geometry import membrane_mesh
 
-    mesh = membrane_mesh(spec)
     ref = bake(mesh, camera, spec.leds, "plane").depth
     return mesh, ref, press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.004),
                             (camera.cx + 20, camera.cy - 10), 0.0015, spin=0.3)
@@ -172,16 +166,13 @@ def test_profiled_renderer_is_the_fast_path_moved_onto_the_units_background(spec
     assert abs(v.mean() - ve.mean()) < 3 and abs(u.mean() - ue.mean()) < 3
 
 
-def test_phong_dataset_option_profile(tmp_path, spec, camera):
+def test_phong_dataset_option_profile(tmp_path, spec, camera, mesh):
     from phong_reference import plugin
 
     path = write_profile(_profile(spec), tmp_path / "profile.toml")
     with pytest.raises(ValueError, match="a background or a profile, not both"):
         plugin.options_from({"profile": str(path), "background": "solid"})
     no_phong = write_profile(_profile(spec, phong=False), tmp_path / "no_phong.toml")
-    from scenes.geometry import membrane_mesh
-
-    mesh = membrane_mesh(spec)
     with pytest.raises(ValueError, match="no phong.background table"):
         plugin.prepare(spec, mesh, camera, {"profile": str(no_phong)})
     settings = plugin.prepare(spec, mesh, camera, {"profile": str(path)})
