@@ -86,14 +86,8 @@ class ProfiledRenderer:
     def _window(self, box) -> tuple[slice, slice] | None:
         """The output pixels that sample the membrane's changed ``box`` (r0, r1, c0, c1):
         its corners moved by the alignment, grown by two pixels (bilinear reads)."""
-        a = self.profile.alignment
         r0, r1, c0, c1 = box
-        v = np.array([r0 - 1, r0 - 1, r1, r1], np.float64)
-        u = np.array([c0 - 1, c1, c0 - 1, c1], np.float64)
-        cx, cy = self.camera.cx, self.camera.cy
-        c, s = np.cos(a.rotation_rad), np.sin(a.rotation_rad)
-        x, y = (u - cx) * a.scale, (v - cy) * a.scale
-        uo, vo = c * x - s * y + cx + a.shift_px[0], s * x + c * y + cy + a.shift_px[1]
+        uo, vo = self.profile.alignment.moved([c0 - 1, c1, c0 - 1, c1], [r0 - 1, r0 - 1, r1, r1], self.camera)
         h, w = self.camera.shape
         top, bottom = max(int(np.floor(vo.min())) - 2, 0), min(int(np.ceil(vo.max())) + 3, h)
         left, right = max(int(np.floor(uo.min())) - 2, 0), min(int(np.ceil(uo.max())) + 3, w)

@@ -115,6 +115,13 @@ class Alignment:
         c, sn = math.cos(a), math.sin(a)
         return np.stack([(-sn * x + c * y) / self.scale + cy, (c * x + sn * y) / self.scale + cx])
 
+    def moved(self, u: np.ndarray, v: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Where points (u, v) of the spec's image (``camera``'s pixels) appear in the
+        aligned image: the forward map that ``sampling`` inverts."""
+        c, s = math.cos(self.rotation_rad), math.sin(self.rotation_rad)
+        x, y = (np.asarray(u, np.float64) - camera.cx) * self.scale, (np.asarray(v, np.float64) - camera.cy) * self.scale
+        return c * x - s * y + camera.cx + self.shift_px[0], s * x + c * y + camera.cy + self.shift_px[1]
+
 
 @dataclass(frozen=True)
 class Profile:

@@ -194,3 +194,13 @@ def test_pbr_dataset_refuses_a_profile_clearly(spec, camera):
 
     with pytest.raises(ValueError, match="option profile: the pbr dataset renderer does not take"):
         options_from({"profile": "p.toml"}, camera)
+
+
+def test_alignment_moved_is_what_sampling_inverts(camera):
+    alignment = Alignment(rotation_rad=0.7, scale=1.2, shift_px=(15.0, -9.0))
+    u, v = np.array([250.0, 320.0, 390.0]), np.array([180.0, 240.0, 300.0])
+    uo, vo = alignment.moved(u, v, camera)
+    coords = alignment.sampling(camera.shape, camera)
+    rows, cols = np.rint(vo).astype(int), np.rint(uo).astype(int)
+    # the aligned pixel nearest each moved point samples back within a pixel of the point
+    assert np.abs(coords[0][rows, cols] - v).max() < 1.0 and np.abs(coords[1][rows, cols] - u).max() < 1.0
