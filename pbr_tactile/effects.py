@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, fields, replace
 #: pair); an infinite end is open: values must be finite. Effects() refuses the rest.
 RANGES = {
     "core_light_leak": (0.0, 1.0),
+    "core_leak_cone_rad": (0.0, math.pi / 2),
     "absorption_per_m": (0.0, math.inf),
     "scattering_per_m": (0.0, math.inf),
     "coating_gloss": (0.0, 1.0),
@@ -39,6 +40,13 @@ class Effects:
     #: Fraction of each LED's power emitted straight into the glass core (the paper's
     #: explanation of its real images) instead of into the elastomer; 0 switches it off.
     core_light_leak: float = 0.0
+    #: Half-angle, radians, of the cone about the tube's axis (+z, towards the tip) in
+    #: which the core leak emits inside the glass wall: light coupled into the wall at the
+    #: tube's base at a grazing angle, so that the wall guides it up (total internal
+    #: reflection at the glass-elastomer interface holds within asin(n_silicone / n_glass)
+    #: ~ 71 deg of its normal, i.e. within ~19 deg = 0.33 rad of the axis). 0: off, the
+    #: leak is a Lambertian sphere in the glass as before. Photon estimator only.
+    core_leak_cone_rad: float = 0.0
     #: Absorption coefficient sigma_a of the elastomer, 1/m (0: off).
     absorption_per_m: float = 20.0
     #: Scattering coefficient sigma_s of the elastomer, 1/m (0: off).

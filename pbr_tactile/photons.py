@@ -63,7 +63,14 @@ SPAWN_OFFSET_M = 1e-7
 @dataclass(frozen=True)
 class Source:
     """A spherical Lambertian emitter: centre (3,) m, radius m, radiance spectrum
-    (peak_nm, fwhm_nm, scale) and whether it sits in the elastomer (else in glass)."""
+    (peak_nm, fwhm_nm, scale) and whether it sits in the elastomer (else in glass).
+
+    With a ``cone_axis`` (unit (3,)) the source is directional instead: its photons leave
+    the sphere's point on that axis, uniformly in solid angle within ``cone_half_angle_rad``
+    of it (constant radiant intensity inside the cone, none outside), carrying the same
+    total flux. Seen directly by the camera it is dark (the camera pass does not model its
+    radiance; the core leak it stands for sits in the glass wall, outside the camera's view).
+    """
 
     centre: tuple[float, float, float]
     radius: float
@@ -72,12 +79,46 @@ class Source:
     scale: float
     in_elastomer: bool
     name: str
+    cone_axis: tuple[float, float, float] | None = None
+    cone_half_angle_rad: float = 0.0
+
+    def __post_init__(self):
+        if self.cone_axis is not None:
+            axis = np.asarray(self.cone_axis, np.float64)
+            if axis.shape != (3,) or not abs(float(np.linalg.norm(axis)) - 1.0) < 1e-6:
+                raise ValueError(f"source {self.name}: cone_axis must be a unit 3-vector, got {self.cone_axis}")
+            if not 0.0 < self.cone_half_angle_rad <= math.pi:
+                raise ValueError(f"source {self.name}: cone_half_angle_rad must be in (0, pi], got "
+                                 f"{self.cone_half_angle_rad}")
+
+    @property
+    def directional(self) -> bool:
+        return self.cone_axis is not None
+
+    def key(self) -> tuple:
+        """What the light pass depends on, for cache keys."""
+        base = (self.name, self.centre, self.radius, self.in_elastomer)
+        return base if self.cone_axis is None else base + (tuple(self.cone_axis), self.cone_half_angle_rad)
 
 
 def sources_from(leds: list[dict]) -> list[Source]:
     """Sources from ``pbr_tactile.scene.led_sources``."""
-    return [Source(d["centre"], d["radius"], d["peak_nm"], d["fwhm_nm"], d["scale"], d["in_elastomer"], d["name"])
+    return [Source(d["centre"], d["radius"], d["peak_nm"], d["fwhm_nm"], d["scale"], d["in_elastomer"], d["name"],
+                   None if d.get("cone_axis") is None else tuple(map(float, d["cone_axis"])),
+                   float(d.get("cone_half_angle_rad", 0.0)))
             for d in leds]
+
+
+#: The per-lane cosine cutoff that marks a Lambertian start (cosine about the start normal).
+_LAMBERTIAN = 2.0
+
+
+def _start_direction(mi, dr, normal, cone_cos, u):
+    """A photon's first direction: uniform in the cone of cosine cutoff ``cone_cos``
+    about ``normal``, or cosine-weighted about it where ``cone_cos`` is _LAMBERTIAN."""
+    frame = mi.Frame3f(normal)
+    cone = mi.warp.square_to_uniform_cone(u, dr.minimum(cone_cos, 1.0))
+    return frame.to_world(dr.select(cone_cos > 1.5, mi.warp.square_to_cosine_hemisphere(u), cone))
 
 
 def _splitmix(*parts: np.ndarray) -> np.ndarray:
@@ -227,7 +268,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
 
     n_vertices = len(c.vertex_area)
     n_lanes = dr.width(start["s"])
-    d = mi.Frame3f(start["n"]).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d()))
+    d = _start_direction(mi, dr, start["n"], start["cone"], sampler.next_2d())
     ray = mi.Ray3f(start["p"], d)
     s, offset = start["s"], start["s"] * n_vertices
     queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
@@ -327,9 +368,16 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     identity = _splitmix(np.uint64(seed), np.arange(n_src * photons, dtype=np.uint64))
     sampler = _Rng(mi, identity)
     normal = mi.warp.square_to_uniform_sphere(sampler.next_2d())
+    # Directional sources leave from the sphere's point on their axis, within their cone.
+    if any(src.directional for src in sources):
+        axes = [src.cone_axis if src.directional else (0.0, 0.0, 1.0) for src in sources]
+        axis = dr.gather(mi.Vector3f, mi.Vector3f(*[mi.Float([a[k] for a in axes]) for k in range(3)]), s)
+        directional = dr.gather(mi.Bool, mi.Bool([src.directional for src in sources]), s)
+        normal = dr.select(directional, axis, normal)
+    cones = [math.cos(src.cone_half_angle_rad) if src.directional else _LAMBERTIAN for src in sources]
     start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
              "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
-             "depth": mi.UInt32(0), "id": mi.UInt64(identity)}
+             "depth": mi.UInt32(0), "id": mi.UInt64(identity), "cone": dr.gather(mi.Float, mi.Float(cones), s)}
     for generation in range(MAX_GENERATIONS):
         if generation > 0:
             sampler = _Rng(mi, identity)
@@ -354,7 +402,8 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         start = {"p": mi.Point3f(*[mi.Float(p[:, k]) for k in range(3)]),
                  "n": mi.Vector3f(*[mi.Float(nrm[:, k]) for k in range(3)]), "w": mi.Float(rep["w"]),
                  "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": mi.UInt32(rep["s"]),
-                 "depth": mi.UInt32(rep["depth"]), "id": mi.UInt64(identity)}
+                 "depth": mi.UInt32(rep["depth"]), "id": mi.UInt64(identity),
+                 "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"]))}
     return np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
 
 
@@ -474,7 +523,8 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     interfaces = _interfaces(mi, scene)
     E = [mi.Float(m) for m in maps]
     emitters = [mi.ShapePtr(_shape(scene, src.name)) for src in sources]
-    inv_area = [1.0 / (math.pi * 4 * math.pi * src.radius**2) for src in sources]
+    # A directional source's radiance is not modelled where the camera sees it (see Source).
+    inv_area = [0.0 if src.directional else 1.0 / (math.pi * 4 * math.pi * src.radius**2) for src in sources]
     sensor = scene.sensors()[0]
     width, height = (int(v) for v in sensor.film().crop_size())
     side = math.isqrt(spp) if math.isqrt(spp) ** 2 == spp else 1

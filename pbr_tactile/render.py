@@ -381,7 +381,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
             raise ValueError("no_contact_runs needs pilot_scene, the undeformed membrane's scene")
         from .nocontact import NoContact
 
-        no_contact = NoContact(mi, pilot_lit, [[(s.name, s.centre, s.radius, s.in_elastomer) for s in srcs],
+        no_contact = NoContact(mi, pilot_lit, [[s.key() for s in srcs],
                                                sigma_t, albedo, effects.coating_albedo, photons],
                                no_contact_runs, use_cache, no_contact_memo)
     pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
@@ -480,6 +480,9 @@ def reference(
     if not effects.contact_shadow and estimator != "photons":
         raise ValueError("Effects(contact_shadow=False) needs the photon estimator: volpath cannot trace light "
                          "and camera paths in different geometry")
+    if effects.core_leak_cone_rad > 0 and effects.core_light_leak > 0 and estimator != "photons":
+        raise ValueError("Effects(core_leak_cone_rad > 0) needs the photon estimator: the scene's emitters are "
+                         "Lambertian spheres, and only the photon pass aims the leak's light up the tube")
     if no_contact_runs < 0:
         raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
     check_passes(passes, target_rse, max_passes)

@@ -34,6 +34,9 @@ IOR_SILICONE, IOR_GLASS, IOR_AIR = 1.41, 1.49, 1.0
 GLASS_THICKNESS_M = 2.0e-3
 #: Radius of each LED's spherical emitter, metres.
 LED_RADIUS_M = 0.35e-3
+#: The direction a directional core leak (Effects.core_leak_cone_rad) emits about: up the
+#: tube's wall, towards the tip.
+LEAK_AXIS = (0.0, 0.0, 1.0)
 #: Paths longer than this are cut. Light trapped in the membrane arrives after many
 #: bounces: at 32 volpath read the tip about 30 % dark against the photon estimator, which
 #: agreed once both allowed 160.
@@ -133,7 +136,10 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float
 
     With ``core_light_leak`` > 0 each LED also has a ``_leak`` emitter inside the glass,
     and at 1 only that one: an emitter of no power is left out (Mitsuba refuses a spectrum
-    without mass, and it would add nothing).
+    without mass, and it would add nothing). With ``core_leak_cone_rad`` > 0 the leak is
+    directional: ``cone_axis`` (+z, up the tube) and ``cone_half_angle_rad`` say where its
+    photons go (``pbr_tactile.photons.Source``); every source has both keys (None and 0
+    for a Lambertian one).
     """
     if not (math.isfinite(led_power) and led_power > 0):
         raise ValueError(f"led_power must be a finite radiance scale > 0, got {led_power}")
@@ -145,13 +151,16 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float
         if leak < 1:
             sources.append({"name": f"led{m}", "centre": tuple(map(float, centre)), "radius": LED_RADIUS_M,
                             "spectrum": shape * led_power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
-                            "scale": led_power * (1 - leak), "in_elastomer": True})
+                            "scale": led_power * (1 - leak), "in_elastomer": True, "cone_axis": None,
+                            "cone_half_angle_rad": 0.0})
         if leak > 0:
             r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
             xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
             sources.append({"name": f"led{m}_leak", "centre": (float(xy[0]), float(xy[1]), float(centre[2])),
                             "radius": LED_RADIUS_M, "spectrum": shape * led_power * leak, "peak_nm": peak,
-                            "fwhm_nm": fwhm, "scale": led_power * leak, "in_elastomer": False})
+                            "fwhm_nm": fwhm, "scale": led_power * leak, "in_elastomer": False,
+                            "cone_axis": LEAK_AXIS if effects.core_leak_cone_rad > 0 else None,
+                            "cone_half_angle_rad": float(effects.core_leak_cone_rad)})
     return sources
 
 

@@ -1,0 +1,149 @@
+"""Light guided up the glass wall: the directional core leak (Effects.core_leak_cone_rad).
+
+Cheap checks: the option's range and default (off, renders unchanged), the sources it
+makes, the photon sources' validation and cache keys, the guiding angle it is documented
+with, the cone sampling of the photon pass, and that its light reaches the tip.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pbr_tactile.effects import RANGES, Effects
+from pbr_tactile.photons import Source, sources_from
+from pbr_tactile.scene import IOR_GLASS, IOR_SILICONE, LEAK_AXIS, led_sources
+
+
+def test_the_directional_leak_is_off_by_default_and_bounded():
+    assert Effects().core_leak_cone_rad == 0.0
+    assert RANGES["core_leak_cone_rad"] == (0.0, math.pi / 2)
+    assert Effects(core_leak_cone_rad=math.pi / 2).core_leak_cone_rad == math.pi / 2
+    for bad in (-0.1, math.pi / 2 + 1e-6, math.nan, math.inf):
+        with pytest.raises(ValueError, match=r"Effects\.core_leak_cone_rad must be in \[0, 1\.5708\]"):
+            Effects(core_leak_cone_rad=bad)
+    assert Effects().with_settings(["core_leak_cone_rad=0.33"]).core_leak_cone_rad == 0.33
+
+
+def test_off_the_sources_are_lambertian_spheres_as_before(spec):
+    for effects in (Effects(), Effects(core_light_leak=0.5), Effects(core_leak_cone_rad=0.7)):
+        for src in led_sources(spec, effects):
+            assert src["cone_axis"] is None and src["cone_half_angle_rad"] == 0.0
+    # the photon pass's sources and their cache keys are the ones of before
+    srcs = sources_from(led_sources(spec, Effects(core_light_leak=0.5)))
+    assert all(not s.directional and s.key() == (s.name, s.centre, s.radius, s.in_elastomer) for s in srcs)
+
+
+def test_on_only_the_leaks_aim_up_the_tube(spec):
+    effects = Effects(core_light_leak=0.5, core_leak_cone_rad=0.4)
+    sources = led_sources(spec, effects)
+    assert len(sources) == 2 * len(spec.leds)
+    for src in sources:
+        if src["name"].endswith("_leak"):
+            assert src["cone_axis"] == LEAK_AXIS == (0.0, 0.0, 1.0) and src["cone_half_angle_rad"] == 0.4
+            assert not src["in_elastomer"]
+        else:
+            assert src["cone_axis"] is None
+    srcs = sources_from(sources)
+    leak = [s for s in srcs if s.directional]
+    assert len(leak) == len(spec.leds)
+    # the cone is part of what the light pass (and its no-contact cache) depends on
+    assert leak[0].key()[-2:] == ((0.0, 0.0, 1.0), 0.4)
+    other = sources_from(led_sources(spec, Effects(core_light_leak=0.5, core_leak_cone_rad=0.5)))
+    assert {s.key() for s in srcs if s.directional}.isdisjoint({s.key() for s in other if s.directional})
+
+
+def test_a_photon_source_refuses_a_bad_cone():
+    base = dict(centre=(0.0, 0.0, 0.0), radius=1e-3, peak_nm=None, fwhm_nm=None, scale=1.0, in_elastomer=False,
+                name="s")
+    with pytest.raises(ValueError, match="cone_axis must be a unit 3-vector"):
+        Source(**base, cone_axis=(0.0, 0.0, 2.0), cone_half_angle_rad=0.3)
+    with pytest.raises(ValueError, match=r"cone_half_angle_rad must be in \(0, pi\]"):
+        Source(**base, cone_axis=(0.0, 0.0, 1.0), cone_half_angle_rad=0.0)
+    assert Source(**base, cone_axis=(0.0, 0.0, 1.0), cone_half_angle_rad=0.3).directional
+
+
+def test_the_documented_guiding_angle():
+    """The wall guides light by total internal reflection at the glass-elastomer interface
+    (the weaker of its two) within asin(n_s / n_g) of the normal: ~19 deg = 0.33 rad of
+    the axis, as the Effects doc says; and light coupled in through the tube's flat end
+    from air travels within asin(1 / n_g) ~ 42 deg of the axis."""
+    guided = math.pi / 2 - math.asin(IOR_SILICONE / IOR_GLASS)
+    assert guided == pytest.approx(0.33, abs=0.005)
+    assert math.asin(1.0 / IOR_GLASS) == pytest.approx(math.radians(42.2), abs=0.005)
+
+
+def test_the_volpath_scene_refuses_the_directional_leak(mesh, spec, camera):
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.render import reference
+
+    with pytest.raises(ValueError, match="core_leak_cone_rad"):
+        reference(None, None, mesh, spec, camera, Effects(core_light_leak=0.5, core_leak_cone_rad=0.3),
+                  estimator="volpath", spp=1, passes=1, width=8, height=6)
+
+
+def _vectorised():
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.variant import VariantError, choose_variant
+
+    try:
+        variant = choose_variant().variant()
+    except VariantError as exc:
+        pytest.skip(str(exc))
+    if not variant.startswith(("llvm_", "cuda_")):
+        pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
+    import mitsuba as mi
+
+    mi.set_variant(variant)
+    return mi
+
+
+def test_photons_leave_within_the_cone_uniformly_and_lambertian_ones_by_cosine():
+    mi = _vectorised()
+    import drjit as dr
+
+    from pbr_tactile.photons import _LAMBERTIAN, _start_direction
+
+    n = 1 << 16
+    rng = np.random.default_rng(0)
+    u = mi.Point2f(mi.Float(rng.random(n)), mi.Float(rng.random(n)))
+    axis = np.array([0.3, -0.4, math.sqrt(1 - 0.25)])
+    normal = mi.Vector3f(*[mi.Float(np.full(n, a)) for a in axis])
+    for half in (0.33, 0.73, math.pi / 2):
+        d = _start_direction(mi, dr, normal, mi.Float(np.full(n, math.cos(half))), u)
+        cos = np.stack([np.asarray(d[k]) for k in range(3)], -1) @ axis
+        assert cos.min() >= math.cos(half) - 1e-5
+        # uniform in solid angle: cos uniform on [cos(half), 1]
+        assert cos.mean() == pytest.approx((1 + math.cos(half)) / 2, abs=3e-3)
+    d = _start_direction(mi, dr, normal, mi.Float(np.full(n, _LAMBERTIAN)), u)
+    cos = np.stack([np.asarray(d[k]) for k in range(3)], -1) @ axis
+    assert cos.min() >= -1e-6 and cos.mean() == pytest.approx(2 / 3, abs=3e-3)
+
+
+def test_the_guided_leak_lights_the_tip_more_than_the_lambertian_one(mesh, spec, camera):
+    """Photon deposits of each leak on the no-contact coating: aimed up the wall inside
+    its guiding cone, far more of its flux lands on the dome than a Lambertian leak's."""
+    mi = _vectorised()
+    from pbr_tactile.membrane import ElastomerBuilder
+    from pbr_tactile.photons import coating_vertices, deposits, sources_from
+    from pbr_tactile.render import load
+    import tempfile
+
+    from pbr_tactile.scene import geltip_scene, write_meshes
+
+    solid = ElastomerBuilder(mesh, spec, camera, 1e-3)()
+    junction = spec.membrane.base_z + spec.membrane.cylinder_length
+    share = {}
+    for cone in (0.0, 0.33):
+        effects = Effects(core_light_leak=1.0, core_leak_cone_rad=cone)
+        with tempfile.TemporaryDirectory() as folder:
+            scene = geltip_scene(write_meshes(solid, folder), spec, camera, effects, 8, 6, spp=1)
+            loaded = load(scene, mi.variant())[1]
+            srcs = sources_from(led_sources(spec, effects))
+            flux = deposits(mi, loaded, srcs, effects.sigma_t, effects.albedo, effects.coating_albedo, 1 << 12)
+            z = coating_vertices(loaded)[:, 2]
+        assert np.isfinite(flux).all() and (flux >= 0).all() and flux.sum() > 0
+        share[cone] = float(flux[:, z > junction].sum() / flux.sum())
+    assert share[0.33] > 2 * share[0.0]
