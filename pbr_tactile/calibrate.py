@@ -133,11 +133,15 @@ def block_mean(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film: tuple[int, int],
                   photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
-                  use_cache: bool = True) -> dict:
+                  use_cache: bool = True, depth: np.ndarray | None = None,
+                  ref_depth: np.ndarray | None = None) -> dict:
     """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
-    no-contact sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,),
-    ``response`` (S, 3) the film's response to each source at the effects' powers.
-    Cached on disk (scenes.cache) by everything it depends on."""
+    sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,), ``response``
+    (S, 3) the film's response to each source at the effects' powers. Without ``depth``
+    the no-contact sensor; with a contact depth map (H, W) m and the no-contact
+    ``ref_depth``, that contact (the same seed as the no-contact basis: common random
+    numbers, so their difference is the contact's change with little noise). Cached on
+    disk (scenes.cache) by everything it depends on."""
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
@@ -147,11 +151,14 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
 
     variant = choose_variant().variant()
     width, height = film
+    if (depth is None) != (ref_depth is None):
+        raise ValueError("emitter_basis: a contact needs both depth and ref_depth")
+    contact = [] if depth is None else [np.asarray(depth, np.float32), np.asarray(ref_depth, np.float32)]
     key = make_key("basis", 1, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
-                   effects.to_dict(), [width, height], photons, spp, passes, seed)
+                   effects.to_dict(), [width, height], photons, spp, passes, seed, *contact)
 
     def build():
-        est = reference(None, None, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
+        est = reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
                         seed=seed, variant=variant, passes=passes, photons=photons, per_source=True)
         sources = led_sources(spec, effects)
         return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
@@ -232,21 +239,22 @@ class ImageModel:
         self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
         self.r = np.minimum(r, 1.0)
 
-    def moved(self, image: np.ndarray, nl: Nonlinear, m: int) -> np.ndarray:
-        """(h, w) ``image`` moved by LED m's alignment: the point seen at p came from
-        T^-1 p (unshift, rotate back, unscale about the principal point)."""
-        coords = Alignment(0.0, nl.scale, nl.shift_px).sampling((self.h, self.w), self.camera,
-                                                                nl.rotation_rad + nl.led_azimuth_rad[m])
+    def moved(self, image: np.ndarray, nl: Nonlinear, m: int | None) -> np.ndarray:
+        """(h, w) ``image`` moved by LED m's alignment (m None: the membrane's, without an
+        LED's azimuth): the point seen at p came from T^-1 p (unshift, rotate back,
+        unscale about the principal point)."""
+        turn = nl.rotation_rad + (0.0 if m is None else nl.led_azimuth_rad[m])
+        coords = Alignment(0.0, nl.scale, nl.shift_px).sampling((self.h, self.w), self.camera, turn)
         return ndimage.map_coordinates(image, coords, order=1, mode="nearest")
 
-    def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int) -> np.ndarray:
+    def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int, azimuths: bool = True) -> np.ndarray:
         out = np.zeros((self.h, self.w, self.leds))
         for m in range(self.leds):
             f = nl.leak[m]
             for k in np.nonzero(self.led == m)[0]:
                 share = (f if self.has_leak[k] else 1.0 - f) ** power
                 if share > 0:
-                    out[..., m] += share * self.moved(images[..., k], nl, m)
+                    out[..., m] += share * self.moved(images[..., k], nl, m if azimuths else None)
         return out
 
     def falloff(self, nl: Nonlinear) -> np.ndarray:
@@ -267,11 +275,19 @@ class ImageModel:
         (independent sources; interpolation's correlations ignored)."""
         return self._mixed(np.asarray(variance, np.float64), nl, 2) * np.square(self.falloff(nl))[..., None]
 
-    def render(self, nl: Nonlinear, gains: np.ndarray, offset, saturation) -> np.ndarray:
-        """(h, w, 3) the modelled real image (scenes.profile.camera_response)."""
+    def tap_design(self, change: np.ndarray, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) ``design`` of a tap whose per-source change from the no-contact basis
+        is ``change`` (h, w, S), rendered in the membrane's frame: the change moves with
+        the membrane (the rotation without the LEDs' azimuths), the rest as ``design``."""
+        return (self.warped(nl) + self._mixed(change, nl, 1, azimuths=False)) * self.falloff(nl)[..., None]
+
+    def render(self, nl: Nonlinear, gains: np.ndarray, offset, saturation, change: np.ndarray | None = None) -> np.ndarray:
+        """(h, w, 3) the modelled real image (scenes.profile.camera_response); with a
+        tap's ``change`` (see tap_design), that tap's."""
         response = CameraProfile(gamma=nl.gamma, offset=tuple(offset), saturation=tuple(saturation),
                                  vignetting=nl.vignetting)
-        return camera_response(self.warped(nl) @ gains, response, self.falloff(nl))
+        linear = self.warped(nl) if change is None else self.warped(nl) + self._mixed(change, nl, 1, azimuths=False)
+        return camera_response(linear @ gains, response, self.falloff(nl))
 
 
 def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float, weight: np.ndarray | None = None,
@@ -313,31 +329,64 @@ class ImageFit:
     evaluations: int
 
 
+@dataclass
+class TapView:
+    """One tap in a fit: its per-source change from the no-contact basis (h, w, S; see
+    ImageModel.tap_design), the real tap image (h, w, 3), the pixels it is fitted on
+    (h, w) and its weight (a bootstrap's multiplicity)."""
+
+    change: np.ndarray
+    real: np.ndarray
+    pixels: np.ndarray
+    weight: float = 1.0
+
+
 class ImageFitter:
-    """Fits an ImageModel to a real image on a set of pixels (see the module doc)."""
+    """Fits an ImageModel to a real image on a set of pixels, and to taps if given (see
+    the module doc and ``pbr_tactile.calibrate_taps``)."""
 
     def __init__(self, model: ImageModel, real: np.ndarray, fit_pixels: np.ndarray, weight: np.ndarray | None = None,
-                 leak: bool = True):
+                 leak: bool = True, taps: list[TapView] = ()):
         """fit_pixels (h, w) bool; weight (h, w) per-pixel weights (a bootstrap's
-        multiplicities) or None; leak False: no light into the core (the leak fixed at 0)."""
+        multiplicities) or None; leak False: no light into the core (the leak fixed at 0);
+        taps: fitted together with the image, their pixels stacked with its."""
         self.model, self.real = model, np.asarray(real, np.float64)
         self.leak = leak
         self.pixels = fit_pixels & model.inside
         self.clipped = self.real >= CLIP_LEVEL
         self.weight = None if weight is None else np.asarray(weight, np.float64)[self.pixels]
+        self.taps = [t for t in taps if t.weight > 0]
+        # the stacked real pixels, censoring and weights of the image and the taps
+        views = [(self.real, self.pixels, np.ones(int(self.pixels.sum())) if weight is None else self.weight)]
+        views += [(np.asarray(t.real, np.float64), t.pixels & model.inside,
+                   np.full(int((t.pixels & model.inside).sum()), float(t.weight))) for t in self.taps]
+        self.y = np.concatenate([real_[pixels] for real_, pixels, _ in views])
+        self.y_clipped = self.y >= CLIP_LEVEL
+        self.w = np.concatenate([w for _, _, w in views])
         # the loss of predicting each channel's mean: the real image's variance
         self.variance = float(np.mean([np.var(self.real[..., c][self.pixels]) for c in range(3)]))
+
+    def design(self, nl: Nonlinear) -> np.ndarray:
+        """(N, L) the stacked design rows of the image's and the taps' fitted pixels."""
+        falloff = self.model.falloff(nl)[..., None]
+        warped = self.model.warped(nl)
+        rows = [(warped * falloff)[self.pixels]]
+        for t in self.taps:
+            change = self.model._mixed(t.change, nl, 1, azimuths=False)
+            rows.append(((warped + change) * falloff)[t.pixels & self.model.inside])
+        return np.concatenate(rows)
 
     def solve(self, nl: Nonlinear) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The best gains and offsets for ``nl`` and the weighted, censored residuals,
         whose sum of squares is the mean squared error over pixels and channels."""
-        X = self.model.design(nl)[self.pixels]
-        w = np.ones(len(X)) if self.weight is None else self.weight
+        X = self.design(nl)
+        w = self.w
         sw = np.sqrt(w / (3 * np.sum(w)))
+        weight = None if self.weight is None and not self.taps else w
         gains, offset, residuals = np.zeros((self.model.leds, 3)), np.zeros(3), []
         for c in range(3):
-            y, clipped = self.real[..., c][self.pixels], self.clipped[..., c][self.pixels]
-            gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, self.weight)
+            y, clipped = self.y[:, c], self.y_clipped[:, c]
+            gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight)
             pred = np.clip(X @ gains[:, c] + offset[c], 0.0, None) ** (1.0 / nl.gamma)
             residuals.append(sw * np.where(clipped, np.minimum(pred - y, 0.0), pred - y))
         return gains, offset, np.concatenate(residuals)
@@ -448,13 +497,16 @@ def _interval(values: np.ndarray) -> list[float]:
 def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, film: tuple[int, int] = (160, 120),
                          grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
                          seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
-                         progress=None) -> Calibration:
-    """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1].
+                         progress=None, taps=None) -> Calibration:
+    """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1], and to
+    its sensor's taps if given.
 
     Fits on the even angular sectors of the image circle and judges on the odd ones (see
     the module doc); ``grid`` maps Effects names to the values searched (default GRID);
-    ``leak`` False fits with no light into the glass core. Raises ValueError for a bad
-    image; a fit that did not converge is reported (``report["converged"]`` False).
+    ``leak`` False fits with no light into the glass core. ``taps``
+    (``pbr_tactile.calibrate_taps.RealTaps``): rendered at the best grid point and fitted
+    together with the image, alternate taps held out (see that module). Raises ValueError
+    for a bad image; a fit that did not converge is reported (``report["converged"]`` False).
     """
     grid = GRID if grid is None else grid
     for name in grid:
@@ -486,6 +538,10 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
             progress(i + 1, len(points) + 1)
     fit, point, basis, model = min(fits, key=lambda f: f[0].loss)
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
+    tap_report, fitted_views = None, []
+    if taps is not None:
+        fit, fitted_views, tap_report = _fit_taps(taps, fit, model, basis, r, train, dataclasses.replace(base, **point),
+                                                  spec, mesh, camera, film, photons, spp, passes, seed, leak, use_cache)
     after = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
     default = {name: getattr(Effects(), name) for name in grid}
     same = [b for _, p, b, _ in fits if p == default]
@@ -497,10 +553,12 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     heldout_before = {ch: r2(before[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
     mae = {ch: float(np.abs(after[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
     mae_before = {ch: float(np.abs(before[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
-    intervals = _bootstrap(fit, model, r, sector, bootstrap, seed, leak) if bootstrap else {}
+    intervals = _bootstrap(fit, model, r, sector, bootstrap, seed, leak, fitted_views) if bootstrap else {}
     r2_interval = {ch: heldout_interval(after[..., c], r[..., c], judged[ch], sector, seed) for c, ch in enumerate("rgb")}
     fast_table, fast_path = _fast_path_background(r, circle, camera, train, test, clipped, judged, sector, seed)
-    nl = fit.nl.tied()
+    nl = fit.nl.tied() if taps is None else dataclasses.replace(
+        fit.nl, rotation_rad=math.remainder(fit.nl.rotation_rad, 2 * math.pi))
+    data = "one no-contact image" if taps is None else f"one no-contact image and {len(taps.ids)} taps"
     profile = Profile(
         sensor=spec.name, leds=tuple(led.name for led in spec.leds),
         alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px,
@@ -512,7 +570,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                    "led_leak": list(nl.leak), "led_gains": fit.gains.tolist(), "film": [width, height], "photons": photons,
                    "spp": spp, "passes": passes, "seed": seed},
         phong={"ambient": 1.0, "background": fast_table},
-        fit={"data": "one no-contact image", "converged": fit.converged, "heldout_r2": heldout,
+        fit={"data": data, "converged": fit.converged, "heldout_r2": heldout,
              "phong_heldout_r2": fast_path["heldout_r2"]})
     report = {
         "converged": fit.converged, "loss": fit.loss, "start_loss": fit.start_loss, "evaluations": fit.evaluations,
@@ -521,9 +579,12 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "image_circle": circle, "film": [width, height], "sectors": SECTORS,
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "converged": f.converged} for f, p, _, _ in fits],
-        "best_effects": point, "parameters": _parameters(fit), "intervals": intervals,
-        "not_identifiable": NOT_IDENTIFIABLE, "fast_path": fast_path,
+        "best_effects": point, "parameters": _parameters(fit, tie=taps is None), "intervals": intervals,
+        "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,
+        "taps": tap_report,
     }
+    if taps is not None and fit.converged:
+        profile = _fast_path_from_taps(profile, report, spec, mesh, camera, taps, real)
     return Calibration(profile, report, {"real": r, "before": before, "after": after, "fast_path": fast_path.pop("image"),
                                          "judged": np.stack([judged[ch] for ch in "rgb"], -1)})
 
@@ -540,26 +601,79 @@ NOT_IDENTIFIABLE = [
 ]
 
 
-def _parameters(fit: ImageFit) -> dict:
-    nl = fit.nl.tied()
+#: What one no-contact image and taps cannot separate.
+NOT_IDENTIFIABLE_WITH_TAPS = [NOT_IDENTIFIABLE[0], NOT_IDENTIFIABLE[2]]
+
+
+def _parameters(fit: ImageFit, tie: bool = True) -> dict:
+    """The fitted values as plain data; ``tie``: the rotation and azimuths tied (only one
+    image: see NOT_IDENTIFIABLE), else the rotation only wrapped."""
+    nl = fit.nl.tied() if tie else dataclasses.replace(fit.nl, rotation_rad=math.remainder(fit.nl.rotation_rad,
+                                                                                            2 * math.pi))
     return {"rotation_rad": nl.rotation_rad, "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
             "scale": nl.scale, "shift_px": list(nl.shift_px), "vignetting": list(nl.vignetting), "gamma": nl.gamma,
             "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist()}
 
 
 def _bootstrap(fit: ImageFit, model: ImageModel, r: np.ndarray, sector: np.ndarray, count: int, seed: int,
-               leak: bool) -> dict:
-    """5-95 % intervals of each parameter over refits on resampled training sectors."""
+               leak: bool, taps: list[TapView] = ()) -> dict:
+    """5-95 % intervals of each parameter over refits on resampled training sectors (and
+    fitted taps, drawn with replacement too)."""
     rng = np.random.default_rng(seed)
     even = np.arange(0, SECTORS, 2)
     samples: dict[str, list] = {}
     for _ in range(count):
         drawn = np.bincount(rng.choice(even, len(even)), minlength=SECTORS)
         weight = drawn[sector].astype(np.float64)
-        refit = ImageFitter(model, r, weight > 0, weight=weight, leak=leak).fit(fit.nl, max_evaluations=300)
-        for name, value in _parameters(refit).items():
+        times = np.bincount(rng.choice(len(taps), len(taps)), minlength=len(taps)) if taps else []
+        views = [dataclasses.replace(view, weight=float(n)) for view, n in zip(taps, times)]
+        refit = ImageFitter(model, r, weight > 0, weight=weight, leak=leak, taps=views).fit(fit.nl, max_evaluations=300)
+        for name, value in _parameters(refit, tie=not taps).items():
             samples.setdefault(name, []).append(np.asarray(value, np.float64))
     return {name: np.apply_along_axis(_interval, 0, np.stack(values)).tolist() for name, values in samples.items()}
+
+
+def _fit_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray, train: np.ndarray,
+              effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak, use_cache):
+    """The fit with taps (``pbr_tactile.calibrate_taps``): (fit, fitted taps' views, the
+    report's ``taps`` section)."""
+    from scenes import captures
+
+    from . import calibrate_taps as ct
+
+    changes = ct.tap_changes(spec, mesh, camera, effects, film, taps, basis, photons, spp, passes, seed, use_cache)
+    views = ct.film_views(taps, changes, r, model.inside, film)
+    seen = [int(v.pixels.sum()) >= captures.MIN_REGION for v in views]
+    fitted = captures.split(len(views))
+    fit_views = [v for v, f, ok in zip(views, fitted, seen) if f and ok]
+    judge_views = [v for v, f, ok in zip(views, fitted, seen) if not f and ok]
+    if not fit_views:
+        raise ValueError(f"none of the fitted taps ({', '.join(np.asarray(taps.ids)[fitted])}) shows a contact: each "
+                         f"differs from the no-contact image in fewer than {captures.MIN_REGION} film pixels by more than "
+                         f"{captures.CHANGE_LEVEL:.3f}")
+    background_only = fit
+    fit = ct.fit_with_taps(model, r, train, fit_views, background_only, leak)
+    ids = np.asarray(taps.ids)
+    report = {
+        "fitted": ids[fitted & np.array(seen)].tolist(), "judged": ids[~fitted & np.array(seen)].tolist(),
+        "without_contact": ids[~np.array(seen)].tolist(),
+        "split": "alternate taps: even ones fitted with the image's training sectors, odd ones judged; each on its "
+                 "contact region (where the real tap differs from the real no-contact image)",
+        "heldout": ct.tap_scores(model, fit, judge_views, r), "fit": ct.tap_scores(model, fit, fit_views, r),
+        "heldout_before_taps": ct.tap_scores(model, background_only, judge_views, r),
+    }
+    return fit, fit_views, report
+
+
+def _fast_path_from_taps(profile: Profile, report: dict, spec, mesh, camera, taps, real) -> Profile:
+    """The fast path's LED constants fitted to the taps by its renderer plugin (this
+    package imports no other renderer): the profile with them, and the report's
+    ``fast_path.taps``."""
+    from scenes.generate import renderer_plugin
+
+    table, section = renderer_plugin("phong").calibrate(spec, mesh, camera, profile, taps, real)
+    report["fast_path"]["taps"] = section
+    return dataclasses.replace(profile, phong={**profile.phong, **table})
 
 
 def heldout_interval(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray, sector: np.ndarray, seed: int = 0,

@@ -3,9 +3,10 @@
 Each case draws a virtual sensor: the reference's physical effects from the calibration
 grid's values (the basis is rendered on that grid, so recovery measures the search, not
 interpolation between grid points), and the camera and alignment parameters from the
-stated ranges below. Its no-contact image is rendered with another seed than the
-calibration's basis (so its Monte Carlo noise is its own), at the camera's size, and
-calibrated from without its values.
+stated ranges below. Its no-contact image is rendered with its LEDs truly turned by
+their azimuths (``Profile.sensor_spec``) and then moved by its rotation, scale and shift,
+with another seed than the calibration's basis (so its Monte Carlo noise is its own), at
+the camera's size, and calibrated from without its values.
 
 Scoring, per identifiable parameter:
 - positive quantities (gamma, scale, the lens' illumination at the circle's edge V(1),
@@ -18,10 +19,21 @@ finds the renaming (the one that best matches the rotation).
 
 ``heldout_mae_over_noise``: the MAE on the held-out sectors over the virtual image's own
 Monte Carlo noise (its standard error, carried through the camera's response).
+
+With taps (``taps`` > 0): the same taps of the base protocol (the sphere, spread evenly
+over it; depth maps from the MuJoCo rig) are rendered for each virtual sensor like its
+no-contact image, with the same seed (one sensor's captures share its scene's noise;
+the change between a tap and the no-contact image is then nearly noise-free, as a real
+camera's 8-bit noise is small at the film's resolution). Calibration fits
+alternate taps and holds out the others (``pbr_tactile.calibrate_taps``). The rotation
+is then scored as the membrane's own and each LED's azimuth is scored too (zero-centred);
+``heldout_taps`` reports the held-out taps' MAE over their contact regions against the
+virtual taps' own noise (``tap_mae_over_noise``) and the R^2 of their contact changes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -65,10 +77,12 @@ def draw(rng: np.random.Generator, leds: int, grid: dict) -> tuple[Nonlinear, np
     return nl, gains, effects
 
 
-def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: int) -> dict[str, float]:
+def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: int, taps: bool = False
+            ) -> dict[str, float]:
     """Relative error per scored parameter (module doc)."""
     turn = 2 * math.pi / leds
-    d = fit["rotation_rad"] - nl.tied().rotation_rad  # the fit reports the tied rotation
+    # without taps the fit reports the tied rotation, with taps the membrane's own
+    d = fit["rotation_rad"] - (nl.rotation_rad if taps else nl.tied().rotation_rad)
     k = min(range(leds), key=lambda shift: abs(math.remainder(d - shift * turn, 2 * math.pi)))
     rot_err = abs(math.remainder(d - k * turn, 2 * math.pi))
     perm = [(j + k) % leds for j in range(leds)]  # fitted LED j sits where true LED j + k does
@@ -86,48 +100,128 @@ def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: in
         out[f"led{true}_leak"] = abs(leak_fit - leak_true) / max(leak_true, LEAK_MIN)
         for c, ch in enumerate("rgb"):
             out[f"led{true}_gain_{ch}"] = abs(rel_fit[j, c] - rel_true[true, c]) / rel_true[true, c]
+        if taps:
+            out[f"led{true}_azimuth"] = abs(fit["led_azimuth_rad"][j] - nl.led_azimuth_rad[true]) / half("led_azimuth_rad")
     for name, value in effects.items():
         out[name] = abs(fit["effects"][name] - value) / value if value else abs(fit["effects"][name])
     return out
 
 
+def protocol_taps(spec, mesh, count: int) -> tuple[list, np.ndarray, np.ndarray]:
+    """``count`` taps of the base protocol (the sphere) at distinct places, spread evenly over it, with their
+    depth maps from the MuJoCo rig: (taps, depths (T, H, W), the no-contact depth map)."""
+    from scenes.protocol import base_protocol
+    from scenes.rig import tap_depths
+
+    protocol = base_protocol(spec, mesh, ["sphere"])
+    # each place once (every path starts at the tip)
+    places = {}
+    for tap in protocol.taps:
+        places.setdefault(tuple(np.round(tap.point, 4)), tap)
+    distinct = list(places.values())
+    pick = np.unique(np.linspace(0, len(distinct) - 1, count).round().astype(int))
+    taps = [distinct[i] for i in pick]
+    replay = tap_depths(spec, taps, mesh)
+    try:
+        ref_depth = next(replay)[0]
+        depths = [d for d, _ in replay]
+    finally:
+        replay.close()
+    return taps, np.stack(depths).astype(np.float32), np.asarray(ref_depth, np.float32)
+
+
+def turned(spec, azimuths) -> object:
+    """``spec`` with each LED turned about the axis by its azimuth (``Profile.sensor_spec``)."""
+    from scenes.profile import Alignment, CameraProfile, Profile
+
+    return Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds),
+                   alignment=Alignment(0.0, 1.0, (0.0, 0.0), tuple(azimuths)), camera=CameraProfile()).sensor_spec(spec)
+
+
+def virtual_taps(unit, mesh, camera, effects: Effects, still: Nonlinear, gains: np.ndarray, depths, ref_depth, film,
+                 photons: int, spp: int, seed: int, use_cache: bool, ids) -> tuple:
+    """A virtual sensor's taps at the camera's size: (RealTaps, their noise level). ``unit``:
+    the spec with the sensor's LEDs turned (``turned``); ``still``: its parameters with
+    zero azimuths (the turn is in the render), whose alignment then moves the image. The
+    noise level is the mean Monte Carlo standard error of the taps' images inside the
+    image circle, carried through the response."""
+    from scenes.captures import RealTaps
+
+    k = camera.height // film[1]
+    images, noise = [], []
+    for depth in depths:
+        basis = emitter_basis(unit, mesh, camera, effects, film, photons, spp, 2, seed, use_cache, depth=depth,
+                              ref_depth=ref_depth)
+        model = ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
+        image = model.render(still, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+        images.append(np.repeat(np.repeat(image, k, axis=0), k, axis=1))
+        noise.append(_noise(model, basis["variance"], still, gains))
+    return RealTaps(np.stack(images), depths, ref_depth, list(ids)), float(np.mean(noise))
+
+
+def _noise(model: ImageModel, variance: np.ndarray, nl: Nonlinear, gains: np.ndarray) -> float:
+    """Mean Monte Carlo standard error inside the circle of a virtual image, through the
+    camera's response."""
+    lin = model.design(nl) @ gains
+    var = model.design_variance(variance, nl) @ np.square(gains)
+    slope = np.where(lin > 0, np.power(np.maximum(lin, 1e-12), 1 / nl.gamma - 1) / nl.gamma, 0.0)
+    return float(np.mean(np.sqrt(var * slope**2)[model.inside]))
+
+
 def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int, int] = (160, 120),
-              grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, progress=None, cold: bool = False) -> dict:
+              grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, progress=None, cold: bool = False,
+              taps: int = 0) -> dict:
     """Run ``cases`` blind recoveries; returns the benchmark's JSON (see the module doc).
-    cold : render every basis afresh (no disk cache), as a first calibration would."""
+    cold : render every basis afresh (no disk cache), as a first calibration would.
+    taps : virtual taps per sensor (at most calibrate_taps.MAX_TAPS; 0: the no-contact
+    image only)."""
+    from scenes.captures import MAX_TAPS
+
+    if not 0 <= taps <= MAX_TAPS:
+        raise ValueError(f"taps must be in [0, {MAX_TAPS}], got {taps}")
     grid = GRID if grid is None else grid
     rng = np.random.default_rng(seed)
     per_parameter: dict[str, list[float]] = {}
-    mae_over_noise, seconds, r2s = [], [], []
+    mae_over_noise, seconds, r2s, tap_scores = [], [], [], []
     leds = len(spec.leds)
+    if taps:
+        protocol, depths, ref_depth = protocol_taps(spec, mesh, taps)
+        ids = [f"{t.object}_{i}" for i, t in enumerate(protocol)]
     for case in range(cases):
         nl, gains, effects = draw(rng, leds, grid)
         fx = Effects().with_settings([f"{k}={v}" for k, v in {**BASIS_EFFECTS, **effects}.items()])
-        # the virtual sensor's own render, at the film's size with its own seed (its own noise)
-        hidden = emitter_basis(spec, mesh, camera, fx, film, photons, spp, 2, seed + SEED_OFFSET + case,
-                               use_cache=not cold)
+        # the virtual sensor's own render: its LEDs truly turned, at the film's size, with its
+        # own seed (its own noise; its taps share it, as one sensor's captures share the scene)
+        unit = turned(spec, nl.led_azimuth_rad)
+        still = dataclasses.replace(nl, led_azimuth_rad=(0.0,) * leds)
+        case_seed = seed + SEED_OFFSET + case
+        hidden = emitter_basis(unit, mesh, camera, fx, film, photons, spp, 2, case_seed, use_cache=not cold)
         circle = (camera.cx, camera.cy, camera.mask_radius_px)
         model = ImageModel(hidden["mean"], hidden["names"], camera, circle)
-        design = model.design(nl)
+        design = model.design(still)
         gains_scaled = gains / np.percentile(design[model.inside].sum(axis=1), 95)
-        image = model.render(nl, gains_scaled, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+        image = model.render(still, gains_scaled, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
         k = camera.height // film[1]
         real = np.repeat(np.repeat(image, k, axis=0), k, axis=1)
+        real_taps, tap_noise = (None, None) if not taps else virtual_taps(
+            unit, mesh, camera, fx, still, gains_scaled, depths, ref_depth, film, photons, spp, case_seed, not cold, ids)
         t0 = time.perf_counter()
         cal = calibrate_background(real, spec, mesh, camera, film=film, grid=grid, photons=photons, spp=spp, seed=seed,
-                                   bootstrap=0, use_cache=not cold)
+                                   bootstrap=0, use_cache=not cold, taps=real_taps)
         seconds.append(time.perf_counter() - t0)
         fit = {**cal.report["parameters"], "effects": cal.report["best_effects"]}
-        for name, err in _errors(fit, nl, gains_scaled, effects, leds).items():
+        for name, err in _errors(fit, nl, gains_scaled, effects, leds, taps=bool(taps)).items():
             per_parameter.setdefault(name, []).append(float(err))
-        # the virtual image's Monte Carlo standard error, through the response
-        lin = design @ gains_scaled
-        var = model.design_variance(hidden["variance"], nl) @ np.square(gains_scaled)
-        slope = np.where(lin > 0, np.power(np.maximum(lin, 1e-12), 1 / nl.gamma - 1) / nl.gamma, 0.0)
-        noise = float(np.mean(np.sqrt(var * slope**2)[model.inside]))
+        noise = _noise(model, hidden["variance"], still, gains_scaled)
         mae = float(np.mean([cal.report["heldout_mae"][ch] for ch in "rgb" if not cal.report["saturated"][ch]]))
         mae_over_noise.append(mae / noise if noise > 0 else float("nan"))
         r2s.append(cal.report["heldout_r2"])
+        if taps:
+            held = cal.report["taps"]["heldout"]
+            before = cal.report["taps"]["heldout_before_taps"]
+            tap_scores.append({"tap_mae_over_noise": float(np.mean(list(held["mae"].values()))) / tap_noise,
+                               "change_r2": held["change_r2"], "change_r2_before_taps": before["change_r2"],
+                               "pixels": held["pixels"]})
         if progress is not None:
             progress(case + 1, cases)
     errors = np.concatenate([np.asarray(v) for v in per_parameter.values()])
@@ -140,6 +234,9 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
                           for name, v in per_parameter.items()},
         "heldout_mae_over_noise": float(np.median(mae_over_noise)),
         "heldout_r2": r2s,
+        "taps": taps,
+        "heldout_taps": tap_scores,
+        "tap_mae_over_noise": float(np.median([t["tap_mae_over_noise"] for t in tap_scores])) if taps else None,
         "seconds_per_case": float(np.median(seconds)),
         "scoring": __doc__.split("\n\n", 3)[2],
         "ranges": {k: list(v) for k, v in RANGES.items()},

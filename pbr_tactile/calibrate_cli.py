@@ -70,6 +70,28 @@ def _fast_path_html(fast: dict | None) -> str:
             f"<th>MAE solid</th><th>smooth</th></tr>{rows}</table>")
 
 
+def _taps_html(report: dict) -> str:
+    taps = report.get("taps")
+    if not taps:
+        return ""
+    fast = (report.get("fast_path") or {}).get("taps")
+
+    def row(name, scores):
+        return (f"<tr><td>{name}</td>" + "".join(f"<td>{scores['change_r2'].get(ch, float('nan')):.3f}</td>"
+                                                  for ch in "rgb")
+                + "".join(f"<td>{scores['mae'].get(ch, float('nan')):.4f}</td>" for ch in "rgb") + "</tr>")
+
+    rows = [row("reference, from the image alone", taps["heldout_before_taps"]),
+            row("reference, with taps", taps["heldout"])]
+    if fast:
+        rows += [row("fast path, the spec's LED constants", fast["heldout_before"]),
+                 row(f"fast path, fitted (shininess {fast['shininess']:g})", fast["heldout"])]
+    return (f"<h2>Taps</h2><p>Fitted: {', '.join(taps['fitted'])}; judged: {', '.join(taps['judged']) or 'none'}; "
+            f"without a visible contact: {', '.join(taps['without_contact']) or 'none'}. {taps['split']}.</p>"
+            "<table border=1><tr><th>held-out taps</th><th>change R² r</th><th>g</th><th>b</th><th>MAE r</th>"
+            f"<th>g</th><th>b</th></tr>{''.join(rows)}</table>")
+
+
 def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
     """report.json, report.html, residual images and figure; profile.toml only for a
     converged fit."""
@@ -101,6 +123,7 @@ def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
         f"<table border=1><tr><th>channel</th><th>held-out R² before</th><th>after</th><th>MAE before</th>"
         f"<th>after</th><th>saturated</th></tr>{rows}</table>"
         f"<p>Best effects on the grid: {report['best_effects']}</p>{_fast_path_html(report.get('fast_path'))}"
+        f"{_taps_html(report)}"
         f"<p>Not identifiable from this data:</p><ul>{''.join(f'<li>{x}</li>' for x in report['not_identifiable'])}</ul>"
         f"<img src='residuals_figure.png'></body></html>")
     return paths
@@ -122,12 +145,22 @@ def cmd_calibrate(args) -> int:
     from scenes.spec import load_spec
 
     from .calibrate import GRID, calibrate_background
+    from scenes.captures import MAX_TAPS, load_real_taps
 
     path, what = real_background(args.real, args.background_only)
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
     real = read_rgb(path)
     grid = GRID if not args.grid else _grid(args.grid)
+    taps = None
+    count = MAX_TAPS if args.taps is None else args.taps
+    if not 0 <= count <= MAX_TAPS:
+        raise ValueError(f"--taps must be in [0, {MAX_TAPS}], got {count}")
+    if args.real is not None and count:
+        taps = load_real_taps(args.real, spec, camera, count)
+        what += f" and {len(taps.ids)} of its taps"
+    elif args.taps:
+        raise ValueError("--taps needs REAL, a capture dataset (--background-only has no taps)")
     bar = tqdm(desc="calibrating", unit="grid point")
 
     def progress(done, total):
@@ -137,7 +170,7 @@ def cmd_calibrate(args) -> int:
     t0 = time.perf_counter()
     cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
                                grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
-                               bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress)
+                               bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps)
     bar.close()
     cal.report["seconds"] = time.perf_counter() - t0
     paths = write_outputs(cal, Path(args.out), what)
@@ -173,7 +206,8 @@ def cmd_benchmark(args) -> int:
     bar = tqdm(total=cases, desc="virtual sensors", unit="case")
     result = benchmark(spec, membrane_mesh(spec), camera, cases=cases, seed=args.seed,
                        film=(args.width, args.width * 3 // 4), grid=_grid(args.grid) if args.grid else GRID,
-                       photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n))
+                       photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n),
+                       taps=0 if args.taps is None else args.taps)
     bar.close()
     atomic_write_json(Path(args.json), result)
     print(f"median relative error {result['median_relative_error']:.3f}, share within 10 % "
@@ -192,10 +226,11 @@ def cmd_bench_calibrate(args) -> int:
 
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
-    result = benchmark(spec, membrane_mesh(spec), camera, cases=1, seed=args.seed, cold=True)
-    out = {"seconds": result["seconds_per_case"], "what": "one no-contact image (a virtual sensor), default grid, "
-           "basis renders not cached (cold), bootstrap off; no taps (calibration from taps is not built yet)",
-           "median_relative_error": result["median_relative_error"]}
+    result = benchmark(spec, membrane_mesh(spec), camera, cases=1, seed=args.seed, cold=True, taps=args.taps)
+    out = {"seconds": result["seconds_per_case"], "what": f"one no-contact image and {args.taps} taps of a virtual "
+           "sensor, default grid, basis and tap renders not cached (cold), bootstrap off; the seconds of calibration "
+           "only (not of rendering the virtual sensor)", "taps": args.taps,
+           "median_relative_error": result["median_relative_error"], "tap_mae_over_noise": result["tap_mae_over_noise"]}
     atomic_write_json(Path(args.json), out)
     print(f"calibrated in {out['seconds']:.0f} s; wrote {args.json}")
     return 0
@@ -233,11 +268,16 @@ def register(registry) -> None:
                    help="effects searched and their values (repeatable; default absorption_per_m and "
                         "scattering_per_m on 3 values each)")
     p.add_argument("--no-leak", action="store_true", help="no light into the glass core (the leak fixed at 0)")
+    p.add_argument("--taps", type=int, help="taps of REAL used, spread over it (default and at most 10; 0: its "
+                                           "no-contact image only); with REAL = benchmark: virtual taps per sensor "
+                                           "(default 0)")
     p.add_argument("--cases", type=int, help="with REAL = benchmark: virtual sensors to recover (default 6)")
     p.add_argument("--json", metavar="PATH", help="with REAL = benchmark: where to write its results")
     p.epilog = ("'tactile-sim calibrate benchmark --cases N --seed S --json PATH' runs the blind recovery benchmark "
                 "on virtual sensors with hidden parameters instead (pbr_tactile.calibrate_bench)")
 
-    p = registry.bench("calibrate", cmd_bench_calibrate, "seconds to calibrate the reference from one no-contact image")
+    p = registry.bench("calibrate", cmd_bench_calibrate,
+                       "seconds to calibrate the reference from one no-contact image and taps")
     p.add_argument("--spec", metavar="TOML")
+    p.add_argument("--taps", type=int, default=10, help="virtual taps (default 10)")
     p.add_argument("--seed", type=int, default=0)

@@ -1,0 +1,122 @@
+"""Calibration from taps: contacts tie the membrane's turn and constrain the shading.
+
+One no-contact image sees each LED's whole turn (the membrane's rotation plus the LED's
+azimuth) but not the membrane's own: the membrane is rotationally symmetric. A tap is
+pressed at a known place on the membrane, so where its contact appears in the real image
+gives the membrane's rotation, and with it each LED's azimuth.
+
+Each tap t is rendered per source like the no-contact basis, at the calibration's best
+grid point and with the same seed (common random numbers): its change from the
+no-contact basis C_t = B_t - A (h, w, S) is the contact's, with little noise. The tap's
+image is modelled as (``ImageModel.tap_design``)
+
+    I_t(p) = clip((V(p) sum_s g_sc [A_s(T_m(s)^-1 p) + C_ts(T^-1 p)] + o_c) ** (1 / gamma), 0, sat_c)
+
+the change moving with the membrane (T: rotation theta, no LED azimuth), the rest as
+the no-contact image. The change is rendered with the spec's LEDs: an LED's azimuth
+phi_m moves where it lights the contact from by phi_m, which this model leaves out (the
+benchmark renders its virtual taps with the LEDs truly turned, so its scores include
+that approximation).
+
+Taps alternate (``scenes.captures``): even ones are fitted with the no-contact image's
+training sectors, odd ones judge. A tap is fitted and judged on its contact region
+(``scenes.captures.contact_region``), found in the real images themselves.
+
+The fit starts from the no-contact fit. That fit pins each LED's whole turn only loosely
+(each LED lights the membrane nearly all round, and its gains are free: on a virtual
+sensor a whole turn 0.47 rad off cost 0.5 % of the loss), so the starts keep its tied
+values (the azimuths' spread, the camera, the leaks) and scan the membrane's rotation
+round the whole circle in SCAN_STEP_RAD steps; the best few are refined by the same
+bounded least squares, every azimuth free.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from scenes.captures import RealTaps, contact_region
+
+from .calibrate import (
+    ImageFit,
+    ImageFitter,
+    ImageModel,
+    Nonlinear,
+    TapView,
+    block_mean,
+    emitter_basis,
+)
+
+#: The membrane's rotation is scanned in steps of this about each start.
+SCAN_STEP_RAD = math.radians(2.0)
+
+
+def tap_changes(spec, mesh, camera, effects, film, taps: RealTaps, no_contact: dict, photons: int, spp: int,
+                passes: int, seed: int, use_cache: bool = True, progress=None) -> np.ndarray:
+    """(T, h, w, S) each tap's per-source change from ``no_contact`` (``emitter_basis``
+    of the same spec, effects, film and seed)."""
+    out = []
+    for t, depth in enumerate(taps.depths):
+        basis = emitter_basis(spec, mesh, camera, effects, film, photons, spp, passes, seed, use_cache,
+                              depth=depth, ref_depth=taps.ref_depth)
+        if list(basis["names"]) != list(no_contact["names"]):
+            raise ValueError("tap_changes: the tap's sources differ from the no-contact basis'")
+        out.append(basis["mean"] - no_contact["mean"])
+        if progress is not None:
+            progress(t + 1, len(taps.depths))
+    return np.stack(out)
+
+
+def starts(fit: ImageFit) -> list[Nonlinear]:
+    """Starting points for a fit with taps from a no-contact fit (module doc): its tied
+    values, with the membrane's rotation every SCAN_STEP_RAD round the circle."""
+    nl = fit.nl.tied()
+    steps = int(round(2 * math.pi / SCAN_STEP_RAD))
+    return [dataclasses.replace(nl, rotation_rad=2 * math.pi * i / steps) for i in range(steps)]
+
+
+def fit_with_taps(model: ImageModel, real: np.ndarray, train: np.ndarray, views: list[TapView], start: ImageFit,
+                  leak: bool = True, max_evaluations: int = 1500, keep: int = 2) -> ImageFit:
+    """The no-contact image's training pixels and the fitted taps together, refined from
+    the ``keep`` best of ``starts(start)`` (module doc)."""
+    fitter = ImageFitter(model, real, train, leak=leak, taps=views)
+    screened = sorted(starts(start), key=lambda nl: fitter.loss(nl.vector()))[:keep]
+    return min((fitter.fit(nl, max_evaluations) for nl in screened), key=lambda f: f.loss)
+
+
+def tap_scores(model: ImageModel, fit: ImageFit, views: list[TapView], background: np.ndarray) -> dict:
+    """Per channel over the given taps' contact regions: the MAE of the tap image, and the
+    R^2 of its change from the no-contact image (predicted change against real change)."""
+    saturation = (1.0, 1.0, 1.0)
+    bg_pred = model.render(fit.nl, fit.gains, fit.offset, saturation)
+    pred_change, real_change, err = [], [], []
+    for view in views:
+        pred = model.render(fit.nl, fit.gains, fit.offset, saturation, change=view.change)
+        pixels = view.pixels & model.inside
+        err.append(np.abs(pred - view.real)[pixels])
+        pred_change.append((pred - bg_pred)[pixels])
+        real_change.append((view.real - background)[pixels])
+    out = {"mae": {}, "change_r2": {}, "pixels": int(sum(len(e) for e in err))}
+    if not err:
+        return out
+    err, pc, rc = np.concatenate(err), np.concatenate(pred_change), np.concatenate(real_change)
+    for c, ch in enumerate("rgb"):
+        out["mae"][ch] = float(err[:, c].mean())
+        total = float(np.sum((rc[:, c] - rc[:, c].mean()) ** 2))
+        out["change_r2"][ch] = float(1 - np.sum((rc[:, c] - pc[:, c]) ** 2) / total) if total > 0 else float("nan")
+    return out
+
+
+def film_views(taps: RealTaps, changes: np.ndarray, background_film: np.ndarray, inside: np.ndarray,
+               film: tuple[int, int]) -> list[TapView]:
+    """Each tap at the film's size with its change and contact region."""
+    width, height = film
+    views = []
+    for image, change in zip(taps.images, changes):
+        real = block_mean(np.asarray(image, np.float64), (height, width))
+        views.append(TapView(change, real, contact_region(real, background_film, inside)))
+    return views
+
+

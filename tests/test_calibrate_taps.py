@@ -1,0 +1,189 @@
+"""Calibration from taps (pbr_tactile.calibrate_taps): analytic cases with a synthetic
+basis and synthetic contact changes; the dataset loader's refusals."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pbr_tactile import calibrate as cal
+from pbr_tactile import calibrate_taps as ct
+from scenes import captures
+from scenes.dataset import DatasetError
+
+
+def _synthetic(camera, h=60, w=80):
+    """A basis of smooth per-source images (each LED lights the rim near its azimuth, its
+    leak the middle ring) and a contact-change maker: a dent at (rho, phi) on the
+    membrane, lit from each LED's side (brighter on the side facing it, darker away)."""
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    s = h / camera.height
+    cx, cy = (camera.cx + 0.5) * s - 0.5, (camera.cy + 0.5) * s - 0.5
+    radius = camera.mask_radius_px * s
+    rho, phi = np.hypot(u - cx, v - cy) / radius, np.arctan2(v - cy, u - cx)
+    azimuths = (0.0, 2.1, 4.2)
+    images, names = [], []
+    for m, a in enumerate(azimuths):
+        images.append((0.1 + rho**2) * (1.2 + np.cos(phi - a)) ** 2)
+        images.append(np.exp(-((rho - 0.5) / 0.2) ** 2) * (1.1 + np.cos(phi - a)))
+        names += [f"led{m}", f"led{m}_leak"]
+    basis = np.stack(images, -1)
+
+    def change(r0, phi0):
+        x0, y0 = cx + r0 * radius * math.cos(phi0), cy + r0 * radius * math.sin(phi0)
+        blob = np.exp(-((u - x0) ** 2 + (v - y0) ** 2) / (2 * 2.5**2))
+        out = []
+        for a in azimuths:
+            # the dent's slope facing the LED brightens, the far one darkens
+            dx, dy = math.cos(a), math.sin(a)
+            lit = blob * (0.6 + 0.25 * ((u - x0) * dx + (v - y0) * dy) / 2.5)
+            out += [lit * basis.mean(), 0.3 * lit * basis.mean()]
+        return np.stack(out, -1)
+
+    return basis, np.array(names), change
+
+
+def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
+    A, names, change = _synthetic(camera)
+    circle = (321.0, 241.0, 236.0)
+    model = cal.ImageModel(A, names, camera, circle)
+    # azimuths with a non-zero mean: one image sees only rotation + azimuth per LED
+    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.12, 0.05, 0.16), leak=(0.3, 0.5, 0.2), scale=1.0,
+                          shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
+    offset, sat = (0.01, 0.02, 0.0), (1.0, 1.0, 1.0)
+    real = model.render(truth, gains, offset, sat)
+    sector = cal.sector_index(real.shape[:2], (40, 30))
+    train = (sector % 2 == 0) & model.inside
+    alone = cal.ImageFitter(model, real, train).search(rotations=6)
+    assert alone.converged
+    # without taps the membrane's turn is off by the azimuths' mean (0.11 rad)
+    assert abs(math.remainder(alone.nl.tied().rotation_rad - 0.7, 2 * math.pi / 3)) > 0.08
+
+    places = [(0.3, 0.2), (0.6, 1.4), (0.45, 2.9), (0.7, -1.9), (0.25, -0.6), (0.55, 0.9)]
+    changes = [change(*p) for p in places]
+    views = []
+    for c in changes:
+        tap = model.render(truth, gains, offset, sat, change=c)
+        views.append(cal.TapView(c, tap, captures.contact_region(tap, real, model.inside)))
+    assert all(v.pixels.sum() >= captures.MIN_REGION for v in views)
+    fitted = captures.split(len(views))
+    fit = ct.fit_with_taps(model, real, train, [v for v, f in zip(views, fitted) if f], alone)
+    assert fit.converged
+    assert abs(math.remainder(fit.nl.rotation_rad - 0.7, 2 * math.pi)) < 0.01
+    np.testing.assert_allclose(fit.nl.led_azimuth_rad, truth.led_azimuth_rad, atol=0.02)
+    held = ct.tap_scores(model, fit, [v for v, f in zip(views, fitted) if not f], real)
+    before = ct.tap_scores(model, alone, [v for v, f in zip(views, fitted) if not f], real)
+    assert held["change_r2"]["g"] > 0.99 and before["change_r2"]["g"] < 0.9
+    assert held["mae"]["g"] < 0.2 * before["mae"]["g"]
+
+
+def test_contact_region_ignores_noise_and_finds_the_dent():
+    rng = np.random.default_rng(0)
+    bg = np.full((30, 40, 3), 0.5)
+    tap = bg + rng.normal(0, 0.005, bg.shape)
+    inside = np.ones((30, 40), bool)
+    assert not captures.contact_region(tap, bg, inside).any()
+    tap[10:14, 20:25] += 0.1
+    region = captures.contact_region(tap, bg, inside)
+    assert region[10:14, 20:25].all() and region.sum() < 120
+
+
+def test_real_taps_refuse_bad_arrays():
+    good = dict(images=np.zeros((2, 6, 8, 3)), depths=np.zeros((2, 6, 8)), ref_depth=np.zeros((6, 8)), ids=["a", "b"])
+    captures.RealTaps(**good)
+    for change, message in [({"images": np.zeros((2, 6, 8))}, r"images must be \(T, H, W, 3\)"),
+                            ({"depths": np.zeros((2, 5, 8))}, "must match"),
+                            ({"ids": ["a"]}, "1 ids for 2 images"),
+                            ({"depths": np.full((2, 6, 8), np.nan)}, "must be finite"),
+                            ({"images": np.zeros((11, 6, 8, 3)), "depths": np.zeros((11, 6, 8)), "ids": list("abcdefghijk")},
+                             "at most 10 taps")]:
+        with pytest.raises(ValueError, match=message):
+            captures.RealTaps(**{**good, **change})
+
+
+def test_a_real_dataset_without_depth_or_protocol_is_refused(tmp_path, spec, camera):
+    from scenes.dataset import DatasetWriter, write_sample_files
+
+    writer = DatasetWriter(tmp_path, {"source": "real", "sensor": dataclasses.asdict(spec), "protocol": {},
+                                      "renderer": {}})
+    files = write_sample_files(tmp_path, "000000_sphere", np.zeros((camera.height, camera.width, 3)), None, {})
+    writer.append({"id": "000000_sphere", "tap_index": 0, "replica": 0, **files})
+    with pytest.raises(DatasetError, match="need protocol.json to replay"):
+        captures.load_real_taps(tmp_path, spec, camera)
+    (tmp_path / "protocol.json").write_text(json.dumps({"version": 1, "name": "x", "seed": 0, "taps": []}))
+    with pytest.raises(DatasetError, match="tap_index 0, not a tap of its protocol.json"):
+        captures.load_real_taps(tmp_path, spec, camera)
+
+
+# -- end to end, with Mitsuba and the MuJoCo rig ------------------------------------------------
+
+@pytest.mark.slow
+def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
+    pytest.importorskip("mitsuba")
+    pytest.importorskip("mujoco")
+    from pbr_tactile.calibrate_bench import protocol_taps, turned, virtual_taps
+    from scenes.cli import main
+    from scenes.dataset import DatasetWriter, write_sample_files
+    from scenes.geometry import membrane_mesh
+    from scenes.profile import load_profile
+    from scenes.protocol import base_protocol
+
+    mesh = membrane_mesh(spec)
+    film, photons, spp = (80, 60), 1 << 14, 4
+    effects = cal.Effects(core_light_leak=0.5)
+    taps, depths, ref_depth = protocol_taps(spec, mesh, 4)
+    # the two widest contacts (a tip tap is a few pixels at this film)
+    widest = sorted(np.argsort([-(d < ref_depth - 1e-6).sum() for d in depths])[:2])
+    taps, depths = [taps[i] for i in widest], depths[widest]
+    # a "real" sensor: the reference with another seed, its LEDs turned and its membrane too
+    truth = cal.Nonlinear(0.3, (0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 1.0, (0.0, 0.0), (-0.2, 0.0), 2.0)
+    unit = turned(spec, (0.05, -0.05, 0.0))
+    basis = cal.emitter_basis(unit, mesh, camera, effects, film, photons, spp, 2, seed=7)
+    model = cal.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
+    gains = np.full((3, 3), 0.5 / np.percentile(basis["mean"], 90))
+    background = np.repeat(np.repeat(model.render(truth, gains, (0, 0, 0), (1, 1, 1)), 8, axis=0), 8, axis=1)
+    real, _ = virtual_taps(unit, mesh, camera, effects, truth, gains, depths, ref_depth, film, photons, spp, 7, True,
+                           ["a", "b"])
+
+    protocol = base_protocol(spec, mesh, ["sphere"])
+    index = [protocol.taps.index(t) for t in taps]
+    writer = DatasetWriter(tmp_path / "real", {"source": "real", "sensor": dataclasses.asdict(spec),
+                                               "protocol": {}, "renderer": {}}, protocol.to_dict())
+    writer.write_background(background)
+    ids = []
+    for k, (image, depth) in enumerate(zip(real.images, depths)):
+        sid = f"{k:06d}_sphere"
+        # the first with its depth map, the second without (a real capture): replayed on the rig
+        files = write_sample_files(writer.root, sid, image, depth if k == 0 else None, {})
+        writer.append({"id": sid, "tap_index": index[k], "replica": 0, "object": "sphere", **files})
+        ids.append(sid)
+
+    loaded = captures.load_real_taps(writer.root, spec, camera)
+    assert loaded.ids == ids
+    np.testing.assert_allclose(loaded.depths[1], depths[1], atol=1e-6)  # the replay is the same press
+    out = tmp_path / "out"
+    code = main(["calibrate", str(writer.root), "--out", str(out), "--width", "80", "--photons", str(photons),
+                 "--spp", str(spp), "--bootstrap", "2", "--grid", "absorption_per_m=20", "--grid",
+                 "scattering_per_m=50"])
+    report = json.loads((out / "report.json").read_text())
+    assert report["data"].endswith("and 2 of its taps")
+    section = report["taps"]
+    assert sorted(section["fitted"] + section["judged"] + section["without_contact"]) == ids
+    assert section["fitted"] == ids[:1]
+    assert set(section["heldout"]) == {"mae", "change_r2", "pixels"}
+    assert code == 0, report  # converged: the profile is written, with the fast path's LED constants
+    profile = load_profile(out / "profile.toml", spec)
+    assert profile.fit["data"] == "one no-contact image and 2 taps"
+    fast = report["fast_path"]["taps"]
+    assert len(profile.phong["leds"]) == 3 and profile.phong["shininess"] == fast["shininess"]
+    assert set(fast["heldout"]["change_r2"]) == {"r", "g", "b"}
+    assert "Taps" in (out / "report.html").read_text()
+    # --taps is refused without a dataset, and out of range
+    assert main(["calibrate", "--background-only", str(writer.root / "background.png"), "--taps", "3", "--out",
+                 str(out)]) == 1
+    assert main(["calibrate", str(writer.root), "--taps", "11", "--out", str(out)]) == 1
