@@ -91,3 +91,15 @@ class PhongDatasetRenderer:
 
 def make_renderer(spec, mesh, camera, ref_depth, options) -> PhongDatasetRenderer:
     return PhongDatasetRenderer(spec, mesh, camera, ref_depth, options)
+
+
+def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background: np.ndarray,
+              field: str = "plane") -> tuple[dict, dict]:
+    """The fast path's LED constants from a unit's taps (``phong_reference.calibrate``), with
+    the light fields of ``field`` baked for the profile's LEDs: (entries of the profile's
+    ``phong`` table, the report)."""
+    from .calibrate import fit_led_constants
+
+    fields = bake(mesh, camera, profile.sensor_spec(spec).leds, field)
+    table, report = fit_led_constants(spec, camera, taps.ref_depth, light_vectors(fields), profile, taps, background)
+    return table, {**report, "field": field}

@@ -8,7 +8,10 @@
   real camera sees the membrane (``scenes.profile.align_image``: the fitted rotation,
   scale and shift), and the image circle is the lens' (it does not move);
 - the background term is the profile's (``phong.background``, a smooth model fitted to
-  the unit's no-contact image, ``scenes.background_model``) times its ``phong.ambient``.
+  the unit's no-contact image, ``scenes.background_model``) times its ``phong.ambient``;
+- the LEDs' constants (k_d, k_s, colour) and the shininess are the profile's where it has
+  them (``phong.leds``, ``phong.shininess``: fitted to the unit's taps,
+  ``phong_reference.calibrate``), else the spec's.
 """
 
 from __future__ import annotations
@@ -38,7 +41,36 @@ def profile_background(profile: Profile, camera: Camera, full: Camera | None = N
     ambient = float(profile.phong.get("ambient", 1.0))
     if not (np.isfinite(ambient) and ambient >= 0):
         raise ValueError(f"profile phong.ambient must be a finite number >= 0, got {ambient}")
+    if ambient == 0:
+        return np.zeros(camera.shape + (3,), np.float32)
     return ambient * evaluate(table, profile.camera.image_circle, camera.shape, (full or camera).shape)
+
+
+def profile_constants(profile: Profile, unit: SensorSpec) -> SensorSpec:
+    """``unit`` with the profile's LED constants and shininess (``phong.leds``,
+    ``phong.shininess``) where it has them; ValueError naming a malformed entry."""
+    leds, shininess = profile.phong.get("leds"), profile.phong.get("shininess")
+    if leds is not None:
+        if not isinstance(leds, list) or len(leds) != len(unit.leds):
+            raise ValueError(f"profile phong.leds must list {len(unit.leds)} LEDs' constants, got {leds!r}")
+        changed = []
+        for m, (led, entry) in enumerate(zip(unit.leds, leds)):
+            try:
+                k_d, k_s = float(entry["k_d"]), float(entry["k_s"])
+                colour = tuple(float(c) for c in entry["colour"])
+            except (KeyError, TypeError, ValueError):
+                raise ValueError(f"profile phong.leds[{m}] must hold k_d, k_s and colour, got {entry!r}") from None
+            if not (np.isfinite(k_d) and np.isfinite(k_s) and k_d >= 0 and k_s >= 0):
+                raise ValueError(f"profile phong.leds[{m}]: k_d and k_s must be finite and >= 0, got {k_d}, {k_s}")
+            if len(colour) != 3 or not all(0.0 <= c <= 1.0 for c in colour):
+                raise ValueError(f"profile phong.leds[{m}].colour must be linear RGB in [0, 1], got {colour}")
+            changed.append(dataclasses.replace(led, k_d=k_d, k_s=k_s, colour=colour))
+        unit = unit.replace(leds=tuple(changed))
+    if shininess is not None:
+        if not (isinstance(shininess, (int, float)) and np.isfinite(shininess) and shininess > 0):
+            raise ValueError(f"profile phong.shininess must be a finite number > 0, got {shininess!r}")
+        unit = unit.replace(material=dataclasses.replace(unit.material, shininess=float(shininess)))
+    return unit
 
 
 class ProfiledRenderer:
@@ -50,7 +82,7 @@ class ProfiledRenderer:
 
     def __init__(self, spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile,
                  layer: MembraneLayer | None = None):
-        unit = profile.sensor_spec(spec)
+        unit = profile_constants(profile, profile.sensor_spec(spec))
         self.profile = profile
         self.camera = Camera.from_spec(unit)  # the unit's image circle
         # The membrane's shading, not yet cut by the circle (the lens cuts it after the move).

@@ -60,16 +60,18 @@ class FastModel:
 
     def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1):
         # A dataset rendered for a calibrated unit (``--profile``) records its profile: the
-        # chain is then the unit's (phong_reference.profiled): its LEDs and image circle,
+        # chain is then the unit's (phong_reference.profiled): its LEDs (and their fitted
+        # constants, where the profile has them) and image circle,
         # its background term, and the membrane's shading moved by its alignment.
         self.profile = None
         if renderer.get("profile_data") is not None:
             from dataclasses import replace
 
+            from phong_reference.profiled import profile_constants
             from scenes.profile import profile_from_dict
 
             self.profile = profile_from_dict(renderer["profile_data"], "the simulated dataset's profile")
-            spec = self.profile.sensor_spec(spec)
+            spec = profile_constants(self.profile, self.profile.sensor_spec(spec))
             spec = spec.replace(material=replace(spec.material, ambient=1.0))  # k_a is in the profile's B
         self.spec = spec
         self.factor = int(factor)

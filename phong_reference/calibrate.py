@@ -1,0 +1,133 @@
+"""The fast path's LED constants fitted to a unit's taps.
+
+Without clipping, the fast path's change under a contact (``phong_reference.profiled``)
+is linear in a_m = k_d,m colour_m and b_m = k_s,m colour_m for a fixed shininess alpha:
+
+    I_t(p) - I_0(p) = align( sum_m a_m [(L_m . N_t) - (L_m . N_0)](p)
+                                  + b_m [(R_m . V)_t^alpha - (R_m . V)_0^alpha](p) )
+
+The terms are the fast path's own (the calibrated unit's LEDs, fields and alignment),
+rendered with unit coefficients, up to three LEDs at a time, each in its own colour
+channel, with no background (so nothing clips). Against
+the real change (a real tap minus the real no-contact capture, in image units: the fast
+path has no camera response), each channel's a_mc, b_mc are fitted by non-negative
+least squares on the fitted taps' contact regions, for each shininess of SHININESS.
+The best alpha's coefficients are then put in the Phong model's form: colour_m = a_m /
+max(a_m), k_d,m = max(a_m), and k_s,m the least-squares scale of colour_m to b_m. The
+held-out taps judge that form (``scenes.captures.split``), against the spec's constants
+("before").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy import optimize
+
+from scenes.camera import Camera
+from scenes.captures import RealTaps, contact_region, split
+from scenes.elastic import MembraneLayer
+from scenes.profile import Profile
+from scenes.spec import SensorSpec
+
+from .profiled import ProfiledRenderer
+
+#: The shininess values searched.
+SHININESS = (5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
+
+
+def _changes(spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile, depths, layer,
+             leds: list[dict], shininess: float) -> np.ndarray:
+    """(T, H, W, 3) the fast path's change per tap for the given LED constants, with no
+    background (its ambient 0)."""
+    phong = {**profile.phong, "ambient": 0.0, "leds": leds, "shininess": shininess}
+    renderer = ProfiledRenderer(spec, ref_depth, L, dataclasses.replace(profile, phong=phong), layer)
+    return np.stack([renderer.render(d) - renderer.base for d in depths])
+
+
+def _unit_terms(spec, ref_depth, L, profile, depths, layer, kind: str, shininess: float) -> np.ndarray:
+    """(M, T, H, W) each LED's diffuse (``kind`` "k_d") or specular ("k_s") change alone,
+    with a unit coefficient: three LEDs per render, each in its own colour channel."""
+    M = len(spec.leds)
+    out = np.zeros((M, len(depths)) + np.shape(ref_depth), np.float32)
+    for first in range(0, M, 3):
+        group = range(first, min(first + 3, M))
+        leds = [{"k_d": float(kind == "k_d" and j in group), "k_s": float(kind == "k_s" and j in group),
+                 "colour": [float(j - first == c) for c in range(3)] if j in group else [0.0, 0.0, 0.0]}
+                for j in range(M)]
+        change = _changes(spec, ref_depth, L, profile, depths, layer, leds, shininess)
+        for j in group:
+            out[j] = change[..., j - first]
+    return out
+
+
+def phong_form(a: np.ndarray, b: np.ndarray) -> list[dict]:
+    """(M, 3) diffuse and specular coefficients per channel -> the Phong model's LED
+    constants [{k_d, k_s, colour}] (module doc)."""
+    out = []
+    for a_m, b_m in zip(np.asarray(a, np.float64), np.asarray(b, np.float64)):
+        k_d = float(a_m.max())
+        colour = a_m / k_d if k_d > 0 else (b_m / b_m.max() if b_m.max() > 0 else np.ones(3))
+        k_s = float(max(np.dot(b_m, colour) / np.dot(colour, colour), 0.0))
+        out.append({"k_d": max(k_d, 0.0), "k_s": k_s, "colour": [float(c) for c in np.clip(colour, 0.0, 1.0)]})
+    return out
+
+
+def _scores(pred: np.ndarray, real: np.ndarray, regions: np.ndarray) -> dict:
+    """MAE and R^2 of the change per channel over the taps' contact regions."""
+    p, y = pred[regions], real[regions]
+    out = {"mae": {}, "change_r2": {}, "pixels": int(regions.sum())}
+    for c, ch in enumerate("rgb"):
+        total = float(np.sum((y[:, c] - y[:, c].mean()) ** 2))
+        out["mae"][ch] = float(np.abs(p[:, c] - y[:, c]).mean()) if len(y) else float("nan")
+        out["change_r2"][ch] = float(1 - np.sum((y[:, c] - p[:, c]) ** 2) / total) if total > 0 else float("nan")
+    return out
+
+
+def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L: np.ndarray, profile: Profile,
+                      taps: RealTaps, background: np.ndarray, layer: MembraneLayer | None = None,
+                      shininess=SHININESS) -> tuple[dict, dict]:
+    """The fast path's LED constants from a unit's taps (module doc).
+
+    L : light vectors baked for ``profile.sensor_spec(spec)``'s LEDs; taps and background
+    at ``camera``'s size. Returns (the profile's ``phong`` entries ``leds`` and
+    ``shininess``, the report)."""
+    background = np.asarray(background, np.float64)
+    if background.shape != (camera.height, camera.width, 3) or taps.images.shape[1:] != background.shape:
+        raise ValueError(f"taps and background must be {camera.width}x{camera.height} RGB, got "
+                         f"{taps.images.shape[1:]} and {background.shape}")
+    inside = Camera.from_spec(profile.sensor_spec(spec)).mask
+    real = taps.images - background
+    regions = np.stack([contact_region(image, background, inside) for image in taps.images])
+    fitted = split(len(taps.ids))
+    if not regions[fitted].any():
+        raise ValueError("none of the fitted taps shows a contact in the real images: the fast path's LED constants "
+                         "cannot be fitted")
+    best = None
+    D = _unit_terms(spec, ref_depth, L, profile, taps.depths, layer, "k_d", spec.material.shininess)
+    for alpha in shininess:
+        S = _unit_terms(spec, ref_depth, L, profile, taps.depths, layer, "k_s", alpha)
+        X = np.concatenate([D[:, fitted][:, regions[fitted]], S[:, fitted][:, regions[fitted]]]).T  # (N, 2M)
+        coef, loss = np.zeros((X.shape[1], 3)), 0.0
+        for c in range(3):
+            coef[:, c], res = optimize.nnls(X, real[fitted][regions[fitted]][:, c])
+            loss += res**2
+        if best is None or loss < best[0]:
+            best = (loss, alpha, coef)
+    loss, alpha, coef = best
+    M = len(spec.leds)
+    leds = phong_form(coef[:M], coef[M:])
+    after = _changes(spec, ref_depth, L, profile, taps.depths, layer, leds, alpha)
+    own = [{"k_d": led.k_d, "k_s": led.k_s, "colour": list(led.colour)} for led in spec.leds]
+    before = _changes(spec, ref_depth, L, profile, taps.depths, layer, own, spec.material.shininess)
+    held = ~fitted
+    report = {
+        "what": "the fast path's LED constants (k_d, k_s, colour per LED; shininess) fitted to the contact changes of "
+                "the fitted taps, judged on the held-out ones",
+        "shininess_searched": list(shininess), "shininess": alpha, "leds": leds,
+        "fit": _scores(after[fitted], real[fitted], regions[fitted]),
+        "heldout": _scores(after[held], real[held], regions[held]),
+        "heldout_before": _scores(before[held], real[held], regions[held]),
+    }
+    return {"leds": leds, "shininess": float(alpha)}, report
