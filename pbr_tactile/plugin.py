@@ -17,6 +17,15 @@ CONTROL_SPP_FACTOR times more camera samples. Measured on three base taps at 320
 (8 passes each), this cut the per-pass RMS error over the contact region from 0.127 to
 0.085 (dots), 0.079 to 0.046 (sphere) and 0.071 to 0.038 (cylinder), mostly by
 cancelling the rare, bright camera samples that see an LED through the glass.
+
+With a calibrated unit's profile (option ``profile``, a ``profile.toml`` of ``tactile-sim
+calibrate``) the scene is the unit's (``Profile.sensor_spec``: its LEDs turned, its image
+circle) with the profile's effects (``calibrate.profile_effects``, then the option
+``effects`` on top), every pass is rendered one grey image per source (the frame and its
+control variate too), and each image is the unit's camera applied to them
+(``calibrate.profiled_image``: the fitted gains, alignment, response and clipping)
+instead of the dataset's exposure; ``linear`` and ``variance`` then hold one channel per
+source.
 """
 
 from __future__ import annotations
@@ -59,6 +68,7 @@ DEFAULTS = {
     "no_contact_runs": 4,
     "film": [320, 240],
     "seed": 0,
+    "profile": None,
 }
 #: The no-contact frame's EXPOSURE_PERCENTILE inside the image circle maps to this value.
 EXPOSURE_LEVEL = 0.8
@@ -112,10 +122,6 @@ def _film(value, camera: Camera) -> tuple[int, int]:
 
 def options_from(options: dict, camera: Camera) -> dict:
     """Validated options, defaults filled in: effects as an Effects, film as (width, height)."""
-    if "profile" in options:
-        raise ValueError("option profile: the pbr dataset renderer does not take a calibrated unit's profile yet (its "
-                         "no-contact frame and control variate are RGB, not per source); render single frames of "
-                         "the unit with tactile-sim reference --profile, or datasets with --renderer phong")
     unknown = sorted(set(options) - set(DEFAULTS))
     if unknown:
         raise ValueError(f"the pbr renderer takes no option {', '.join(unknown)}; its options are "
@@ -148,7 +154,32 @@ def options_from(options: dict, camera: Camera) -> dict:
     if estimator == "volpath" and not effects.contact_shadow:
         raise ValueError("option effects: contact_shadow=false needs estimator photons")
     opts["effects"] = effects
+    opts["effect_settings"] = list(settings)
+    profile = given["profile"]
+    if profile is not None and not isinstance(profile, str):
+        raise ValueError(f"option profile must be the path of a profile.toml, got {profile!r}")
+    if profile is not None and estimator != "photons":
+        raise ValueError("option profile needs estimator photons (it renders one image per source)")
+    opts["profile"] = profile
     return opts
+
+
+def unit_of(spec: SensorSpec, opts: dict):
+    """(the spec rendered, its camera, the effects, the Profile or None) of validated
+    options: with a profile, the unit's (module doc)."""
+    if opts["profile"] is None:
+        return spec, Camera.from_spec(spec), opts["effects"], None
+    from scenes.profile import load_profile
+
+    from .calibrate import profile_effects
+
+    profile = load_profile(opts["profile"], spec)
+    unit = profile.sensor_spec(spec)
+    try:
+        effects = profile_effects(profile, opts["effect_settings"])
+    except ValueError as exc:
+        raise ValueError(f"option effects: {exc}") from None
+    return unit, Camera.from_spec(unit), effects, profile
 
 
 def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.ndarray]:
@@ -162,8 +193,10 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
     if opts["estimator"] == "photons" and not variant.startswith(("llvm_", "cuda_")):
         raise ValueError(f"option estimator: photons needs a vectorised (llvm_ or cuda_) Mitsuba variant, got "
                          f"{variant}; apt-get install libllvm19, or use estimator volpath")
-    frame_opts = {k: v for k, v in opts.items() if k != "target_rse"}  # the frame has every pass
-    frame_opts["effects"] = opts["effects"].to_dict()
+    spec, camera, effects, profile = unit_of(spec, opts)
+    frame_opts = {k: v for k, v in opts.items() if k not in ("target_rse", "effect_settings", "profile")}
+    frame_opts["effects"] = effects.to_dict()  # the frame has every pass; the unit's spec is in the key
+    frame_opts["per_source"] = profile is not None
     key = make_key(FRAME_VERSION, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
                    np.asarray(mesh.faces), frame_opts)
     width, height = opts["film"]
@@ -171,11 +204,12 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
     def build():
         memo: dict = {}
         photons = opts["estimator"] == "photons"
-        est = reference(None, None, mesh, spec, camera, opts["effects"], spp=opts["camera_spp"] * opts["max_passes"],
+        est = reference(None, None, mesh, spec, camera, effects, spp=opts["camera_spp"] * opts["max_passes"],
                         width=width, height=height, seed=opts["seed"], variant=variant, passes=opts["max_passes"],
                         estimator=opts["estimator"], photons=opts["photons"],
                         kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
-                        no_contact_memo=memo, control_spp=opts["camera_spp"] * CONTROL_SPP_FACTOR if photons else 0)
+                        no_contact_memo=memo, control_spp=opts["camera_spp"] * CONTROL_SPP_FACTOR if photons else 0,
+                        per_source=profile is not None)
         rse = contact_rse(est, camera.scaled(width, height).mask)
         control = {} if est.control is None else {CONTROL_PREFIX + k: getattr(est.control, k)
                                                   for k in ("images", "mean", "variance")}
@@ -188,13 +222,15 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
 def _shared(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict:
     frame = _frame(spec, mesh, camera, opts)
     width, height = opts["film"]
-    level = float(np.percentile(frame["mean"][camera.scaled(width, height).mask], EXPOSURE_PERCENTILE))
-    if not level > 0:
-        raise ValueError("the no-contact frame is black inside the image circle: no exposure can be set")
+    gain = None  # with a profile, the unit's camera sets the image
+    if opts["profile"] is None:
+        level = float(np.percentile(frame["mean"][camera.scaled(width, height).mask], EXPOSURE_PERCENTILE))
+        if not level > 0:
+            raise ValueError("the no-contact frame is black inside the image circle: no exposure can be set")
+        gain = float(f"{EXPOSURE_LEVEL / level:.3g}")  # rounded: a re-render differs in its last bits
     return {
         "variant": str(frame["variant"]),
-        # Rounded: a re-render of the frame (cache cleared) differs in its last bits.
-        "exposure_gain": float(f"{EXPOSURE_LEVEL / level:.3g}"),
+        "exposure_gain": gain,
         "no_contact": {key: frame[key] for key in ("mean", "variance", "rse", "spp")},
         "control": {k[len(CONTROL_PREFIX):]: v for k, v in frame.items() if k.startswith(CONTROL_PREFIX)} or None,
         "deposits": {k[len(DEPOSIT_PREFIX):]: v for k, v in frame.items() if k.startswith(DEPOSIT_PREFIX)},
@@ -215,6 +251,20 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
     inputs = _shared(spec, mesh, camera, opts)
     width, height = opts["film"]
     photons = opts["estimator"] == "photons"  # only it takes the frame as a control
+    unit, _, effects, profile = unit_of(spec, opts)
+    if profile is not None:
+        from .scene import led_sources
+
+        names = [src["name"] for src in led_sources(unit, effects)]
+        unit_settings = {
+            "profile": opts["profile"], "profile_data": profile.to_dict(), "effects": effects.to_dict(),
+            "exposure_gain": None, "sources": names,
+            "exposure": "the calibrated unit's camera (pbr_tactile.calibrate.profiled_image of the per-source images: "
+                        "the profile's gains, alignment, lens fall-off, response and clipping), no dataset exposure",
+            "linear": f"linear/<id>.npy: (H, W, {len(names)}) float32, one grey image per source ({', '.join(names)}) "
+                      "per unit flux, at the camera's size; variance/<id>.npy: the variance of that mean"}
+    else:
+        unit_settings = {}
     return {
         "renderer": "pbr",
         "estimator": opts["estimator"],
@@ -244,6 +294,7 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
         "linear": "linear/<id>.npy: (H, W, 3) float32 mean radiance in the reference's units (film response to "
                   "LED-flux-normalised radiance), at the camera's size; variance/<id>.npy: the variance of that mean",
         "variant": inputs["variant"],
+        **unit_settings,
     }
 
 
@@ -251,8 +302,13 @@ class PbrDatasetRenderer:
     """Depth map -> tactile image with the physically based reference, to a noise target."""
 
     def __init__(self, spec: SensorSpec, mesh, camera: Camera, ref_depth: np.ndarray, opts: dict, inputs: dict):
-        self.spec, self.mesh, self.camera, self.opts = spec, mesh, camera, opts
         self.ref_depth = check_depth(np.asarray(ref_depth), camera, "ref_depth")
+        spec, camera, self.effects, self.profile = unit_of(spec, opts)  # with a profile, the unit's
+        self.spec, self.mesh, self.camera, self.opts = spec, mesh, camera, opts
+        if self.profile is not None:
+            from .scene import led_sources
+
+            self.names = [src["name"] for src in led_sources(spec, self.effects)]
         self.variant = inputs["variant"]
         self.gain = inputs["exposure_gain"]
         frame = inputs["no_contact"]
@@ -272,6 +328,10 @@ class PbrDatasetRenderer:
                       preserve_range=True).astype(np.float32)
 
     def _image(self, linear: np.ndarray) -> np.ndarray:
+        if self.profile is not None:
+            from .calibrate import profiled_image
+
+            return profiled_image(linear, self.names, self.profile, self.camera).astype(np.float32)
         return np.clip(self.gain * linear, 0.0, 1.0).astype(np.float32)
 
     @property
@@ -291,12 +351,12 @@ class PbrDatasetRenderer:
             opts = self.opts
             width, height = opts["film"]
             est = reference(np.where(touched, depth, self.ref_depth), self.ref_depth, self.mesh, self.spec,
-                            self.camera, opts["effects"], spp=opts["camera_spp"] * MIN_PASSES, width=width,
+                            self.camera, self.effects, spp=opts["camera_spp"] * MIN_PASSES, width=width,
                             height=height, seed=opts["seed"], variant=self.variant, passes=MIN_PASSES,
                             estimator=opts["estimator"], photons=opts["photons"],
                             kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
                             target_rse=opts["target_rse"], max_passes=opts["max_passes"], no_contact_memo=self._memo,
-                            solids=self._solids, control=self._control)
+                            solids=self._solids, control=self._control, per_source=self.profile is not None)
         linear = self._camera_size(est.mean)
         rse = est.rse if est.rse is not None and math.isfinite(est.rse) else None
         return {

@@ -3,6 +3,7 @@ the profiled renderer and its dataset option (analytic checks first)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -189,11 +190,48 @@ def test_phong_dataset_option_profile(tmp_path, spec, camera, mesh):
     assert np.abs(model.B[60, 80] - [0.4, 0.3, 0.9]).max() < 1e-5
 
 
-def test_pbr_dataset_refuses_a_profile_clearly(spec, camera):
-    from pbr_tactile.plugin import options_from
+@pytest.mark.slow
+def test_pbr_dataset_renders_the_calibrated_unit(tmp_path, monkeypatch, spec, mesh, camera, ref, pressed):
+    """The pbr dataset renderer with a profile: per-source passes (frame, control and
+    contacts), each image the unit's camera applied to them (calibrate.profiled_image)."""
+    pytest.importorskip("mitsuba")
+    from pbr_tactile import plugin
+    from pbr_tactile.calibrate import profiled_image
+    from pbr_tactile.variant import choose_variant
 
-    with pytest.raises(ValueError, match="option profile: the pbr dataset renderer does not take"):
-        options_from({"profile": "p.toml"}, camera)
+    if not choose_variant().variant().startswith(("llvm_", "cuda_")):
+        pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    alignment = Alignment(rotation_rad=0.4, scale=1.05, shift_px=(6.0, -4.0), led_azimuth_rad=(0.1, -0.05, 0.0))
+    profile = dataclasses.replace(
+        _profile(spec, alignment), camera=CameraProfile(gamma=2.0, offset=(0.01, 0.0, 0.02), image_circle=CIRCLE),
+        reference={"effects": {"absorption_per_m": 20.0, "scattering_per_m": 50.0}, "led_leak": [0.3, 0.2, 0.1],
+                   "led_gains": [[2e-3, 5e-4, 2e-4], [4e-4, 1.5e-3, 4e-4], [2e-4, 3e-4, 2.5e-3]]})
+    path = write_profile(profile, tmp_path / "profile.toml")
+    options = {"film": [64, 48], "photons": 1 << 13, "camera_spp": 2, "max_passes": 2, "no_contact_runs": 1,
+               "target_rse": 5.0, "profile": str(path)}
+    settings = plugin.prepare(spec, mesh, camera, options)
+    names = settings["sources"]
+    assert names == ["led0", "led0_leak", "led1", "led1_leak", "led2", "led2_leak"]
+    assert settings["exposure_gain"] is None and settings["profile_data"] == profile.to_dict()
+    renderer = plugin.make_renderer(spec, mesh, camera, ref, options)
+    out = renderer.render_sample(pressed)
+    linear = out["arrays"]["linear"]
+    assert linear.shape == out["arrays"]["variance"].shape == (480, 640, 6)
+    unit_camera = Camera.from_spec(profile.sensor_spec(spec))
+    np.testing.assert_allclose(out["image"], profiled_image(linear, names, profile, unit_camera), atol=1e-6)
+    assert np.all(out["image"][~unit_camera.mask] == 0) and out["image"][unit_camera.mask].max() > 0.05
+    # the contact's change shows where the alignment moves it
+    change = np.abs(out["image"] - renderer.no_contact).sum(axis=2)
+    v, u = np.nonzero(change > 0.5 * change.max())
+    dent = align_image((np.abs(pressed - ref) > 1e-6).astype(float), alignment, camera)
+    ve, ue = np.nonzero(dent > 0.5)
+    assert abs(np.median(v) - ve.mean()) < 25 and abs(np.median(u) - ue.mean()) < 25
+    # refused: a profile with the volpath estimator, or of another path
+    with pytest.raises(ValueError, match="option profile needs estimator photons"):
+        plugin.options_from({**options, "estimator": "volpath"}, camera)
+    with pytest.raises(ValueError, match="option profile must be the path"):
+        plugin.options_from({**options, "profile": 3}, camera)
 
 
 def test_alignment_moved_is_what_sampling_inverts(camera):
@@ -204,3 +242,48 @@ def test_alignment_moved_is_what_sampling_inverts(camera):
     rows, cols = np.rint(vo).astype(int), np.rint(uo).astype(int)
     # the aligned pixel nearest each moved point samples back within a pixel of the point
     assert np.abs(coords[0][rows, cols] - v).max() < 1.0 and np.abs(coords[1][rows, cols] - u).max() < 1.0
+
+
+# -- the fast path's LED constants from taps ---------------------------------------------------
+
+def test_fast_path_led_constants_are_recovered_from_its_own_taps(spec, camera, contact):
+    import trimesh
+
+    from phong_reference.bake import bake
+    from phong_reference.calibrate import fit_led_constants, phong_form
+    from phong_reference.profiled import ProfiledRenderer
+    from phong_reference.render import light_vectors
+    from scenes.captures import RealTaps
+    from scenes.contact import press
+
+    mesh, ref, _ = contact
+    alignment = Alignment(rotation_rad=0.2, scale=1.0, shift_px=(4.0, -3.0), led_azimuth_rad=(0.0, 0.0, 0.0))
+    L = light_vectors(bake(mesh, camera, spec.leds, "plane"))
+    truth = [{"k_d": 0.6, "k_s": 0.2, "colour": [1.0, 0.3, 0.1]}, {"k_d": 0.4, "k_s": 0.0, "colour": [0.2, 1.0, 0.5]},
+             {"k_d": 0.8, "k_s": 0.1, "colour": [0.1, 0.4, 1.0]}]
+    profile = _profile(spec, alignment, background=(0.2, 0.2, 0.3))
+    unit = dataclasses.replace(profile, phong={**profile.phong, "leds": truth, "shininess": 20.0})
+    renderer = ProfiledRenderer(spec, ref, L, unit)
+    sphere = trimesh.primitives.Sphere(radius=0.004)
+    pixels = [(camera.cx + 40, camera.cy - 20), (camera.cx - 60, camera.cy + 30), (camera.cx + 10, camera.cy + 70),
+              (camera.cx - 30, camera.cy - 80)]
+    depths = np.stack([press(ref, camera, mesh, sphere, p, 0.0015) for p in pixels]).astype(np.float32)
+    taps = RealTaps(np.stack([renderer.render(d) for d in depths]), depths, ref, ["a", "b", "c", "d"])
+    # the profile being calibrated has the spec's constants: the fit must find the unit's
+    table, report = fit_led_constants(spec, camera, ref, L, profile, taps, renderer.base)
+    assert table["shininess"] == 20.0
+    for fitted, true in zip(table["leds"], truth):
+        assert abs(fitted["k_d"] - true["k_d"]) < 0.02
+        np.testing.assert_allclose(fitted["colour"], true["colour"], atol=0.03)
+        assert abs(fitted["k_s"] - true["k_s"]) < 0.03
+    assert min(report["heldout"]["change_r2"].values()) > 0.99
+    assert max(report["heldout_before"]["change_r2"].values()) < 0.9
+
+    # the Phong form of coefficients, and malformed profile constants refused
+    form = phong_form(np.array([[0.6, 0.18, 0.06]]), np.array([[0.2, 0.06, 0.02]]))[0]
+    assert form["k_d"] == pytest.approx(0.6) and form["k_s"] == pytest.approx(0.2)
+    for bad, message in [([truth[0]], "must list 3 LEDs"), ([{"k_d": 1}] * 3, r"phong.leds\[0\] must hold"),
+                         ([{**truth[0], "k_d": -1}] * 3, "finite and >= 0"),
+                         ([{**truth[0], "colour": [2, 0, 0]}] * 3, r"colour must be linear RGB")]:
+        with pytest.raises(ValueError, match=message):
+            ProfiledRenderer(spec, ref, L, dataclasses.replace(profile, phong={**profile.phong, "leds": bad}))
