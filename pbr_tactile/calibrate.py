@@ -332,13 +332,25 @@ class ImageFit:
 @dataclass
 class TapView:
     """One tap in a fit: its per-source change from the no-contact basis (h, w, S; see
-    ImageModel.tap_design), the real tap image (h, w, 3), the pixels it is fitted on
-    (h, w) and its weight (a bootstrap's multiplicity)."""
+    ImageModel.tap_design) with the LEDs where the spec has them, the real tap image (h,
+    w, 3), the pixels it is fitted on (h, w) and its weight (a bootstrap's multiplicity).
+    ``slope`` and ``curve`` (h, w, S), where given, make the change depend on each LED's
+    azimuth a: change + a slope + a^2 curve (``pbr_tactile.calibrate_taps``)."""
 
     change: np.ndarray
     real: np.ndarray
     pixels: np.ndarray
     weight: float = 1.0
+    slope: np.ndarray | None = None
+    curve: np.ndarray | None = None
+
+    def at(self, nl: Nonlinear, led: np.ndarray) -> np.ndarray:
+        """(h, w, S) the change with the LEDs at ``nl``'s azimuths; ``led`` (S,) each
+        source's LED."""
+        if self.slope is None:
+            return self.change
+        a = np.asarray(nl.led_azimuth_rad, np.float64)[led]
+        return self.change + a * self.slope + a * a * self.curve
 
 
 class ImageFitter:
@@ -372,7 +384,7 @@ class ImageFitter:
         warped = self.model.warped(nl)
         rows = [(warped * falloff)[self.pixels]]
         for t in self.taps:
-            change = self.model._mixed(t.change, nl, 1, azimuths=False)
+            change = self.model._mixed(t.at(nl, self.model.led), nl, 1, azimuths=False)
             rows.append(((warped + change) * falloff)[t.pixels & self.model.inside])
         return np.concatenate(rows)
 

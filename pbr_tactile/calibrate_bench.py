@@ -39,6 +39,8 @@ import time
 
 import numpy as np
 
+from scenes.profile import turn_leds
+
 from .calibrate import (
     BASIS_EFFECTS,
     GRID,
@@ -130,18 +132,10 @@ def protocol_taps(spec, mesh, count: int) -> tuple[list, np.ndarray, np.ndarray]
     return taps, np.stack(depths).astype(np.float32), np.asarray(ref_depth, np.float32)
 
 
-def turned(spec, azimuths) -> object:
-    """``spec`` with each LED turned about the axis by its azimuth (``Profile.sensor_spec``)."""
-    from scenes.profile import Alignment, CameraProfile, Profile
-
-    return Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds),
-                   alignment=Alignment(0.0, 1.0, (0.0, 0.0), tuple(azimuths)), camera=CameraProfile()).sensor_spec(spec)
-
-
 def virtual_taps(unit, mesh, camera, effects: Effects, still: Nonlinear, gains: np.ndarray, depths, ref_depth, film,
                  photons: int, spp: int, seed: int, use_cache: bool, ids) -> tuple:
     """A virtual sensor's taps at the camera's size: (RealTaps, their noise level). ``unit``:
-    the spec with the sensor's LEDs turned (``turned``); ``still``: its parameters with
+    the spec with the sensor's LEDs turned (``scenes.profile.turn_leds``); ``still``: its parameters with
     zero azimuths (the turn is in the render), whose alignment then moves the image. The
     noise level is the mean Monte Carlo standard error of the taps' images inside the
     image circle, carried through the response."""
@@ -192,7 +186,7 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
         fx = Effects().with_settings([f"{k}={v}" for k, v in {**BASIS_EFFECTS, **effects}.items()])
         # the virtual sensor's own render: its LEDs truly turned, at the film's size, with its
         # own seed (its own noise; its taps share it, as one sensor's captures share the scene)
-        unit = turned(spec, nl.led_azimuth_rad)
+        unit = turn_leds(spec, nl.led_azimuth_rad)
         still = dataclasses.replace(nl, led_azimuth_rad=(0.0,) * leds)
         case_seed = seed + SEED_OFFSET + case
         hidden = emitter_basis(unit, mesh, camera, fx, film, photons, spp, 2, case_seed, use_cache=not cold)

@@ -151,14 +151,13 @@ class Profile:
         turns = self.alignment.led_azimuth_rad or (0.0,) * len(spec.leds)
         if len(turns) != len(spec.leds):
             raise ValueError(f"profile alignment.led_azimuth_rad has {len(turns)} values for {len(spec.leds)} LEDs")
-        leds = tuple(dataclasses.replace(led, position=_turn(led.position, a), direction=_turn(led.direction, a))
-                     for led, a in zip(spec.leds, turns))
+        spec = turn_leds(spec, turns)
         camera = spec.camera
         circle = self.camera.image_circle
         if circle is not None:
             camera = dataclasses.replace(camera, mask_center_px=(float(circle[0]), float(circle[1])),
                                          mask_radius_px=float(circle[2]))
-        return spec.replace(leds=leds, camera=camera)
+        return spec.replace(camera=camera)
 
     def to_dict(self) -> dict:
         out = {"version": PROFILE_VERSION, "sensor": {"name": self.sensor, "leds": list(self.leds)},
@@ -169,6 +168,16 @@ class Profile:
             if getattr(self, name):
                 out[name] = getattr(self, name)
         return _plain(out)
+
+
+def turn_leds(spec: SensorSpec, azimuths) -> SensorSpec:
+    """``spec`` with each LED (position and direction) turned about the camera's axis by
+    its azimuth, radians."""
+    if len(azimuths) != len(spec.leds):
+        raise ValueError(f"{len(azimuths)} azimuths for {len(spec.leds)} LEDs")
+    return spec.replace(leds=tuple(dataclasses.replace(led, position=_turn(led.position, a),
+                                                       direction=_turn(led.direction, a))
+                                   for led, a in zip(spec.leds, azimuths)))
 
 
 def _turn(v, angle: float) -> tuple[float, float, float]:

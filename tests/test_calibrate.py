@@ -186,60 +186,7 @@ def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
     assert not fit.converged
 
 
-# -- end to end, with Mitsuba ---------------------------------------------------------------
-
-@pytest.mark.slow
-def test_calibrate_background_end_to_end(tmp_path, spec, camera):
-    pytest.importorskip("mitsuba")
-    from pbr_tactile.calibrate_cli import write_outputs
-    from scenes.geometry import membrane_mesh
-
-    mesh = membrane_mesh(spec)
-    effects_grid = {"absorption_per_m": (20.0,), "scattering_per_m": (50.0,)}
-    # a "real" sensor: the reference itself, rendered with other seeds, turned and gained
-    basis = cal.emitter_basis(spec, mesh, camera, cal.Effects(core_light_leak=0.5), (40, 30), photons=1 << 12,
-                              spp=4, passes=2, seed=7, use_cache=False)
-    circle = (320.0, 240.0, 240.0)
-    model = cal.ImageModel(basis["mean"], basis["names"], camera, circle)
-    truth = cal.Nonlinear(0.4, (0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 1.0, (0.0, 0.0), (-0.2, 0.0), 2.0)
-    gains = np.full((3, 3), 0.5 / np.percentile(basis["mean"], 90))
-    real_small = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    real = np.repeat(np.repeat(real_small, 16, axis=0), 16, axis=1)
-    real *= (cal.image_circle(np.where(_disc(camera, (320, 240), 240) > 0, 1.0, 0.0)) is not None)
-    result = cal.calibrate_background(real, spec, mesh, camera, film=(40, 30), grid=effects_grid, photons=1 << 12,
-                                      spp=4, passes=2, seed=0, bootstrap=2, use_cache=False)
-    paths = write_outputs(result, tmp_path, "a synthetic image")
-    report = json.loads(paths["report"].read_text())
-    assert set(report["heldout_r2"]) == {"r", "g", "b"} and set(report["saturated"]) == {"r", "g", "b"}
-    assert report["heldout_r2"]["g"] > 0.5
-    assert (tmp_path / "report.html").exists() and (tmp_path / "residual.npy").exists()
-    assert report["converged"], report
-    assert load_profile(paths["profile"], spec).camera.image_circle is not None
-
-    # the profile renders: a no-contact frame of the calibrated sensor
-    from scenes.cli import main
-    from scenes.images import read_rgb
-
-    depth = tmp_path / "ref.npy"
-    from scenes.camera import reference_depth
-
-    np.save(depth, reference_depth(mesh, camera)[0])
-    code = main(["reference", str(depth), "--ref-depth", str(depth), "--profile", str(paths["profile"]), "--width",
-                 "40", "--height", "30", "--spp", "4", "--passes", "2", "--photons", "4096", "--out",
-                 str(tmp_path / "frame")])
-    assert code == 0
-    frame = read_rgb(tmp_path / "frame.png")
-    assert frame.shape == (30, 40, 3) and frame[15, 20].max() > 0 and frame[0, 0].max() == 0  # circle cut
-    assert np.load(tmp_path / "frame.npy").shape == (30, 40, 6)  # one linear image per source
-
-    # the fast path's background term, judged on the same split, and rendered from the profile
-    fast = report["fast_path"]
-    assert set(fast["heldout_r2"]) == {"r", "g", "b"} and set(fast["solid"]["heldout_r2"]) == {"r", "g", "b"}
-    assert fast["heldout_r2"]["g"] > fast["solid"]["heldout_r2"]["g"]
-    code = main(["render", str(depth), "--profile", str(paths["profile"]), "-o", str(tmp_path / "fast.png")])
-    assert code == 0
-    fast_frame = read_rgb(tmp_path / "fast.png")
-    assert fast_frame[0, 0].max() == 0 and fast_frame[240, 320].max() > 0
+# (the end-to-end run, with Mitsuba and a capture dataset's taps, is in test_calibrate_taps.py)
 
 
 # -- the blind benchmark's scoring ------------------------------------------------------------

@@ -33,13 +33,13 @@ def _synthetic(camera, h=60, w=80):
         names += [f"led{m}", f"led{m}_leak"]
     basis = np.stack(images, -1)
 
-    def change(r0, phi0):
+    def change(r0, phi0, turns=(0.0, 0.0, 0.0)):
         x0, y0 = cx + r0 * radius * math.cos(phi0), cy + r0 * radius * math.sin(phi0)
         blob = np.exp(-((u - x0) ** 2 + (v - y0) ** 2) / (2 * 2.5**2))
         out = []
-        for a in azimuths:
-            # the dent's slope facing the LED brightens, the far one darkens
-            dx, dy = math.cos(a), math.sin(a)
+        for a, turn in zip(azimuths, turns):
+            # the dent's slope facing the LED brightens, the far one darkens: it turns with the LED
+            dx, dy = math.cos(a + 4 * turn), math.sin(a + 4 * turn)
             lit = blob * (0.6 + 0.25 * ((u - x0) * dx + (v - y0) * dy) / 2.5)
             out += [lit * basis.mean(), 0.3 * lit * basis.mean()]
         return np.stack(out, -1)
@@ -65,11 +65,14 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     assert abs(math.remainder(alone.nl.tied().rotation_rad - 0.7, 2 * math.pi / 3)) > 0.08
 
     places = [(0.3, 0.2), (0.6, 1.4), (0.45, 2.9), (0.7, -1.9), (0.25, -0.6), (0.55, 0.9)]
-    changes = [change(*p) for p in places]
-    views = []
-    for c in changes:
-        tap = model.render(truth, gains, offset, sat, change=c)
-        views.append(cal.TapView(c, tap, captures.contact_region(tap, real, model.inside)))
+    views, d = [], ct.AZIMUTH_STEP_RAD
+    for p in places:
+        # the real tap: the contact lit by the LEDs where they truly are
+        tap = model.render(truth, gains, offset, sat, change=change(*p, truth.led_azimuth_rad))
+        # the model: the change at -d, 0, +d as tap_changes renders it
+        minus, zero, plus = (change(*p, (a, a, a)) for a in (-d, 0.0, d))
+        views.append(cal.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
+                                 slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
     assert all(v.pixels.sum() >= captures.MIN_REGION for v in views)
     fitted = captures.split(len(views))
     fit = ct.fit_with_taps(model, real, train, [v for v, f in zip(views, fitted) if f], alone)
@@ -79,6 +82,11 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     held = ct.tap_scores(model, fit, [v for v, f in zip(views, fitted) if not f], real)
     before = ct.tap_scores(model, alone, [v for v, f in zip(views, fitted) if not f], real)
     assert held["change_r2"]["g"] > 0.99 and before["change_r2"]["g"] < 0.9
+    # without the change's dependence on the azimuths the held-out taps are worse
+    flat = [dataclasses.replace(v, slope=None, curve=None) for v in views]
+    fit_flat = ct.fit_with_taps(model, real, train, [v for v, f in zip(flat, fitted) if f], alone)
+    held_flat = ct.tap_scores(model, fit_flat, [v for v, f in zip(flat, fitted) if not f], real)
+    assert held_flat["mae"]["g"] > 10 * held["mae"]["g"]
     assert held["mae"]["g"] < 0.2 * before["mae"]["g"]
 
 
@@ -126,7 +134,8 @@ def test_a_real_dataset_without_depth_or_protocol_is_refused(tmp_path, spec, cam
 def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     pytest.importorskip("mitsuba")
     pytest.importorskip("mujoco")
-    from pbr_tactile.calibrate_bench import protocol_taps, turned, virtual_taps
+    from pbr_tactile.calibrate_bench import protocol_taps, virtual_taps
+    from scenes.profile import turn_leds
     from scenes.cli import main
     from scenes.dataset import DatasetWriter, write_sample_files
     from scenes.geometry import membrane_mesh
@@ -134,7 +143,7 @@ def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     from scenes.protocol import base_protocol
 
     mesh = membrane_mesh(spec)
-    film, photons, spp = (80, 60), 1 << 14, 4
+    film, photons, spp = (80, 60), 1 << 13, 2
     effects = cal.Effects(core_light_leak=0.5)
     taps, depths, ref_depth = protocol_taps(spec, mesh, 4)
     # the two widest contacts (a tip tap is a few pixels at this film)
@@ -142,7 +151,7 @@ def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     taps, depths = [taps[i] for i in widest], depths[widest]
     # a "real" sensor: the reference with another seed, its LEDs turned and its membrane too
     truth = cal.Nonlinear(0.3, (0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 1.0, (0.0, 0.0), (-0.2, 0.0), 2.0)
-    unit = turned(spec, (0.05, -0.05, 0.0))
+    unit = turn_leds(spec, (0.05, -0.05, 0.0))
     basis = cal.emitter_basis(unit, mesh, camera, effects, film, photons, spp, 2, seed=7)
     model = cal.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
     gains = np.full((3, 3), 0.5 / np.percentile(basis["mean"], 90))
@@ -168,7 +177,7 @@ def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     np.testing.assert_allclose(loaded.depths[1], depths[1], atol=1e-6)  # the replay is the same press
     out = tmp_path / "out"
     code = main(["calibrate", str(writer.root), "--out", str(out), "--width", "80", "--photons", str(photons),
-                 "--spp", str(spp), "--bootstrap", "2", "--grid", "absorption_per_m=20", "--grid",
+                 "--spp", str(spp), "--bootstrap", "1", "--grid", "absorption_per_m=20", "--grid",
                  "scattering_per_m=50"])
     report = json.loads((out / "report.json").read_text())
     assert report["data"].endswith("and 2 of its taps")
@@ -183,6 +192,36 @@ def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     assert len(profile.phong["leds"]) == 3 and profile.phong["shininess"] == fast["shininess"]
     assert set(fast["heldout"]["change_r2"]) == {"r", "g", "b"}
     assert "Taps" in (out / "report.html").read_text()
+    assert set(report["heldout_r2"]) == {"r", "g", "b"} and set(report["saturated"]) == {"r", "g", "b"}
+    assert (out / "residual.npy").exists() and (out / "residuals_figure.png").exists()
+    assert profile.camera.image_circle is not None
+
+    # the profile renders: a frame of the calibrated unit with the reference (one linear
+    # image per source) and with the fast path (its fitted LED constants), both cut by the circle
+    from scenes.images import read_rgb
+
+    np.save(tmp_path / "ref.npy", ref_depth)
+    np.save(tmp_path / "tap.npy", depths[1])
+    code = main(["reference", str(tmp_path / "tap.npy"), "--ref-depth", str(tmp_path / "ref.npy"), "--profile",
+                 str(out / "profile.toml"), "--width", "40", "--height", "30", "--spp", "2", "--passes", "2",
+                 "--photons", "4096", "--out", str(tmp_path / "frame")])
+    assert code == 0
+    frame = read_rgb(tmp_path / "frame.png")
+    assert frame.shape == (30, 40, 3) and frame[15, 20].max() > 0 and frame[0, 0].max() == 0
+    assert np.load(tmp_path / "frame.npy").shape == (30, 40, 6)
+    assert main(["render", str(tmp_path / "tap.npy"), "--profile", str(out / "profile.toml"), "-o",
+                 str(tmp_path / "fast.png")]) == 0
+    fast_frame = read_rgb(tmp_path / "fast.png")
+    assert fast_frame[0, 0].max() == 0 and fast_frame[240, 320].max() > 0
+
+    # the same dataset's background alone (the fast path's background term is judged beside it)
+    code = main(["calibrate", "--background-only", str(writer.root / "background.png"), "--out", str(tmp_path / "bg"),
+                 "--width", "80", "--photons", str(photons), "--spp", str(spp), "--bootstrap", "0", "--grid",
+                 "absorption_per_m=20", "--grid", "scattering_per_m=50"])
+    alone = json.loads((tmp_path / "bg" / "report.json").read_text())
+    assert alone["taps"] is None and "taps" not in alone["fast_path"]
+    assert alone["fast_path"]["heldout_r2"]["g"] > alone["fast_path"]["solid"]["heldout_r2"]["g"]
+    assert code == (0 if alone["converged"] else 1)
     # --taps is refused without a dataset, and out of range
     assert main(["calibrate", "--background-only", str(writer.root / "background.png"), "--taps", "3", "--out",
                  str(out)]) == 1
