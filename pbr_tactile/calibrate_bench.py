@@ -164,19 +164,20 @@ def _noise(model: ImageModel, variance: np.ndarray, nl: Nonlinear, gains: np.nda
 
 def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int, int] = (160, 120),
               grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, progress=None, cold: bool = False,
-              taps: int = 0) -> dict:
+              taps: int = 0, on_case=None) -> dict:
     """Run ``cases`` blind recoveries; returns the benchmark's JSON (see the module doc).
     cold : render every basis afresh (no disk cache), as a first calibration would.
     taps : virtual taps per sensor (at most calibrate_taps.MAX_TAPS; 0: the no-contact
-    image only)."""
+    image only).
+    on_case : called after each case with the summary of the cases so far (a run that is
+    stopped keeps what it finished)."""
     from scenes.captures import MAX_TAPS
 
     if not 0 <= taps <= MAX_TAPS:
         raise ValueError(f"taps must be in [0, {MAX_TAPS}], got {taps}")
     grid = GRID if grid is None else grid
     rng = np.random.default_rng(seed)
-    per_parameter: dict[str, list[float]] = {}
-    mae_over_noise, seconds, r2s, tap_scores = [], [], [], []
+    per_case: list[dict] = []
     leds = len(spec.leds)
     if taps:
         protocol, depths, ref_depth = protocol_taps(spec, mesh, taps)
@@ -202,36 +203,51 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
         t0 = time.perf_counter()
         cal = calibrate_background(real, spec, mesh, camera, film=film, grid=grid, photons=photons, spp=spp, seed=seed,
                                    bootstrap=0, use_cache=not cold, taps=real_taps)
-        seconds.append(time.perf_counter() - t0)
+        seconds = time.perf_counter() - t0
         fit = {**cal.report["parameters"], "effects": cal.report["best_effects"]}
-        for name, err in _errors(fit, nl, gains_scaled, effects, leds, taps=bool(taps)).items():
-            per_parameter.setdefault(name, []).append(float(err))
         noise = _noise(model, hidden["variance"], still, gains_scaled)
         mae = float(np.mean([cal.report["heldout_mae"][ch] for ch in "rgb" if not cal.report["saturated"][ch]]))
-        mae_over_noise.append(mae / noise if noise > 0 else float("nan"))
-        r2s.append(cal.report["heldout_r2"])
+        record = {"errors": _errors(fit, nl, gains_scaled, effects, leds, taps=bool(taps)),
+                  "mae_over_noise": mae / noise if noise > 0 else float("nan"),
+                  "heldout_r2": cal.report["heldout_r2"], "seconds": seconds,
+                  "hidden": {**dataclasses.asdict(nl), "gains": gains_scaled.tolist(), "effects": effects},
+                  "fit": fit}
         if taps:
             held = cal.report["taps"]["heldout"]
             before = cal.report["taps"]["heldout_before_taps"]
-            tap_scores.append({"tap_mae_over_noise": float(np.mean(list(held["mae"].values()))) / tap_noise,
-                               "change_r2": held["change_r2"], "change_r2_before_taps": before["change_r2"],
-                               "pixels": held["pixels"]})
+            record["taps"] = {"tap_mae_over_noise": float(np.mean(list(held["mae"].values()))) / tap_noise,
+                              "change_r2": held["change_r2"], "change_r2_before_taps": before["change_r2"],
+                              "pixels": held["pixels"]}
+        per_case.append(record)
+        if on_case is not None:
+            on_case(_summary(per_case, seed, taps, grid))
         if progress is not None:
             progress(case + 1, cases)
+    return _summary(per_case, seed, taps, grid)
+
+
+def _summary(per_case: list[dict], seed: int, taps: int, grid: dict) -> dict:
+    """The benchmark's JSON over the cases run so far (module doc)."""
+    per_parameter: dict[str, list[float]] = {}
+    for record in per_case:
+        for name, err in record["errors"].items():
+            per_parameter.setdefault(name, []).append(float(err))
     errors = np.concatenate([np.asarray(v) for v in per_parameter.values()])
+    tap_scores = [r["taps"] for r in per_case if "taps" in r]
     return {
-        "cases": cases,
+        "cases": len(per_case),
         "seed": seed,
         "median_relative_error": float(np.median(errors)),
         "share_within_10pct": float(np.mean(errors <= 0.10)),
         "per_parameter": {name: {"median": float(np.median(v)), "max": float(np.max(v))}
                           for name, v in per_parameter.items()},
-        "heldout_mae_over_noise": float(np.median(mae_over_noise)),
-        "heldout_r2": r2s,
+        "heldout_mae_over_noise": float(np.median([r["mae_over_noise"] for r in per_case])),
+        "heldout_r2": [r["heldout_r2"] for r in per_case],
         "taps": taps,
         "heldout_taps": tap_scores,
         "tap_mae_over_noise": float(np.median([t["tap_mae_over_noise"] for t in tap_scores])) if taps else None,
-        "seconds_per_case": float(np.median(seconds)),
+        "seconds_per_case": float(np.median([r["seconds"] for r in per_case])),
+        "per_case": per_case,
         "scoring": __doc__.split("\n\n", 3)[2],
         "ranges": {k: list(v) for k, v in RANGES.items()},
         "grid": {k: list(v) for k, v in grid.items()},

@@ -204,12 +204,14 @@ def cmd_benchmark(args) -> int:
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
     bar = tqdm(total=cases, desc="virtual sensors", unit="case")
+    # written after every case, so a stopped run keeps the cases it finished
+    write = lambda summary: atomic_write_json(Path(args.json), {**summary, "cases_requested": cases})  # noqa: E731
     result = benchmark(spec, membrane_mesh(spec), camera, cases=cases, seed=args.seed,
                        film=(args.width, args.width * 3 // 4), grid=_grid(args.grid) if args.grid else GRID,
                        photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n),
-                       taps=0 if args.taps is None else args.taps)
+                       taps=0 if args.taps is None else args.taps, on_case=write)
     bar.close()
-    atomic_write_json(Path(args.json), result)
+    write(result)
     print(f"median relative error {result['median_relative_error']:.3f}, share within 10 % "
           f"{result['share_within_10pct']:.2f} over {cases} cases; wrote {args.json}")
     return 0
