@@ -38,7 +38,15 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from scenes.camera import Camera
-from scenes.profile import Alignment, CameraProfile, Profile, camera_response, circle_radius, relative_illumination
+from scenes.images import block_mean
+from scenes.profile import (
+    Alignment,
+    CameraProfile,
+    Profile,
+    camera_response,
+    circle_radius,
+    relative_illumination,
+)
 from scenes.spec import SensorSpec
 
 from .effects import Effects
@@ -118,15 +126,13 @@ def sector_index(shape: tuple[int, int], centre: tuple[float, float], sectors: i
     return np.minimum((angle / (2 * math.pi) * sectors).astype(int), sectors - 1)
 
 
-def block_mean(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W, C) -> (h, w, C) by averaging whole pixel blocks (H/h == W/w integer)."""
-    from skimage.measure import block_reduce
-
-    H, W = image.shape[:2]
-    k = H // shape[0]
-    if k * shape[0] != H or k * shape[1] != W:
-        raise ValueError(f"the film {shape[1]}x{shape[0]} must divide the camera's {W}x{H} evenly")
-    return block_reduce(image, (k, k) + (1,) * (image.ndim - 2), np.mean)
+def film_factor(shape: tuple[int, ...], film: tuple[int, int]) -> int:
+    """The whole factor k between an (H, W, ...) camera image and the film (w, h)."""
+    H, W = shape[:2]
+    k = H // film[1]
+    if k < 1 or k * film[1] != H or k * film[0] != W:
+        raise ValueError(f"the film {film[0]}x{film[1]} must divide the camera's {W}x{H} evenly")
+    return k
 
 
 # -- the basis ----------------------------------------------------------------------------
@@ -527,12 +533,12 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     real = check_real(real, camera, "the real no-contact image")
     circle = image_circle(real)
     width, height = film
-    r = block_mean(real, (height, width))
+    r = block_mean(real, film_factor(real.shape, film))
     clipped_full = real >= CLIP_LEVEL
     inside_full = real.max(axis=2) > CIRCLE_THRESHOLD
     share = [float(clipped_full[..., c][inside_full].mean()) for c in range(3)]
     saturated = {ch: share[c] > SATURATED_SHARE for c, ch in enumerate("rgb")}
-    clipped = block_mean(clipped_full.astype(np.float64), (height, width)) > 0.5
+    clipped = block_mean(clipped_full.astype(np.float64), film_factor(real.shape, film)) > 0.5
     s = height / camera.height
     centre = (camera.cx, camera.cy) if circle is None else circle[:2]
     sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))

@@ -39,6 +39,7 @@ import math
 import numpy as np
 
 from scenes.captures import RealTaps, contact_region
+from scenes.images import block_mean
 
 from .calibrate import (
     ImageFit,
@@ -46,8 +47,8 @@ from .calibrate import (
     ImageModel,
     Nonlinear,
     TapView,
-    block_mean,
     emitter_basis,
+    film_factor,
 )
 
 #: Each tap is rendered with every LED at azimuths -this, 0 and +this (radians) for its
@@ -128,10 +129,9 @@ def tap_scores(model: ImageModel, fit: ImageFit, views: list[TapView], backgroun
 def film_views(taps: RealTaps, changes: dict, background_film: np.ndarray, inside: np.ndarray,
                film: tuple[int, int]) -> list[TapView]:
     """Each tap at the film's size with its change (``tap_changes``) and contact region."""
-    width, height = film
     views = []
     for t, image in enumerate(taps.images):
-        real = block_mean(np.asarray(image, np.float64), (height, width))
+        real = block_mean(np.asarray(image, np.float64), film_factor(image.shape, film))
         views.append(TapView(changes["change"][t], real, contact_region(real, background_film, inside),
                              slope=changes["slope"][t], curve=changes["curve"][t]))
     return views

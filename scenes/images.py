@@ -66,3 +66,22 @@ def write_rgb(path: str | Path, rgb: np.ndarray, compress_level: int = 6) -> Pat
             os.unlink(tmp)
         raise
     return path
+
+
+def block_mean(image: np.ndarray, factor: int, axes: tuple[int, int] = (0, 1)) -> np.ndarray:
+    """Average ``factor`` x ``factor`` pixel blocks over the two image ``axes`` (rows,
+    columns) of an array, accumulating in float64 and keeping its dtype."""
+    from skimage.measure import block_reduce
+
+    image = np.asarray(image)
+    if factor == 1:
+        return image
+    rows, cols = (image.shape[a] for a in axes)
+    if factor < 1 or rows % factor or cols % factor:
+        raise ValueError(f"an image of {cols}x{rows} pixels cannot be averaged in blocks of {factor}x{factor}: "
+                         "its size must be a whole multiple of the factor")
+    block = [1] * image.ndim
+    for a in axes:
+        block[a] = factor
+    return block_reduce(image, tuple(block), np.mean, func_kwargs={"dtype": np.float64}).astype(image.dtype)
+

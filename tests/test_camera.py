@@ -78,3 +78,17 @@ def test_image_circle_matches_the_real_capture(camera, reference_dir):
 
     real = read_rgb(reference_dir / "real" / "bkg.png", camera.shape)
     assert np.array_equal(real.sum(axis=-1) > 0, camera.mask)
+
+
+def test_block_mean_averages_whole_blocks_over_the_image_axes():
+    from scenes.images import block_mean
+
+    image = np.arange(4 * 6, dtype=np.float32).reshape(4, 6)
+    out = block_mean(np.stack([image, image + 1])[..., None], 2, (1, 2))
+    assert out.shape == (2, 2, 3, 1) and out.dtype == np.float32
+    # the top-left block of 0, 1, 6, 7
+    assert out[0, 0, 0, 0] == 3.5 and out[1, 0, 0, 0] == 4.5
+    np.testing.assert_allclose(block_mean(image[..., None], 2)[..., 0], out[0, ..., 0])
+    assert block_mean(image, 1) is image
+    with pytest.raises(ValueError, match="6x4 pixels cannot be averaged in blocks of 4x4"):
+        block_mean(image, 4)

@@ -30,20 +30,10 @@ from phong_reference.render import light_vectors
 from scenes.camera import CONTACT_EPS_M as CONTACT_NOISE_M  # the one contact threshold
 from scenes.camera import Camera, cast_rays, reference_depth
 from scenes.geometry import membrane_mesh
+from scenes.images import block_mean
 from scenes.spec import SensorSpec
 
 from . import effects as fx
-
-
-def block_mean(images: np.ndarray, factor: int) -> np.ndarray:
-    """Average ``factor`` x ``factor`` pixel blocks of (N, H, W, ...) arrays."""
-    if factor == 1:
-        return images
-    n, h, w = images.shape[:3]
-    if h % factor or w % factor:
-        raise ValueError(f"image size {w}x{h} is not divisible by the working-resolution factor {factor}")
-    shape = (n, h // factor, factor, w // factor, factor) + images.shape[3:]
-    return images.reshape(shape).mean(axis=(2, 4), dtype=np.float64).astype(images.dtype)
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -95,10 +85,10 @@ class FastModel:
         self.mask = self.camera.mask
         # (H, W) share of each pixel inside the lens's image circle, and (H, W, 3) what the
         # ambient term k_a B puts in a simulated image: both stay put under a misalignment.
-        self.circle = block_mean(full.mask[None, ..., None].astype(np.float32), self.factor)[0, ..., 0]
+        self.circle = block_mean(full.mask[None, ..., None].astype(np.float32), self.factor, (1, 2))[0, ..., 0]
         full_B = self.B if self.factor == 1 else _background(background, full, full, 1, self.profile)
         ambient = np.clip(spec.material.ambient * full_B, 0.0, 1.0) * full.mask[..., None]
-        self.fixed = block_mean(ambient[None].astype(np.float32), self.factor)[0]
+        self.fixed = block_mean(ambient[None].astype(np.float32), self.factor, (1, 2))[0]
         self.rays = self.camera.rays_channels_first
         self.colours = np.array([led.colour for led in spec.leds], np.float64)
         self.k_d = np.array([led.k_d for led in spec.leds], np.float32)
@@ -117,10 +107,10 @@ class FastModel:
         D_ref - D is averaged over pixel blocks, so no-contact pixels stay at D_ref."""
         delta = self.full_ref[None] - np.asarray(depth, np.float32)
         delta[np.abs(delta) <= CONTACT_NOISE_M] = 0.0
-        return self.ref[None] - block_mean(delta, self.factor)
+        return self.ref[None] - block_mean(delta, self.factor, (1, 2))
 
     def working_images(self, images: np.ndarray) -> np.ndarray:
-        return block_mean(np.asarray(images, np.float32), self.factor)
+        return block_mean(np.asarray(images, np.float32), self.factor, (1, 2))
 
     @property
     def geodesic(self) -> np.ndarray:
@@ -320,4 +310,4 @@ def _background(kind: str, full: Camera, camera: Camera, factor: int, profile=No
     except (FileNotFoundError, ValueError) as exc:
         raise ValueError(f"the simulated dataset's background {kind!r} cannot be read here ({exc}); the "
                          "diagnosis re-renders with it") from None
-    return block_mean(image[None], factor)[0]
+    return block_mean(image, factor)
