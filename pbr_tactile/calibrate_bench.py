@@ -217,7 +217,8 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
             before = cal.report["taps"]["heldout_before_taps"]
             record["taps"] = {"tap_mae_over_noise": float(np.mean(list(held["mae"].values()))) / tap_noise,
                               "change_r2": held["change_r2"], "change_r2_before_taps": before["change_r2"],
-                              "pixels": held["pixels"]}
+                              "pixels": held["pixels"], "grid": cal.report["taps"]["grid"]}
+        record["grid"] = cal.report["grid"]
         per_case.append(record)
         if on_case is not None:
             on_case(_summary(per_case, seed, taps, grid))

@@ -5,8 +5,10 @@ azimuth) but not the membrane's own: the membrane is rotationally symmetric. A t
 pressed at a known place on the membrane, so where its contact appears in the real image
 gives the membrane's rotation, and with it each LED's azimuth.
 
-Each tap t is rendered per source like the no-contact basis, at the calibration's best
-grid point and with the same seed (common random numbers): its change from the
+Each tap t is rendered per source like the no-contact basis, at a grid point of the
+calibration (its few best by the no-contact fit, ``calibrate.TAP_GRID_POINTS``, each
+fitted with the taps and the best joint fit kept: one image ranks absorption and
+scattering poorly) and with the same seed (common random numbers): its change from the
 no-contact basis C_t = B_t - A (h, w, S) is the contact's, with little noise. Where an
 LED sits matters for the contact's shading (turning all LEDs by 0.15 rad changed a
 cylinder tap's change by 36-48 % of its RMS), so each tap is rendered with every LED at

@@ -90,6 +90,46 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     assert held["mae"]["g"] < 0.2 * before["mae"]["g"]
 
 
+def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
+    """Two grid points whose no-contact images are the same but whose contacts shade
+    differently: the no-contact fit cannot rank them, the taps choose the true one."""
+    pytest.importorskip("mitsuba")
+    A, names, change = _synthetic(camera)
+    basis = {"mean": A, "variance": np.zeros_like(A), "names": names, "response": np.ones((len(names), 3))}
+    monkeypatch.setattr(cal, "emitter_basis", lambda *args, **kwargs: basis)
+    places = [(0.3, 0.2), (0.6, 1.4), (0.45, 2.9), (0.7, -1.9)]
+
+    def changes(spec_, mesh, camera_, effects, *args, **kwargs):
+        # at the wrong point the contact's shading is half as strong
+        k = 1.0 if effects.scattering_per_m == 50.0 else 0.5
+        stack = np.stack([k * change(*p) for p in places])
+        return {"change": stack, "slope": np.zeros_like(stack), "curve": np.zeros_like(stack)}
+
+    monkeypatch.setattr(ct, "tap_changes", changes)
+    monkeypatch.setattr(cal, "_fast_path_from_taps", lambda profile, report, *args: profile)
+    model = cal.ImageModel(A, names, camera, None)
+    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
+                          shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
+    k = camera.height // A.shape[0]
+    up = lambda image: np.repeat(np.repeat(image, k, axis=0), k, axis=1)  # noqa: E731
+    real = up(model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)))
+    images = np.stack([up(model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), change=change(*p)))
+                       for p in places])
+    depths = np.zeros(images.shape[:3])
+    taps = captures.RealTaps(images, depths, depths[0], [f"t{i}" for i in range(len(places))])
+    grid = {"absorption_per_m": (20.0,), "scattering_per_m": (10.0, 50.0)}
+    result = cal.calibrate_background(real, spec, None, camera, film=(A.shape[1], A.shape[0]), grid=grid,
+                                      bootstrap=0, taps=taps)
+    # without taps the two points tie and the first would be kept
+    losses = [g["loss"] for g in result.report["grid"]]
+    assert abs(losses[0] - losses[1]) <= 1e-9 * max(losses)
+    assert result.report["best_effects"] == {"absorption_per_m": 20.0, "scattering_per_m": 50.0}
+    joint = result.report["taps"]["grid"]
+    assert [g["effects"]["scattering_per_m"] for g in joint] == [10.0, 50.0]
+    assert joint[1]["loss"] < 0.1 * joint[0]["loss"]
+
+
 def test_contact_region_ignores_noise_and_finds_the_dent():
     rng = np.random.default_rng(0)
     bg = np.full((30, 40, 3), 0.5)
