@@ -564,12 +564,18 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
     tap_report, fitted_views = None, []
     if taps is not None:
-        joint = []
-        for fit, point, basis, model in sorted(fits, key=lambda f: f[0].loss)[:TAP_GRID_POINTS]:
-            joint.append((*_fit_taps(taps, fit, model, basis, r, train, dataclasses.replace(base, **point), spec, mesh,
-                                     camera, film, photons, spp, passes, seed, leak, use_cache), point, basis, model))
-        fit, fitted_views, tap_report, point, basis, model = min(joint, key=lambda j: j[0].loss)
-        tap_report["grid"] = [{"effects": p, "loss": f.loss, "converged": f.converged} for f, _, _, p, _, _ in joint]
+        candidates, ranking, known = sorted(fits, key=lambda f: f[0].loss)[:TAP_GRID_POINTS], [], None
+        if len(candidates) > 1:
+            ranking = [{"effects": p, **_rank_with_taps(taps, f, m, b, r, train, dataclasses.replace(base, **p), spec,
+                                                        mesh, camera, film, photons, spp, passes, seed, leak,
+                                                        use_cache)} for f, p, b, m in candidates]
+            best = int(np.argmin([rank["loss"] for rank in ranking]))
+            fit, point, basis, model = candidates[best]
+            known = ranking[best].pop("known")
+        fit, fitted_views, tap_report = _fit_taps(taps, fit, model, basis, r, train, dataclasses.replace(base, **point),
+                                                  spec, mesh, camera, film, photons, spp, passes, seed, leak, use_cache,
+                                                  known)
+        tap_report["grid"] = [{k: v for k, v in rank.items() if k != "known"} for rank in ranking]
     after = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
     default = {name: getattr(Effects(), name) for name in grid}
     same = [b for _, p, b, _ in fits if p == default]
@@ -661,15 +667,39 @@ def _bootstrap(fit: ImageFit, model: ImageModel, r: np.ndarray, sector: np.ndarr
     return {name: np.apply_along_axis(_interval, 0, np.stack(values)).tolist() for name, values in samples.items()}
 
 
-def _fit_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray, train: np.ndarray,
-              effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak, use_cache):
-    """The fit with taps (``pbr_tactile.calibrate_taps``): (fit, fitted taps' views, the
-    report's ``taps`` section)."""
+def _rank_with_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray, train: np.ndarray,
+                    effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak,
+                    use_cache) -> dict:
+    """A grid point judged by the fitted taps with the LEDs where the spec has them (the
+    cheap form of ``_fit_taps``: a third of its renders, the same at every point, so the
+    losses compare): the report's ``taps.grid`` entry, and ``known`` the changes rendered
+    (by tap index), which the full fit reuses."""
     from scenes import captures
 
     from . import calibrate_taps as ct
 
-    changes = ct.tap_changes(spec, mesh, camera, effects, film, taps, basis, photons, spp, passes, seed, use_cache)
+    fitted = np.flatnonzero(captures.split(len(taps.ids)))
+    subset = captures.RealTaps(taps.images[fitted], taps.depths[fitted], taps.ref_depth,
+                               [taps.ids[i] for i in fitted])
+    changes = ct.tap_changes(spec, mesh, camera, effects, film, subset, basis, photons, spp, passes, seed, use_cache,
+                             azimuths=False)
+    views = [v for v in ct.film_views(subset, changes, r, model.inside, film) if v.pixels.sum() >= captures.MIN_REGION]
+    joint = ct.fit_with_taps(model, r, train, views, fit, leak) if views else None
+    return {"loss": math.inf if joint is None else joint.loss, "converged": joint is not None and joint.converged,
+            "known": dict(zip(fitted.tolist(), changes["change"]))}
+
+
+def _fit_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray, train: np.ndarray,
+              effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak, use_cache,
+              known: dict | None = None):
+    """The fit with taps (``pbr_tactile.calibrate_taps``): (fit, fitted taps' views, the
+    report's ``taps`` section). ``known``: zero-azimuth changes already rendered."""
+    from scenes import captures
+
+    from . import calibrate_taps as ct
+
+    changes = ct.tap_changes(spec, mesh, camera, effects, film, taps, basis, photons, spp, passes, seed, use_cache,
+                             known=known)
     views = ct.film_views(taps, changes, r, model.inside, film)
     seen = [int(v.pixels.sum()) >= captures.MIN_REGION for v in views]
     fitted = captures.split(len(views))

@@ -61,28 +61,37 @@ SCAN_STEP_RAD = math.radians(2.0)
 
 
 def tap_changes(spec, mesh, camera, effects, film, taps: RealTaps, no_contact: dict, photons: int, spp: int,
-                passes: int, seed: int, use_cache: bool = True, progress=None) -> dict:
+                passes: int, seed: int, use_cache: bool = True, progress=None, azimuths: bool = True,
+                known: dict | None = None) -> dict:
     """Each tap's per-source change from the no-contact basis, as a function of the LEDs'
     azimuths (module doc): ``change``, ``slope``, ``curve`` (T, h, w, S). ``no_contact``:
-    ``emitter_basis`` of the same spec, effects, film and seed."""
+    ``emitter_basis`` of the same spec, effects, film and seed. ``azimuths`` False: the
+    change with the LEDs where the spec has them only (``slope`` and ``curve`` None).
+    ``known``: changes already rendered with the LEDs there, by tap index (each (h, w, S))."""
     from scenes.profile import turn_leds
 
-    leds = len(spec.leds)
+    leds, known = len(spec.leds), known or {}
+    turns = (-AZIMUTH_STEP_RAD, 0.0, AZIMUTH_STEP_RAD) if azimuths else (0.0,)
     at = {}
-    for a in (-AZIMUTH_STEP_RAD, 0.0, AZIMUTH_STEP_RAD):
+    for a in turns:
         unit = turn_leds(spec, (a,) * leds)
         base = no_contact if a == 0 else emitter_basis(unit, mesh, camera, effects, film, photons, spp, passes, seed,
                                                        use_cache)
         out = []
-        for depth in taps.depths:
+        for t, depth in enumerate(taps.depths):
+            if a == 0 and t in known:
+                out.append(known[t])
+                continue
             basis = emitter_basis(unit, mesh, camera, effects, film, photons, spp, passes, seed, use_cache,
                                   depth=depth, ref_depth=taps.ref_depth)
             if list(basis["names"]) != list(base["names"]):
                 raise ValueError("tap_changes: the tap's sources differ from the no-contact basis'")
             out.append(basis["mean"] - base["mean"])
             if progress is not None:
-                progress(len(at) * len(taps.depths) + len(out), 3 * len(taps.depths))
+                progress(len(at) * len(taps.depths) + len(out), len(turns) * len(taps.depths))
         at[a] = np.stack(out)
+    if not azimuths:
+        return {"change": at[0.0], "slope": None, "curve": None}
     d = AZIMUTH_STEP_RAD
     minus, zero, plus = at[-d], at[0.0], at[d]
     return {"change": zero, "slope": (plus - minus) / (2 * d), "curve": (plus - 2 * zero + minus) / (2 * d * d)}
@@ -134,6 +143,7 @@ def film_views(taps: RealTaps, changes: dict, background_film: np.ndarray, insid
     views = []
     for t, image in enumerate(taps.images):
         real = block_mean(np.asarray(image, np.float64), film_factor(image.shape, film))
+        slope, curve = (None, None) if changes["slope"] is None else (changes["slope"][t], changes["curve"][t])
         views.append(TapView(changes["change"][t], real, contact_region(real, background_film, inside),
-                             slope=changes["slope"][t], curve=changes["curve"][t]))
+                             slope=slope, curve=curve))
     return views

@@ -99,10 +99,10 @@ def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
     monkeypatch.setattr(cal, "emitter_basis", lambda *args, **kwargs: basis)
     places = [(0.3, 0.2), (0.6, 1.4), (0.45, 2.9), (0.7, -1.9)]
 
-    def changes(spec_, mesh, camera_, effects, *args, **kwargs):
+    def changes(spec_, mesh, camera_, effects, film, taps, *args, **kwargs):
         # at the wrong point the contact's shading is half as strong
         k = 1.0 if effects.scattering_per_m == 50.0 else 0.5
-        stack = np.stack([k * change(*p) for p in places])
+        stack = np.stack([k * change(*places[int(i[1:])]) for i in taps.ids])
         return {"change": stack, "slope": np.zeros_like(stack), "curve": np.zeros_like(stack)}
 
     monkeypatch.setattr(ct, "tap_changes", changes)
