@@ -130,6 +130,30 @@ def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
     assert joint[1]["loss"] < 0.1 * joint[0]["loss"]
 
 
+def test_tap_changes_without_azimuths_and_with_known_changes_render_less(spec, monkeypatch):
+    calls = []
+
+    def basis(unit, mesh, camera, effects, film, *args, depth=None, **kwargs):
+        calls.append(depth is not None)
+        value = 0.0 if depth is None else float(depth.mean())
+        return {"mean": np.full((3, 4, 2), value), "names": np.array(["led0", "led0_leak"])}
+
+    monkeypatch.setattr(ct, "emitter_basis", basis)
+    depths = np.stack([np.full((6, 8), d) for d in (1.0, 2.0, 3.0)])
+    taps = captures.RealTaps(np.zeros((3, 6, 8, 3)), depths, np.zeros((6, 8)), ["a", "b", "c"])
+    no_contact = basis(None, None, None, None, None)
+    calls.clear()
+    flat = ct.tap_changes(spec, None, None, None, (4, 3), taps, no_contact, 1, 1, 1, 0, azimuths=False)
+    assert flat["slope"] is None and flat["curve"] is None and calls == [True] * 3
+    np.testing.assert_allclose(flat["change"][:, 0, 0, 0], [1.0, 2.0, 3.0])
+    calls.clear()
+    known = {1: np.full((3, 4, 2), 7.0)}
+    full = ct.tap_changes(spec, None, None, None, (4, 3), taps, no_contact, 1, 1, 1, 0, known=known)
+    # two turned no-contact bases, three taps at each turn, less the one known at zero
+    assert calls.count(True) == 8 and calls.count(False) == 2
+    assert full["change"][1, 0, 0, 0] == 7.0 and full["slope"].shape == (3, 3, 4, 2)
+
+
 def test_contact_region_ignores_noise_and_finds_the_dent():
     rng = np.random.default_rng(0)
     bg = np.full((30, 40, 3), 0.5)
