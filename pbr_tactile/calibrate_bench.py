@@ -156,10 +156,7 @@ def virtual_taps(unit, mesh, camera, effects: Effects, still: Nonlinear, gains: 
 def _noise(model: ImageModel, variance: np.ndarray, nl: Nonlinear, gains: np.ndarray) -> float:
     """Mean Monte Carlo standard error inside the circle of a virtual image, through the
     camera's response."""
-    lin = model.design(nl) @ gains
-    var = model.design_variance(variance, nl) @ np.square(gains)
-    slope = np.where(lin > 0, np.power(np.maximum(lin, 1e-12), 1 / nl.gamma - 1) / nl.gamma, 0.0)
-    return float(np.mean(np.sqrt(var * slope**2)[model.inside]))
+    return float(np.mean(np.sqrt(model.prediction_variance(variance, nl, gains))[model.inside]))
 
 
 def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int, int] = (160, 120),

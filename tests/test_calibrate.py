@@ -176,6 +176,35 @@ def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
     np.testing.assert_allclose(np.roll(fit.nl.leak, shift), truth.leak, atol=0.08)
 
 
+def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, spec, monkeypatch):
+    """The sensor's own point, rendered noisily, against a clean point that is slightly
+    wrong: the raw loss prefers the clean one, the loss less the basis' predicted noise
+    the right one; the prediction matches the noise the fit actually sees, after the
+    basis is moved (bilinear interpolation averages its noise)."""
+    pytest.importorskip("mitsuba")
+    A, names = _synthetic_basis(camera=camera)
+    sigma = 0.1 * A.mean()
+    noisy = A + np.random.default_rng(0).normal(0.0, sigma, A.shape)
+    u = np.arange(A.shape[1])[None, :, None]
+    wrong = A * (1 + 0.05 * np.cos(u / 7.0))
+    bases = {10.0: {"mean": noisy, "variance": np.full_like(A, sigma**2), "names": names,
+                    "response": np.ones((len(names), 3))},
+             50.0: {"mean": wrong, "variance": np.zeros_like(A), "names": names, "response": np.ones((len(names), 3))}}
+    monkeypatch.setattr(cal, "emitter_basis", lambda spec_, mesh, camera_, effects, *a, **k: bases[effects.scattering_per_m])
+    model = cal.ImageModel(A, names, camera, None)
+    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
+                          shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.15  # nothing clipped
+    k = camera.height // A.shape[0]
+    real = np.repeat(np.repeat(model.render(truth, gains, (0, 0, 0), (1, 1, 1)), k, axis=0), k, axis=1)
+    grid = {"absorption_per_m": (20.0,), "scattering_per_m": (10.0, 50.0)}
+    result = cal.calibrate_background(real, spec, None, camera, film=(A.shape[1], A.shape[0]), grid=grid, bootstrap=0)
+    own, clean = result.report["grid"]
+    assert own["loss"] > 1.3 * clean["loss"] and clean["noise"] == 0.0
+    assert own["noise"] == pytest.approx(own["loss"], rel=0.15)
+    assert result.report["best_effects"]["scattering_per_m"] == 10.0
+
+
 def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
     A, names = _synthetic_basis(camera=camera)
     model = cal.ImageModel(A, names, camera, None)
