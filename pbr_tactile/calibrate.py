@@ -563,12 +563,13 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     real = check_real(real, camera, "the real no-contact image")
     circle = image_circle(real)
     width, height = film
-    r = block_mean(real, film_factor(real.shape, film))
+    factor = film_factor(real.shape, film)
+    r = block_mean(real, factor)
     clipped_full = real >= CLIP_LEVEL
     inside_full = real.max(axis=2) > CIRCLE_THRESHOLD
     share = [float(clipped_full[..., c][inside_full].mean()) for c in range(3)]
     saturated = {ch: share[c] > SATURATED_SHARE for c, ch in enumerate("rgb")}
-    clipped = block_mean(clipped_full.astype(np.float64), film_factor(real.shape, film)) > 0.5
+    clipped = block_mean(clipped_full.astype(np.float64), factor) > 0.5
     s = height / camera.height
     centre = (camera.cx, camera.cy) if circle is None else circle[:2]
     sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
@@ -707,9 +708,9 @@ def _rank_with_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.n
                     effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak,
                     use_cache) -> dict:
     """A grid point judged by the fitted taps with the LEDs where the spec has them (the
-    cheap form of ``_fit_taps``: a third of its renders, the same at every point, so the
-    losses compare): the report's ``taps.grid`` entry, and ``known`` the changes rendered
-    (by tap index), which the full fit reuses."""
+    cheap form of ``_fit_taps``: a sixth of its renders, the same at every point, so the
+    losses compare): ``loss``, ``noise`` (``_debiased``), ``converged``, and ``known``
+    the changes rendered (by tap index), which the full fit reuses."""
     from scenes import captures
 
     from . import calibrate_taps as ct
