@@ -84,4 +84,3 @@ def block_mean(image: np.ndarray, factor: int, axes: tuple[int, int] = (0, 1)) -
     for a in axes:
         block[a] = factor
     return block_reduce(image, tuple(block), np.mean, func_kwargs={"dtype": np.float64}).astype(image.dtype)
-

@@ -85,10 +85,10 @@ class FastModel:
         self.mask = self.camera.mask
         # (H, W) share of each pixel inside the lens's image circle, and (H, W, 3) what the
         # ambient term k_a B puts in a simulated image: both stay put under a misalignment.
-        self.circle = block_mean(full.mask[None, ..., None].astype(np.float32), self.factor, (1, 2))[0, ..., 0]
+        self.circle = block_mean(full.mask.astype(np.float32), self.factor)
         full_B = self.B if self.factor == 1 else _background(background, full, full, 1, self.profile)
         ambient = np.clip(spec.material.ambient * full_B, 0.0, 1.0) * full.mask[..., None]
-        self.fixed = block_mean(ambient[None].astype(np.float32), self.factor, (1, 2))[0]
+        self.fixed = block_mean(ambient.astype(np.float32), self.factor)
         self.rays = self.camera.rays_channels_first
         self.colours = np.array([led.colour for led in spec.leds], np.float64)
         self.k_d = np.array([led.k_d for led in spec.leds], np.float32)
