@@ -23,8 +23,10 @@ CONNECT_TIMEOUT_S = 5.0
 #: Tap tasks in flight per CPU of the cluster: enough to keep every worker busy while the
 #: driver writes files, few enough that results never pile up in the object store.
 TASKS_PER_CPU = 2
-#: Ray's scheduling of the render tasks: spread over the cluster's nodes.
-SPREAD = "SPREAD"
+#: Options of every Ray render task: a CPU each, spread over the cluster's nodes (a short
+#: render would otherwise stay on the driver's node while another node's worker is still
+#: starting; seen on a loaded machine).
+RAY_TASK = {"num_cpus": 1, "scheduling_strategy": "SPREAD"}
 #: Taps a local pool process takes at a time.
 LOCAL_CHUNK = 4
 #: Environment of every worker process. Mesa's software rasteriser starts a thread per
@@ -161,13 +163,10 @@ class RayExecutor:
         owned = self._connect()
         try:
             shared_ref = ray.put(shared)  # once; every task gets the same ObjectRef
-            # spread over the nodes: a short render would otherwise stay on the driver's node
-            # while another node's worker is still starting (seen on a loaded machine)
-            tap_task = ray.remote(num_cpus=1, scheduling_strategy=SPREAD)(run_tap)
+            tap_task = ray.remote(**RAY_TASK)(run_tap)
             pending = {}
             if background:
-                pending[ray.remote(num_cpus=1, scheduling_strategy=SPREAD)(no_contact).remote(job, shared_ref)] = \
-                    "background"
+                pending[ray.remote(**RAY_TASK)(no_contact).remote(job, shared_ref)] = "background"
             limit = TASKS_PER_CPU * max(1, int(ray.cluster_resources().get("CPU", self.workers)))
             for tap in taps:
                 pending[tap_task.remote(job, tap, shared_ref)] = "tap"
