@@ -210,8 +210,7 @@ def cmd_benchmark(args) -> int:
                        film=(args.width, args.width * 3 // 4), grid=_grid(args.grid) if args.grid else GRID,
                        photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n),
                        taps=0 if args.taps is None else args.taps, on_case=write)
-    bar.close()
-    write(result)
+    bar.close()  # the last case's summary, the result, is already written
     print(f"median relative error {result['median_relative_error']:.3f}, share within 10 % "
           f"{result['share_within_10pct']:.2f} over {cases} cases; wrote {args.json}")
     return 0
