@@ -26,7 +26,8 @@ no-contact image, with the same seed (one sensor's captures share its scene's no
 the change between a tap and the no-contact image is then nearly noise-free, as a real
 camera's 8-bit noise is small at the film's resolution). Calibration fits
 alternate taps and holds out the others (``pbr_tactile.calibrate_taps``). The rotation
-is then scored as the membrane's own and each LED's azimuth is scored too (zero-centred);
+is then scored as the membrane's own, and the LEDs' mean azimuth as their common turn
+(zero-centred; calibration ties them to it, ``calibrate.NOT_IDENTIFIABLE_WITH_TAPS``);
 ``heldout_taps`` reports the held-out taps' MAE over their contact regions against the
 virtual taps' own noise (``tap_mae_over_noise``) and the R^2 of their contact changes.
 """
@@ -102,8 +103,9 @@ def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: in
         out[f"led{true}_leak"] = abs(leak_fit - leak_true) / max(leak_true, LEAK_MIN)
         for c, ch in enumerate("rgb"):
             out[f"led{true}_gain_{ch}"] = abs(rel_fit[j, c] - rel_true[true, c]) / rel_true[true, c]
-        if taps:
-            out[f"led{true}_azimuth"] = abs(fit["led_azimuth_rad"][j] - nl.led_azimuth_rad[true]) / half("led_azimuth_rad")
+    if taps:
+        # the LEDs' common turn against the membrane (each LED's own is not identifiable)
+        out["led_turn"] = abs(np.mean(fit["led_azimuth_rad"]) - np.mean(nl.led_azimuth_rad)) / half("led_azimuth_rad")
     for name, value in effects.items():
         out[name] = abs(fit["effects"][name] - value) / value if value else abs(fit["effects"][name])
     return out

@@ -19,7 +19,10 @@ phi_m(s). The tap's image is modelled as (``ImageModel.tap_design``)
     I_t(p) = clip((V(p) sum_s g_sc [A_s(T_m(s)^-1 p) + C_ts(phi_m(s); T^-1 p)] + o_c) ** (1 / gamma), 0, sat_c)
 
 the change moving with the membrane (T: rotation theta, no LED azimuth: the azimuth is
-in the render), the rest as the no-contact image.
+in the render), the rest as the no-contact image. The LEDs' azimuths are fitted as one
+turn of the LED ring against the membrane (``calibrate.NOT_IDENTIFIABLE_WITH_TAPS``): that
+turn shades every contact, while each LED's own azimuth about the ring was not recovered
+from the reference's images.
 
 Taps alternate (``scenes.captures``): even ones are fitted with the no-contact image's
 training sectors, odd ones judge. A tap is fitted and judged on its contact region
@@ -30,7 +33,7 @@ The fit starts from the no-contact fit. That fit pins each LED's whole turn only
 sensor a whole turn 0.47 rad off cost 0.5 % of the loss), so the starts keep its tied
 values (the azimuths' spread, the camera, the leaks) and scan the membrane's rotation
 round the whole circle in SCAN_STEP_RAD steps; the best few are refined by the same
-bounded least squares, every azimuth free.
+bounded least squares.
 """
 
 from __future__ import annotations
@@ -106,10 +109,12 @@ def starts(fit: ImageFit) -> list[Nonlinear]:
 
 
 def fit_with_taps(model: ImageModel, real: np.ndarray, train: np.ndarray, views: list[TapView], start: ImageFit,
-                  leak: bool = True, max_evaluations: int = 1500, keep: int = 2) -> ImageFit:
+                  leak: bool = True, max_evaluations: int = 1500, keep: int = 2, common_turn: bool = True) -> ImageFit:
     """The no-contact image's training pixels and the fitted taps together, refined from
-    the ``keep`` best of ``starts(start)`` (module doc)."""
-    fitter = ImageFitter(model, real, train, leak=leak, taps=views)
+    the ``keep`` best of ``starts(start)`` (module doc). ``common_turn`` False: each LED's
+    azimuth free, where the data can tell them apart (not so on the reference's own images:
+    see ``calibrate.NOT_IDENTIFIABLE_WITH_TAPS``)."""
+    fitter = ImageFitter(model, real, train, leak=leak, taps=views, common_turn=common_turn)
     screened = sorted(starts(start), key=lambda nl: fitter.loss(nl.vector()))[:keep]
     return min((fitter.fit(nl, max_evaluations) for nl in screened), key=lambda f: f.loss)
 

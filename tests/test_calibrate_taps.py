@@ -75,7 +75,7 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
                                  slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
     assert all(v.pixels.sum() >= captures.MIN_REGION for v in views)
     fitted = captures.split(len(views))
-    fit = ct.fit_with_taps(model, real, train, [v for v, f in zip(views, fitted) if f], alone)
+    fit = ct.fit_with_taps(model, real, train, [v for v, f in zip(views, fitted) if f], alone, common_turn=False)
     assert fit.converged
     assert abs(math.remainder(fit.nl.rotation_rad - 0.7, 2 * math.pi)) < 0.01
     np.testing.assert_allclose(fit.nl.led_azimuth_rad, truth.led_azimuth_rad, atol=0.02)
@@ -84,10 +84,32 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     assert held["change_r2"]["g"] > 0.99 and before["change_r2"]["g"] < 0.9
     # without the change's dependence on the azimuths the held-out taps are worse
     flat = [dataclasses.replace(v, slope=None, curve=None) for v in views]
-    fit_flat = ct.fit_with_taps(model, real, train, [v for v, f in zip(flat, fitted) if f], alone)
+    fit_flat = ct.fit_with_taps(model, real, train, [v for v, f in zip(flat, fitted) if f], alone, common_turn=False)
     held_flat = ct.tap_scores(model, fit_flat, [v for v, f in zip(flat, fitted) if not f], real)
     assert held_flat["mae"]["g"] > 10 * held["mae"]["g"]
     assert held["mae"]["g"] < 0.2 * before["mae"]["g"]
+
+
+def test_the_common_turn_ties_the_leds_and_recovers_the_rings_turn(camera):
+    """Calibration's default with taps: one turn of the LED ring against the membrane."""
+    A, names, change = _synthetic(camera)
+    model = cal.ImageModel(A, names, camera, (321.0, 241.0, 236.0))
+    truth = cal.Nonlinear(rotation_rad=-0.4, led_azimuth_rad=(0.1, 0.1, 0.1), leak=(0.3, 0.5, 0.2), scale=1.0,
+                          shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
+    real = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    train = (cal.sector_index(real.shape[:2], (40, 30)) % 2 == 0) & model.inside
+    alone = cal.ImageFitter(model, real, train).search(rotations=6)
+    d, views = ct.AZIMUTH_STEP_RAD, []
+    for p in [(0.3, 0.2), (0.45, 2.9), (0.25, -0.6)]:
+        tap = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), change=change(*p, truth.led_azimuth_rad))
+        minus, zero, plus = (change(*p, (a, a, a)) for a in (-d, 0.0, d))
+        views.append(cal.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
+                                 slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
+    fit = ct.fit_with_taps(model, real, train, views, alone)
+    assert fit.converged and len(set(fit.nl.led_azimuth_rad)) == 1
+    assert abs(math.remainder(fit.nl.rotation_rad + 0.4, 2 * math.pi)) < 0.01
+    assert fit.nl.led_azimuth_rad[0] == pytest.approx(0.1, abs=0.01)
 
 
 def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
