@@ -19,6 +19,7 @@ HEAVY = {
     "pygeodesic": {"phong_reference/geodesic.py"},
     "potpourri3d": {"phong_reference/transport.py", "scenes/elastic.py"},
     "ray": {"scenes/executors.py"},
+    "serial": {"rig/marlin.py"},
 }
 
 
