@@ -51,6 +51,7 @@ import serial
 
 from rig import gcode
 from rig.gcode import Kind
+from rig.serial_lines import READ_POLL_S, LineReader, open_port
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +69,6 @@ BANNER_TIMEOUT_S = 3.0
 BANNER_QUIET_S = 0.1
 #: Wait for the ``ok`` that follows ``Resend:`` (or the one after ``Error:``), seconds.
 RESEND_OK_GRACE_S = 0.5
-#: One blocking read on the port, seconds; bounds how late a deadline is noticed.
-READ_POLL_S = 0.02
 #: Longest blocking write, seconds.
 WRITE_TIMEOUT_S = 2.0
 #: Times a line is written again after a reply timeout before giving up.
@@ -80,8 +79,6 @@ MAX_RESENDS = 10
 MAX_GARBAGE_LINES = 3
 #: Data lines tolerated while waiting for one ``ok`` (``M503`` prints about 50).
 MAX_REPLY_LINES = 256
-#: A "line" longer than this without a line break is cut and treated as garbage, bytes.
-MAX_LINE_BYTES = 512
 #: Sent lines kept for resending.
 HISTORY_LINES = 64
 
@@ -92,27 +89,6 @@ class PrinterError(RuntimeError):
 
 class PrinterTimeout(PrinterError):
     """The printer did not answer in time."""
-
-
-class _LineReader:
-    """Split a serial port's bytes into lines, with a deadline per line."""
-
-    def __init__(self, port):
-        self._port = port
-        self._buffer = bytearray()
-
-    def read_line(self, deadline: float) -> bytes | None:
-        """The next line (with its ``\\n``), or None once ``time.monotonic()`` passes deadline."""
-        while True:
-            end = self._buffer.find(b"\n")
-            if end >= 0 or len(self._buffer) >= MAX_LINE_BYTES:
-                cut = end + 1 if end >= 0 else MAX_LINE_BYTES
-                line = bytes(self._buffer[:cut])
-                del self._buffer[:cut]
-                return line
-            if time.monotonic() >= deadline:
-                return None
-            self._buffer += self._port.read(max(1, self._port.in_waiting))
 
 
 class MarlinPrinter:
@@ -137,7 +113,7 @@ class MarlinPrinter:
                 raise ValueError(f"{name} must be >= 0 seconds, got {value!r}")
         if isinstance(port, str):
             self.port_name = port
-            self._serial = _open_port(port, baud)
+            self._serial = open_port(port, baud, WRITE_TIMEOUT_S, "printer", PrinterError)
             self._owns_port = True
         else:
             self.port_name = getattr(port, "port", None) or repr(port)
@@ -145,7 +121,7 @@ class MarlinPrinter:
             self._owns_port = False
             self._serial.timeout = READ_POLL_S
         self.reply_timeout_s = float(reply_timeout_s)
-        self._reader = _LineReader(self._serial)
+        self._reader = LineReader(self._serial)
         self._lock = threading.RLock()  # one command in flight
         self._write_lock = threading.Lock()  # also taken by the emergency stop
         self._history: OrderedDict[int, str] = OrderedDict()  # line number -> framed line
@@ -344,12 +320,3 @@ class MarlinPrinter:
                     raise PrinterError(
                         f"{self.port_name} sent more than {MAX_REPLY_LINES} lines without 'ok' while waiting "
                         f"for {where}; the last were {replies[-3:]!r}")
-
-
-def _open_port(port: str, baud: int) -> serial.Serial:
-    try:
-        return serial.Serial(port, baud, timeout=READ_POLL_S, write_timeout=WRITE_TIMEOUT_S, exclusive=True)
-    except (serial.SerialException, OSError, ValueError) as exc:
-        raise PrinterError(
-            f"cannot open printer port {port!r} at {baud} baud: {exc} "
-            "(does the device exist, and is no other program holding it?)") from exc

@@ -1,0 +1,45 @@
+"""Lines over a serial port, shared by the rig's device drivers: opening a device with a
+clear error, and splitting its bytes into lines, each read against a deadline."""
+
+from __future__ import annotations
+
+import time
+
+import serial
+
+#: One blocking read on the port, seconds; bounds how late a deadline is noticed.
+READ_POLL_S = 0.02
+#: A run of bytes this long without a line break is cut into a line of its own (garbage,
+#: judged by the protocol's parser), so a noisy line cannot grow the buffer without bound.
+MAX_LINE_BYTES = 512
+
+
+class LineReader:
+    """Split a serial port's bytes into lines, with a deadline per line."""
+
+    def __init__(self, port):
+        self._port = port
+        self._buffer = bytearray()
+
+    def read_line(self, deadline: float) -> bytes | None:
+        """The next line (with its ``\\n``), or None once ``time.monotonic()`` passes deadline."""
+        while True:
+            end = self._buffer.find(b"\n")
+            if end >= 0 or len(self._buffer) >= MAX_LINE_BYTES:
+                cut = end + 1 if end >= 0 else MAX_LINE_BYTES
+                line = bytes(self._buffer[:cut])
+                del self._buffer[:cut]
+                return line
+            if time.monotonic() >= deadline:
+                return None
+            self._buffer += self._port.read(max(1, self._port.in_waiting))
+
+
+def open_port(port: str, baud: int, write_timeout_s: float, device: str, error: type[Exception]) -> serial.Serial:
+    """Open ``port`` exclusively for reading lines; ``error`` (naming the ``device`` and
+    the port) when it does not exist or another program holds it."""
+    try:
+        return serial.Serial(port, baud, timeout=READ_POLL_S, write_timeout=write_timeout_s, exclusive=True)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        raise error(f"cannot open {device} port {port!r} at {baud} baud: {exc} "
+                    "(does the device exist, and is no other program holding it?)") from exc
