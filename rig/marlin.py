@@ -47,11 +47,10 @@ from collections import OrderedDict
 from typing import Self
 
 import numpy as np
-import serial
 
 from rig import gcode
 from rig.gcode import Kind
-from rig.serial_lines import READ_POLL_S, LineReader, open_port
+from rig.serial_lines import SerialLines
 
 log = logging.getLogger(__name__)
 
@@ -111,17 +110,9 @@ class MarlinPrinter:
         for name, value in (("reply_timeout_s", reply_timeout_s), ("banner_timeout_s", banner_timeout_s)):
             if not value >= 0:
                 raise ValueError(f"{name} must be >= 0 seconds, got {value!r}")
-        if isinstance(port, str):
-            self.port_name = port
-            self._serial = open_port(port, baud, WRITE_TIMEOUT_S, "printer", PrinterError)
-            self._owns_port = True
-        else:
-            self.port_name = getattr(port, "port", None) or repr(port)
-            self._serial = port
-            self._owns_port = False
-            self._serial.timeout = READ_POLL_S
+        self._link = SerialLines(port, baud, WRITE_TIMEOUT_S, "printer", PrinterError)
+        self.port_name = self._link.name
         self.reply_timeout_s = float(reply_timeout_s)
-        self._reader = LineReader(self._serial)
         self._lock = threading.RLock()  # one command in flight
         self._write_lock = threading.Lock()  # also taken by the emergency stop
         self._history: OrderedDict[int, str] = OrderedDict()  # line number -> framed line
@@ -202,8 +193,7 @@ class MarlinPrinter:
 
     def close(self) -> None:
         """Close the port if this object opened it. Safe to call twice."""
-        if self._owns_port and self._serial is not None and self._serial.is_open:
-            self._serial.close()
+        self._link.close()
 
     def __enter__(self) -> Self:
         return self
@@ -215,17 +205,10 @@ class MarlinPrinter:
 
     def _write(self, line: str) -> None:
         with self._write_lock:
-            try:
-                self._serial.write((line + "\n").encode("ascii"))
-                self._serial.flush()
-            except (serial.SerialException, OSError) as exc:
-                raise PrinterError(f"cannot write {line!r} to {self.port_name}: {exc}") from exc
+            self._link.write(line)
 
     def _read_line(self, deadline: float) -> bytes | None:
-        try:
-            return self._reader.read_line(deadline)
-        except (serial.SerialException, OSError) as exc:
-            raise PrinterError(f"cannot read from {self.port_name}: {exc}") from exc
+        return self._link.read_line(deadline)
 
     def _wait_for_banner(self, timeout_s: float) -> None:
         self._write("")

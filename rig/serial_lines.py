@@ -43,3 +43,42 @@ def open_port(port: str, baud: int, write_timeout_s: float, device: str, error: 
     except (serial.SerialException, OSError, ValueError) as exc:
         raise error(f"cannot open {device} port {port!r} at {baud} baud: {exc} "
                     "(does the device exist, and is no other program holding it?)") from exc
+
+
+class SerialLines:
+    """A device's line link: its port (opened here from a path, or given open), lines
+    written whole and lines read against a deadline, every port failure raised as the
+    driver's ``error`` naming the port. Closes the port only if it opened it."""
+
+    def __init__(self, port, baud: int, write_timeout_s: float, device: str, error: type[Exception]):
+        self.error = error
+        if isinstance(port, str):
+            self.name = port
+            self.serial = open_port(port, baud, write_timeout_s, device, error)
+            self._owns = True
+        else:
+            self.name = getattr(port, "port", None) or repr(port)
+            self.serial = port
+            self._owns = False
+            self.serial.timeout = READ_POLL_S
+        self._reader = LineReader(self.serial)
+
+    def write(self, line: str) -> None:
+        """Write ``line`` and its line break."""
+        try:
+            self.serial.write((line + "\n").encode("ascii"))
+            self.serial.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise self.error(f"cannot write {line!r} to {self.name}: {exc}") from exc
+
+    def read_line(self, deadline: float) -> bytes | None:
+        """The next line, or None once ``time.monotonic()`` passes ``deadline``."""
+        try:
+            return self._reader.read_line(deadline)
+        except (serial.SerialException, OSError) as exc:
+            raise self.error(f"cannot read from {self.name}: {exc}") from exc
+
+    def close(self) -> None:
+        """Close the port if this link opened it. Safe to call twice."""
+        if self._owns and self.serial is not None and self.serial.is_open:
+            self.serial.close()

@@ -26,10 +26,8 @@ import threading
 import time
 from typing import Self
 
-import serial
-
 from rig import servo_protocol as sp
-from rig.serial_lines import READ_POLL_S, LineReader, open_port
+from rig.serial_lines import SerialLines
 
 log = logging.getLogger(__name__)
 
@@ -82,17 +80,9 @@ class ServoBoard:
         for name, value in (("reply_timeout_s", reply_timeout_s), ("banner_timeout_s", banner_timeout_s)):
             if not value >= 0:
                 raise ValueError(f"{name} must be >= 0 seconds, got {value!r}")
-        if isinstance(port, str):
-            self.port_name = port
-            self._serial = open_port(port, baud, WRITE_TIMEOUT_S, "servo board", ServoError)
-            self._owns_port = True
-        else:
-            self.port_name = getattr(port, "port", None) or repr(port)
-            self._serial = port
-            self._owns_port = False
-            self._serial.timeout = READ_POLL_S
+        self._link = SerialLines(port, baud, WRITE_TIMEOUT_S, "servo board", ServoError)
+        self.port_name = self._link.name
         self.reply_timeout_s = float(reply_timeout_s)
-        self._reader = LineReader(self._serial)
         self._lock = threading.Lock()  # one command in flight
         self._connected = False  # after H: a READY now means the board reset
         try:
@@ -144,8 +134,7 @@ class ServoBoard:
 
     def close(self) -> None:
         """Close the port if this object opened it. Safe to call twice."""
-        if self._owns_port and self._serial is not None and self._serial.is_open:
-            self._serial.close()
+        self._link.close()
 
     def __enter__(self) -> Self:
         return self
@@ -156,17 +145,10 @@ class ServoBoard:
     # ------------------------------------------------------------------ protocol
 
     def _write(self, line: str) -> None:
-        try:
-            self._serial.write((line + "\n").encode("ascii"))
-            self._serial.flush()
-        except (serial.SerialException, OSError) as exc:
-            raise ServoError(f"cannot write {line!r} to {self.port_name}: {exc}") from exc
+        self._link.write(line)
 
     def _read_line(self, deadline: float) -> bytes | None:
-        try:
-            return self._reader.read_line(deadline)
-        except (serial.SerialException, OSError) as exc:
-            raise ServoError(f"cannot read from {self.port_name}: {exc}") from exc
+        return self._link.read_line(deadline)
 
     def _wait_for_banner(self, timeout_s: float) -> None:
         self._write("")

@@ -19,7 +19,7 @@ HEAVY = {
     "pygeodesic": {"phong_reference/geodesic.py"},
     "potpourri3d": {"phong_reference/transport.py", "scenes/elastic.py"},
     "ray": {"scenes/executors.py"},
-    "serial": {"rig/serial_lines.py", "rig/marlin.py", "rig/servos.py"},
+    "serial": {"rig/serial_lines.py"},
 }
 
 
