@@ -29,26 +29,18 @@ banner when the first bytes from the host arrive, before handling them. The driv
 from __future__ import annotations
 
 import logging
-import os
 import re
-import select
-import threading
 import time
-import tty
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Self
 
 import numpy as np
 
 from rig import gcode
+from rig.twins.pty import PtyTwin
 
 log = logging.getLogger(__name__)
 
-#: How often the serving thread checks for input and for close(), seconds.
-POLL_S = 0.01
-#: Longest wait for the serving thread to stop on close(), seconds.
-JOIN_TIMEOUT_S = 2.0
 #: Boot messages, the first being Marlin's banner.
 BANNER = ("start", "echo:tactile-sim Marlin twin", "echo: Last Updated: twin")
 #: Steps per millimetre reported by M114's ``Count`` (Anet A30 defaults: X, Y, Z).
@@ -105,7 +97,7 @@ _WORD = re.compile(r"([A-Z])\s*([-+]?\d*\.?\d*)")
 _LEADING_INT = re.compile(r"[-+]?\d+")
 
 
-class PrinterTwin:
+class PrinterTwin(PtyTwin):
     """A Marlin printer on a pty; see the module docstring.
 
     Parameters
@@ -122,10 +114,7 @@ class PrinterTwin:
         self.faults = faults
         self.on_move = on_move
         self._rng = np.random.default_rng(faults.seed)
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        self.port = os.ttyname(self._slave)
-        self._lock = threading.Lock()  # guards the records read by other threads
+        super().__init__("PrinterTwin")
         self._moves: list[Move] = []  # every executed move
         self._lines: list[tuple[int | None, str]] = []  # every accepted line: (N, command)
         self._rejected: list[tuple[int, str]] = []  # every refused line: (N, reason)
@@ -137,12 +126,9 @@ class PrinterTwin:
         self._seen: set[int] = set()  # line numbers that have arrived once
         self._muted: set[int] = set()  # line numbers whose `ok` has been withheld once
         self._rx = bytearray()  # received bytes not yet split into lines
-        self._banner_sent = False
         self._silent = False  # the silent fault has started
         self.halted = False  # after M112
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name=f"PrinterTwin {self.port}", daemon=True)
-        self._thread.start()
+        self._start()
 
     # ------------------------------------------------------------------ records
 
@@ -176,52 +162,24 @@ class PrinterTwin:
         with self._lock:
             return self._position_mm / gcode.MM_PER_M
 
-    # ------------------------------------------------------------------ lifetime
-
-    def close(self) -> None:
-        """Stop the serving thread and close both ends of the pty. Safe to call twice."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(JOIN_TIMEOUT_S)
-        for name in ("_master", "_slave"):
-            fd = getattr(self, name)
-            if fd is not None:
-                os.close(fd)
-                setattr(self, name, None)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # ------------------------------------------------------------------ serving
 
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self._master], [], [], POLL_S)
-            if not ready:
-                continue
+    def _banner(self) -> None:
+        self._say(*BANNER)
+
+    def _feed(self, data: bytes) -> None:
+        self._rx += data
+        while (end := _eol(self._rx)) >= 0:
+            raw = bytes(self._rx[:end])
+            del self._rx[: end + 1]
             try:
-                data = os.read(self._master, 4096)
-            except OSError:  # no slave open for a moment; try again
-                time.sleep(POLL_S)
-                continue
-            if not self._banner_sent:
-                self._banner_sent = True
-                self._say(*BANNER)
-            self._rx += data
-            while (end := _eol(self._rx)) >= 0:
-                raw = bytes(self._rx[:end])
-                del self._rx[: end + 1]
-                try:
-                    self._handle(raw)
-                except Exception as exc:  # tell the host rather than go silent
-                    log.exception("twin failed on %r", raw)
-                    self._say(f"Error:twin failed: {exc}", "ok")
+                self._handle(raw)
+            except Exception as exc:  # tell the host rather than go silent
+                log.exception("twin failed on %r", raw)
+                self._say(f"Error:twin failed: {exc}", "ok")
 
     def _say(self, *lines: str) -> None:
-        os.write(self._master, "".join(line + "\n" for line in lines).encode("ascii"))
+        self._write("".join(line + "\n" for line in lines).encode("ascii"))
 
     def _line_error(self, n: int, reason: str) -> None:
         with self._lock:
@@ -282,7 +240,7 @@ class PrinterTwin:
                 self._say(f"Error:{faults.error_text}", "ok")
                 return
             if n == faults.garbage_at_line:
-                os.write(self._master, GARBAGE)
+                self._write(GARBAGE)
                 return
         command = command.strip()
         with self._lock:

@@ -12,24 +12,15 @@ host first writes, since a pty cannot tell it when the port is opened.
 from __future__ import annotations
 
 import logging
-import os
-import select
-import threading
-import time
-import tty
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Self
 
 from rig import servo_protocol as sp
 from rig.servo_protocol import Code
+from rig.twins.pty import PtyTwin
 
 log = logging.getLogger(__name__)
 
-#: How often the serving thread checks for input and for close(), seconds.
-POLL_S = 0.01
-#: Longest wait for the serving thread to stop on close(), seconds.
-JOIN_TIMEOUT_S = 2.0
 #: Offsets at boot, centidegrees, by wire id (the sketch's ROLL_OFFSET_CD, PITCH_OFFSET_CD).
 DEFAULT_OFFSETS_CENTIDEG = {"R": 0, "P": 0}
 #: Unreadable bytes sent by the garbage fault, a few lines of them.
@@ -56,7 +47,7 @@ class ServoFaults:
             raise ValueError(f"error_code must not be a transmission error (those are resent), got {self.error_code}")
 
 
-class ServoTwin:
+class ServoTwin(PtyTwin):
     """The servo board on a pty; see the module docstring.
 
     Parameters
@@ -72,10 +63,7 @@ class ServoTwin:
                  on_angles: Callable[[float, float], None] | None = None):
         self.faults = ServoFaults() if faults is None else faults
         self.on_angles = on_angles
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        self.port = os.ttyname(self._slave)
-        self._lock = threading.Lock()  # guards the records read by other threads
+        super().__init__("ServoTwin")
         self._received: list[str] = []  # every non-empty line, as it arrived
         self._commands: list[str] = []  # every body run (checksum good), in order
         self._offsets = dict(DEFAULT_OFFSETS_CENTIDEG)  # centidegrees, by wire id
@@ -83,11 +71,8 @@ class ServoTwin:
         self._pulses: dict[str, int | None] = {k: None for k in sp.SERVOS}  # pulse width driven, µs
         self._rx = bytearray()  # received bytes not yet split into lines
         self._overflow = False  # the current line outgrew the buffer
-        self._banner_sent = False
         self._silent = False
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name=f"ServoTwin {self.port}", daemon=True)
-        self._thread.start()
+        self._start()
 
     # ------------------------------------------------------------------ records
 
@@ -122,42 +107,14 @@ class ServoTwin:
         with self._lock:
             return {sp.SERVOS[k].name: v for k, v in self._pulses.items()}
 
-    # ------------------------------------------------------------------ lifetime
-
-    def close(self) -> None:
-        """Stop the serving thread and close both ends of the pty. Safe to call twice."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(JOIN_TIMEOUT_S)
-        for name in ("_master", "_slave"):
-            fd = getattr(self, name)
-            if fd is not None:
-                os.close(fd)
-                setattr(self, name, None)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
     # ------------------------------------------------------------------ serving
 
-    def _serve(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self._master], [], [], POLL_S)
-            if not ready:
-                continue
-            try:
-                data = os.read(self._master, 4096)
-            except OSError:  # no slave open for a moment; try again
-                time.sleep(POLL_S)
-                continue
-            if not self._banner_sent:
-                self._banner_sent = True
-                self._say(f"{sp.BANNER_WORD} {sp.FIRMWARE} {sp.PROTOCOL_VERSION}")
-            for byte in data:  # byte by byte, like the sketch's loop()
-                self._receive(byte)
+    def _banner(self) -> None:
+        self._say(f"{sp.BANNER_WORD} {sp.FIRMWARE} {sp.PROTOCOL_VERSION}")
+
+    def _feed(self, data: bytes) -> None:
+        for byte in data:  # byte by byte, like the sketch's loop()
+            self._receive(byte)
 
     def _receive(self, byte: int) -> None:
         if byte not in b"\r\n":
@@ -181,7 +138,7 @@ class ServoTwin:
         line = f"{body}*{sp.checksum(body)}"  # not sp.frame: answers may outgrow the board's RX buffer
         if corrupt:  # flip the checksum's last digit
             line = line[:-1] + str((int(line[-1]) + 1) % 10)
-        os.write(self._master, (line + "\n").encode("ascii"))
+        self._write((line + "\n").encode("ascii"))
 
     def _handle(self, raw: bytes, overflow: bool) -> None:
         text = raw.decode("ascii", errors="replace")
@@ -204,7 +161,7 @@ class ServoTwin:
             self._say(f"ERR {int(faults.error_code)} {faults.error_text}")
             return
         if k == faults.garbage_at:
-            os.write(self._master, GARBAGE)
+            self._write(GARBAGE)
             return
         with self._lock:
             self._commands.append(body)
