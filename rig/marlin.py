@@ -50,7 +50,7 @@ import numpy as np
 
 from rig import gcode
 from rig.gcode import Kind
-from rig.serial_lines import SerialLines
+from rig.serial_lines import SerialLines, check_seconds
 
 log = logging.getLogger(__name__)
 
@@ -107,9 +107,7 @@ class MarlinPrinter:
 
     def __init__(self, port, baud: int = DEFAULT_BAUD, *, reply_timeout_s: float = REPLY_TIMEOUT_S,
                  banner_timeout_s: float = BANNER_TIMEOUT_S):
-        for name, value in (("reply_timeout_s", reply_timeout_s), ("banner_timeout_s", banner_timeout_s)):
-            if not value >= 0:
-                raise ValueError(f"{name} must be >= 0 seconds, got {value!r}")
+        check_seconds(reply_timeout_s=reply_timeout_s, banner_timeout_s=banner_timeout_s)
         self._link = SerialLines(port, baud, WRITE_TIMEOUT_S, "printer", PrinterError)
         self.port_name = self._link.name
         self.reply_timeout_s = float(reply_timeout_s)
@@ -207,18 +205,15 @@ class MarlinPrinter:
         with self._write_lock:
             self._link.write(line)
 
-    def _read_line(self, deadline: float) -> bytes | None:
-        return self._link.read_line(deadline)
-
     def _wait_for_banner(self, timeout_s: float) -> None:
         self._write("")
         deadline = time.monotonic() + timeout_s
-        while (raw := self._read_line(deadline)) is not None:
+        while (raw := self._link.read_line(deadline)) is not None:
             reply = gcode.parse_reply(raw)
             log.debug("%s (banner) <- %s", self.port_name, reply.text)
             if reply.kind is Kind.START:
                 # drain the boot messages that follow, until the line goes quiet
-                while self._read_line(min(deadline, time.monotonic() + BANNER_QUIET_S)) is not None:
+                while self._link.read_line(min(deadline, time.monotonic() + BANNER_QUIET_S)) is not None:
                     pass
                 return
         log.info("%s: no 'start' banner within %.1f s; assuming the firmware is running", self.port_name, timeout_s)
@@ -235,7 +230,7 @@ class MarlinPrinter:
         deadline = time.monotonic() + timeout_s
         where = f"{command!r} (line N{n}) on {self.port_name}"
         while True:
-            raw = self._read_line(min(deadline, grace_end))
+            raw = self._link.read_line(min(deadline, grace_end))
             now = time.monotonic()
             reply = None if raw is None else gcode.parse_reply(raw)
             if reply is not None:

@@ -45,6 +45,13 @@ def open_port(port: str, baud: int, write_timeout_s: float, device: str, error: 
                     "(does the device exist, and is no other program holding it?)") from exc
 
 
+def check_seconds(**seconds: float) -> None:
+    """``ValueError`` naming the first of the drivers' time arguments that is not >= 0 s."""
+    for name, value in seconds.items():
+        if not value >= 0:
+            raise ValueError(f"{name} must be >= 0 seconds, got {value!r}")
+
+
 class SerialLines:
     """A device's line link: its port (opened here from a path, or given open), lines
     written whole and lines read against a deadline, every port failure raised as the

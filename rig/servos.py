@@ -27,7 +27,7 @@ import time
 from typing import Self
 
 from rig import servo_protocol as sp
-from rig.serial_lines import SerialLines
+from rig.serial_lines import SerialLines, check_seconds
 
 log = logging.getLogger(__name__)
 
@@ -77,9 +77,7 @@ class ServoBoard:
 
     def __init__(self, port, baud: int = DEFAULT_BAUD, *, reply_timeout_s: float = REPLY_TIMEOUT_S,
                  banner_timeout_s: float = BANNER_TIMEOUT_S):
-        for name, value in (("reply_timeout_s", reply_timeout_s), ("banner_timeout_s", banner_timeout_s)):
-            if not value >= 0:
-                raise ValueError(f"{name} must be >= 0 seconds, got {value!r}")
+        check_seconds(reply_timeout_s=reply_timeout_s, banner_timeout_s=banner_timeout_s)
         self._link = SerialLines(port, baud, WRITE_TIMEOUT_S, "servo board", ServoError)
         self.port_name = self._link.name
         self.reply_timeout_s = float(reply_timeout_s)
@@ -144,16 +142,10 @@ class ServoBoard:
 
     # ------------------------------------------------------------------ protocol
 
-    def _write(self, line: str) -> None:
-        self._link.write(line)
-
-    def _read_line(self, deadline: float) -> bytes | None:
-        return self._link.read_line(deadline)
-
     def _wait_for_banner(self, timeout_s: float) -> None:
-        self._write("")
+        self._link.write("")
         deadline = time.monotonic() + timeout_s
-        while (raw := self._read_line(deadline)) is not None:
+        while (raw := self._link.read_line(deadline)) is not None:
             reply = sp.parse_reply(raw)
             log.debug("%s (banner) <- %s", self.port_name, reply.text)
             if reply.kind is sp.Kind.READY:
@@ -165,20 +157,20 @@ class ServoBoard:
         line = sp.frame(body)
         where = f"{body!r} on {self.port_name}"
         with self._lock:
-            self._write(line)
+            self._link.write(line)
             retries = resends = 0
             garbage: list[str] = []
             stale: list[str] = []
             deadline = time.monotonic() + self.reply_timeout_s
             while True:
-                raw = self._read_line(deadline)
+                raw = self._link.read_line(deadline)
                 if raw is None:
                     if retries >= TIMEOUT_RETRIES:
                         raise ServoTimeout(
                             f"no answer to {where} within {self.reply_timeout_s:.2f} s, written {retries + 1} times")
                     retries += 1
                     log.warning("%s: no answer to %s; writing it again", self.port_name, where)
-                    self._write(line)
+                    self._link.write(line)
                     deadline = time.monotonic() + self.reply_timeout_s
                     continue
                 reply = sp.parse_reply(raw)
@@ -194,10 +186,13 @@ class ServoBoard:
                             f"{where} was damaged in transit more than {MAX_RESENDS} times; last: "
                             f"{reply.text!r} (noisy cable, or wrong baud rate?)")
                     log.info("%s: %s; writing %s again", self.port_name, reply.text, line)
-                    self._write(line)
+                    self._link.write(line)
                     deadline = time.monotonic() + self.reply_timeout_s
                 elif reply.kind is sp.Kind.ERR:
-                    name = sp.Code(reply.code).name if reply.code in sp.Code._value2member_map_ else "unknown"
+                    try:
+                        name = sp.Code(reply.code).name
+                    except ValueError:
+                        name = "unknown"
                     raise ServoError(f"board on {self.port_name} refused {body!r}: {reply.text} ({name})")
                 elif reply.kind is sp.Kind.READY:
                     if self._connected:
