@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rig import gcode
-from rig.twins.pty import PtyTwin
+from rig.twins.pty import GARBAGE, PtyTwin
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +47,6 @@ BANNER = ("start", "echo:tactile-sim Marlin twin", "echo: Last Updated: twin")
 STEPS_PER_MM = (80.0, 80.0, 400.0)
 #: What M112 prints before the board stops (Marlin's MSG_ERR_KILLED).
 KILLED = "Error:Printer halted. kill() called!"
-#: Unreadable bytes sent by the garbage fault, a few lines of them.
-GARBAGE = b"\xff\xfe\x00\x9c\x81\xc3(\n" * 4
 
 
 @dataclass(frozen=True)
@@ -254,7 +252,7 @@ class PrinterTwin(PtyTwin):
 
     def _execute(self, n: int | None, command: str) -> list[str]:
         """Run one accepted command; return the lines to answer, ``ok`` last."""
-        words = [(letter, value) for letter, value in _WORD.findall(command)]
+        words = _WORD.findall(command)
         if not words:
             return ["ok"]
         code = words[0][0] + words[0][1]

@@ -20,6 +20,8 @@ from typing import Self
 POLL_S = 0.01
 #: Longest wait for the serving thread on ``close``, seconds.
 JOIN_TIMEOUT_S = 2.0
+#: Unreadable bytes a twin's garbage fault sends, a few lines of them.
+GARBAGE = b"\xff\xfe\x00\x9c\x81\xc3(\n" * 4
 
 
 class PtyTwin:

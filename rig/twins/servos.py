@@ -17,14 +17,12 @@ from dataclasses import dataclass
 
 from rig import servo_protocol as sp
 from rig.servo_protocol import Code
-from rig.twins.pty import PtyTwin
+from rig.twins.pty import GARBAGE, PtyTwin
 
 log = logging.getLogger(__name__)
 
 #: Offsets at boot, centidegrees, by wire id (the sketch's ROLL_OFFSET_CD, PITCH_OFFSET_CD).
 DEFAULT_OFFSETS_CENTIDEG = {"R": 0, "P": 0}
-#: Unreadable bytes sent by the garbage fault, a few lines of them.
-GARBAGE = b"\xff\xfe\x00\x9c\x81\xc3(\n" * 4
 
 
 @dataclass(frozen=True)
