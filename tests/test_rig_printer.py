@@ -296,3 +296,10 @@ def test_busy_port_names_the_port(session):
     twin, _ = session()
     with pytest.raises(PrinterError, match=twin.port):
         MarlinPrinter(twin.port, banner_timeout_s=0.0)
+
+
+def test_negative_timeouts_are_refused_before_the_port_is_opened():
+    with pytest.raises(ValueError, match="reply_timeout_s must be >= 0 seconds, got -1"):
+        MarlinPrinter("/dev/tactile-sim-no-such-printer", reply_timeout_s=-1)
+    with pytest.raises(ValueError, match="banner_timeout_s must be >= 0 seconds, got nan"):
+        MarlinPrinter("/dev/tactile-sim-no-such-printer", banner_timeout_s=math.nan)

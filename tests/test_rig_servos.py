@@ -282,3 +282,8 @@ def test_sketch_compiles_for_the_mega(tmp_path):
     assert (build / "servo_rig_.hex").is_file() or list(build.glob("*.hex"))
     warnings = [line for line in result.stderr.splitlines() if "servo_rig.ino" in line and "warning" in line]
     assert not warnings, warnings
+
+
+def test_negative_timeouts_are_refused_before_the_port_is_opened():
+    with pytest.raises(ValueError, match="reply_timeout_s must be >= 0 seconds, got -0.5"):
+        ServoBoard("/dev/tactile-sim-no-such-servo-board", reply_timeout_s=-0.5)
