@@ -23,7 +23,7 @@ Lines (ASCII, ended by ``\\n``; the board also accepts ``\\r``; empty lines are 
   ========================  =========================================  ===========================
 
 * A refusal is ``ERR <code> <message>`` (:class:`Code`). The board clamps nothing: an angle
-  outside the servo's travel (:data:`ROLL`, :data:`PITCH`, from :mod:`scenes.rig`) is
+  outside the servo's travel (:data:`ROLL`, :data:`PITCH`, from :mod:`scenes.kinematics`) is
   ``ERR 5``; an angle whose horn angle (angle + offset) is outside the Servo library's
   0-180 degree pulse range is ``ERR 6``; an offset beyond :data:`MAX_OFFSET_CENTIDEG` is
   ``ERR 7``; ``?`` before any ``S`` is ``ERR 8`` (the board does not drive a servo, which
@@ -51,7 +51,7 @@ import re
 from dataclasses import dataclass
 
 from rig.gcode import checksum
-from scenes.rig import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD
+from scenes.kinematics import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD
 
 #: Name the board gives itself in its banner and its answer to ``H``.
 FIRMWARE = "servo_rig"

@@ -26,36 +26,19 @@ import numpy as np
 import trimesh
 
 from .geometry import membrane_mesh
-from .protocol import SENSOR_TO_WORLD_AT_ROLL0, Tap
+from .kinematics import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD, SENSOR_TO_WORLD_AT_ROLL0, RigLayout, tap_pose
+from .protocol import Tap
 from .spec import SensorSpec
 
 #: Geom groups: what the in-sensor depth camera sees, and visual-only parts.
 GROUP_MEMBRANE_VIEW, GROUP_INDENTER, GROUP_MEMBRANE, GROUP_BODY, GROUP_SPARE = 0, 1, 2, 3, 4
 DEPTH_GROUPS = (GROUP_MEMBRANE_VIEW, GROUP_INDENTER)
 
-#: Servo travel, radians: the Hitec HS-422 turns about 180 degrees; a little beyond
-#: [0, pi] for the roll and [0, pi/2] for the pitch leaves room for perturbed taps.
-ROLL_TRAVEL_RAD = (-0.2, math.pi + 0.2)
-PITCH_TRAVEL_RAD = (-0.35, math.pi / 2 + 0.35)
-
 #: Model extent for MuJoCo's near/far planes, which are fractions of it (metres).
 EXTENT_M = 0.5
 #: Near and far clip planes of every camera, metres (set explicitly: MuJoCo's defaults,
 #: fractions of the model extent, can clip a small sensor).
 ZNEAR_M, ZFAR_M = 0.001, 2.0
-
-
-@dataclass(frozen=True)
-class RigLayout:
-    """Where the rig's parts are, metres (world frame)."""
-
-    sensor_origin: tuple[float, float, float] = (0.16, 0.0, 0.08)  # camera centre at roll 0
-    mount_length: float = 0.045  # head to the pitch servo's axis
-    indenter_offset: float = 0.012  # pitch axis to the indenter's base
-    travel_x: tuple[float, float] = (-0.05, 0.35)  # printer_x range
-    travel_y: tuple[float, float] = (-0.16, 0.16)
-    travel_z: tuple[float, float] = (-0.05, 0.40)
-    home: tuple[float, float, float] = (0.16, 0.0, 0.20)  # head position at rest
 
 
 def _f(values) -> str:
@@ -73,6 +56,8 @@ class RigScene:
     xml: str
     assets: dict[str, bytes]
     indenters: tuple[str, ...]
+    #: name -> (V, 3) the indenter mesh's vertices in its own frame, metres.
+    vertices: dict[str, np.ndarray]
 
     def export(self, folder: str | Path) -> Path:
         """Write ``rig.xml`` and its meshes, for ``python -m mujoco.viewer --mjcf``."""
@@ -208,7 +193,8 @@ def rig_scene(
   </actuator>
 </mujoco>
 """
-    return RigScene(xml, assets, tuple(indenters))
+    vertices = {name: np.array(mesh.vertices, dtype=np.float64) for name, mesh in indenters.items()}
+    return RigScene(xml, assets, tuple(indenters), vertices)
 
 
 class Rig:
@@ -239,13 +225,6 @@ class Rig:
         for other in self.scene.indenters:
             geom = self.model.geom(f"indenter_{_safe_name(other)}")
             self.model.geom_group[geom.id] = GROUP_INDENTER if other == name else GROUP_SPARE
-        geom = self.model.geom(f"indenter_{_safe_name(name)}")
-        mesh_id = int(self.model.geom_dataid[geom.id])
-        start, count = self.model.mesh_vertadr[mesh_id], self.model.mesh_vertnum[mesh_id]
-        # MuJoCo stores mesh vertices in the geom's frame (re-centred on the mesh).
-        self._vertices = np.array(self.model.mesh_vert[start : start + count], dtype=np.float64)
-        self._geom = f"indenter_{_safe_name(name)}"
-        self._tip = f"indenter_tip_{_safe_name(name)}"
         self.mounted = name
 
     # -- poses ------------------------------------------------------------------------
@@ -275,26 +254,12 @@ class Rig:
         return np.array(body.xmat).reshape(3, 3), np.array(body.xpos)
 
     def tap_pose(self, tap: Tap) -> dict[str, float]:
-        """Joint positions that press the indenter ``tap.depth`` into the membrane.
-
-        The indenter's tip site is put on the normal line through the contact point, and
-        the indenter is moved along the normal until its deepest vertex lies ``depth``
-        below the surface, measured along the normal.
-        """
-        self.mount(tap.object)
-        self.set_joints(printer_x=0.0, printer_y=0.0, printer_z=0.0, indenter_pitch=tap.indenter_pitch,
-                        sensor_roll=tap.sensor_roll)
-        R, t = self.sensor_to_world()
-        p = R @ np.asarray(tap.point) + t
-        n = R @ np.asarray(tap.normal)
-        geom = self.data.geom(self._geom)
-        verts = self._vertices @ np.array(geom.xmat).reshape(3, 3).T + np.array(geom.xpos)
-        tip = np.array(self.data.site(self._tip).xpos)
-        lateral = (p - tip) - np.dot(p - tip, n) * n
-        along = (np.dot(p, n) - tap.depth) - (verts @ n).min()
-        x, y, z = lateral + along * n
-        pose = {"printer_x": x, "printer_y": y, "printer_z": z, "indenter_pitch": tap.indenter_pitch,
-                "sensor_roll": tap.sensor_roll}
+        """Joint positions that press the indenter ``tap.depth`` into the membrane
+        (``scenes.kinematics.tap_pose``); ValueError when the head cannot reach them."""
+        if tap.object not in self.scene.indenters:
+            raise ValueError(f"tap {tap.index} presses {tap.object!r}, which is not in this rig; it has "
+                             f"{list(self.scene.indenters)}")
+        pose = tap_pose(tap, self.scene.vertices[tap.object], self.layout)
         for name in ("printer_x", "printer_y", "printer_z"):
             lo, hi = self.model.jnt_range[self.model.joint(name).id]
             if not lo <= pose[name] <= hi:
@@ -305,6 +270,7 @@ class Rig:
         return pose
 
     def press(self, tap: Tap) -> None:
+        self.mount(tap.object)
         self.set_joints(**self.tap_pose(tap))
 
     # -- rendering --------------------------------------------------------------------

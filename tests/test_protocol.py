@@ -11,6 +11,8 @@ import math
 import numpy as np
 import pytest
 
+from scenes import kinematics as K
+from scenes import meridian as M
 from scenes import protocol as P
 from scenes.geometry import revolve
 
@@ -73,60 +75,60 @@ def extended(spec, mesh):
 
 
 def test_sensor_to_world_is_a_right_handed_rotation_with_the_documented_columns():
-    M = P.SENSOR_TO_WORLD_AT_ROLL0
+    M = K.SENSOR_TO_WORLD_AT_ROLL0
     assert np.allclose(M.T @ M, np.eye(3), atol=EXACT)
     assert np.linalg.det(M) == pytest.approx(1.0, abs=EXACT)
     x_s, y_s, z_s = M.T
     assert np.allclose(x_s, [0, -1, 0]) and np.allclose(y_s, [0, 0, -1]) and np.allclose(z_s, [1, 0, 0])
     rolls = np.linspace(-np.pi, 2 * np.pi, 13)
-    R = P.sensor_to_world(rolls)
+    R = K.sensor_to_world(rolls)
     assert R.shape == (13, 3, 3)
     assert np.allclose(np.linalg.det(R), 1.0, atol=EXACT)
     assert np.allclose(np.einsum("nij,nkj->nik", R, R), np.eye(3), atol=EXACT)
     # Rolling turns the sensor about its own axis, which stays along world +X.
     assert np.allclose(R @ [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], atol=EXACT)
-    assert np.allclose(P.sensor_to_world(0.7), M @ P._rz(np.float64(0.7)), atol=EXACT)
+    assert np.allclose(K.sensor_to_world(0.7), M @ K._rz(np.float64(0.7)), atol=EXACT)
 
 
 def test_up_in_sensor_faces_world_up_at_every_roll():
     rolls = np.linspace(0.0, 2 * np.pi, 17)
-    up = P.up_in_sensor(rolls)
+    up = K.up_in_sensor(rolls)
     assert np.allclose(up, np.stack([-np.sin(rolls), -np.cos(rolls), np.zeros_like(rolls)], 1), atol=EXACT)
-    assert np.allclose(np.einsum("nij,nj->ni", P.sensor_to_world(rolls), up), [0.0, 0.0, 1.0], atol=EXACT)
-    assert np.allclose(P.up_in_sensor(0.0), [0.0, -1.0, 0.0], atol=EXACT)  # -y_s is up at roll 0
-    assert np.allclose(P.up_in_sensor(np.pi / 2), [-1.0, 0.0, 0.0], atol=EXACT)
+    assert np.allclose(np.einsum("nij,nj->ni", K.sensor_to_world(rolls), up), [0.0, 0.0, 1.0], atol=EXACT)
+    assert np.allclose(K.up_in_sensor(0.0), [0.0, -1.0, 0.0], atol=EXACT)  # -y_s is up at roll 0
+    assert np.allclose(K.up_in_sensor(np.pi / 2), [-1.0, 0.0, 0.0], atol=EXACT)
 
 
 def test_indenter_axis_and_pitch_for_normal():
-    assert np.allclose(P.indenter_axis(0.0), [0.0, 0.0, -1.0], atol=EXACT)  # hangs down
-    assert np.allclose(P.indenter_axis(np.pi / 2), [-1.0, 0.0, 0.0], atol=EXACT)  # at the apex
+    assert np.allclose(K.indenter_axis(0.0), [0.0, 0.0, -1.0], atol=EXACT)  # hangs down
+    assert np.allclose(K.indenter_axis(np.pi / 2), [-1.0, 0.0, 0.0], atol=EXACT)  # at the apex
     # The apex faces +X: pitch pi/2; the top of the cylinder faces +Z: pitch 0.
-    assert P.pitch_for_normal([1.0, 0.0, 0.0]) == pytest.approx(np.pi / 2, abs=EXACT)
-    assert P.pitch_for_normal([0.0, 0.0, 1.0]) == pytest.approx(0.0, abs=EXACT)
+    assert K.pitch_for_normal([1.0, 0.0, 0.0]) == pytest.approx(np.pi / 2, abs=EXACT)
+    assert K.pitch_for_normal([0.0, 0.0, 1.0]) == pytest.approx(0.0, abs=EXACT)
     a = np.linspace(0.0, np.pi / 2, 7)
     n = np.stack([np.cos(a), np.zeros_like(a), np.sin(a)], 1)
-    pitch = P.pitch_for_normal(n)
+    pitch = K.pitch_for_normal(n)
     assert np.allclose(pitch, np.pi / 2 - a, atol=EXACT)
-    assert np.allclose(P.indenter_axis(pitch), -n, atol=EXACT)
+    assert np.allclose(K.indenter_axis(pitch), -n, atol=EXACT)
 
 
 def test_pitch_for_normal_refuses_normals_the_servo_cannot_face():
     with pytest.raises(ValueError, match="XZ plane"):
-        P.pitch_for_normal([0.0, 1.0, 1.0])
+        K.pitch_for_normal([0.0, 1.0, 1.0])
     with pytest.raises(ValueError, match="non-zero"):
-        P.pitch_for_normal([0.0, 0.0, 0.0])
+        K.pitch_for_normal([0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match=r"\(3,\)"):
-        P.pitch_for_normal([1.0, 0.0])
+        K.pitch_for_normal([1.0, 0.0])
 
 
 def test_normal_in_sensor_is_realised_by_roll_and_pitch():
     rng = np.random.default_rng(7)
     roll, pitch = rng.uniform(0, np.pi, 50), rng.uniform(-0.2, np.pi / 2 + 0.2, 50)
-    n = P.normal_in_sensor(roll, pitch)
-    up = P.up_in_sensor(roll)
+    n = K.normal_in_sensor(roll, pitch)
+    up = K.up_in_sensor(roll)
     assert np.allclose(n, np.cos(pitch)[:, None] * up + np.sin(pitch)[:, None] * [0, 0, 1], atol=EXACT)
-    world = np.einsum("nij,nj->ni", P.sensor_to_world(roll), n)
-    assert np.allclose(world, -P.indenter_axis(pitch), atol=EXACT)
+    world = np.einsum("nij,nj->ni", K.sensor_to_world(roll), n)
+    assert np.allclose(world, -K.indenter_axis(pitch), atol=EXACT)
 
 
 # --- Meridians --------------------------------------------------------------------------
@@ -135,8 +137,8 @@ def test_normal_in_sensor_is_realised_by_roll_and_pitch():
 @pytest.mark.parametrize("roll", [0.0, 0.3, np.pi / 4, np.pi / 2, 2.0, np.pi])
 def test_meridian_matches_the_analytic_capsule(spec, mesh, roll):
     R, z_top, c = capsule(spec)
-    mer = P.meridian(mesh, roll)
-    up = P.up_in_sensor(roll)
+    mer = M.meridian(mesh, roll)
+    up = K.up_in_sensor(roll)
     # In the plane, on the up side, from the apex to the open base.
     assert np.abs(mer.points @ mer.plane_normal).max() < EXACT
     assert (mer.points @ up).min() >= -EXACT
@@ -146,18 +148,18 @@ def test_meridian_matches_the_analytic_capsule(spec, mesh, roll):
     assert np.all(np.diff(mer.arc) > 0)
 
     a = np.radians([0.0, 10.0, 30.0, 45.0, 60.0, 75.0])
-    p, n = P.point_at_angle(mer, a)
+    p, n = M.point_at_angle(mer, a)
     exact = c + R * (np.sin(a)[:, None] * up + np.cos(a)[:, None] * [0, 0, 1])
     assert np.linalg.norm(p - exact, axis=1).max() < TIP_POINT_TOLERANCE_M
     assert np.allclose(n, (exact - c) / R, atol=EXACT)
 
-    p, n = P.point_at_angle(mer, np.pi / 2)
+    p, n = M.point_at_angle(mer, np.pi / 2)
     assert np.linalg.norm(p[0] - (c + R * up)) < JUNCTION_POINT_TOLERANCE_M
     assert np.allclose(n[0], up, atol=EXACT)
-    assert P.junction_arc(mer) == pytest.approx(np.pi / 2 * R, abs=JUNCTION_POINT_TOLERANCE_M)
+    assert M.junction_arc(mer) == pytest.approx(np.pi / 2 * R, abs=JUNCTION_POINT_TOLERANCE_M)
 
     back = np.array([0.009, 0.018, 0.03])
-    p, n = P.point_behind_junction(mer, back)
+    p, n = M.point_behind_junction(mer, back)
     exact = R * up + (z_top - back)[:, None] * [0, 0, 1]
     assert np.linalg.norm(p - exact, axis=1).max() < JUNCTION_POINT_TOLERANCE_M
     assert angle_between(n, np.broadcast_to(up, n.shape)).max() < NORMAL_TOLERANCE_RAD
@@ -172,17 +174,17 @@ def test_meridian_of_another_shape_an_ellipsoidal_tip():
     profile = np.vstack([[A, base], np.stack([A * np.sin(t), z0 + B * np.cos(t)], 1)])
     mesh = revolve(profile, 0.0005)
     roll = 1.1
-    mer = P.meridian(mesh, roll)
-    up = P.up_in_sensor(roll)
+    mer = M.meridian(mesh, roll)
+    up = K.up_in_sensor(roll)
     alpha = np.radians([0.0, 20.0, 45.0, 70.0])
     tt = np.arctan(A / B * np.tan(alpha))
     exact = A * np.sin(tt)[:, None] * up + (z0 + B * np.cos(tt))[:, None] * [0, 0, 1]
-    p, _ = P.point_at_angle(mer, alpha)
+    p, _ = M.point_at_angle(mer, alpha)
     assert np.linalg.norm(p - exact, axis=1).max() < 2 * TIP_POINT_TOLERANCE_M
     # The junction may move towards the apex by the meridian's radius of curvature
     # there, B^2 / A, times the junction's angle tolerance (0.22 mm here).
-    p, _ = P.point_behind_junction(mer, 0.01)
-    junction_tolerance = B**2 / A * P.JUNCTION_ANGLE_TOLERANCE_RAD
+    p, _ = M.point_behind_junction(mer, 0.01)
+    junction_tolerance = B**2 / A * M.JUNCTION_ANGLE_TOLERANCE_RAD
     assert np.linalg.norm(p[0] - (A * up + [0, 0, z0 - 0.01])) < junction_tolerance
 
 
@@ -190,19 +192,19 @@ def test_meridian_refuses_bad_input(mesh):
     import trimesh
 
     with pytest.raises(ValueError, match="roll must be finite"):
-        P.meridian(mesh, float("nan"))
+        M.meridian(mesh, float("nan"))
     box = trimesh.creation.box((0.01, 0.01, 0.01))
     box.apply_translation([0.0, 0.05, 0.0])
     with pytest.raises(ValueError, match="misses the membrane"):
-        P.meridian(box, np.pi / 2)  # the plane y = 0
+        M.meridian(box, np.pi / 2)  # the plane y = 0
     box.apply_translation([0.05, -0.05, 0.0])
     with pytest.raises(ValueError, match="never crosses the sensor axis"):
-        P.meridian(box, np.pi / 2)
-    mer = P.meridian(mesh, 0.0)
+        M.meridian(box, np.pi / 2)
+    mer = M.meridian(mesh, 0.0)
     with pytest.raises(ValueError, match=r"angle must be in \[0, pi/2\]"):
-        P.arc_at_angle(mer, 2.0)
+        M.arc_at_angle(mer, 2.0)
     with pytest.raises(ValueError, match="arc must be in"):
-        P.point_at_arc(mer, mer.length + 0.001)
+        M.point_at_arc(mer, mer.length + 0.001)
 
 
 # --- Base protocol ---------------------------------------------------------------------
@@ -226,7 +228,7 @@ def test_base_taps_match_the_analytic_capsule(spec, base):
     R, z_top, c = capsule(spec)
     angles = np.radians([0.0, 30.0, 60.0, 90.0])
     for t in base.taps:
-        up = P.up_in_sensor(t.sensor_roll)
+        up = K.up_in_sensor(t.sensor_roll)
         point, normal = np.array(t.point), np.array(t.normal)
         if t.position < 4:
             a = angles[t.position]
@@ -446,7 +448,7 @@ def test_validate_refuses_bad_normals_and_servo_angles(spec, mesh, base):
         P.validate(_with_tap(base, 7, indenter_pitch=t.indenter_pitch + 0.05), spec, mesh)
     # A grazing approach, realised by the servos, at the apex.
     pitch = np.pi / 2 - math.radians(30.0)
-    grazing = tuple(P.normal_in_sensor(t.sensor_roll, pitch))
+    grazing = tuple(K.normal_in_sensor(t.sensor_roll, pitch))
     bad = _with_tap(base, 0, indenter_pitch=pitch, normal=grazing, point=base.taps[0].point)
     with pytest.raises(ValueError, match="tap 0 .*30.00 deg off the membrane normal"):
         P.validate(bad, spec, mesh)

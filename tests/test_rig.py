@@ -104,6 +104,26 @@ def test_pose_puts_the_indenter_where_the_tap_says(rig_factory, spec, mesh):
     assert np.allclose(tip, apex - 0.002 * (R @ np.asarray(tap.normal)), atol=1e-6)
 
 
+def test_the_kinematics_chain_is_the_mujoco_rigs(rig_factory):
+    """scenes.kinematics puts the indenter where MuJoCo's forward kinematics does, at any
+    joints: the real rig, which has no MuJoCo, drives the head by the same chain."""
+    from scenes.kinematics import indenter_to_world, sensor_to_world
+
+    rig = rig_factory()
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        head = rng.uniform((0.0, -0.1, 0.0), (0.3, 0.1, 0.3))
+        pitch, roll = rng.uniform(-0.3, 1.8), rng.uniform(-0.1, 3.2)
+        rig.set_joints(printer_x=head[0], printer_y=head[1], printer_z=head[2], indenter_pitch=pitch, sensor_roll=roll)
+        R, t = indenter_to_world(head, pitch, rig.layout)
+        body = rig.data.body("indenter")
+        assert np.allclose(R, np.array(body.xmat).reshape(3, 3), atol=1e-12)
+        assert np.allclose(t, body.xpos, atol=1e-12)
+        R_s, t_s = rig.sensor_to_world()
+        assert np.allclose(R_s, sensor_to_world(roll), atol=1e-12)
+        assert np.allclose(t_s, rig.layout.sensor_origin, atol=1e-12)
+
+
 def test_mounting_swaps_what_the_camera_sees(rig_factory, spec, mesh, camera, ref):
     rig = rig_factory("sphere")
     tap = base_protocol(spec, mesh, ("sphere",)).taps[0]

@@ -72,7 +72,7 @@ def test_angles_travel_as_degrees_with_two_decimals():
 
 
 def test_travel_comes_from_the_rig_model_rounded_inwards():
-    from scenes.rig import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD
+    from scenes.kinematics import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD
 
     assert sp.ROLL.travel_rad == ROLL_TRAVEL_RAD and sp.PITCH.travel_rad == PITCH_TRAVEL_RAD
     lo, hi = sp.ROLL.travel_centideg

@@ -20,7 +20,7 @@
 const uint8_t ROLL_PIN = 9;
 const uint8_t PITCH_PIN = 10;
 
-// Travel, centidegrees: scenes/rig.py's ROLL_TRAVEL_RAD and PITCH_TRAVEL_RAD, rounded inwards.
+// Travel, centidegrees: scenes/kinematics.py's ROLL_TRAVEL_RAD and PITCH_TRAVEL_RAD, rounded inwards.
 const long ROLL_MIN_CD = -1145;
 const long ROLL_MAX_CD = 19145;
 const long PITCH_MIN_CD = -2005;
