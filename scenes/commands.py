@@ -103,6 +103,39 @@ def _film_size(value: str) -> list[int]:
     return [width, height]
 
 
+def add_renderer_arguments(p) -> None:
+    """The renderer and its options (:data:`RENDERER_OPTIONS`), on any command that renders."""
+    p.add_argument("--renderer", default="phong", help="phong (the fast path) or pbr (the physically based reference)")
+    p.add_argument("--field", help="phong: light field (default plane)")
+    p.add_argument("--background", help="phong: none (default), solid, or a no-contact image path")
+    p.add_argument("--rectify", action="store_true", default=None, help="phong: rectify the light vectors")
+    p.add_argument("--elastic", choices=MODELS,
+                   help="phong: the membrane model, published (the paper's smoothing, default) or layer (the "
+                        "elastic layer the pbr renderer deforms, so both renderers see one surface)")
+    p.add_argument("--target-rse", type=float, metavar="R",
+                   help="pbr: add passes until the RMS relative standard error over the contact is at most R "
+                        "(default 0.05)")
+    p.add_argument("--max-passes", type=int, metavar="N", help="pbr: at most N passes per sample (default 16)")
+    p.add_argument("--effect", action="append", metavar="NAME=VALUE",
+                   help="pbr: set one physical effect of pbr_tactile.effects.Effects (repeatable)")
+    p.add_argument("--estimator", help="pbr: photons (default) or volpath")
+    p.add_argument("--photons", type=int, help="pbr: photons per LED per pass")
+    p.add_argument("--camera-spp", type=int, help="pbr: camera samples per pixel per pass")
+    p.add_argument("--kernel-radius-mm", type=float, help="pbr: radius of the photon density estimate, mm")
+    p.add_argument("--no-contact-runs", type=int, metavar="M",
+                   help="pbr: no-contact photon runs per pass in the cached no-contact map (0: off)")
+    p.add_argument("--profile", metavar="PROFILE.toml",
+                   help="render the calibrated unit of this profile (tactile-sim calibrate)")
+    p.add_argument("--film", type=_film_size, metavar="WxH",
+                   help="pbr: render at WxH (the camera's aspect) and resample to the camera's size")
+
+
+def renderer_options(args) -> dict:
+    """The renderer options given on the command line (each renderer refuses those it does
+    not take)."""
+    return {key: getattr(args, attr) for key, attr in RENDERER_OPTIONS.items() if getattr(args, attr) is not None}
+
+
 def cmd_dataset(args) -> int:
     from .generate import generate
     from .geometry import membrane_mesh
@@ -113,8 +146,7 @@ def cmd_dataset(args) -> int:
         from dataclasses import replace
 
         protocol = replace(protocol, taps=protocol.taps[: args.limit])
-    # Only the options given: each renderer refuses those it does not take.
-    options = {key: getattr(args, attr) for key, attr in RENDERER_OPTIONS.items() if getattr(args, attr) is not None}
+    options = renderer_options(args)
     summary = generate(args.out, spec, protocol, args.renderer, options, workers=args.workers,
                        executor=args.executor, address=args.address)
     where = f"Ray cluster at {args.address}" if args.address else f"{summary['workers']} {args.executor} workers"
@@ -306,29 +338,7 @@ def register(registry) -> None:
     p.add_argument("--protocol", choices=["base", "extended"], default="base")
     p.add_argument("--objects", default="all", help="'all' or comma-separated indenter names / STL paths")
     p.add_argument("--seed", type=int, default=0, help="seed of the extended protocol's perturbations")
-    p.add_argument("--renderer", default="phong", help="phong (the fast path) or pbr (the physically based reference)")
-    p.add_argument("--field", help="phong: light field (default plane)")
-    p.add_argument("--background", help="phong: none (default), solid, or a no-contact image path")
-    p.add_argument("--rectify", action="store_true", default=None, help="phong: rectify the light vectors")
-    p.add_argument("--elastic", choices=MODELS,
-                   help="phong: the membrane model, published (the paper's smoothing, default) or layer (the "
-                        "elastic layer the pbr renderer deforms, so both renderers see one surface)")
-    p.add_argument("--target-rse", type=float, metavar="R",
-                   help="pbr: add passes until the RMS relative standard error over the contact is at most R "
-                        "(default 0.05)")
-    p.add_argument("--max-passes", type=int, metavar="N", help="pbr: at most N passes per sample (default 16)")
-    p.add_argument("--effect", action="append", metavar="NAME=VALUE",
-                   help="pbr: set one physical effect of pbr_tactile.effects.Effects (repeatable)")
-    p.add_argument("--estimator", help="pbr: photons (default) or volpath")
-    p.add_argument("--photons", type=int, help="pbr: photons per LED per pass")
-    p.add_argument("--camera-spp", type=int, help="pbr: camera samples per pixel per pass")
-    p.add_argument("--kernel-radius-mm", type=float, help="pbr: radius of the photon density estimate, mm")
-    p.add_argument("--no-contact-runs", type=int, metavar="M",
-                   help="pbr: no-contact photon runs per pass in the cached no-contact map (0: off)")
-    p.add_argument("--profile", metavar="PROFILE.toml",
-                   help="render the calibrated unit of this profile (tactile-sim calibrate)")
-    p.add_argument("--film", type=_film_size, metavar="WxH",
-                   help="pbr: render at WxH (the camera's aspect) and resample to the camera's size")
+    add_renderer_arguments(p)
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")
     p.add_argument("--executor", default="local",

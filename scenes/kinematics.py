@@ -191,7 +191,9 @@ class RigLayout:
     sensor_origin : the camera centre (the sensor frame's origin), about which it rolls.
     mount_length : from the head to the pitch servo's axis, straight down.
     indenter_offset : from the pitch axis to the indenter's base, along its axis.
-    travel_x, travel_y, travel_z : the head's reach (the MuJoCo joints' ranges).
+    travel_x, travel_y, travel_z : the head's reach (the MuJoCo joints' ranges); at the
+        lowest z, 85 mm above the bed, the pitch servo's indenters (20 mm long) stay 8 mm
+        above the bed's top.
     home : the head's rest position, clear of the sensor.
     printer_origin : the head's world position at the printer's G-code zero (X0 Y0 Z0
         after homing); default the travel's lower corner, so printer coordinates run over
@@ -203,7 +205,7 @@ class RigLayout:
     indenter_offset: float = 0.012
     travel_x: tuple[float, float] = (-0.05, 0.35)
     travel_y: tuple[float, float] = (-0.16, 0.16)
-    travel_z: tuple[float, float] = (-0.05, 0.40)
+    travel_z: tuple[float, float] = (0.085, 0.40)
     home: tuple[float, float, float] = (0.16, 0.0, 0.20)
     printer_origin: tuple[float, float, float] | None = None
 

@@ -1,0 +1,210 @@
+"""``tactile-sim rig``: run a tapping protocol on the real rig or its twins, or serve twins.
+
+::
+
+    tactile-sim rig run --printer /dev/ttyUSB0 --servos /dev/ttyACM0 --camera 0 \\
+        --protocol base --objects sphere --out DIR
+    tactile-sim rig run --printer twin --servos twin --camera twin --renderer pbr \\
+        --profile P.toml --out DIR          # the virtual rig
+    tactile-sim rig run ... --dry-run       # print the command stream, open nothing
+    tactile-sim rig twin                    # serve a printer twin and a servo twin
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+TWIN = "twin"
+
+
+def _layout(path: str | None):
+    from scenes.kinematics import RigLayout
+
+    if path is None:
+        return RigLayout()
+    import tomllib
+
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--layout {path}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"--layout {path} is not valid TOML: {exc}") from None
+    return RigLayout.from_dict(data.get("layout", data), where=f"--layout {path}")
+
+
+def _protocol(args, spec):
+    from dataclasses import replace
+
+    from scenes.commands import _objects, make_protocol
+    from scenes.geometry import membrane_mesh
+
+    protocol = make_protocol(args.protocol, spec, membrane_mesh(spec), _objects(args.objects), seed=args.seed)
+    if args.limit:
+        protocol = replace(protocol, taps=protocol.taps[: args.limit])
+    return protocol
+
+
+def _alignment_hook(spec, options: dict):
+    """After the background: the alignment between real and simulated images, for
+    dataset.json (the profile's when one is given, else a registration)."""
+
+    def hook(background):
+        from .align import capture_alignment
+
+        profile = None
+        if options.get("profile"):
+            from scenes.profile import load_profile
+
+            profile = load_profile(options["profile"], spec)
+            return {"alignment": capture_alignment(background, spec, profile=profile)}
+        return {"alignment": capture_alignment(background, spec, sim_background=_sim_background(spec, background))}
+
+    return hook
+
+
+def _sim_background(spec, background):
+    """The fast path's no-contact image of the spec, at the capture's size."""
+    from scenes.camera import Camera
+    from scenes.generate import renderer_plugin
+    from scenes.geometry import membrane_mesh
+    from scenes.camera import reference_depth
+
+    mesh, camera = membrane_mesh(spec), Camera.from_spec(spec)
+    plugin = renderer_plugin("phong")
+    plugin.prepare(spec, mesh, camera, {})
+    image = plugin.make_renderer(spec, mesh, camera, reference_depth(mesh, camera)[0], {}).no_contact
+    if image.shape[:2] != background.shape[:2]:
+        from skimage.transform import resize
+
+        image = resize(image, background.shape[:2], order=1, anti_aliasing=True)
+    return image
+
+
+def cmd_run(args) -> int:
+    from scenes.commands import renderer_options
+    from scenes.spec import load_spec
+
+    from .session import Devices, SessionAborted, prepare
+
+    spec = load_spec(args.spec)
+    layout = _layout(args.layout)
+    protocol = _protocol(args, spec)
+    options = renderer_options(args)
+    twins = [name for name in ("printer", "servos") if getattr(args, name) == TWIN]
+    virtual = args.camera == TWIN
+    if virtual and len(twins) < 2:
+        raise ValueError("--camera twin renders the MuJoCo rig that the twins move: give --printer twin and "
+                         "--servos twin too")
+    if options and not virtual:
+        raise ValueError(f"renderer options ({', '.join(sorted(options))}) are for --camera twin only")
+    source_meta = {"rig": {"virtual": virtual, "printer": args.printer, "servos": args.servos}}
+    session = prepare(args.out, spec, protocol, layout, source_meta=source_meta,
+                      after_background=None if args.no_alignment else _alignment_hook(spec, options))
+    if args.dry_run:
+        for device, line in session.stream():
+            print(f"{device}: {line}")
+        print(f"# {len(session.todo)} of {len(protocol.taps)} taps to do; every move is inside the envelope; "
+              "nothing was sent", file=sys.stderr)
+        return 0
+    from contextlib import ExitStack
+
+    from .marlin import MarlinPrinter
+    from .servos import ServoBoard
+
+    with ExitStack() as stack:
+        rig = None
+        if twins:
+            from .virtual import VirtualRig
+
+            rig = stack.enter_context(VirtualRig(spec, protocol.objects, args.renderer, options, layout))
+            if virtual:
+                session.hidden = rig.hidden()
+        printer_port = rig.printer.port if args.printer == TWIN else args.printer
+        servo_port = rig.servos.port if args.servos == TWIN else args.servos
+        printer = stack.enter_context(MarlinPrinter(printer_port, args.baud))
+        servos = stack.enter_context(ServoBoard(servo_port, args.servo_baud))
+        if virtual:
+            camera = rig.camera
+        else:
+            from .camera import open_camera
+
+            camera = stack.enter_context(open_camera(args.camera, settle_s=args.settle))
+        mount = rig.mount if rig is not None else _ask_to_mount(args.yes)
+        devices = Devices(printer, servos, camera, mount, 0.0 if args.servos == TWIN else args.servo_settle)
+        try:
+            summary = session.run(devices, progress=not args.quiet)
+        except SessionAborted as exc:
+            print(f"tactile-sim rig run: {exc}", file=sys.stderr)
+            return 1
+    print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s)")
+    return 0
+
+
+def _ask_to_mount(yes: bool):
+    def mount(name: str) -> None:
+        if yes:
+            print(f"mount the {name} indenter (assumed done: --yes)", file=sys.stderr)
+            return
+        input(f"Mount the {name} indenter on the pitch servo, then press Enter... ")
+
+    return mount
+
+
+def cmd_twin(args) -> int:
+    from .twins.printer import PrinterTwin
+    from .twins.servos import ServoTwin
+
+    with PrinterTwin() as printer, ServoTwin() as servos:
+        print(f"printer twin: {printer.port}")
+        print(f"servo twin: {servos.port}", flush=True)
+        deadline = time.monotonic() + args.seconds if args.seconds else None
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.1)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def register(registry) -> None:
+    from scenes.commands import add_renderer_arguments
+
+    from .marlin import DEFAULT_BAUD
+    from .servos import DEFAULT_BAUD as SERVO_BAUD
+    from .session import SERVO_SETTLE_S
+
+    p = registry.command("rig", lambda args: p.print_help() or 2, "drive the tapping rig (real or virtual)")
+    actions = p.add_subparsers(dest="action", metavar="ACTION")
+    run = actions.add_parser("run", help="run a protocol and write a capture dataset (resumable)",
+                             description="Run a tapping protocol on the rig and write a capture dataset "
+                                         "(source real). Run it again on the same --out to resume.")
+    run.set_defaults(func=cmd_run)
+    run.add_argument("--printer", required=True, metavar="PORT|twin", help="the Marlin printer's serial port")
+    run.add_argument("--servos", required=True, metavar="PORT|twin", help="the servo board's serial port")
+    run.add_argument("--camera", required=True, metavar="INDEX|VIDEO|FOLDER|twin",
+                     help="an OpenCV device index, a video file, a folder of images, or twin (render the MuJoCo rig)")
+    run.add_argument("--spec", metavar="TOML")
+    run.add_argument("--layout", metavar="TOML", help="the rig's layout (scenes.kinematics.RigLayout keys)")
+    run.add_argument("--protocol", choices=["base", "extended"], default="base")
+    run.add_argument("--objects", default="sphere", help="'all' or comma-separated indenter names")
+    run.add_argument("--seed", type=int, default=0, help="seed of the extended protocol's perturbations")
+    run.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")
+    run.add_argument("--out", required=True, metavar="DIR")
+    run.add_argument("--dry-run", action="store_true", help="print the command stream; open no port")
+    run.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="the printer's baud rate")
+    run.add_argument("--servo-baud", type=int, default=SERVO_BAUD, help="the servo board's baud rate")
+    run.add_argument("--servo-settle", type=float, default=SERVO_SETTLE_S, metavar="S",
+                     help="seconds the servos get to turn")
+    run.add_argument("--settle", type=float, default=0.5, metavar="S", help="the camera's settle time before a frame")
+    run.add_argument("--yes", action="store_true", help="do not wait for Enter when an indenter must be mounted")
+    run.add_argument("--no-alignment", action="store_true", help="do not register the background against the sim")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_renderer_arguments(run)
+    twin = actions.add_parser("twin", help="serve a printer twin and a servo twin on ptys; print their ports",
+                              description="Serve a Marlin printer twin and a servo board twin on pseudo-terminals "
+                                          "until Ctrl-C.")
+    twin.set_defaults(func=cmd_twin)
+    twin.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")

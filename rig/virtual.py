@@ -1,0 +1,137 @@
+"""The virtual rig: the device twins moving the MuJoCo rig, and a camera that renders it.
+
+The printer twin's moves and the servo twin's angles set the joints of ``scenes.rig.Rig``
+(through the layout: printer coordinates are ``head - printer_origin``), so the driver
+that talks to them over pseudo-terminals is the one a real rig uses. The camera twin
+captures the in-sensor depth there and renders it with a renderer plugin (the fast path
+or the physically based reference, with a profile and effects), so a session on the
+virtual rig writes a capture dataset with known ground truth.
+
+What the camera twin renders with is hidden from whoever reads the capture: the session
+writes it to ``virtual.json`` (:meth:`VirtualRig.hidden`), which neither the diagnosis
+nor the comparison reads.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenes.kinematics import RigLayout
+
+
+class TwinCamera:
+    """Renders the MuJoCo rig's in-sensor depth: ``grab() -> (H, W, 3)`` in [0, 1]."""
+
+    def __init__(self, virtual: VirtualRig):
+        self._virtual = virtual
+        self.frames = 0
+
+    def settle(self) -> None:
+        """Nothing to wait for: the joints are set before the printer's ``ok``."""
+
+    def grab(self) -> np.ndarray:
+        renderer = self._virtual.renderer()
+        with self._virtual.lock:
+            depth = np.asarray(self._virtual.rig.depth(), np.float32)
+        self.frames += 1
+        from scenes.generate import render_sample
+
+        return np.asarray(render_sample(renderer, depth)["image"], np.float32)
+
+    def describe(self) -> dict:
+        cam = self._virtual.rig.spec.camera
+        return {"kind": "twin", "size": [cam.width, cam.height]}
+
+    def close(self) -> None:
+        pass
+
+
+class VirtualRig:
+    """Printer and servo twins on ptys driving a MuJoCo rig, and its camera twin.
+
+    Parameters
+    ----------
+    spec : SensorSpec.
+    objects : the indenters the session uses.
+    renderer : a renderer plugin's name (``phong``, ``pbr``) for the camera twin.
+    options : that renderer's options (e.g. ``{"profile": PATH, "effects": {...}}``).
+    printer_faults, servo_faults : rig.twins faults to inject.
+    """
+
+    def __init__(self, spec, objects, renderer: str = "phong", options: dict | None = None,
+                 layout: RigLayout = RigLayout(), printer_faults=None, servo_faults=None):
+        import threading
+
+        from scenes.geometry import membrane_mesh
+        from scenes.indenters import indenter
+        from scenes.rig import Rig, rig_scene
+
+        from .twins.printer import PrinterTwin
+        from .twins.servos import ServoTwin
+
+        self.spec, self.layout = spec, layout
+        self.renderer_name, self.options = renderer, dict(options or {})
+        self.mesh = membrane_mesh(spec)
+        self.rig = Rig(rig_scene(spec, {name: indenter(name) for name in objects}, membrane=self.mesh), spec, layout)
+        self.lock = threading.Lock()
+        self._renderer = None
+        self._settings = None
+        self.printer = PrinterTwin(printer_faults, on_move=self._on_move)
+        self.servos = ServoTwin(servo_faults, on_angles=self._on_angles)
+        self.camera = TwinCamera(self)
+
+    # -- the twins move the rig -----------------------------------------------------
+
+    def _on_move(self, position_m: np.ndarray) -> None:
+        x, y, z = self.layout.head_position(position_m)
+        with self.lock:
+            self.rig.set_joints(printer_x=x, printer_y=y, printer_z=z)
+
+    def _on_angles(self, roll: float, pitch: float) -> None:
+        with self.lock:
+            self.rig.set_joints(sensor_roll=roll, indenter_pitch=pitch)
+
+    def mount(self, name: str) -> None:
+        with self.lock:
+            self.rig.mount(name)
+
+    # -- the camera's renderer --------------------------------------------------------
+
+    def renderer(self):
+        """The camera twin's renderer, built on first use against the no-contact depth."""
+        if self._renderer is None:
+            from scenes.camera import Camera
+            from scenes.generate import renderer_plugin
+
+            plugin = renderer_plugin(self.renderer_name)
+            camera = Camera.from_spec(self.spec)
+            self._settings = plugin.prepare(self.spec, self.mesh, camera, self.options)
+            with self.lock:
+                joints = {name: self.rig.qpos(name) for name in ("printer_x", "printer_y", "printer_z")}
+                mounted = self.rig.mounted
+                self.rig.set_joints(printer_x=self.layout.home[0], printer_y=self.layout.home[1],
+                                    printer_z=self.layout.home[2])
+                ref_depth = self.rig.depth()
+                self.rig.set_joints(**joints)
+                self.rig.mount(mounted)
+            args = (self.spec, self.mesh, camera, ref_depth, self.options)
+            shared = plugin.shared(self.spec, self.mesh, camera, self.options) if hasattr(plugin, "shared") else None
+            self._renderer = plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else \
+                plugin.make_renderer(*args)
+        return self._renderer
+
+    def hidden(self) -> dict:
+        """What the camera twin renders with (for ``virtual.json``)."""
+        self.renderer()
+        return {"renderer": self.renderer_name, "options": self.options, "settings": self._settings}
+
+    def close(self) -> None:
+        for part in (self.printer, self.servos):
+            part.close()
+        self.rig.close()
+
+    def __enter__(self) -> VirtualRig:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
