@@ -32,7 +32,7 @@ from scenes.kinematics import RigLayout, head_for_tap, sensor_to_world
 
 from . import gcode
 from . import servo_protocol as sp
-from .envelope import SafetyEnvelope
+from .envelope import EnvelopeError, SafetyEnvelope
 
 #: Where a press starts: this far out from the contact point along the normal, metres.
 APPROACH_M = 0.008
@@ -91,7 +91,7 @@ def plan(taps, vertices: dict[str, np.ndarray], layout: RigLayout, envelope: Saf
     rise = np.array([homed[0], homed[1], safe_z])
     steps += [_move(rise, TRAVEL_FEED_M_S), _move(home, TRAVEL_FEED_M_S)]
     mounted, roll, pitch = None, 0.0, 0.0
-    steps.append(Step(SERVOS, roll=roll, pitch=pitch))
+    steps += [Step(WAIT), Step(SERVOS, roll=roll, pitch=pitch)]
     if background:
         steps += [Step(WAIT), Step(CAPTURE)]
     for tap in taps:
@@ -138,6 +138,11 @@ def check(steps: list[Step], envelope: SafetyEnvelope, home_obj: str | None = No
             head = envelope.layout.head_position(np.zeros(3))
         elif step.kind == SERVOS:
             roll, pitch = step.roll, step.pitch
+            for servo, angle in ((sp.ROLL, roll), (sp.PITCH, pitch)):
+                try:
+                    sp.check_angle(servo, angle)
+                except ValueError as exc:
+                    raise EnvelopeError(f"{describe(step)}: {exc}") from None
             if obj is not None:
                 envelope.check_pose(obj, head, pitch, roll, f"{describe(step)}: turning the servos")
         elif step.kind == MOUNT:

@@ -40,6 +40,11 @@ from .marlin import PrinterError
 
 log = logging.getLogger(__name__)
 
+#: An M400 may take this many times the queued moves' duration at their feed rates
+#: (acceleration, slow-downs), plus :data:`WAIT_MARGIN_S`, before the printer counts as
+#: silent (its ``busy:`` keep-alive lines restart the wait).
+WAIT_FACTOR = 2.0
+WAIT_MARGIN_S = 2.0
 #: How long the servos get to reach a new angle before the next move, seconds (an HS-422
 #: turns 60 degrees in 0.21 s unloaded).
 SERVO_SETTLE_S = 0.6
@@ -118,6 +123,7 @@ class Session:
                    disable=not progress)
         t0, new = time.perf_counter(), 0
         state = {"step": None}
+        self._queued_s, self._head = 0.0, None
         try:
             for step in steps:
                 state["step"] = step
@@ -140,10 +146,15 @@ class Session:
         printer, layout = devices.printer, self.layout
         if step.kind == P.HOME:
             printer.home()
+            self._head = layout.head_position(np.zeros(3))
         elif step.kind == P.MOVE:
             printer.move_to(layout.printer_position(step.head), step.feed)
+            if self._head is not None:
+                self._queued_s += float(np.linalg.norm(np.asarray(step.head) - self._head)) / step.feed
+            self._head = np.asarray(step.head)
         elif step.kind == P.WAIT:
-            printer.wait_for_moves()
+            printer.wait_for_moves(WAIT_FACTOR * self._queued_s + WAIT_MARGIN_S)
+            self._queued_s = 0.0
         elif step.kind == P.SERVOS:
             devices.servos.set_angles(step.roll, step.pitch)
             if devices.servo_settle_s > 0:

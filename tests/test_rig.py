@@ -112,7 +112,7 @@ def test_the_kinematics_chain_is_the_mujoco_rigs(rig_factory):
     rig = rig_factory()
     rng = np.random.default_rng(0)
     for _ in range(5):
-        head = rng.uniform((0.0, -0.1, 0.0), (0.3, 0.1, 0.3))
+        head = rng.uniform((0.0, -0.1, 0.1), (0.3, 0.1, 0.3))
         pitch, roll = rng.uniform(-0.3, 1.8), rng.uniform(-0.1, 3.2)
         rig.set_joints(printer_x=head[0], printer_y=head[1], printer_z=head[2], indenter_pitch=pitch, sensor_roll=roll)
         R, t = indenter_to_world(head, pitch, rig.layout)

@@ -187,10 +187,20 @@ class PrinterTwin(PtyTwin):
         self._say(f"Error:{reason}, Last Line: {self._last_n}", f"Resend: {self._last_n + 1}", *ok)
 
     def _handle(self, raw: bytes) -> None:
-        if self.halted or self._silent:
+        if self.halted:
             return
         text = raw.decode("ascii", errors="replace").split(";", 1)[0]
         command = text.lstrip(" ")
+        if command.strip().upper() == "M112":
+            # Marlin's emergency parser acts on M112 as it arrives, even with the command
+            # queue stuck or the replies lost.
+            with self._lock:
+                self._lines.append((None, "M112"))
+            self.halted = True
+            self._say(KILLED)
+            return
+        if self._silent:
+            return
         if not command.strip():
             return
         n = None
