@@ -29,6 +29,10 @@ from .geometry import membrane_mesh
 from .protocol import SENSOR_TO_WORLD_AT_ROLL0, Tap
 from .spec import SensorSpec
 
+#: The rig's joints, by name: a pose (``Rig.tap_pose``, ``Rig.set_joints``) sets all of
+#: them. The head's position (metres, world frame), then the servos' angles (radians).
+JOINTS = ("printer_x", "printer_y", "printer_z", "indenter_pitch", "sensor_roll")
+
 #: Geom groups: what the in-sensor depth camera sees, and visual-only parts.
 GROUP_MEMBRANE_VIEW, GROUP_INDENTER, GROUP_MEMBRANE, GROUP_BODY, GROUP_SPARE = 0, 1, 2, 3, 4
 DEPTH_GROUPS = (GROUP_MEMBRANE_VIEW, GROUP_INDENTER)
