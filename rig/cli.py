@@ -202,6 +202,7 @@ def register(registry) -> None:
     run.add_argument("--yes", action="store_true", help="do not wait for Enter when an indenter must be mounted")
     run.add_argument("--no-alignment", action="store_true", help="do not register the background against the sim")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--renderer", default="phong", help="--camera twin: phong (the fast path) or pbr (the reference)")
     add_renderer_arguments(run)
     twin = actions.add_parser("twin", help="serve a printer twin and a servo twin on ptys; print their ports",
                               description="Serve a Marlin printer twin and a servo board twin on pseudo-terminals "

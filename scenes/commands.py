@@ -103,55 +103,87 @@ def _film_size(value: str) -> list[int]:
     return [width, height]
 
 
-def add_renderer_arguments(p) -> None:
-    """The renderer and its options (:data:`RENDERER_OPTIONS`), on any command that renders."""
-    p.add_argument("--renderer", default="phong", help="phong (the fast path) or pbr (the physically based reference)")
-    p.add_argument("--field", help="phong: light field (default plane)")
-    p.add_argument("--background", help="phong: none (default), solid, or a no-contact image path")
-    p.add_argument("--rectify", action="store_true", default=None, help="phong: rectify the light vectors")
-    p.add_argument("--elastic", choices=MODELS,
-                   help="phong: the membrane model, published (the paper's smoothing, default) or layer (the "
-                        "elastic layer the pbr renderer deforms, so both renderers see one surface)")
-    p.add_argument("--target-rse", type=float, metavar="R",
-                   help="pbr: add passes until the RMS relative standard error over the contact is at most R "
-                        "(default 0.05)")
-    p.add_argument("--max-passes", type=int, metavar="N", help="pbr: at most N passes per sample (default 16)")
-    p.add_argument("--effect", action="append", metavar="NAME=VALUE",
-                   help="pbr: set one physical effect of pbr_tactile.effects.Effects (repeatable)")
-    p.add_argument("--estimator", help="pbr: photons (default) or volpath")
-    p.add_argument("--photons", type=int, help="pbr: photons per LED per pass")
-    p.add_argument("--camera-spp", type=int, help="pbr: camera samples per pixel per pass")
-    p.add_argument("--kernel-radius-mm", type=float, help="pbr: radius of the photon density estimate, mm")
-    p.add_argument("--no-contact-runs", type=int, metavar="M",
-                   help="pbr: no-contact photon runs per pass in the cached no-contact map (0: off)")
-    p.add_argument("--profile", metavar="PROFILE.toml",
-                   help="render the calibrated unit of this profile (tactile-sim calibrate)")
-    p.add_argument("--film", type=_film_size, metavar="WxH",
-                   help="pbr: render at WxH (the camera's aspect) and resample to the camera's size")
-
-
 def renderer_options(args) -> dict:
-    """The renderer options given on the command line (each renderer refuses those it does
-    not take)."""
-    return {key: getattr(args, attr) for key, attr in RENDERER_OPTIONS.items() if getattr(args, attr) is not None}
+    """The renderer options given on a command line (``add_renderer_arguments``): only
+    those given, as each renderer refuses the options it does not take."""
+    return {key: getattr(args, attr) for key, attr in RENDERER_OPTIONS.items()
+            if getattr(args, attr, None) is not None}
+
+
+#: Arguments of the dataset command that a replay takes from the capture instead.
+REPLAY_TAKES = {"spec": "--spec", "protocol": "--protocol", "objects": "--objects", "seed": "--seed"}
 
 
 def cmd_dataset(args) -> int:
     from .generate import generate
     from .geometry import membrane_mesh
 
+    if args.replay is not None:
+        return cmd_replay(args)
     spec = load_spec(args.spec)
-    protocol = make_protocol(args.protocol, spec, membrane_mesh(spec), _objects(args.objects), seed=args.seed)
+    protocol = make_protocol(args.protocol or "base", spec, membrane_mesh(spec), _objects(args.objects or "all"),
+                             seed=args.seed or 0)
     if args.limit:
         from dataclasses import replace
 
         protocol = replace(protocol, taps=protocol.taps[: args.limit])
-    options = renderer_options(args)
-    summary = generate(args.out, spec, protocol, args.renderer, options, workers=args.workers,
+    summary = generate(args.out, spec, protocol, args.renderer, renderer_options(args), workers=args.workers,
                        executor=args.executor, address=args.address)
     where = f"Ray cluster at {args.address}" if args.address else f"{summary['workers']} {args.executor} workers"
     print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s, {where})")
     return 0
+
+
+def cmd_replay(args) -> int:
+    """``tactile-sim dataset --replay CAPTURE_DIR``: the capture's taps at their measured poses."""
+    from .replay import read_capture, replay
+
+    given = [flag for attr, flag in REPLAY_TAKES.items() if getattr(args, attr) is not None]
+    if given:
+        raise ValueError(f"--replay takes the sensor and the taps from CAPTURE_DIR (its dataset.json and "
+                         f"protocol.json); drop {', '.join(given)}")
+    capture = read_capture(args.replay)
+    ids = capture.ids[: args.limit] if args.limit else None
+    summary = replay(capture, args.out, args.renderer, renderer_options(args), ids=ids, workers=args.workers,
+                     executor=args.executor, address=args.address)
+    print(f"{summary['samples']} samples of {args.replay} replayed in {args.out} ({summary['new']} new, "
+          f"{summary['seconds']:.1f} s)")
+    return 0
+
+
+def add_renderer_arguments(p, skip: tuple[str, ...] = ()) -> None:
+    """The renderers' options (``RENDERER_OPTIONS``) as arguments of ``p``, but those in
+    ``skip`` (option keys); read them back with ``renderer_options``."""
+    arguments = {
+        "field": (("--field",), {"help": "phong: light field (default plane)"}),
+        "background": (("--background",), {"help": "phong: none (default), solid, or a no-contact image path"}),
+        "rectify": (("--rectify",), {"action": "store_true", "default": None,
+                                     "help": "phong: rectify the light vectors"}),
+        "elastic": (("--elastic",), {"choices": MODELS, "help": "phong: the membrane model, published (the paper's "
+                                     "smoothing, default) or layer (the elastic layer the pbr renderer deforms, so "
+                                     "both renderers see one surface)"}),
+        "target_rse": (("--target-rse",), {"type": float, "metavar": "R", "help": "pbr: add passes until the RMS "
+                                           "relative standard error over the contact is at most R (default 0.05)"}),
+        "max_passes": (("--max-passes",), {"type": int, "metavar": "N",
+                                           "help": "pbr: at most N passes per sample (default 16)"}),
+        "effects": (("--effect",), {"action": "append", "metavar": "NAME=VALUE",
+                                    "help": "pbr: set one physical effect of pbr_tactile.effects.Effects "
+                                            "(repeatable)"}),
+        "estimator": (("--estimator",), {"help": "pbr: photons (default) or volpath"}),
+        "photons": (("--photons",), {"type": int, "help": "pbr: photons per LED per pass"}),
+        "camera_spp": (("--camera-spp",), {"type": int, "help": "pbr: camera samples per pixel per pass"}),
+        "kernel_radius_mm": (("--kernel-radius-mm",), {"type": float,
+                                                       "help": "pbr: radius of the photon density estimate, mm"}),
+        "no_contact_runs": (("--no-contact-runs",), {"type": int, "metavar": "M", "help": "pbr: no-contact photon "
+                                                     "runs per pass in the cached no-contact map (0: off)"}),
+        "profile": (("--profile",), {"metavar": "PROFILE.toml",
+                                     "help": "render the calibrated unit of this profile (tactile-sim calibrate)"}),
+        "film": (("--film",), {"type": _film_size, "metavar": "WxH",
+                               "help": "pbr: render at WxH (the camera's aspect) and resample to the camera's size"}),
+    }
+    for key, (flags, kwargs) in arguments.items():
+        if key not in skip:
+            p.add_argument(*flags, **kwargs)
 
 
 def bench_dataset(spec, workers: int = 2, objects=None, frames: int = 48, executor: str = "local",
@@ -333,11 +365,16 @@ def register(registry) -> None:
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=960)
 
-    p = registry.command("dataset", cmd_dataset, "run a tapping protocol in MuJoCo and render a dataset (resumable)")
+    p = registry.command("dataset", cmd_dataset, "run a tapping protocol in MuJoCo and render a dataset (resumable), "
+                         "or replay a capture of the rig at its measured poses (--replay)")
+    p.add_argument("--replay", metavar="CAPTURE_DIR",
+                   help="render the capture's samples (source 'real') with the rig at each one's measured_pose, its "
+                        "sensor, protocol and sample ids, so that 'diagnose CAPTURE_DIR OUT' pairs them")
     p.add_argument("--spec", metavar="TOML")
-    p.add_argument("--protocol", choices=["base", "extended"], default="base")
-    p.add_argument("--objects", default="all", help="'all' or comma-separated indenter names / STL paths")
-    p.add_argument("--seed", type=int, default=0, help="seed of the extended protocol's perturbations")
+    p.add_argument("--protocol", choices=["base", "extended"], help="base (default) or extended")
+    p.add_argument("--objects", help="'all' (default) or comma-separated indenter names / STL paths")
+    p.add_argument("--seed", type=int, help="seed of the extended protocol's perturbations (default 0)")
+    p.add_argument("--renderer", default="phong", help="phong (the fast path) or pbr (the physically based reference)")
     add_renderer_arguments(p)
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     p.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")

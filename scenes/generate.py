@@ -1,9 +1,10 @@
 """Dataset generation: run a tapping protocol on the MuJoCo rig, capture depth, render.
 
-A tap is one task, ``run_tap(job, tap, shared)``: it presses the indenter, captures the
-depth map and renders it, and returns arrays; it writes nothing. The same task runs in
-local processes or on a Ray cluster (``scenes.executors``), and the driver alone writes
-the sample's files and appends its line to ``samples.jsonl``.
+A tap is one task, ``run_tap(job, task, shared)``: it presses the indenter (or, for a
+``PosedTap``, sets the rig's joints to an explicit pose, e.g. a capture's measured one),
+captures the depth map and renders it, and returns arrays; it writes nothing. The same
+task runs in local processes or on a Ray cluster (``scenes.executors``), and the driver
+alone (``run_tasks``) writes the sample's files and appends its line to ``samples.jsonl``.
 
 Renderers are plugins (entry point group ``tactile_sim.renderers``), so this module never
 imports one. A plugin is a module with
@@ -80,6 +81,28 @@ class Job:
     noise_m: float = 1e-6
 
 
+@dataclass(frozen=True)
+class PosedTap:
+    """A tap task at an explicit joint pose: the rig is set to ``pose`` instead of being
+    pressed by ``Rig.tap_pose``; ``tap`` still gives the sample's id and fields.
+
+    pose : joint name -> value (``scenes.kinematics.JOINTS``: the head's position in metres,
+        world frame, and the servos' angles in radians), e.g. a capture's measured pose.
+    """
+
+    tap: Tap
+    pose: dict
+
+
+#: What a tap task runs: a protocol's tap, or a tap at an explicit pose.
+Task = Tap | PosedTap
+
+
+def task_tap(task: Task) -> Tap:
+    """The protocol tap of a task."""
+    return task.tap if isinstance(task, PosedTap) else task
+
+
 def tap_fields(tap: Tap) -> dict:
     """The protocol's fields of a tap's sample record (docs/dataset-format.md)."""
     return {
@@ -129,17 +152,29 @@ class TapRunner:
         self.renderer = plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else \
             plugin.make_renderer(*args)
 
-    def capture(self, tap: Tap) -> np.ndarray:
-        self.rig.press(tap)
+    def capture(self, task: Task) -> np.ndarray:
+        """The depth map of a tap pressed, or of the rig set to a posed tap's joints."""
+        if not isinstance(task, PosedTap):
+            self.rig.press(task)
+            return self.rig.depth()
+        self.rig.mount(task.tap.object)
+        try:
+            self.rig.set_joints(**task.pose)
+        except ValueError as exc:
+            raise ValueError(f"sample {sample_id(task.tap.index, task.tap.object)}: pose: {exc}") from None
         return self.rig.depth()
 
-    def run(self, tap: Tap) -> dict:
-        """One tap -> ``{"record", "image" (H, W, 3) float32, "depth" (H, W) float32
-        metres, "arrays" {name: float32 array}}``."""
-        depth = np.asarray(self.capture(tap), np.float32)
+    def run(self, task: Task) -> dict:
+        """One task -> ``{"record", "image" (H, W, 3) float32, "depth" (H, W) float32
+        metres, "arrays" {name: float32 array}}``. A posed tap's record holds its
+        ``pose``."""
+        tap = task_tap(task)
+        depth = np.asarray(self.capture(task), np.float32)
         out = render_sample(self.renderer, depth)
         record = {**tap_fields(tap),
                   "measured_depth": measured_depth(depth, self.ref_depth, self.camera, tap, self.job.noise_m)}
+        if isinstance(task, PosedTap):
+            record["pose"] = {name: float(value) for name, value in task.pose.items()}
         clash = sorted((set(out["record"]) | set(out["arrays"])) & (set(record) | {"image", "depth"}))
         if clash:
             raise ValueError(f"renderer {self.job.renderer!r} returned fields {clash} that a sample record already "
@@ -172,13 +207,14 @@ def runner(job: Job, shared=None) -> TapRunner:
     return _RUNNER
 
 
-def run_tap(job: Job, tap: Tap, shared=None) -> dict:
-    """The task of one tap: press, capture depth, render; returns arrays, writes nothing.
+def run_tap(job: Job, task: Task, shared=None) -> dict:
+    """The task of one tap: press (or pose), capture depth, render; returns arrays,
+    writes nothing.
 
     Returns ``{"record": {...JSON fields...}, "image": (H, W, 3) float32 in [0, 1],
     "depth": (H, W) float32 metres planar z, "arrays": {name: float32 array}}``.
     """
-    return runner(job, shared).run(tap)
+    return runner(job, shared).run(task)
 
 
 def no_contact(job: Job, shared=None) -> np.ndarray:
@@ -219,44 +255,75 @@ def generate(
     source : the dataset's ``source`` (scenes.dataset.SOURCES); None: the plugin's
         ``SOURCE`` ("pbr" for the physically based reference), else "sim".
     """
-    from .executors import make_executor
-
     options = dict(options or {})
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
-    tasks = make_executor(executor, workers, address)
     mesh = membrane_mesh(spec)
-    camera = Camera.from_spec(spec)
     from .indenters import indenter
 
     for name in protocol.objects:
         indenter(name)  # unknown names fail here, before any work
     validate(protocol, spec, mesh)
+    meta = {"source": source,
+            "protocol": {"name": protocol.name, "seed": protocol.seed, "taps": len(protocol.taps),
+                         "objects": list(protocol.objects)}}
+    return run_tasks(root, spec, list(protocol.taps), tuple(protocol.objects), protocol.to_dict(), meta, renderer,
+                     options, workers=workers, progress=progress, executor=executor, address=address)
+
+
+def run_tasks(
+    root: str | Path,
+    spec: SensorSpec,
+    tasks: list[Task],
+    objects: tuple[str, ...],
+    protocol: dict,
+    meta: dict,
+    renderer: str = "phong",
+    options: dict | None = None,
+    workers: int = 2,
+    progress: bool = True,
+    executor: str = "local",
+    address: str | None = None,
+) -> dict:
+    """Run (or resume) tap tasks into a dataset folder; returns a summary (``generate``).
+
+    tasks : taps or posed taps; those whose sample id is already in ``samples.jsonl``
+        are skipped.
+    objects : every indenter the rig must carry.
+    protocol : the full protocol dict, written as ``protocol.json``.
+    meta : dataset.json keys besides those this fills in (sensor, renderer, image_size,
+        depth, image); ``source`` None means the plugin's ``SOURCE``, else "sim".
+    """
+    from .executors import make_executor
+
+    options = dict(options or {})
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    runs = make_executor(executor, workers, address)
+    mesh = membrane_mesh(spec)
+    camera = Camera.from_spec(spec)
     plugin = renderer_plugin(renderer)
     settings = plugin.prepare(spec, mesh, camera, options)
     meta = {
-        "source": source if source is not None else getattr(plugin, "SOURCE", "sim"),
+        **meta,
+        "source": meta.get("source") if meta.get("source") is not None else getattr(plugin, "SOURCE", "sim"),
         "sensor": dataclasses.asdict(spec),
-        "protocol": {"name": protocol.name, "seed": protocol.seed, "taps": len(protocol.taps),
-                     "objects": list(protocol.objects)},
         "renderer": settings,
         "image_size": [camera.width, camera.height],
         "depth": "planar z, metres, float32 (H, W)",
         "image": "8-bit RGB PNG of linear [0, 1] values",
     }
-    writer = DatasetWriter(root, meta, protocol.to_dict())
-    todo = [t for t in protocol.taps if sample_id(t.index, t.object) not in writer.done]
-    job = Job(spec, renderer, options, tuple(protocol.objects))
+    writer = DatasetWriter(root, meta, protocol)
+    todo = [t for t in tasks if sample_id(task_tap(t).index, task_tap(t).object) not in writer.done]
+    job = Job(spec, renderer, options, tuple(objects))
     t0 = time.perf_counter()
     from tqdm import tqdm
 
-    bar = tqdm(total=len(protocol.taps), initial=len(protocol.taps) - len(todo), desc="dataset", unit="sample",
+    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="dataset", unit="sample",
                disable=not progress)
     need_background = not (writer.root / "background.png").exists() and bool(job.objects)
     stamps = []
     if todo or need_background:
         shared = plugin.shared(spec, mesh, camera, options) if hasattr(plugin, "shared") else None
-        for kind, value in tasks.run(job, todo, shared, need_background):
+        for kind, value in runs.run(job, todo, shared, need_background):
             if kind == "background":
                 writer.write_background(value)
                 continue

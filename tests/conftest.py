@@ -86,3 +86,77 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+# --- A tiny capture of the rig, and what replay, compare and diagnose make of it -------------
+# Session-scoped, so that test_replay, test_compare and test_reports_browser share one set of
+# renders (about ten seconds in all). They run outside the function-scoped cache isolation
+# above, so they isolate the cache (and find tests.fake_*) themselves.
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def session_env(tmp_path_factory):
+    """Headless MuJoCo (or skip, saying why), the tests' cache, and the repository on sys.path."""
+    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    try:
+        choose_gl()
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("TACTILE_SIM_CACHE", str(tmp_path_factory.getbasetemp() / "cache"))
+        mp.syspath_prepend(str(ROOT))
+        yield
+
+
+@pytest.fixture(scope="session")
+def tiny_spec(session_env, spec):
+    """The default sensor at 80x60 (tests/fake_capture.py)."""
+    from tests.fake_capture import tiny_spec as scaled
+
+    return scaled(spec)
+
+
+@pytest.fixture(scope="session")
+def tiny_capture(session_env, tiny_spec, tmp_path_factory) -> Path:
+    """A capture of four taps (tests/fake_capture.py) by the fast path (plane field, solid
+    background) at 80x60, its measured poses the commanded ones."""
+    from tests.fake_capture import capture_protocol, write_capture
+
+    protocol = capture_protocol(tiny_spec, membrane_mesh(tiny_spec))
+    return write_capture(tmp_path_factory.mktemp("capture") / "capture", tiny_spec, protocol)
+
+
+@pytest.fixture(scope="session")
+def tiny_replay(tiny_capture, tmp_path_factory) -> Path:
+    """``tactile-sim dataset --replay`` of tiny_capture with the capture's own settings."""
+    from scenes.cli import main
+
+    out = tmp_path_factory.mktemp("replay") / "sim"
+    assert main(["dataset", "--replay", str(tiny_capture), "--renderer", "phong", "--field", "plane",
+                 "--background", "solid", "--workers", "1", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def compare_result(tiny_capture, tmp_path_factory) -> tuple[dict, Path]:
+    """(table.json, folder) of a comparison of tiny_capture: two fields, every background,
+    and tests/fake_renderer.py standing in for the slow reference on two taps."""
+    from studies.compare.run import compare
+
+    out = tmp_path_factory.mktemp("compare") / "table"
+    result = compare(tiny_capture, out, fields=("plane", "linear"), reference_taps=2,
+                     reference_renderer="tests.fake_renderer", bootstrap=200, seed=1, progress=False)
+    return result, out
+
+
+@pytest.fixture(scope="session")
+def diagnose_report(tiny_capture, tiny_replay, tmp_path_factory) -> Path:
+    """The folder of ``tactile-sim diagnose CAPTURE REPLAY`` (one effect, to be quick)."""
+    from scenes.cli import main
+
+    out = tmp_path_factory.mktemp("diagnose") / "report"
+    assert main(["diagnose", str(tiny_capture), str(tiny_replay), "--out", str(out), "--quiet",
+                 "--effects", "camera_response"]) == 0
+    return out

@@ -282,8 +282,6 @@ def test_a_silent_printer_times_out_and_gets_the_emergency_stop(spec, protocol, 
 
 
 def test_a_disconnect_mid_run_stops_and_the_session_resumes(spec, protocol, virtual, tmp_path):
-    import threading
-
     from rig.session import SessionAborted, prepare
 
     short = _taps(protocol, 4)
@@ -294,7 +292,7 @@ def test_a_disconnect_mid_run_stops_and_the_session_resumes(spec, protocol, virt
         rig._on_move(position)
         moves.append(position)
         if len(moves) == 14:
-            threading.Thread(target=rig.printer.close).start()
+            rig.printer.unplug()
 
     rig.printer.on_move = unplug
     with pytest.raises(SessionAborted, match="PrinterError"):

@@ -57,16 +57,26 @@ class PtyTwin:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def unplug(self) -> None:
+        """Pull the cable: the pty's master closes, so the host's next read or write fails
+        and the twin answers nothing more. Safe to call from the serving thread (e.g. in a
+        callback, to unplug at an exact point of a session)."""
+        self._stop.set()
+        fd, self._master = self._master, None
+        if fd is not None:
+            os.close(fd)
+
     def _write(self, data: bytes) -> None:
-        os.write(self._master, data)
+        if self._master is not None:  # unplugged: the bytes go nowhere
+            os.write(self._master, data)
 
     def _serve(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self._master], [], [], POLL_S)
+        while not self._stop.is_set() and (master := self._master) is not None:
+            ready, _, _ = select.select([master], [], [], POLL_S)
             if not ready:
                 continue
             try:
-                data = os.read(self._master, 4096)
+                data = os.read(master, 4096)
             except OSError:  # no slave open for a moment; try again
                 time.sleep(POLL_S)
                 continue

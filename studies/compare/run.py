@@ -1,0 +1,241 @@
+"""The renders of a comparison, in the real camera's frame: a capture's taps replayed at
+their measured poses with the fast path (each light field, each background) and with the
+physically based reference, scored against the real images (``table``).
+
+The fast path is replayed once per light field with no background; each background is
+then added as the renderer adds it, ``clip(S + k_a i_a B, 0, 1)`` in the image circle
+(``phong_reference.render.finish``). The LED terms S are >= 0, so this equals rendering
+with that background; the equality is tested. It lets the background stay where the real
+camera sees it while the membrane's shading is aligned.
+
+Alignment: with a profile, the renderers render the calibrated unit, already in the real
+camera's frame. Without one, a capture's ``alignment`` block (``scenes.profile.Alignment``)
+moves each simulated image into the real camera's frame (``scenes.profile.align_image``)
+and the lens' image circle, which does not move, is applied again.
+
+Every replay is a dataset under ``OUT/renders/`` (resumable: a second run renders only
+what is missing).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from phong_reference.background import make_background
+from phong_reference.bake import METHODS
+from phong_reference.plugin import OPTIONS as FAST_OPTIONS
+from phong_reference.render import finish
+from scenes.camera import Camera
+from scenes.dataset import load_sample, read_samples
+from scenes.profile import Alignment, align_image, load_profile
+from scenes.replay import Capture, read_capture, replay
+
+from . import table
+
+FAST = "phong"
+REFERENCE = "pbr"
+#: The fast path's backgrounds: none, the renderer's solid colour, and the capture's own
+#: no-contact image (background.png), as the paper used.
+BACKGROUNDS = ("none", "solid", "real")
+#: Taps the reference renders by default: it takes minutes per tap.
+REFERENCE_TAPS = 4
+#: Examples shown in the report.
+EXAMPLES = 3
+
+
+def spread(ids: Sequence[str], n: int | None) -> list[str]:
+    """``n`` of ``ids`` spread evenly over them, in order (all when ``n`` is None or at
+    least their number)."""
+    ids = list(ids)
+    if n is None or n >= len(ids):
+        return ids
+    if n < 1:
+        raise ValueError(f"the number of taps must be >= 1, got {n}")
+    return [ids[i] for i in np.unique(np.linspace(0, len(ids) - 1, n).round().astype(int))]
+
+
+def _alignment_from_dict(block: dict) -> Alignment:
+    """The ``alignment`` block of a capture's dataset.json as an Alignment.
+
+    Private stand-in for ``rig.align.alignment_from_dict``: swap it when that lands.
+    """
+    if not isinstance(block, dict):
+        raise ValueError(f"capture alignment must be an object with rotation_rad, scale, shift_px, got {block!r}")
+    try:
+        return Alignment(rotation_rad=float(block.get("rotation_rad", 0.0)), scale=float(block.get("scale", 1.0)),
+                         shift_px=tuple(float(v) for v in block.get("shift_px", (0.0, 0.0))))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"capture alignment {block!r}: {exc}") from None
+
+
+def with_background(shading: np.ndarray, background: np.ndarray, ambient: float, mask: np.ndarray) -> np.ndarray:
+    """The fast path's image of LED terms ``shading`` (H, W, 3, >= 0) on ``background``
+    (H, W, 3): clip(S + k_a i_a B, 0, 1) inside the image circle ``mask`` (H, W)."""
+    return finish((np.asarray(shading, np.float32) + np.float32(ambient) * background).transpose(2, 0, 1), mask)
+
+
+def load_images(root: Path, ids: Sequence[str], shape: tuple[int, int]) -> np.ndarray:
+    """(N, H, W, 3) float32 images of the samples ``ids`` of a dataset."""
+    by_id = {r["id"]: r for r in read_samples(root)}
+    missing = [i for i in ids if i not in by_id]
+    if missing:
+        raise ValueError(f"{root} lacks samples {missing[:5]}")
+    return np.stack([load_sample(root, by_id[i], shape)[0] for i in ids]).astype(np.float32)
+
+
+class Aligner:
+    """Simulated images -> the real camera's frame (module doc); the identity when there
+    is nothing to apply."""
+
+    def __init__(self, alignment: Alignment | None, camera: Camera, mask: np.ndarray):
+        self.alignment, self.camera, self.mask = alignment, camera, mask
+
+    def __call__(self, images: np.ndarray, masked: bool = True) -> np.ndarray:
+        if self.alignment is None:
+            return images
+        out = np.stack([align_image(im, self.alignment, self.camera) for im in images]).astype(np.float32)
+        return out * self.mask[..., None] if masked else out
+
+
+def _backgrounds(capture: Capture, camera: Camera, wanted: Sequence[str] | None) -> dict[str, np.ndarray]:
+    have_real = (capture.root / "background.png").is_file()
+    names = list(wanted) if wanted is not None else [b for b in BACKGROUNDS if b != "real" or have_real]
+    unknown = [b for b in names if b not in BACKGROUNDS]
+    if unknown or not names:
+        raise ValueError(f"backgrounds must be some of {BACKGROUNDS}, got {names}")
+    if "real" in names and not have_real:
+        raise ValueError(f"background 'real' needs the capture's no-contact image, and {capture.root}/background.png "
+                         "is missing")
+    return {b: make_background(capture.root / "background.png" if b == "real" else b, camera) for b in names}
+
+
+def compare(
+    capture_dir: str | Path,
+    out: str | Path,
+    profile: str | Path | None = None,
+    options: dict | None = None,
+    taps: int | None = None,
+    reference_taps: int = REFERENCE_TAPS,
+    fields: Sequence[str] = METHODS,
+    backgrounds: Sequence[str] | None = None,
+    reference: bool = True,
+    reference_renderer: str = REFERENCE,
+    bootstrap: int = 2000,
+    seed: int = 0,
+    workers: int = 1,
+    progress: bool = True,
+) -> dict:
+    """Render, score and report; returns the content of ``table.json``.
+
+    Parameters
+    ----------
+    capture_dir : a capture of the rig (``scenes.replay.read_capture``).
+    out : where table.json, table.md, report.html, its figures and ``renders/`` go.
+    profile : a calibrated unit's profile.toml: both renderers render the unit (already
+        in the real camera's frame), and the fast path's background is the profile's.
+    options : renderer options as ``tactile-sim dataset`` takes them (but field and
+        background, which the comparison sweeps): the fast path's (``rectify``,
+        ``elastic``) go to it, the others to the reference.
+    taps : the fast path's taps, spread evenly over the capture (None: all).
+    reference_taps : the reference's taps, spread evenly over the fast path's.
+    fields, backgrounds : the fast path's light fields and backgrounds (None: every one
+        the capture allows: ``real`` needs its background.png).
+    reference : False leaves the reference out.
+    reference_renderer : the reference's renderer plugin (a module path in tests).
+    bootstrap, seed : bootstrap resamples of the intervals, and their seed.
+    """
+    from .report import write_report
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    options = dict(options or {})
+    for key in ("field", "background", "profile"):
+        if key in options:
+            raise ValueError(f"options must not hold {key!r}: the comparison sets it (fields, backgrounds, profile)")
+    unknown = [f for f in fields if f not in METHODS]
+    if unknown or not fields:
+        raise ValueError(f"fields must be some of {METHODS}, got {list(fields)}")
+    if profile is not None and backgrounds is not None:
+        raise ValueError("give backgrounds or a profile, not both: the profile's background term is the "
+                         "calibrated unit's")
+    capture = read_capture(capture_dir)
+    spec = capture.spec
+    camera = Camera.from_spec(spec)
+    unit = spec if profile is None else load_profile(profile, spec).sensor_spec(spec)
+    mask = Camera.from_spec(unit).mask  # the lens' image circle (the profile's, if any)
+    block = capture.meta.get("alignment")
+    alignment = _alignment_from_dict(block) if block is not None and profile is None else None
+    align = Aligner(alignment, camera, mask)
+    ids = spread(capture.ids, taps)
+    ref_ids = spread(ids, reference_taps) if reference else []
+    real = load_images(capture.root, ids, camera.shape)
+    fast_options = {k: v for k, v in options.items() if k in FAST_OPTIONS}
+    ref_options = {k: v for k, v in options.items() if k not in FAST_OPTIONS}
+    common = {"workers": workers, "progress": progress}
+    renders = out / "renders"
+
+    shown = spread(ref_ids or ids, EXAMPLES)  # the report's example taps
+    rows = []
+    examples = {"ids": shown, "real": real[[ids.index(i) for i in shown]], "images": {}, "mean_abs": {}}
+
+    def add(label: str, method: dict, stack: np.ndarray, which: list[str]) -> None:
+        """Score a method's images of the taps ``which``; keep its error map and examples."""
+        pick = [ids.index(i) for i in which]
+        values = table.score(real[pick], stack, mask)
+        rows.append(table.row(label, method, values, which, bootstrap, seed))
+        examples["mean_abs"][label] = np.abs(stack - real[pick]).mean(axis=(0, 3))
+        examples["images"][label] = stack[[which.index(i) for i in shown]]
+
+    bgs = None if profile is not None else _backgrounds(capture, camera, backgrounds)
+    for field in fields:
+        if profile is None:
+            where = renders / f"{FAST}_{field}"
+            replay(capture, where, FAST, {**fast_options, "field": field, "background": "none"}, ids=ids, **common)
+            shading = align(load_images(where, ids, camera.shape), masked=False)
+            for name, background in bgs.items():
+                stack = np.stack([with_background(s, background, spec.material.ambient, mask) for s in shading])
+                add(f"fast: {field}, background {name}", {"method": "fast", "field": field, "background": name},
+                    stack, ids)
+        else:
+            where = renders / f"{FAST}_{field}_profile"
+            replay(capture, where, FAST, {**fast_options, "field": field, "profile": str(profile)}, ids=ids, **common)
+            add(f"fast: {field}, profile", {"method": "fast", "field": field, "background": "profile"},
+                load_images(where, ids, camera.shape), ids)
+    if reference:
+        where = renders / ("reference" if profile is None else "reference_profile")
+        opts = ref_options if profile is None else {**ref_options, "profile": str(profile)}
+        replay(capture, where, reference_renderer, opts, ids=ref_ids, **common)
+        add(f"reference: {reference_renderer}", {"method": "reference", "renderer": reference_renderer},
+            align(load_images(where, ref_ids, camera.shape)), ref_ids)
+
+    best = min((r for r in rows if r["method"] == "fast"), key=lambda r: r["masked"]["mae"]["mean"])
+    on_reference = [table.subset(r, ref_ids, bootstrap, seed) for r in rows] if 0 < len(ref_ids) < len(ids) else []
+    if profile is not None:
+        note = "not applied: the renderers render the profile's unit, in the real camera's frame already"
+    elif alignment is None:
+        note = "not applied: the capture has no alignment block"
+    else:
+        note = "applied: each simulated image moved by the capture's alignment block (scenes.profile.align_image)"
+    result = {
+        "capture": str(capture.root.resolve()),
+        "taps": ids,
+        "reference_taps": ref_ids,
+        "profile": None if profile is None else str(profile),
+        "alignment": {"applied": alignment is not None, "block": block, "note": note},
+        "mask": {"what": "the lens' image circle", "pixels": int(mask.sum()), "radius_px": unit.camera.mask_radius_px,
+                 "center_px": unit.camera.mask_center_px},
+        "confidence": table.CONFIDENCE,
+        "bootstrap": bootstrap,
+        "seed": seed,
+        "options": options,
+        "best_fast": best["label"],
+        "rows": rows,
+        "on_reference_taps": on_reference,
+        "seconds": time.perf_counter() - t0,
+    }
+    write_report(out, result, examples, mask)
+    return result
