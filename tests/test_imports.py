@@ -20,6 +20,7 @@ HEAVY = {
     "potpourri3d": {"phong_reference/transport.py", "scenes/elastic.py"},
     "ray": {"scenes/executors.py"},
     "serial": {"rig/serial_lines.py"},
+    "cv2": {"rig/camera.py", "studies/gap/effects.py", "studies/gap/inject.py"},
 }
 
 

@@ -32,6 +32,7 @@ from phong_reference.render import finish
 from scenes.camera import Camera
 from scenes.dataset import load_sample, read_samples
 from scenes.profile import Alignment, align_image, load_profile
+from rig.align import alignment_from_dict
 from scenes.replay import Capture, read_capture, replay
 
 from . import table
@@ -56,20 +57,6 @@ def spread(ids: Sequence[str], n: int | None) -> list[str]:
     if n < 1:
         raise ValueError(f"the number of taps must be >= 1, got {n}")
     return [ids[i] for i in np.unique(np.linspace(0, len(ids) - 1, n).round().astype(int))]
-
-
-def _alignment_from_dict(block: dict) -> Alignment:
-    """The ``alignment`` block of a capture's dataset.json as an Alignment.
-
-    Private stand-in for ``rig.align.alignment_from_dict``: swap it when that lands.
-    """
-    if not isinstance(block, dict):
-        raise ValueError(f"capture alignment must be an object with rotation_rad, scale, shift_px, got {block!r}")
-    try:
-        return Alignment(rotation_rad=float(block.get("rotation_rad", 0.0)), scale=float(block.get("scale", 1.0)),
-                         shift_px=tuple(float(v) for v in block.get("shift_px", (0.0, 0.0))))
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"capture alignment {block!r}: {exc}") from None
 
 
 def with_background(shading: np.ndarray, background: np.ndarray, ambient: float, mask: np.ndarray) -> np.ndarray:
@@ -168,7 +155,7 @@ def compare(
     unit = spec if profile is None else load_profile(profile, spec).sensor_spec(spec)
     mask = Camera.from_spec(unit).mask  # the lens' image circle (the profile's, if any)
     block = capture.meta.get("alignment")
-    alignment = _alignment_from_dict(block) if block is not None and profile is None else None
+    alignment = alignment_from_dict(block) if block is not None and profile is None else None
     align = Aligner(alignment, camera, mask)
     ids = spread(capture.ids, taps)
     ref_ids = spread(ids, reference_taps) if reference else []
