@@ -54,19 +54,23 @@ def _alignment_hook(spec, options: dict):
     def hook(background):
         from .align import capture_alignment
 
-        profile = None
         if options.get("profile"):
             from scenes.profile import load_profile
 
             profile = load_profile(options["profile"], spec)
             return {"alignment": capture_alignment(background, spec, profile=profile)}
-        return {"alignment": capture_alignment(background, spec, sim_background=_sim_background(spec, background))}
+        try:
+            return {"alignment": capture_alignment(background, spec, sim_background=_sim_background(spec, background))}
+        except ValueError as exc:  # a registration that finds nothing to hold on to is no reason to stop
+            print(f"tactile-sim rig run: warning: no alignment: {exc}", file=sys.stderr)
+            return {"alignment_error": str(exc)}
 
     return hook
 
 
 def _sim_background(spec, background):
-    """The fast path's no-contact image of the spec, at the capture's size."""
+    """The fast path's no-contact image of the spec (its solid background: the fast path
+    alone draws no membrane), at the capture's size."""
     from scenes.camera import Camera
     from scenes.generate import renderer_plugin
     from scenes.geometry import membrane_mesh
@@ -74,8 +78,9 @@ def _sim_background(spec, background):
 
     mesh, camera = membrane_mesh(spec), Camera.from_spec(spec)
     plugin = renderer_plugin("phong")
-    plugin.prepare(spec, mesh, camera, {})
-    image = plugin.make_renderer(spec, mesh, camera, reference_depth(mesh, camera)[0], {}).no_contact
+    options = {"background": "solid"}
+    plugin.prepare(spec, mesh, camera, options)
+    image = plugin.make_renderer(spec, mesh, camera, reference_depth(mesh, camera)[0], options).no_contact
     if image.shape[:2] != background.shape[:2]:
         from skimage.transform import resize
 
