@@ -308,10 +308,11 @@ def test_split_is_stratified_and_refuses_an_empty_side(tmp_path, spec, sim_image
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("hidden", ["camera_response", "membrane_compliance"])
+@pytest.mark.parametrize("hidden", ["membrane_compliance"])
 def test_diagnosis_names_a_hidden_effect(tmp_path, spec, injector, contacts, sim_dir, hidden):
     """A strong hidden effect, injected by the benchmark's own injector, is ranked first
-    and most of the held-out gap closes."""
+    and most of the held-out gap closes. One contact effect here (30 s a case); the blind
+    benchmark (studies/gap/benchmark.py) hides every effect, the camera's response too."""
     rng = np.random.default_rng(5)
     effect = injector.sample(hidden, rng, strength=0.8)
     real = real_dataset(tmp_path / "real", spec, injector, contacts, [effect])
