@@ -85,18 +85,19 @@ class SafetyEnvelope:
 
     # ----------------------------------------------------------------- measures
 
-    def indenter_in_sensor(self, name: str, head, pitch: float, roll: float) -> np.ndarray:
-        """(V, 3) the indenter's vertices in the sensor frame, metres."""
+    def indenter_in_world(self, name: str, head, pitch: float) -> np.ndarray:
+        """(V, 3) the indenter's vertices in the world frame, metres."""
         if name not in self.indenters:
             raise EnvelopeError(f"indenter {name!r} is not in the envelope; it has {sorted(self.indenters)}")
         R, t = indenter_to_world(head, pitch, self.layout)
-        world = self.indenters[name] @ R.T + t
-        return (world - np.asarray(self.layout.sensor_origin)) @ sensor_to_world(roll)
+        return self.indenters[name] @ R.T + t
 
-    def indentation(self, name: str, head, pitch: float, roll: float) -> float:
+    def indentation(self, name: str, head, pitch: float, roll: float, world: np.ndarray | None = None) -> float:
         """How deep the indenter is in the membrane, metres: > 0 inside, < 0 the gap to it
-        (at most ``NEAR_M`` is measured: ``-NEAR_M`` means farther)."""
-        points = self.indenter_in_sensor(name, head, pitch, roll)
+        (at most ``NEAR_M`` is measured: ``-NEAR_M`` means farther). ``world``: its
+        vertices (:meth:`indenter_in_world`), when already at hand."""
+        world = self.indenter_in_world(name, head, pitch) if world is None else world
+        points = (world - np.asarray(self.layout.sensor_origin)) @ sensor_to_world(roll)
         near = np.linalg.norm(points - self._centre, axis=1) < self._radius + NEAR_M
         if not near.any():
             return -NEAR_M
@@ -129,12 +130,12 @@ class SafetyEnvelope:
         """EnvelopeError unless the indenter at this pose is in the envelope; returns its
         indentation (metres, :meth:`indentation`)."""
         self.check_head(head, where)
-        R, t = indenter_to_world(head, pitch, self.layout)
-        lowest = float((self.indenters[name] @ R.T + t)[:, 2].min()) if name in self.indenters else math.inf
+        world = self.indenter_in_world(name, head, pitch)
+        lowest = float(world[:, 2].min())
         if lowest < self.bed_top_m:
             raise EnvelopeError(f"{where}: the {name} indenter would reach z = {lowest * 1e3:.1f} mm, below the bed's "
                                 f"top at {self.bed_top_m * 1e3:.1f} mm")
-        depth = self.indentation(name, head, pitch, roll)
+        depth = self.indentation(name, head, pitch, roll, world)
         if press:
             if depth > self.max_indentation_m + DEPTH_TOLERANCE_M:
                 raise EnvelopeError(
