@@ -72,6 +72,16 @@ def _move(head, feed, tap=None, obj=None, press=False) -> Step:
     return Step(MOVE, tap=tap, obj=obj, head=tuple(float(v) for v in head), feed=feed, press=press)
 
 
+def waypoints(tap, vertices: np.ndarray, layout: RigLayout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A tap's head positions, (3,) world metres each: the press, the approach point
+    (:data:`APPROACH_M` out from the contact along the normal) and the point above it at
+    the safe height ``layout.home[2]``."""
+    press = head_for_tap(tap, vertices, layout)
+    n_world = sensor_to_world(tap.sensor_roll) @ np.asarray(tap.normal)
+    approach = press + (APPROACH_M + tap.depth) * n_world
+    return press, approach, np.array([approach[0], approach[1], layout.home[2]])
+
+
 def plan(taps, vertices: dict[str, np.ndarray], layout: RigLayout, envelope: SafetyEnvelope | None = None,
          background: bool = True) -> list[Step]:
     """The steps that carry out ``taps`` (in order), checked against ``envelope``.
@@ -98,10 +108,7 @@ def plan(taps, vertices: dict[str, np.ndarray], layout: RigLayout, envelope: Saf
         if tap.object not in vertices:
             raise ValueError(f"tap {tap.index} presses {tap.object!r}, but no mesh was given for it; have "
                              f"{sorted(vertices)}")
-        press = head_for_tap(tap, vertices[tap.object], layout)
-        n_world = sensor_to_world(tap.sensor_roll) @ np.asarray(tap.normal)
-        approach = press + (APPROACH_M + tap.depth) * n_world
-        above = np.array([approach[0], approach[1], safe_z])
+        press, approach, above = waypoints(tap, vertices[tap.object], layout)
         where = dict(tap=tap.index, obj=tap.object)
         if tap.object != mounted:
             steps += [Step(WAIT), Step(MOUNT, **where)]

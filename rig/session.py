@@ -25,14 +25,15 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from scenes.dataset import DatasetWriter, atomic_write_json, read_meta, sample_id, write_sample_files
-from scenes.kinematics import JOINTS, RigLayout, sensor_to_world
+from scenes.kinematics import JOINTS, RigLayout, head_for_tap, sensor_to_world
 
 from . import plan as P
 from .envelope import SafetyEnvelope
@@ -89,7 +90,11 @@ class Session:
     steps: list[P.Step]
     after_background: Callable[[np.ndarray], dict] | None = None
     hidden: dict | None = None
-    _taps: dict = field(default_factory=dict, repr=False)
+
+    @cached_property
+    def _taps(self) -> dict:
+        """Tap index -> tap."""
+        return {t.index: t for t in self.protocol.taps}
 
     @property
     def todo(self) -> list:
@@ -115,7 +120,6 @@ class Session:
         writer = DatasetWriter(self.root, meta, self.protocol.to_dict())
         if self.hidden is not None:
             atomic_write_json(self.root / "virtual.json", self.hidden)
-        self._taps = {t.index: t for t in self.protocol.taps}
         # The writer may know samples that prepare() did not see (another run since).
         skip = {i for i, t in self._taps.items() if sample_id(i, t.object) in writer.done}
         steps = [s for s in self.steps if s.tap is None or s.tap not in skip]
@@ -184,19 +188,15 @@ class Session:
 
         head = self.layout.head_position(devices.printer.position())
         roll, pitch = devices.servos.angles()
-        commanded = self._pose(self._press_head(tap), tap.sensor_roll, tap.indenter_pitch)
+        press = head_for_tap(tap, self.vertices[tap.object], self.layout)
+        commanded = self._pose(press, tap.sensor_roll, tap.indenter_pitch)
         measured = self._pose(head, roll, pitch)
         n_world = sensor_to_world(tap.sensor_roll) @ np.asarray(tap.normal)
         # Deeper by how much farther along -normal the head went than it was told.
-        depth = tap.depth + float((self._press_head(tap) - head) @ n_world)
+        depth = tap.depth + float((press - head) @ n_world)
         record = {**tap_fields(tap), "commanded_pose": commanded, "measured_pose": measured, "measured_depth": depth}
         files = write_sample_files(writer.root, record["id"], image, None)
         writer.append({**record, **files})
-
-    def _press_head(self, tap) -> np.ndarray:
-        from scenes.kinematics import head_for_tap
-
-        return head_for_tap(tap, self.vertices[tap.object], self.layout)
 
     @staticmethod
     def _pose(head, roll: float, pitch: float) -> dict[str, float]:
@@ -219,9 +219,7 @@ class Session:
         tap = self._taps[step.tap]
         try:
             head = self.layout.head_position(printer.position())
-            n_world = sensor_to_world(tap.sensor_roll) @ np.asarray(tap.normal)
-            approach = self._press_head(tap) + (P.APPROACH_M + tap.depth) * n_world
-            above = np.array([approach[0], approach[1], self.layout.home[2]])
+            _, approach, above = P.waypoints(tap, self.vertices[tap.object], self.layout)
             # The servos may have been turning: retract only as the envelope allows from
             # where they were told to be for this tap.
             self.envelope.check_move(tap.object, head, approach, tap.indenter_pitch, tap.sensor_roll,
