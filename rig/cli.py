@@ -21,17 +21,11 @@ TWIN = "twin"
 def _layout(path: str | None):
     from scenes.kinematics import RigLayout
 
+    from scenes.spec import read_toml
+
     if path is None:
         return RigLayout()
-    import tomllib
-
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"--layout {path}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"--layout {path} is not valid TOML: {exc}") from None
+    data = read_toml(path, "--layout")
     return RigLayout.from_dict(data.get("layout", data), where=f"--layout {path}")
 
 
@@ -71,16 +65,15 @@ def _alignment_hook(spec, options: dict):
 def _sim_background(spec, background):
     """The fast path's no-contact image of the spec (its solid background: the fast path
     alone draws no membrane), at the capture's size."""
-    from scenes.camera import Camera
-    from scenes.generate import renderer_plugin
+    from scenes.camera import Camera, reference_depth
+    from scenes.generate import make_renderer, renderer_plugin
     from scenes.geometry import membrane_mesh
-    from scenes.camera import reference_depth
 
     mesh, camera = membrane_mesh(spec), Camera.from_spec(spec)
     plugin = renderer_plugin("phong")
     options = {"background": "solid"}
     plugin.prepare(spec, mesh, camera, options)
-    image = plugin.make_renderer(spec, mesh, camera, reference_depth(mesh, camera)[0], options).no_contact
+    image = make_renderer(plugin, spec, mesh, camera, reference_depth(mesh, camera)[0], options).no_contact
     if image.shape[:2] != background.shape[:2]:
         from skimage.transform import resize
 

@@ -101,7 +101,7 @@ class VirtualRig:
         """The camera twin's renderer, built on first use against the no-contact depth."""
         if self._renderer is None:
             from scenes.camera import Camera
-            from scenes.generate import renderer_plugin
+            from scenes.generate import make_renderer, renderer_plugin
 
             plugin = renderer_plugin(self.renderer_name)
             camera = Camera.from_spec(self.spec)
@@ -114,10 +114,8 @@ class VirtualRig:
                 ref_depth = self.rig.depth()
                 self.rig.set_joints(**joints)
                 self.rig.mount(mounted)
-            args = (self.spec, self.mesh, camera, ref_depth, self.options)
             shared = plugin.shared(self.spec, self.mesh, camera, self.options) if hasattr(plugin, "shared") else None
-            self._renderer = plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else \
-                plugin.make_renderer(*args)
+            self._renderer = make_renderer(plugin, self.spec, self.mesh, camera, ref_depth, self.options, shared)
         return self._renderer
 
     def hidden(self) -> dict:

@@ -56,6 +56,13 @@ def renderer_plugin(name: str):
                      f"'package.module', got {name!r}")
 
 
+def make_renderer(plugin, spec, mesh, camera, ref_depth, options: dict, shared=None):
+    """A plugin's renderer (its ``make_renderer``); only plugins that define ``shared()``
+    take ``shared``."""
+    args = (spec, mesh, camera, ref_depth, options)
+    return plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else plugin.make_renderer(*args)
+
+
 def measured_depth(depth: np.ndarray, ref_depth: np.ndarray, camera: Camera, tap: Tap, noise: float) -> float:
     """Deepest indentation in a captured depth map, along the tap's normal, metres.
 
@@ -147,10 +154,7 @@ class TapRunner:
         self.rig.home()
         self.ref_depth = self.rig.depth()
         plugin = renderer_plugin(job.renderer)
-        args = (self.spec, self.mesh, self.camera, self.ref_depth, job.options)
-        # Only plugins that define shared() take it.
-        self.renderer = plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else \
-            plugin.make_renderer(*args)
+        self.renderer = make_renderer(plugin, self.spec, self.mesh, self.camera, self.ref_depth, job.options, shared)
 
     def capture(self, task: Task) -> np.ndarray:
         """The depth map of a tap pressed, or of the rig set to a posed tap's joints."""
