@@ -32,14 +32,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .camera import Camera
-from .spec import SensorSpec
+from .spec import SensorSpec, read_toml
 
 #: Bump when the meaning of a table changes; older profiles are refused.
 PROFILE_VERSION = 2
@@ -268,12 +267,7 @@ def profile_from_dict(data: dict, where: str = "profile") -> Profile:
 def load_profile(path: str | Path, spec: SensorSpec | None = None) -> Profile:
     """Read a profile.toml, checked against ``spec`` when given."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise FileNotFoundError(f"profile {path} does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"profile {path} is not valid TOML: {exc}") from None
+    data = read_toml(path, "profile")
     profile = profile_from_dict(data, f"profile {path}")
     return profile.check(spec) if spec is not None else profile
 

@@ -250,16 +250,22 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     )
 
 
+def read_toml(path: str | Path, what: str) -> dict:
+    """A TOML file's tables; FileNotFoundError or ValueError naming ``what`` and the path."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{what} {path} does not exist") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{what} {path} is not valid TOML: {exc}") from None
+    return data
+
+
 def load_spec(path: str | Path | None = None) -> SensorSpec:
     """Read a sensor spec TOML file; ``None`` gives the embedded default GelTip."""
     path = Path(path) if path is not None else DEFAULT_SPEC_PATH
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"sensor spec {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"sensor spec {path} is not valid TOML: {exc}") from None
+    data = read_toml(path, "sensor spec")
     spec = spec_from_dict(data, source=str(path))
     if spec.membrane.mesh_path and not Path(spec.membrane.mesh_path).is_absolute():
         mesh_path = str((path.parent / spec.membrane.mesh_path).resolve())
