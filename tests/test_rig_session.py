@@ -361,3 +361,20 @@ def test_killing_the_process_mid_run_loses_and_duplicates_nothing(tmp_path):
     records = read_samples(out)
     assert [r["tap_index"] for r in records] == list(range(8))
     assert f"8 samples in {out} ({8 - before} new" in done.stdout
+
+
+def test_a_background_that_cannot_be_registered_is_recorded_not_fatal(spec, capsys):
+    from rig.cli import _alignment_hook
+
+    extra = _alignment_hook(spec, {})(np.zeros((480, 640, 3), np.float32))  # a black frame
+    assert set(extra) == {"alignment_error"} and "black or saturated" in extra["alignment_error"]
+    assert "warning: no alignment" in capsys.readouterr().err
+
+
+def test_rig_twin_serves_both_twins_and_prints_their_ports(capsys):
+    from scenes.cli import main
+
+    assert main(["rig", "twin", "--seconds", "0.2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(": ")[0] for line in lines] == ["printer twin", "servo twin"]
+    assert all(line.split(": ")[1].startswith("/dev/pts/") for line in lines)
