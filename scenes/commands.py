@@ -88,7 +88,7 @@ RENDERER_OPTIONS = {
     "field": "field", "background": "background", "rectify": "rectify", "elastic": "elastic",
     "target_rse": "target_rse", "max_passes": "max_passes", "effects": "effect", "estimator": "estimator",
     "photons": "photons", "camera_spp": "camera_spp", "kernel_radius_mm": "kernel_radius_mm",
-    "no_contact_runs": "no_contact_runs", "film": "film", "profile": "profile",
+    "no_contact_runs": "no_contact_runs", "film": "film", "profile": "profile", "seed": "render_seed",
 }
 
 
@@ -180,6 +180,9 @@ def add_renderer_arguments(p, skip: tuple[str, ...] = ()) -> None:
                                      "help": "render the calibrated unit of this profile (tactile-sim calibrate)"}),
         "film": (("--film",), {"type": _film_size, "metavar": "WxH",
                                "help": "pbr: render at WxH (the camera's aspect) and resample to the camera's size"}),
+        "seed": (("--render-seed",), {"type": int, "metavar": "S",
+                                      "help": "pbr: the renderer's random seed (default 0); another seed gives the "
+                                              "same images with Monte Carlo noise of their own"}),
     }
     for key, (flags, kwargs) in arguments.items():
         if key not in skip:

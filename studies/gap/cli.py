@@ -13,9 +13,14 @@ def _effects(text: str) -> tuple[str, ...] | None:
     if text == "all":
         return None
     names = tuple(n.strip() for n in text.split(",") if n.strip())
-    unknown = [n for n in names if n not in fx.EFFECTS]
+    from .physical import candidate_names
+
+    physical = candidate_names()
+    unknown = [n for n in names if n not in fx.EFFECTS and n not in physical]
     if unknown or not names:
-        raise argparse.ArgumentTypeError(f"effects must be 'all' or a comma-separated list of {', '.join(fx.EFFECTS)}; "
+        raise argparse.ArgumentTypeError(f"effects must be 'all' or a comma-separated list of the fast model's effects "
+                                         f"({', '.join(fx.EFFECTS)}) or, for a simulation the reference rendered, "
+                                         f"its own ({', '.join(n for n in physical if n not in fx.EFFECTS)}); "
                                          f"unknown: {', '.join(unknown) or '(none given)'}")
     return names
 

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from . import effects as fx
 from . import metrics
 from .fit import RANK_BY, Diagnosis, Judged
 from .pairs import Pairs, load_pairs, split
@@ -108,14 +107,44 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
         "noise": {"std": noise, "mae_floor": noise * float(np.sqrt(2 / np.pi)),
                   "note": "estimated from held-out residuals after the selected effects (differences of adjacent "
                           "pixels, robust spread); noise cannot be predicted, so it stays in the gap"},
-        "catalogue": {n: {"stage": fx.STAGES[n], "doc": diagnosis.catalogue[n].doc,
+        "model": diagnosis.work.kind,
+        "catalogue": {n: {"stage": diagnosis.work.stages[n], "doc": diagnosis.catalogue[n].doc,
                           "params": {p.name: {"low": p.low, "high": p.high, "identity": p.identity, "unit": p.unit,
-                                              "doc": p.doc} for p in diagnosis.catalogue[n].params}}
-                      for n in fx.EFFECTS},
+                                              "doc": p.doc} for p in diagnosis.catalogue[n].params},
+                          **_physical_entry(diagnosis.work, n)}
+                      for n in diagnosis.names},
     }
+    if diagnosis.work.kind == "pbr":
+        basis = diagnosis.work.basis
+        report["renders"] = {"film": list(basis.film), "photons": basis.photons, "spp": basis.spp,
+                             "passes": basis.passes, "seed": basis.seed, "count": basis.renders,
+                             "seconds": round(basis.seconds, 1),
+                             "identity": basis.cost.get("identity", {"renders": 0, "seconds": 0.0})}
     report["seconds"] = time.perf_counter() - t0
     examples = _examples(diagnosis, final)
     return report, {"maps": maps, "labels": labels, "mask": diagnosis.mask, "examples": examples}
+
+
+def _physical_entry(model, name: str) -> dict:
+    """What the report says of a reference model's candidate besides its parameters: how
+    it is evaluated, its grid, the fast catalogue's counterpart, and what it cost."""
+    if model.kind != "pbr":
+        return {}
+    from .physical import COUNTERPARTS
+
+    entry = {"evaluated": {"linear": "from the per-source images, no render",
+                           "bool-linear": "from the per-source images, no render",
+                           "render": "re-rendered per source on a grid, interpolated",
+                           "bool-render": "re-rendered per source with the switch flipped, blended",
+                           "image": "on the image", "fast": "on the image (the fast catalogue's model)",
+                           "unpredictable": "not fitted"}[model.kinds[name]],
+             "counterpart": COUNTERPARTS.get(name)}
+    if name in model.grids:
+        entry["grid"] = list(model.grids[name]["values"])
+    cost = model.basis.cost.get(name)
+    if cost is not None:
+        entry["cost"] = {"renders": cost["renders"], "seconds": round(cost["seconds"], 1)}
+    return entry
 
 
 def _mask(pairs: Pairs) -> np.ndarray:
@@ -160,7 +189,7 @@ def run(real_dir: str | Path, sim_dir: str | Path, out: str | Path, heldout_frac
             bar.refresh()
 
     if bar is not None:
-        bar.reset(total=len(fx.EFFECTS))
+        bar.reset(total=0)
         bar.set_description("fitting")
     report, artefacts = diagnose(pairs, heldout_fraction, seed, factor, effects, fitting)
     if bar is not None:

@@ -31,7 +31,7 @@ from skimage.registration import phase_cross_correlation
 
 from . import effects as fx
 from . import metrics
-from .model import FastModel
+from .model import make_models
 from .pairs import Pairs
 
 #: Ranking metric: the masked MAE (the image circle; the black border holds no signal).
@@ -116,10 +116,10 @@ class Diagnosis:
         self.seed = seed
         self.progress = progress
         renderer = dict(pairs.sim_meta.get("renderer") or {})
-        self.work = FastModel(pairs.spec, renderer, factor)
-        self.full = FastModel(pairs.spec, renderer, 1) if factor != 1 else self.work
+        self.work, self.full = make_models(pairs, renderer, factor)
         self.catalogue = self.work.catalogue
-        self.train_index = _fit_subset(pairs, np.flatnonzero(train), MAX_FIT_SAMPLES, seed)
+        self.names = self.work.names
+        self.train_index = _fit_subset(pairs, np.flatnonzero(train), self.work.max_fit_samples or MAX_FIT_SAMPLES, seed)
         self.heldout_index = np.flatnonzero(heldout)
         self.real_w = self.work.working_images(pairs.real[self.train_index])
         self.sim_w = self.work.working_images(pairs.sim[self.train_index])
@@ -141,30 +141,16 @@ class Diagnosis:
         self.sim_h = pairs.sim[self.heldout_index]
         self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
         self.mask = self.full.mask
-        self.not_applicable = self._not_applicable(renderer)
-        wanted = fx.EFFECTS if effects is None else tuple(effects)
-        unknown = [e for e in wanted if e not in fx.EFFECTS]
+        self.not_applicable = self.work.not_applicable(pairs)
+        wanted = self.names if effects is None else tuple(effects)
+        unknown = [e for e in wanted if e not in self.names]
         if unknown:
-            raise ValueError(f"unknown effect(s) {unknown}; the catalogue has {list(fx.EFFECTS)}")
+            raise ValueError(f"unknown effect(s) {unknown}; the {self.work.kind} model's catalogue has "
+                             f"{list(self.names)}")
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
         self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h)
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
-
-    def _not_applicable(self, renderer: dict) -> dict[str, str]:
-        out = {}
-        if self.pairs.depth is None:
-            for name in fx.EFFECTS:
-                if fx.STAGES[name] in ("membrane", "light"):
-                    out[name] = "the simulated dataset has no depth maps to re-render its contacts from"
-        if renderer.get("renderer", "phong") != "phong":
-            for name in fx.EFFECTS:
-                if fx.STAGES[name] in ("membrane", "light"):
-                    out.setdefault(name, f"the simulated dataset was not rendered by the fast path "
-                                         f"(renderer {renderer.get('renderer')!r}), so it cannot be re-rendered")
-        if any(led.peak_nm is None or led.fwhm_nm is None for led in self.pairs.spec.leds):
-            out.setdefault("led_spectrum", "the sensor spec gives no LED peak_nm / fwhm_nm")
-        return out
 
     # --- fitting --------------------------------------------------------------------------
 
@@ -209,6 +195,11 @@ class Diagnosis:
         """Starting points of one effect's fit (the best of them is refined)."""
         effect = self.catalogue[name]
         base = dict(effect.identity)
+        own = name
+        if self.work.kind != "fast":
+            if name not in self.work.aliases:
+                return self.work.starts(name)
+            name = self.work.aliases[name]  # a fast image model under the model's own name
         # Start just off the identity where the identity is a flat spot of the loss.
         nudges = {"core_light_leak": {k: 0.1 for k in base if k.startswith("amplitude")},
                   "path_attenuation": {"mu_per_m": 20.0}, "coating_gloss": {"k_g": 0.2},
@@ -216,7 +207,7 @@ class Diagnosis:
                   "blur_noise": {"sigma_px": 1.0}, "camera_response": {"crosstalk": 0.02}}
         base.update(nudges.get(name, {}))
         if name == "misalignment":
-            return self._misalignment_starts(base)
+            return self._misalignment_starts(base, effect.name)
         if name == "lens_distortion":
             return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
         if name == "membrane_compliance":
@@ -229,7 +220,7 @@ class Diagnosis:
         if name == "coating_gloss":
             return [{**base, "shininess": s} for s in (8.0, 30.0, 100.0)]
         if name == "camera_response":
-            return self._response_starts(base)
+            return self._response_starts(base, own)
         if name == "vignetting":
             return [base, self._vignetting_start(base)]
         return [base]
@@ -243,14 +234,14 @@ class Diagnosis:
         keep = (sim.max(axis=1) < 0.99) & (real.max(axis=1) < 0.99) & (sim.min(axis=1) > 0.004)
         return sim[keep].astype(np.float64), real[keep].astype(np.float64)
 
-    def _response_starts(self, base: dict) -> list[dict]:
+    def _response_starts(self, base: dict, name: str = "camera_response") -> list[dict]:
         """Per gamma of ``START_GAMMAS``, the white-balance gains in closed form: out =
         (g in)^(1/gamma) makes real^gamma = g sim per channel, a least-squares line through
         the origin, g_c = sum(s_c r_c^gamma) / sum(s_c^2)."""
         sim, real = self._pixels()
         if len(sim) < 16:
             return [{**base, "gamma": g} for g in (0.7, 1.0, 1.4)]
-        bounds = {p.name: (p.low, p.high) for p in self.catalogue["camera_response"].params}
+        bounds = {p.name: (p.low, p.high) for p in self.catalogue[name].params}
         out = []
         for gamma in START_GAMMAS:
             gains = (sim * real**gamma).sum(axis=0) / np.maximum((sim * sim).sum(axis=0), 1e-12)
@@ -279,7 +270,7 @@ class Diagnosis:
         p = {q.name: q for q in self.catalogue["vignetting"].params}
         return {**base, "a": float(np.clip(a, p["a"].low, p["a"].high)), "b": float(np.clip(b, p["b"].low, p["b"].high))}
 
-    def _misalignment_starts(self, base: dict) -> list[dict]:
+    def _misalignment_starts(self, base: dict, name: str = "misalignment") -> list[dict]:
         """Rotation from a coarse grid (every 10 degrees, then 1 degree around the best)
         and shift by phase correlation, both on the mean images of the fitting samples
         (one image, so the search is cheap), for the membrane moving under a fixed image
@@ -292,18 +283,20 @@ class Diagnosis:
         sim = self.sim_w.mean(axis=0)[None]
 
         def registered(angle: float, share: float) -> tuple[float, dict]:
-            params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0, "frame_share": share}
-            rotated = self.work.optics(sim, {"misalignment": params})[0]
+            params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0}
+            if "frame_share" in base:
+                params["frame_share"] = share
+            rotated = self.work.optics(sim, {name: params})[0]
             shift, _, _ = phase_cross_correlation((real - fixed).mean(-1), (rotated - fixed).mean(-1),
                                                   upsample_factor=4, normalization=None)
             # The model samples the simulated frame at x + (du, dv), full-resolution pixels.
             du, dv = (float(np.clip(-v * self.work.factor, -59.0, 59.0)) for v in (shift[1], shift[0]))
             params.update(du_px=du, dv_px=dv)
-            pred = self.work.optics(sim, {"misalignment": params})[0]
+            pred = self.work.optics(sim, {name: params})[0]
             return float(np.mean(np.abs(pred - real)[self.mask_w])), params
 
         found = []
-        for share in (0.0, 1.0):
+        for share in ((0.0, 1.0) if "frame_share" in base else (1.0,)):
             coarse = [registered(a, share) for a in np.deg2rad(np.arange(-180, 180, 10))]
             best = min(coarse, key=lambda t: t[0])[1]["rotation_rad"]
             found += coarse + [registered(best + a, share) for a in np.deg2rad(np.arange(-4, 5, 1))]
@@ -319,7 +312,7 @@ class Diagnosis:
             others keep their ``start`` values.
         """
         t0 = time.perf_counter()
-        names = tuple(n for n in fx.EFFECTS if n in names)
+        names = tuple(n for n in self.names if n in names)
         free = names if free is None else tuple(n for n in names if n in free)
         fixed = {n: dict(start[n]) for n in names if n not in free} if start is not None else {}
         plist, to_params, to_z = self._space(free)

@@ -40,6 +40,20 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def make_models(pairs, renderer: dict, factor: int):
+    """(working, full-resolution) models of a simulated dataset: the reference decomposed
+    per source (``studies.gap.physical``) when the reference rendered it, else the fast
+    simulator rebuilt from its settings."""
+    if renderer.get("renderer") == "pbr":
+        from .physical import ReferenceModel, SourceBasis
+
+        basis = SourceBasis(pairs.spec, renderer, pairs.depth if pairs.depth is not None else np.zeros((0,)))
+        work = ReferenceModel(pairs.spec, renderer, factor, basis)
+        return work, (ReferenceModel(pairs.spec, renderer, 1, basis) if factor != 1 else work)
+    work = FastModel(pairs.spec, renderer, factor)
+    return work, (FastModel(pairs.spec, renderer, 1) if factor != 1 else work)
+
+
 class FastModel:
     """The fast simulator of a dataset's sensor and renderer settings at 1/``factor`` of
     the dataset's resolution.
@@ -47,6 +61,12 @@ class FastModel:
     spec : the sensor; renderer : the dataset's renderer settings (``field``,
     ``background``, ``rectify``); factor : integer downsampling of the working resolution.
     """
+
+    kind = "fast"
+    names = fx.EFFECTS
+    stages = fx.STAGES
+    aliases: dict = {}
+    max_fit_samples = None  # the diagnosis' own cap
 
     def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1):
         # A dataset rendered for a calibrated unit (``--profile``) records its profile: the
@@ -99,6 +119,23 @@ class FastModel:
         self.catalogue = fx.catalogue(len(spec.leds), self.sigma_px)
         self._geodesic = None
         self._cache: dict[int, dict] = {}
+
+    def not_applicable(self, pairs) -> dict[str, str]:
+        """{effect: why} for the effects this model cannot fit on ``pairs``."""
+        out = {}
+        renderer = dict(pairs.sim_meta.get("renderer") or {})
+        if pairs.depth is None:
+            for name in fx.EFFECTS:
+                if fx.STAGES[name] in ("membrane", "light"):
+                    out[name] = "the simulated dataset has no depth maps to re-render its contacts from"
+        if renderer.get("renderer", "phong") != "phong":
+            for name in fx.EFFECTS:
+                if fx.STAGES[name] in ("membrane", "light"):
+                    out.setdefault(name, f"the simulated dataset was not rendered by the fast path "
+                                         f"(renderer {renderer.get('renderer')!r}), so it cannot be re-rendered")
+        if any(led.peak_nm is None or led.fwhm_nm is None for led in self.spec.leds):
+            out.setdefault("led_spectrum", "the sensor spec gives no LED peak_nm / fwhm_nm")
+        return out
 
     # --- inputs -------------------------------------------------------------------------
 

@@ -163,6 +163,16 @@ def _fmt(ci: dict, scale: float = 1.0, digits: int = 4) -> str:
 def headline(report: dict) -> list[str]:
     """The answer in a few sentences."""
     lines = []
+    untested = report.get("not_applicable", {})
+    if untested:
+        lines.append(f"Not every candidate could be tested: {len(untested)} of {len(report.get('catalogue', {}))} were "
+                     f"not ({', '.join(untested)}), so the answer below is limited to the rest; a cause among the "
+                     "untested ones would show as the tested effects that mimic it best, or as no effect. Why each "
+                     "was not tested is listed under 'Which effect causes it'.")
+    model = report.get("model", "fast")
+    lines.append("The candidates are the physical effects of the reference that rendered the simulation (re-rendered "
+                 "per light source)." if model == "pbr" else
+                 "The candidates are the fast path's effect models, added to its rendering chain.")
     gap = report["gap"]["heldout"]
     lines.append(f"Held-out gap: masked MAE {_fmt(gap['masked']['mae'])}, SSIM {_fmt(gap['masked']['ssim'], digits=3)}, "
                  f"PSNR {_fmt(gap['masked']['psnr'], digits=1)} dB (full frame MAE {_fmt(gap['full']['mae'])}).")
@@ -177,8 +187,12 @@ def headline(report: dict) -> list[str]:
     if report["ranking"]:
         top = report["ranking"][0]
         share = report["effects"][top]["heldout"]["improvement"]["masked"]["mae"]
-        lines.append(f"The effect that explains most of it is {top}: it closes {share['share'] * 100:.1f}% "
-                     f"[{share['share_low'] * 100:.1f}, {share['share_high'] * 100:.1f}] of the held-out gap on its own.")
+        params = ", ".join(f"{k} = {v:.4g}" for k, v in report["effects"][top]["params"][top].items())
+        counterpart = report.get("catalogue", {}).get(top, {}).get("counterpart")
+        lines.append(f"The effect that explains most of it is {top}{f' ({params})' if params else ''}: it closes "
+                     f"{share['share'] * 100:.1f}% [{share['share_low'] * 100:.1f}, {share['share_high'] * 100:.1f}] "
+                     "of the held-out gap on its own."
+                     + (f" Its counterpart in the fast path's catalogue is {counterpart}." if counterpart else ""))
     else:
         lines.append("No effect of the catalogue closes a significant part of the held-out gap.")
     if report["selection"]:

@@ -1,0 +1,503 @@
+"""The physically based reference decomposed per light source, so that the diagnosis can
+fit its physical effects.
+
+When the simulated dataset was rendered by the reference (``source: "pbr"``), the
+candidate effects are the reference's own switches (``physical_catalogue``):
+
+- every field of ``pbr_tactile.effects.Effects``, so that new physics joins without
+  edits here (a field this module does not know is re-rendered on a grid of its range);
+- the membrane's mechanics: the imprint's depth (``membrane_compliance``) and the elastic
+  layer's spread (``layer_spread``, through the elastomer's Poisson ratio, which sets the
+  layer's decay length, ``scenes.elastic.layer_length``);
+- the LEDs' powers (``led_power``) and spectra (``led_peak_shift``);
+- a calibrated unit's camera and alignment (``camera_gains``, ``alignment``, ``blur``:
+  the fast catalogue's image models, ``FAST_MODELS``).
+
+The image is linear in each emitter's power and the transport is grey, so each tap is
+rendered once per source (``pbr_tactile.calibrate.emitter_basis``: each LED, and its leak
+into the glass core, per unit flux) at a low film, and
+
+    linear(theta) = sum_m p_m [(1 - f) B_m + f B_m,leak] (x) r_m(spectrum, camera)
+
+with p_m the LED powers, f the core leak fraction and r_m (3,) the film's response to
+LED m's spectrum (``pbr_tactile.render.source_response``). Powers, the leak and the
+spectra cost no render. The medium (absorption, scattering), the coating, the contact's
+shadow and the mechanics change the transport itself: each is rendered at the points of
+a small grid (``GRIDS``, always through the simulation's own value), with the same seed
+as the identity (common random numbers), on the taps the fit uses and, once fitted, on
+the held-out taps at the grid points around the fitted value; between grid points the
+per-source images are interpolated (geometrically for the medium's coefficients, whose
+effect is close to exponential, linearly otherwise), and several re-rendered effects add
+their changes.
+
+A prediction of the real image is, as for the fast model (``studies.gap.model``),
+
+    pred = image_stages(sim + up(M(theta) - M(identity)))
+
+with M = clip(exposure_gain linear) the reference's image at the basis' film, ``up`` a
+bilinear resampling to the working resolution, and the image stages (lens distortion and
+vignetting as the reference applies them, ``pbr_tactile.sensor``; the unit's alignment,
+blur and camera response) acting on the whole image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
+from scenes.geometry import membrane_mesh
+from scenes.images import block_mean
+from scenes.spec import SensorSpec
+
+from . import effects as fx
+
+#: The basis renders: film (a quarter of the default dataset film a side), photons per
+#: LED per pass, camera samples per pixel per pass, passes. Measured on 2 cores, one
+#: per-source render of a contact takes 8-10 s at these settings.
+BASIS_FILM = (80, 60)
+BASIS_PHOTONS = 1 << 16
+BASIS_SPP = 16
+BASIS_PASSES = 2
+#: The basis is rendered with this core leak fraction, so that each LED's leak has its
+#: own image (per unit flux, the fraction only weights it).
+LEAK_BASIS = 0.5
+#: Fits of physical effects use at most this many training taps (each costs its renders).
+FIT_TAPS = 8
+
+#: Effects fields whose change is linear in the per-source images: no render.
+LINEAR_FIELDS = ("core_light_leak", "led_spectra", "camera_response")
+#: Effects fields that act on the rendered image (``pbr_tactile.sensor``).
+IMAGE_FIELDS = ("vignetting", "lens_distortion")
+#: Effects fields a mean prediction cannot hold, and why.
+UNPREDICTABLE_FIELDS = {"sensor_noise": "noise is estimated from the residual (report 'noise'), not predicted: "
+                                        "a prediction is a mean"}
+#: Re-rendered candidates: the grid's ends and its interpolation (the simulation's own
+#: value is always a grid point). A field of Effects not listed is searched over
+#: ``DEFAULT_GRID_SPAN`` times its value (or its accepted range where that is finite).
+GRIDS = {
+    "absorption_per_m": {"low": 5.0, "high": 120.0, "interpolation": "geometric", "unit": "1/m",
+                         "doc": "absorption coefficient of the elastomer"},
+    "scattering_per_m": {"low": 10.0, "high": 250.0, "interpolation": "geometric", "unit": "1/m",
+                         "doc": "scattering coefficient of the elastomer"},
+    "coating_albedo": {"low": 0.6, "high": 0.97, "interpolation": "linear", "unit": "-",
+                       "doc": "diffuse reflectance of the coating"},
+    "core_leak_cone_rad": {"low": 0.0, "high": 0.6, "interpolation": "linear", "unit": "rad",
+                           "doc": "half-angle of the core leak's cone up the tube"},
+    "membrane_compliance": {"low": 0.6, "high": 1.25, "interpolation": "linear", "unit": "-",
+                            "doc": "imprint depth / commanded depth"},
+    "layer_spread": {"low": 0.0, "high": 0.5, "interpolation": "linear", "unit": "-",
+                     "doc": "Poisson ratio of the elastomer (the layer's decay length h sqrt((1 - nu) / 6))"},
+}
+DEFAULT_GRID_SPAN = 4.0
+#: Image models borrowed from the fast catalogue (the unit's camera and alignment).
+FAST_MODELS = {"camera_gains": "camera_response", "alignment": "misalignment", "blur": "blur_noise"}
+#: Where each candidate acts.
+STAGE_OF = {"membrane_compliance": "membrane", "layer_spread": "membrane", "led_power": "light",
+            "led_peak_shift": "light", "vignetting": "optics", "lens_distortion": "optics", "alignment": "optics",
+            "blur": "optics", "camera_gains": "sensor", "sensor_noise": "sensor"}
+#: The fast catalogue's image-level or shading counterpart of each physical candidate.
+COUNTERPARTS = {"core_light_leak": "core_light_leak", "core_leak_cone_rad": "core_light_leak",
+                "absorption_per_m": "path_attenuation", "scattering_per_m": "path_attenuation",
+                "coating_gloss": "coating_gloss", "coating_albedo": "camera_response",
+                "contact_shadow": "contact_shadow", "led_spectra": "led_spectrum", "camera_response": "led_spectrum",
+                "vignetting": "vignetting", "lens_distortion": "lens_distortion", "sensor_noise": "blur_noise",
+                "membrane_compliance": "membrane_compliance", "layer_spread": "elastic_spread",
+                "led_power": "led_spectrum", "led_peak_shift": "led_spectrum", "camera_gains": "camera_response",
+                "alignment": "misalignment", "blur": "blur_noise"}
+
+
+def _field_kind(field: dataclasses.Field, value) -> str:
+    if field.name in UNPREDICTABLE_FIELDS:
+        return "unpredictable"
+    if field.name in LINEAR_FIELDS:
+        return "linear"
+    if field.name in IMAGE_FIELDS:
+        return "image"
+    return "render"
+
+
+def _grid_for(name: str, identity: float) -> dict:
+    """The grid of a re-rendered numeric candidate: ``values`` (sorted, through the
+    identity), bounds, interpolation, unit and doc."""
+    from pbr_tactile.effects import RANGES
+
+    known = GRIDS.get(name)
+    if known is None:
+        low, high = RANGES.get(name, (0.0, math.inf))
+        span_low = identity / DEFAULT_GRID_SPAN if identity > 0 else 0.0
+        span_high = identity * DEFAULT_GRID_SPAN if identity > 0 else 1.0
+        known = {"low": max(low, span_low), "high": min(high, span_high), "interpolation": "linear", "unit": "-",
+                 "doc": f"Effects.{name}"}
+    low, high = min(known["low"], identity), max(known["high"], identity)
+    values = tuple(sorted({float(low), float(identity), float(high)}))
+    return {**known, "low": float(low), "high": float(high), "values": values}
+
+
+def candidate_names() -> tuple[str, ...]:
+    """Every candidate name of a reference-rendered simulation (``physical_catalogue``)."""
+    from pbr_tactile.effects import Effects
+
+    return (tuple(f.name for f in dataclasses.fields(Effects)) + ("membrane_compliance", "layer_spread", "led_power",
+                                                                    "led_peak_shift") + tuple(FAST_MODELS))
+
+
+def physical_catalogue(spec: SensorSpec, effects, sigma_px: float = 5.0) -> tuple[dict, dict, dict]:
+    """The candidates of a reference-rendered dataset of sensor ``spec`` whose effects
+    were ``effects`` (a ``pbr_tactile.effects.Effects``).
+
+    Returns (catalogue {name: fx.Effect}, kinds {name: "linear" | "render" | "image" |
+    "fast" | "unpredictable" | "bool-render"}, grids {name: grid} for re-rendered ones).
+    """
+    fast = fx.catalogue(len(spec.leds), sigma_px)
+    leds = range(len(spec.leds))
+    out, kinds, grids = {}, {}, {}
+
+    def add(name: str, params, doc: str, kind: str) -> None:
+        out[name] = fx.Effect(name, STAGE_OF.get(name, "light"), tuple(params), doc)
+        kinds[name] = kind
+
+    for field in dataclasses.fields(effects):
+        name, value = field.name, getattr(effects, field.name)
+        kind = _field_kind(field, value)
+        doc = f"the reference's Effects.{name}"
+        if kind == "unpredictable":
+            add(name, (), doc, kind)
+        elif isinstance(value, bool):
+            add(name, (fx.Param("on", 0.0, 1.0, float(value), "-", f"{name} switched on (1) or off (0); between: "
+                                "a blend of the two"),), doc, "bool-" + kind)
+            if kind == "render":
+                grids[name] = {"values": (0.0, 1.0), "interpolation": "linear", "low": 0.0, "high": 1.0}
+        elif name == "core_light_leak":
+            add(name, (fx.Param("fraction", 0.0, 1.0, float(value), "-", "share of each LED's power emitted into the "
+                                "glass core"),), doc, kind)
+        elif name == "vignetting":
+            add(name, (fx.Param("strength", 0.0, 0.9, float(value), "-", "relative fall-off at the image circle's "
+                                "edge, 1 - strength (r / R)^2"),), doc, kind)
+        elif name == "lens_distortion":
+            add(name, (fx.Param("k1", -0.5, 0.5, float(value[0]), "-", "radial coefficient of r^2"),
+                       fx.Param("k2", -0.3, 0.3, float(value[1]), "-", "radial coefficient of r^4")), doc, kind)
+        elif isinstance(value, (int, float)):
+            grid = _grid_for(name, float(value))
+            grids[name] = grid
+            add(name, (fx.Param("value", grid["low"], grid["high"], float(value), grid["unit"], grid["doc"]),),
+                doc, kind)
+        else:  # a new kind of field (a pair, a string): named, not fitted
+            add(name, (), doc, "unpredictable")
+    for name, identity in (("membrane_compliance", 1.0), ("layer_spread", float(spec.elastic.poisson_ratio))):
+        grid = _grid_for(name, identity)
+        grids[name] = grid
+        add(name, (fx.Param("value", grid["low"], grid["high"], identity, grid["unit"], grid["doc"]),),
+            GRIDS[name]["doc"], "render")
+    add("led_power", [fx.Param(f"power_{m}", 0.3, 3.0, 1.0, "-", f"LED {m}'s relative power") for m in leds],
+        "each LED's power", "linear")
+    add("led_peak_shift", [fx.Param(f"shift_nm_{m}", -30.0, 30.0, 0.0, "nm", f"LED {m}'s peak shift") for m in leds],
+        "each LED's emission peak against the camera's filters", "linear")
+    for name, fast_name in FAST_MODELS.items():
+        e = fast[fast_name]
+        params = e.params
+        if fast_name == "misalignment":  # the reference draws no image circle: the whole frame moves
+            params = tuple(dataclasses.replace(p, low=1.0, high=1.0, identity=1.0) if p.name == "frame_share" else p
+                           for p in params if p.name != "frame_share")
+        add(name, params, f"the unit's {fast_name.replace('_', ' ')} ({e.doc})", "fast")
+    return out, kinds, grids
+
+
+class SourceBasis:
+    """Per-tap, per-source images of the reference at a low film, rendered on demand and
+    kept (on disk too, by ``emitter_basis``'s cache).
+
+    spec, renderer : the simulated dataset's sensor and renderer settings; depth : (N, H,
+    W) its contacts' planar depth, metres.
+    """
+
+    def __init__(self, spec: SensorSpec, renderer: dict, depth: np.ndarray, film=BASIS_FILM,
+                 photons: int = BASIS_PHOTONS, spp: int = BASIS_SPP, passes: int = BASIS_PASSES, seed: int = 1,
+                 use_cache: bool = True):
+        from pbr_tactile.effects import Effects
+
+        self.spec = spec
+        self.camera = Camera.from_spec(spec)
+        self.mesh = membrane_mesh(spec)
+        self.ref = reference_depth(self.mesh, self.camera)[0].astype(np.float32)
+        self.depth = depth
+        given = dict(renderer.get("effects") or {})
+        if "lens_distortion" in given:
+            given["lens_distortion"] = tuple(given["lens_distortion"])
+        self.effects = Effects(**given)
+        self.gain = renderer.get("exposure_gain")
+        self.film = tuple(int(v) for v in film)
+        self.photons, self.spp, self.passes, self.seed = photons, spp, passes, seed
+        self.use_cache = use_cache
+        self._images: dict = {}
+        self.renders = 0  # basis renders made here (not read from memory)
+        self.seconds = 0.0
+        self.cost: dict[str, dict] = {}  # per candidate: renders and seconds
+
+    def variant(self, name: str | None, value: float | None):
+        """(spec, effects, depth scale) of the identity (name None) or of candidate
+        ``name`` at grid ``value``."""
+        effects = dataclasses.replace(self.effects, core_light_leak=LEAK_BASIS)
+        spec, scale = self.spec, 1.0
+        if name == "membrane_compliance":
+            scale = float(value)
+        elif name == "layer_spread":
+            spec = spec.replace(elastic=dataclasses.replace(spec.elastic, poisson_ratio=float(value)))
+        elif name is not None:
+            current = getattr(effects, name)
+            effects = dataclasses.replace(effects, **{name: bool(value >= 0.5) if isinstance(current, bool)
+                                                      else float(value)})
+        return spec, effects, scale
+
+    def images(self, key: int, name: str | None = None, value: float | None = None) -> np.ndarray:
+        """(h, w, S) float32: tap ``key``'s per-source images per unit flux at the film,
+        for the identity or candidate ``name`` at grid ``value``."""
+        tag = (int(key), name, None if value is None else float(value))
+        if tag in self._images:
+            return self._images[tag]
+        from pbr_tactile.calibrate import emitter_basis
+
+        spec, effects, scale = self.variant(name, value)
+        depth = np.asarray(self.depth[key], np.float32)
+        touched = np.abs(depth - self.ref) > CONTACT_EPS_M
+        contact = {}
+        if touched.any():
+            depth = np.where(touched, depth, self.ref)
+            if scale != 1.0:
+                depth = (self.ref - scale * (self.ref - depth)).astype(np.float32)
+            contact = {"depth": depth, "ref_depth": self.ref}
+        t0 = time.perf_counter()
+        basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
+                              passes=self.passes, seed=self.seed, use_cache=self.use_cache, **contact)
+        seconds = time.perf_counter() - t0
+        self.renders += 1
+        self.seconds += seconds
+        cost = self.cost.setdefault(name or "identity", {"renders": 0, "seconds": 0.0})
+        cost["renders"] += 1
+        cost["seconds"] += seconds
+        names = [str(n) for n in basis["names"]]
+        if "names" not in self.__dict__:
+            self.names = names
+        elif names != self.names:
+            raise ValueError(f"the basis' sources changed between renders ({self.names} against {names})")
+        image = np.asarray(basis["mean"], np.float32)
+        self._images[tag] = image
+        return image
+
+
+class ReferenceModel:
+    """The reference of a ``pbr`` dataset at 1/``factor`` of its resolution, with the
+    candidates of ``physical_catalogue``; the interface of ``studies.gap.model.FastModel``
+    (``predict``, ``optics``, ``catalogue``, ``mask``), so ``studies.gap.fit`` fits either.
+
+    basis : the shared ``SourceBasis`` (the working and the full-resolution model use one).
+    """
+
+    kind = "pbr"
+
+    def __init__(self, spec: SensorSpec, renderer: dict, factor: int, basis: SourceBasis):
+        self.spec = spec
+        self.renderer = renderer
+        self.factor = int(factor)
+        full = Camera.from_spec(spec)
+        if full.width % self.factor or full.height % self.factor:
+            raise ValueError(f"{full.width}x{full.height} px is not divisible by factor {factor}")
+        self.full_camera = full
+        self.camera = full if self.factor == 1 else full.scaled(full.width // self.factor, full.height // self.factor)
+        self.mask = self.camera.mask
+        # The reference draws no image circle: an alignment moves the whole frame.
+        self.circle = np.ones(self.camera.shape, np.float32)
+        self.fixed = np.zeros(self.camera.shape + (3,), np.float32)
+        self.basis = basis
+        self.catalogue, self.kinds, self.grids = physical_catalogue(spec, basis.effects, spec.elastic.sigma_px)
+        self.names = tuple(self.catalogue)
+        self.stages = {n: e.stage for n, e in self.catalogue.items()}
+        self.aliases = dict(FAST_MODELS)
+        self.max_fit_samples = FIT_TAPS
+        self._responses: dict = {}
+
+    # --- the FastModel interface ---------------------------------------------------------
+
+    def working_images(self, images: np.ndarray) -> np.ndarray:
+        return block_mean(np.asarray(images, np.float32), self.factor, (1, 2))
+
+    def working_depth(self, depth: np.ndarray) -> np.ndarray:
+        return depth  # renders read the full-resolution contacts by sample (``SourceBasis``)
+
+    def not_applicable(self, pairs) -> dict[str, str]:
+        out = {}
+        if self.renderer.get("profile_data") is not None:
+            for name, kind in self.kinds.items():
+                if kind != "fast" and kind != "image":
+                    out[name] = ("the simulated dataset was rendered for a calibrated unit's profile (one image per "
+                                 "source through the unit's camera); re-rendering it per source is not built yet")
+        if pairs.depth is None:
+            for name, kind in self.kinds.items():
+                if kind in ("linear", "render", "bool-render", "bool-linear"):
+                    out.setdefault(name, "the simulated dataset has no depth maps to re-render its contacts from")
+        for name, why in UNPREDICTABLE_FIELDS.items():
+            out.setdefault(name, why)
+        for name, kind in self.kinds.items():
+            if kind == "unpredictable":
+                out.setdefault(name, f"Effects.{name} is not a number or a switch; it cannot be fitted")
+        if self.basis.gain is None:
+            for name, kind in self.kinds.items():
+                if kind not in ("fast", "image"):
+                    out.setdefault(name, "the simulated dataset records no exposure_gain")
+        if self.renderer.get("estimator", "photons") == "photons" and "coating_gloss" in self.kinds:
+            out.setdefault("coating_gloss", "a glossy coating needs the volpath estimator, and the simulated dataset "
+                                            "was rendered with photons (which needs a diffuse coating)")
+        if any(led.peak_nm is None or led.fwhm_nm is None for led in self.spec.leds):
+            for name in ("led_peak_shift", "led_spectra", "camera_response"):
+                out.setdefault(name, "the sensor spec gives no LED peak_nm / fwhm_nm")
+        return out
+
+    def starts(self, name: str) -> list[dict]:
+        """Starting points of one candidate's fit: every grid point of a re-rendered one,
+        both ends of a switch, a few values of the others."""
+        kind, base = self.kinds[name], dict(self.catalogue[name].identity)
+        if kind == "render":
+            return [{"value": v} for v in self.grids[name]["values"]]
+        if kind.startswith("bool-"):
+            return [{"on": 0.0}, {"on": 1.0}]
+        if name == "core_light_leak":
+            return [base] + [{"fraction": f} for f in (0.1, 0.3, 0.6) if f != base["fraction"]]
+        if name == "led_power":
+            return [base] + [{k: s for k in base} for s in (0.7, 1.4)]
+        if name == "led_peak_shift":
+            return [base] + [{k: s for k in base} for s in (-10.0, 10.0)]
+        if name == "vignetting":
+            return [base] + [{"strength": s} for s in (0.2, 0.5)]
+        if name == "lens_distortion":
+            return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
+        return [base]
+
+    def optics(self, images: np.ndarray, params: dict) -> np.ndarray:
+        """The image stages in ``params`` applied to (N, H, W, 3) images: the reference's
+        lens distortion and vignetting (relative to the simulation's), then the unit's
+        alignment, blur and camera response (the fast model's stages)."""
+        from pbr_tactile import sensor
+
+        from .model import FastModel
+
+        out = np.asarray(images, np.float32)
+        if "lens_distortion" in params:
+            p = params["lens_distortion"]
+            k0 = self.basis.effects.lens_distortion
+            if (p["k1"], p["k2"]) != tuple(k0):
+                out = np.stack([sensor.distort(sensor.distort(im, self.full_camera, -k0[0], -k0[1]),
+                                               self.full_camera, p["k1"], p["k2"]) if any(k0) else
+                                sensor.distort(im, self.full_camera, p["k1"], p["k2"]) for im in out])
+        if "vignetting" in params:
+            s, s0 = params["vignetting"]["strength"], self.basis.effects.vignetting
+            if s != s0:
+                one = np.ones(self.camera.shape + (1,), np.float32)
+                ratio = sensor.vignetting(one, self.full_camera, s) / np.maximum(
+                    sensor.vignetting(one, self.full_camera, s0), 1e-6)
+                out = out * ratio[None]
+        fast = {self.aliases[k]: v for k, v in params.items() if k in self.aliases}
+        if "misalignment" in fast:
+            fast["misalignment"] = {**fast["misalignment"], "frame_share": 1.0}
+        # The fast model's image stages read only camera, factor, fixed and circle.
+        return FastModel.optics(self, out, fast) if fast else np.clip(out, 0.0, 1.0)
+
+    def predict(self, sim: np.ndarray, depth, params: dict, keys=None) -> np.ndarray:
+        """Predicted real images (N, H, W, 3) from simulated ones (sample ``keys``, indices
+        into the dataset), with the candidates in ``params``."""
+        physical = {k: v for k, v in params.items() if self.kinds[k] not in ("fast", "image")
+                    and v != self.catalogue[k].identity}
+        out = np.asarray(sim, np.float32)
+        if physical:
+            if keys is None:
+                raise ValueError("the reference model predicts samples by key")
+            out = out.copy()
+            for i, key in enumerate(keys):
+                change = self.image(int(key), physical) - self.image(int(key), {})
+                out[i] += self._resized(change)
+            out = np.clip(out, 0.0, 1.0)
+        image_params = {k: v for k, v in params.items() if self.kinds[k] in ("fast", "image")}
+        return self.optics(out, image_params) if image_params else out
+
+    # --- the reference per source ----------------------------------------------------------
+
+    def _resized(self, image: np.ndarray) -> np.ndarray:
+        if image.shape[:2] == self.camera.shape:
+            return image
+        from skimage.transform import resize
+
+        return resize(image, self.camera.shape, order=1, mode="edge", anti_aliasing=False,
+                      preserve_range=True).astype(np.float32)
+
+    def sources(self, key: int, params: dict) -> np.ndarray:
+        """(h, w, S) tap ``key``'s per-source images with the re-rendered candidates in
+        ``params`` (each one's change from the identity added, interpolated on its grid)."""
+        base = self.basis.images(key)
+        out = base.copy()
+        for name, p in params.items():
+            if self.kinds[name] not in ("render", "bool-render"):
+                continue
+            grid = self.grids[name]
+            value = float(next(iter(p.values())))
+            values = np.asarray(grid["values"])
+            value = float(np.clip(value, values[0], values[-1]))
+            j = int(np.clip(np.searchsorted(values, value), 1, len(values) - 1))
+            a, b = values[j - 1], values[j]
+            t = 0.0 if b == a else (value - a) / (b - a)
+            A = self.basis.images(key, name, a) if a != self._identity_value(name) else base
+            B = self.basis.images(key, name, b) if b != self._identity_value(name) else base
+            image = (1 - t) * A + t * B
+            if grid.get("interpolation") == "geometric":  # where both are lit; linear where either is dark
+                tiny = np.float32(1e-6 * max(float(base.max()), 1e-12))
+                lit = np.minimum(A, B) > tiny
+                image[lit] = np.exp((1 - t) * np.log(A[lit]) + t * np.log(B[lit]))
+            out += image.astype(np.float32) - base
+        return np.maximum(out, 0.0)
+
+    def _identity_value(self, name: str) -> float:
+        return float(next(iter(self.catalogue[name].identity.values())))
+
+    def responses(self, shifts: tuple[float, ...], spectra: float, camera: float) -> np.ndarray:
+        """(M, 3) the film's response to each LED's light per unit flux, its peak shifted by
+        ``shifts`` nm; ``spectra`` and ``camera`` blend Effects.led_spectra and
+        Effects.camera_response off (0) and on (1)."""
+        key = (tuple(round(s, 9) for s in shifts), spectra, camera)
+        if key in self._responses:
+            return self._responses[key]
+        from pbr_tactile.effects import Effects
+        from pbr_tactile.render import source_response
+        from pbr_tactile.scene import led_sources
+
+        leds = tuple(dataclasses.replace(led, peak_nm=led.peak_nm + s) if s else led
+                     for led, s in zip(self.spec.leds, shifts))
+        spec = self.spec.replace(leds=leds)
+        out = 0.0
+        for on_s, w_s in ((True, spectra), (False, 1.0 - spectra)):
+            for on_c, w_c in ((True, camera), (False, 1.0 - camera)):
+                if w_s * w_c == 0:
+                    continue
+                effects = Effects(core_light_leak=0.0, led_spectra=on_s, camera_response=on_c)
+                out = out + w_s * w_c * source_response(led_sources(spec, effects), effects)
+        self._responses[key] = np.asarray(out, np.float64)
+        return self._responses[key]
+
+    def image(self, key: int, params: dict) -> np.ndarray:
+        """(h, w, 3) M(theta) of tap ``key`` at the film: clip(exposure_gain linear)."""
+        from pbr_tactile.calibrate import led_of_source
+
+        n = len(self.spec.leds)
+        p = {name: params.get(name, self.catalogue[name].identity) for name in
+             ("core_light_leak", "led_power", "led_peak_shift", "led_spectra", "camera_response")
+             if name in self.catalogue}
+        B = self.sources(key, params)
+        leak = p["core_light_leak"]["fraction"]
+        power = np.array([p["led_power"][f"power_{m}"] for m in range(n)])
+        shifts = tuple(p["led_peak_shift"][f"shift_nm_{m}"] for m in range(n))
+        R = self.responses(shifts, p["led_spectra"]["on"], p["camera_response"]["on"])  # (M, 3)
+        names = self.basis.names
+        led = led_of_source(names)
+        weight = np.array([power[m] * (leak if str(s).endswith("_leak") else 1.0 - leak) for s, m in zip(names, led)])
+        linear = np.tensordot(B, weight[:, None] * R[led], axes=([2], [0]))  # (h, w, 3)
+        return np.clip(self.basis.gain * linear, 0.0, 1.0).astype(np.float32)

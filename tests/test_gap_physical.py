@@ -1,0 +1,173 @@
+"""The diagnosis when the reference rendered the simulation: its candidates are the
+reference's own switches (studies.gap.physical).
+
+The per-source renders are replaced here by an analytic stand-in for
+``pbr_tactile.calibrate.emitter_basis`` (each LED's light falls off as exp(-sigma_a d)
+from its place on the image, its leak into the core lights a ring, a contact brightens
+where it presses), so that the chain (per-source weights, spectra, grid interpolation,
+fits, report) is checked exactly and in seconds; the blind benchmark on the reference
+itself is ``tactile-sim diagnose benchmark --physical``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from pbr_tactile.effects import Effects
+from scenes.camera import Camera, reference_depth
+from scenes.contact import press
+from scenes.geometry import membrane_mesh
+from studies.gap import physical
+from studies.gap.fit import Diagnosis
+from studies.gap.pairs import Pairs, split
+from studies.gap.physical import ReferenceModel, SourceBasis, physical_catalogue
+
+FILM = (80, 60)
+
+
+def _gain() -> float:
+    """An exposure that puts the stand-in's brightest LED light near 0.5."""
+    from pbr_tactile.render import source_response
+    from pbr_tactile.scene import led_sources
+    from scenes.spec import default_spec
+
+    effects = Effects(core_light_leak=0.0)
+    return 0.5 / (50.0 * float(source_response(led_sources(default_spec(), effects), effects).max()))
+
+
+GAIN = _gain()
+PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240), (320, 90), (320, 400)]
+
+
+def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, seed=0, use_cache=True, depth=None,
+               ref_depth=None):
+    """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
+    distance in metres over the image from the LED's place), its leak a ring at 0.4 of
+    the image radius on the LED's side, a contact adding its indentation's shading."""
+    w, h = film
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    x, y = (u - w / 2) / (h / 2), (v - h / 2) / (h / 2)
+    rho = np.hypot(x, y)
+    dent = 0.0
+    if depth is not None:
+        from skimage.transform import resize
+
+        dent = resize(np.asarray(ref_depth - depth, np.float64), (h, w), order=1, anti_aliasing=True) / 1e-3
+    images, names = [], []
+    for m in range(len(spec.leds)):
+        a = 2 * np.pi * m / len(spec.leds)
+        d = 0.01 * np.hypot(x - np.cos(a), y - np.sin(a))  # metres
+        images.append(50.0 * np.exp(-effects.absorption_per_m * d) * (1 + 0.8 * dent * (1 + np.cos(np.arctan2(y, x) - a))))
+        names.append(f"led{m}")
+        if effects.core_light_leak > 0:
+            images.append(80.0 * np.exp(-((rho - 0.4) / 0.12) ** 2) * (1 + np.cos(np.arctan2(y, x) - a)) + 5 * dent)
+            names.append(f"led{m}_leak")
+    return {"mean": np.stack(images, axis=-1).astype(np.float32), "names": np.array(names)}
+
+
+@pytest.fixture
+def stub(monkeypatch):
+    import pbr_tactile.calibrate
+
+    monkeypatch.setattr(pbr_tactile.calibrate, "emitter_basis", fake_basis)
+
+
+@pytest.fixture(scope="module")
+def scene(spec):
+    mesh = membrane_mesh(spec)
+    camera = Camera.from_spec(spec)
+    ref = reference_depth(mesh, camera)[0].astype(np.float32)
+    shapes = [trimesh.primitives.Sphere(radius=0.004), trimesh.creation.cylinder(radius=0.003, height=0.01)]
+    depth = np.stack([press(ref, camera, mesh, shapes[i % 2], p, 0.0015) for i, p in enumerate(PIXELS)])
+    return camera, ref, depth.astype(np.float32)
+
+
+def renderer(**effects) -> dict:
+    return {"renderer": "pbr", "estimator": "photons", "exposure_gain": GAIN,
+            "effects": dataclasses.asdict(Effects(**effects))}
+
+
+def rendered(spec, scene, params: dict, **effects) -> np.ndarray:
+    """(N, H, W, 3) full-resolution images of the stand-in with ``params`` (a reference
+    model's candidates) over a simulation with ``effects``."""
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, renderer(**effects), 1, SourceBasis(spec, renderer(**effects), depth, film=FILM))
+    return np.stack([model._resized(model.image(i, params)) for i in range(len(depth))])
+
+
+def test_every_field_of_effects_is_a_candidate_and_new_ones_join(spec):
+    catalogue, kinds, grids = physical_catalogue(spec, Effects())
+    for f in dataclasses.fields(Effects):
+        assert f.name in catalogue
+    assert kinds["core_light_leak"] == "linear" and kinds["absorption_per_m"] == "render"
+    assert kinds["sensor_noise"] == "unpredictable" and kinds["alignment"] == "fast"
+    assert 20.0 in grids["absorption_per_m"]["values"]  # the simulation's own value is a grid point
+
+    @dataclasses.dataclass(frozen=True)
+    class More(Effects):
+        membrane_haze: float = 2.0
+
+    catalogue, kinds, grids = physical_catalogue(spec, More())
+    assert kinds["membrane_haze"] == "render" and grids["membrane_haze"]["values"] == (0.5, 2.0, 8.0)
+
+
+def test_powers_leak_and_spectra_are_linear_in_the_sources(spec, scene, stub):
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
+    B = model.basis.images(0)
+    R = model.responses((0.0,) * len(spec.leds), 1.0, 1.0)
+    names = model.basis.names
+    expect = GAIN * sum(0.5 * (2.0 if n.startswith("led1") else 1.0) * B[..., s, None] * R[int(n[3])]
+                        for s, n in enumerate(names))
+    params = {"core_light_leak": {"fraction": 0.5},
+              "led_power": {f"power_{m}": 2.0 if m == 1 else 1.0 for m in range(len(spec.leds))}}
+    assert np.allclose(model.image(0, params), np.clip(expect, 0, 1), atol=1e-6)
+    # At the identity (no leak) only the LEDs' own images count.
+    plain = GAIN * sum(B[..., s, None] * R[int(n[3])] for s, n in enumerate(names) if not n.endswith("_leak"))
+    assert np.allclose(model.image(0, {}), np.clip(plain, 0, 1), atol=1e-6)
+    # A peak shift moves each LED's colour through the camera's bands.
+    shifted = model.responses((15.0,) + (0.0,) * (len(spec.leds) - 1), 1.0, 1.0)
+    assert not np.allclose(shifted[0], R[0]) and np.allclose(shifted[1:], R[1:])
+
+
+def test_a_re_rendered_effect_is_interpolated_between_grid_points(spec, scene, stub):
+    """Absorption acts as exp(-sigma_a d): the geometric interpolation is exact between grid points."""
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
+    got = model.sources(2, {"absorption_per_m": {"value": 50.0}})
+    truth = fake_basis(spec, None, camera, dataclasses.replace(Effects(), absorption_per_m=50.0,
+                                                               core_light_leak=physical.LEAK_BASIS),
+                       FILM, depth=depth[2], ref_depth=ref)["mean"]
+    assert np.allclose(got, truth, rtol=1e-4, atol=1e-4)
+    assert model.basis.cost["absorption_per_m"]["renders"] == 1  # one grid point (120) beside the identity
+
+
+def pairs_of(spec, scene, real: np.ndarray, sim: np.ndarray, **effects) -> Pairs:
+    camera, ref, depth = scene
+    records = [{"id": f"{i:06d}", "object": ("sphere", "cylinder")[i % 2], "path": i // 4, "position": i % 4}
+               for i in range(len(depth))]
+    return Pairs(Path("real"), Path("sim"), {}, {"renderer": renderer(**effects)}, [r["id"] for r in records],
+                 records, real.astype(np.float32), sim.astype(np.float32), depth, spec)
+
+
+@pytest.mark.parametrize("hidden, value, name", [({"core_light_leak": {"fraction": 0.3}}, 0.3, "core_light_leak"),
+                                                 ({"absorption_per_m": {"value": 60.0}}, 60.0, "absorption_per_m")])
+def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidden, value, name):
+    sim = rendered(spec, scene, {})
+    real = rendered(spec, scene, hidden)
+    pairs = pairs_of(spec, scene, real, sim)
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=4,
+                  effects=("core_light_leak", "absorption_per_m", "led_power", "camera_gains", "sensor_noise"))
+    assert d.work.kind == "pbr" and "sensor_noise" in d.not_applicable
+    singles = d.singles()
+    ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+    assert ranked[0] == name
+    fitted = next(iter(singles[name].fit.params[name].values()))
+    assert fitted == pytest.approx(value, rel=0.1)
+    assert singles[name].improvement["masked"]["mae"]["share"] > 0.8
