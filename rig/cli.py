@@ -85,7 +85,7 @@ def cmd_run(args) -> int:
     from scenes.commands import renderer_options
     from scenes.spec import load_spec
 
-    from .session import Devices, SessionAborted, prepare
+    from .session import Devices, prepare
 
     spec = load_spec(args.spec)
     layout = _layout(args.layout)
@@ -132,11 +132,7 @@ def cmd_run(args) -> int:
             camera = stack.enter_context(open_camera(args.camera, settle_s=args.settle))
         mount = rig.mount if rig is not None else _ask_to_mount(args.yes)
         devices = Devices(printer, servos, camera, mount, 0.0 if args.servos == TWIN else args.servo_settle)
-        try:
-            summary = session.run(devices, progress=not args.quiet)
-        except SessionAborted as exc:
-            print(f"tactile-sim rig run: {exc}", file=sys.stderr)
-            return 1
+        summary = session.run(devices, progress=not args.quiet)  # SessionAborted: scenes.cli reports it
     print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s)")
     return 0
 

@@ -82,3 +82,28 @@ def test_every_subcommand_prints_its_help(argv, capsys):
         main(argv + ["--help"])
     assert exit_info.value.code == 0
     assert "usage: tactile-sim" in capsys.readouterr().out
+
+
+def test_a_device_that_does_not_open_is_one_line_not_a_traceback(tmp_path, capsys):
+    argv = ["rig", "run", "--printer", "/dev/ttyUSB9", "--servos", "/dev/ttyUSB8", "--camera", "0",
+            "--objects", "sphere", "--limit", "1", "--no-alignment", "--quiet", "--out", str(tmp_path / "cap")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("tactile-sim rig run: error: cannot open printer port '/dev/ttyUSB9'"), err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    res = run(*argv)  # as a user runs it: nothing else on stderr either
+    assert res.returncode == 1 and res.stderr == err and "Traceback" not in res.stderr
+
+
+def test_the_project_errors_and_os_errors_are_reported_in_one_line(monkeypatch, capsys):
+    from rig.servos import ServoTimeout
+    from scenes import commands
+
+    for exc in (ServoTimeout("servo board on /dev/ttyACM0 did not answer"), PermissionError(13, "Permission denied")):
+        def fail(args, exc=exc):
+            raise exc
+
+        monkeypatch.setattr(commands, "cmd_scene", fail)
+        assert main(["scene", "export"]) == 1
+        err = capsys.readouterr().err
+        assert err == f"tactile-sim scene: error: {exc}\n"
