@@ -164,7 +164,7 @@ def cmd_twin(args) -> int:
 
 
 def register(registry) -> None:
-    from scenes.commands import add_renderer_arguments
+    from scenes.commands import add_limit_argument, add_renderer_arguments
 
     from .marlin import DEFAULT_BAUD
     from .servos import DEFAULT_BAUD as SERVO_BAUD
@@ -185,7 +185,7 @@ def register(registry) -> None:
     run.add_argument("--protocol", choices=["base", "extended"], default="base")
     run.add_argument("--objects", default="sphere", help="'all' or comma-separated indenter names")
     run.add_argument("--seed", type=int, default=0, help="seed of the extended protocol's perturbations")
-    run.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")
+    add_limit_argument(run)
     run.add_argument("--out", required=True, metavar="DIR")
     run.add_argument("--dry-run", action="store_true", help="print the command stream; open no port")
     run.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="the printer's baud rate")

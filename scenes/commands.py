@@ -1,4 +1,5 @@
-"""Subcommands of the scenes package: the MuJoCo rig (scene), datasets, and their bench."""
+"""Subcommands of the scenes package: the MuJoCo rig (scene), datasets, and their bench;
+and the options that other packages' subcommands share (``add_*_arguments``)."""
 
 from __future__ import annotations
 
@@ -149,6 +150,25 @@ def cmd_replay(args) -> int:
     print(f"{summary['samples']} samples of {args.replay} replayed in {args.out} ({summary['new']} new, "
           f"{summary['seconds']:.1f} s)")
     return 0
+
+
+def non_negative_int(text: str) -> int:
+    """A whole number >= 0 on the command line (an argparse ``type``), e.g. ``--limit``."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
+def add_limit_argument(p) -> None:
+    """``--limit N``: only the first N taps of the protocol (0, the default: all); read it
+    back as ``args.limit``."""
+    p.add_argument("--limit", type=non_negative_int, default=0, metavar="N", help="only the first N taps (0: all)")
 
 
 def add_renderer_arguments(p, skip: tuple[str, ...] = ()) -> None:
@@ -377,7 +397,7 @@ def register(registry) -> None:
     p.add_argument("--renderer", default="phong", help="phong (the fast path) or pbr (the physically based reference)")
     add_renderer_arguments(p)
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    p.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")
+    add_limit_argument(p)
     p.add_argument("--executor", default="local",
                    help="local (processes on this machine, default) or ray (a Ray cluster; only this process "
                         "writes files)")

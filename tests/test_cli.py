@@ -107,3 +107,27 @@ def test_the_project_errors_and_os_errors_are_reported_in_one_line(monkeypatch, 
         assert main(["scene", "export"]) == 1
         err = capsys.readouterr().err
         assert err == f"tactile-sim scene: error: {exc}\n"
+
+
+@pytest.mark.parametrize("text", ["-3", "-1", "two", "1.5", ""])
+def test_a_count_refuses_what_is_not_a_whole_number_at_least_0(text):
+    import argparse
+
+    from scenes.commands import non_negative_int
+
+    with pytest.raises(argparse.ArgumentTypeError, match=f"expected a whole number >= 0, got '{text}'"):
+        non_negative_int(text)
+    assert non_negative_int("0") == 0 and non_negative_int("12") == 12
+
+
+@pytest.mark.parametrize("argv", [
+    ["dataset", "--objects", "sphere", "--out", "OUT", "--limit", "-3"],
+    ["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--out", "OUT", "--limit", "-3"],
+])
+def test_a_negative_limit_is_refused_not_taken_from_the_end(argv, tmp_path, capsys):
+    argv = [str(tmp_path / "out") if a == "OUT" else a for a in argv]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "argument --limit: expected a whole number >= 0, got '-3'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
