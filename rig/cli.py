@@ -6,12 +6,14 @@
         --protocol base --objects sphere --out DIR
     tactile-sim rig run --printer twin --servos twin --camera twin --renderer pbr \\
         --profile P.toml --out DIR          # the virtual rig
-    tactile-sim rig run ... --dry-run       # print the command stream, open nothing
+    tactile-sim rig run --protocol base --objects sphere --out DIR --dry-run
+                                            # print the command stream, open nothing
     tactile-sim rig twin                    # serve a printer twin and a servo twin
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 
@@ -81,12 +83,24 @@ def _sim_background(spec, background):
     return image
 
 
-def cmd_run(args) -> int:
+#: The devices of ``rig run``, by argument: given unless ``--dry-run``, which opens none.
+DEVICES = ("printer", "servos", "camera")
+
+
+def cmd_run(args, parser=None) -> int:
+    """``tactile-sim rig run``. ``parser`` (the subcommand's) reports missing devices as
+    argparse reports a missing argument; without it they are a ValueError."""
     from scenes.commands import renderer_options
     from scenes.spec import load_spec
 
     from .session import Devices, prepare
 
+    missing = [f"--{name}" for name in DEVICES if getattr(args, name) is None]
+    if missing and not args.dry_run:
+        message = f"the following arguments are required without --dry-run: {', '.join(missing)}"
+        if parser is not None:
+            parser.error(message)
+        raise ValueError(message)
     spec = load_spec(args.spec)
     layout = _layout(args.layout)
     protocol = _protocol(args, spec)
@@ -175,11 +189,12 @@ def register(registry) -> None:
     run = actions.add_parser("run", help="run a protocol and write a capture dataset (resumable)",
                              description="Run a tapping protocol on the rig and write a capture dataset "
                                          "(source real). Run it again on the same --out to resume.")
-    run.set_defaults(func=cmd_run)
-    run.add_argument("--printer", required=True, metavar="PORT|twin", help="the Marlin printer's serial port")
-    run.add_argument("--servos", required=True, metavar="PORT|twin", help="the servo board's serial port")
-    run.add_argument("--camera", required=True, metavar="INDEX|VIDEO|FOLDER|twin",
-                     help="an OpenCV device index, a video file, a folder of images, or twin (render the MuJoCo rig)")
+    run.set_defaults(func=functools.partial(cmd_run, parser=run))  # --dry-run decides which devices are needed
+    run.add_argument("--printer", metavar="PORT|twin", help="the Marlin printer's serial port (optional with --dry-run)")
+    run.add_argument("--servos", metavar="PORT|twin", help="the servo board's serial port (optional with --dry-run)")
+    run.add_argument("--camera", metavar="INDEX|VIDEO|FOLDER|twin",
+                     help="an OpenCV device index, a video file, a folder of images, or twin (render the MuJoCo rig); "
+                          "optional with --dry-run")
     run.add_argument("--spec", metavar="TOML")
     run.add_argument("--layout", metavar="TOML", help="the rig's layout (scenes.kinematics.RigLayout keys)")
     run.add_argument("--protocol", choices=["base", "extended"], default="base")
@@ -187,7 +202,8 @@ def register(registry) -> None:
     run.add_argument("--seed", type=int, default=0, help="seed of the extended protocol's perturbations")
     add_limit_argument(run)
     run.add_argument("--out", required=True, metavar="DIR")
-    run.add_argument("--dry-run", action="store_true", help="print the command stream; open no port")
+    run.add_argument("--dry-run", action="store_true",
+                     help="print the command stream; open no device (--printer, --servos and --camera optional)")
     run.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="the printer's baud rate")
     run.add_argument("--servo-baud", type=int, default=SERVO_BAUD, help="the servo board's baud rate")
     run.add_argument("--servo-settle", type=float, default=SERVO_SETTLE_S, metavar="S",
