@@ -178,7 +178,7 @@ def cmd_twin(args) -> int:
 
 
 def register(registry) -> None:
-    from scenes.commands import add_limit_argument, add_renderer_arguments
+    from scenes.commands import add_limit_argument, add_quiet_argument, add_renderer_arguments
 
     from .marlin import DEFAULT_BAUD
     from .servos import DEFAULT_BAUD as SERVO_BAUD
@@ -211,7 +211,7 @@ def register(registry) -> None:
     run.add_argument("--settle", type=float, default=0.5, metavar="S", help="the camera's settle time before a frame")
     run.add_argument("--yes", action="store_true", help="do not wait for Enter when an indenter must be mounted")
     run.add_argument("--no-alignment", action="store_true", help="do not register the background against the sim")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_argument(run)
     run.add_argument("--renderer", default="phong", help="--camera twin: phong (the fast path) or pbr (the reference)")
     add_renderer_arguments(run)
     twin = actions.add_parser("twin", help="serve a printer twin and a servo twin on ptys; print their ports",

@@ -131,3 +131,20 @@ def test_a_negative_limit_is_refused_not_taken_from_the_end(argv, tmp_path, caps
     assert exit_info.value.code == 2
     assert "argument --limit: expected a whole number >= 0, got '-3'" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["dataset", "--out", "D"],
+    ["rig", "run", "--out", "D", "--dry-run"],
+    ["diagnose", "REAL", "SIM", "--out", "D"],
+    ["bench", "diagnose", "--json", "J"],
+    ["compare", "CAPTURE", "--out", "D"],
+    ["calibrate", "REAL", "--out", "D"],
+    ["calibrate", "benchmark", "--json", "J"],
+])
+def test_every_command_with_progress_bars_takes_quiet(argv):
+    from scenes.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(argv).quiet is False
+    assert parser.parse_args([*argv, "--quiet"]).quiet is True
