@@ -190,7 +190,8 @@ def register(registry) -> None:
                              description="Run a tapping protocol on the rig and write a capture dataset "
                                          "(source real). Run it again on the same --out to resume.")
     run.set_defaults(func=functools.partial(cmd_run, parser=run))  # --dry-run decides which devices are needed
-    run.add_argument("--printer", metavar="PORT|twin", help="the Marlin printer's serial port (optional with --dry-run)")
+    run.add_argument("--printer", metavar="PORT|twin",
+                     help="the Marlin printer's serial port (optional with --dry-run)")
     run.add_argument("--servos", metavar="PORT|twin", help="the servo board's serial port (optional with --dry-run)")
     run.add_argument("--camera", metavar="INDEX|VIDEO|FOLDER|twin",
                      help="an OpenCV device index, a video file, a folder of images, or twin (render the MuJoCo rig); "
