@@ -161,7 +161,7 @@ def cmd_calibrate(args) -> int:
         what += f" and {len(taps.ids)} of its taps"
     elif args.taps:
         raise ValueError("--taps needs REAL, a capture dataset (--background-only has no taps)")
-    bar = tqdm(desc="calibrating", unit="grid point")
+    bar = tqdm(desc="calibrating", unit="grid point", disable=args.quiet)
 
     def progress(done, total):
         bar.total = total
@@ -203,7 +203,7 @@ def cmd_benchmark(args) -> int:
         raise ValueError(f"--cases must be >= 1, got {cases}")
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
-    bar = tqdm(total=cases, desc="virtual sensors", unit="case")
+    bar = tqdm(total=cases, desc="virtual sensors", unit="case", disable=args.quiet)
     # written after every case, so a stopped run keeps the cases it finished
     write = lambda summary: atomic_write_json(Path(args.json), {**summary, "cases_requested": cases})  # noqa: E731
     result = benchmark(spec, membrane_mesh(spec), camera, cases=cases, seed=args.seed,
@@ -252,6 +252,8 @@ def _grid(items: list[str]) -> dict:
 
 
 def register(registry) -> None:
+    from scenes.commands import add_quiet_argument
+
     p = registry.command("calibrate", cmd_calibrate,
                          "fit a sensor profile (profile.toml) of the physically based reference to real captures")
     p.add_argument("real", nargs="?", metavar="REAL",
@@ -274,6 +276,7 @@ def register(registry) -> None:
                                            "(default 0)")
     p.add_argument("--cases", type=int, help="with REAL = benchmark: virtual sensors to recover (default 6)")
     p.add_argument("--json", metavar="PATH", help="with REAL = benchmark: where to write its results")
+    add_quiet_argument(p)
     p.epilog = ("'tactile-sim calibrate benchmark --cases N --seed S --json PATH' runs the blind recovery benchmark "
                 "on virtual sensors with hidden parameters instead (pbr_tactile.calibrate_bench)")
 

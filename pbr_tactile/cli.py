@@ -18,17 +18,6 @@ def _pixel(value: str) -> tuple[float, float]:
     return u, v
 
 
-def _non_negative(value: str) -> int:
-    """A count >= 0, for ``--no-contact-runs``."""
-    try:
-        n = int(value)
-    except ValueError:
-        n = -1
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {value!r}")
-    return n
-
-
 def _check_contact_args(args, parser: argparse.ArgumentParser | None = None) -> None:
     """The contact is DEPTH.npy, or --indenter with either --pose or --at and --depth-mm.
 
@@ -216,6 +205,7 @@ def _positive_int(value: str) -> int:
 
 
 def register(registry) -> None:
+    from scenes.commands import non_negative_int
     from scenes.indenters import INDENTERS
 
     p = registry.command("reference", cmd_reference, "render one frame with the physically based reference (Mitsuba 3)")
@@ -250,7 +240,7 @@ def register(registry) -> None:
                         "scattering_per_m=0 (repeatable)")
     p.add_argument("--kernel-radius-mm", type=float, default=0.75,
                    help="radius of the photon density estimate, mm (bias ~ r^2, noise ~ 1/r)")
-    p.add_argument("--no-contact-runs", type=_non_negative, default=0, metavar="M",
+    p.add_argument("--no-contact-runs", type=non_negative_int, default=0, metavar="M",
                    help="for a contact: its photon map as the sensor's cached no-contact map (M runs per pass) "
                         "plus the contact's change; the first contact of a sensor fills the cache, later ones "
                         "cost the same with less noise, most of all away from the contact (default 0: off)")
@@ -267,7 +257,7 @@ def register(registry) -> None:
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
     p.add_argument("--camera-spp", type=int, default=16, help="camera samples per pixel per pass (photons)")
     p.add_argument("--volpath-spp", type=int, default=16)
-    p.add_argument("--no-contact-runs", type=_non_negative, default=8, metavar="M",
+    p.add_argument("--no-contact-runs", type=non_negative_int, default=8, metavar="M",
                    help="time a contact with the sensor's no-contact runs cached (M per pass; the cold first run "
                         "is reported too); 0: plain photon maps")
 

@@ -12,6 +12,8 @@ import glob
 import os
 import warnings
 
+from scenes.errors import TactileSimError
+
 VARIANT_ENV = "TACTILE_SIM_MI_VARIANT"
 FALLBACK = ("cuda_ad_spectral", "llvm_ad_spectral", "scalar_spectral")
 #: Set by ``any_variant`` when no variant is set yet: built into every Mitsuba, no JIT backend.
@@ -21,7 +23,7 @@ LLVM_PACKAGE = "libllvm19"
 LLVM_GLOBS = ("/usr/lib/*-linux-gnu/libLLVM.so.19*", "/usr/lib/*-linux-gnu/libLLVM-19.so", "/usr/lib/llvm-19/lib/libLLVM*.so*")
 
 
-class VariantError(RuntimeError):
+class VariantError(TactileSimError, RuntimeError):
     """No usable Mitsuba variant, or an unknown one was asked for."""
 
 

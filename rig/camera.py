@@ -33,6 +33,8 @@ from typing import Self
 
 import numpy as np
 
+from scenes.errors import TactileSimError
+
 #: Image files a folder source reads, by suffix (any case).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 #: Frames a device drops on opening: about 1 s at 30 fps, for auto-exposure and white
@@ -48,7 +50,7 @@ STALE_FRAMES = 4
 READ_TRIES = 3
 
 
-class CameraError(RuntimeError):
+class CameraError(TactileSimError, RuntimeError):
     """A camera source that does not open, or gives no frame."""
 
 

@@ -6,12 +6,14 @@
         --protocol base --objects sphere --out DIR
     tactile-sim rig run --printer twin --servos twin --camera twin --renderer pbr \\
         --profile P.toml --out DIR          # the virtual rig
-    tactile-sim rig run ... --dry-run       # print the command stream, open nothing
+    tactile-sim rig run --protocol base --objects sphere --out DIR --dry-run
+                                            # print the command stream, open nothing
     tactile-sim rig twin                    # serve a printer twin and a servo twin
 """
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 
@@ -81,12 +83,24 @@ def _sim_background(spec, background):
     return image
 
 
-def cmd_run(args) -> int:
+#: The devices of ``rig run``, by argument: given unless ``--dry-run``, which opens none.
+DEVICES = ("printer", "servos", "camera")
+
+
+def cmd_run(args, parser=None) -> int:
+    """``tactile-sim rig run``. ``parser`` (the subcommand's) reports missing devices as
+    argparse reports a missing argument; without it they are a ValueError."""
     from scenes.commands import renderer_options
     from scenes.spec import load_spec
 
-    from .session import Devices, SessionAborted, prepare
+    from .session import Devices, prepare
 
+    missing = [f"--{name}" for name in DEVICES if getattr(args, name) is None]
+    if missing and not args.dry_run:
+        message = f"the following arguments are required without --dry-run: {', '.join(missing)}"
+        if parser is not None:
+            parser.error(message)
+        raise ValueError(message)
     spec = load_spec(args.spec)
     layout = _layout(args.layout)
     protocol = _protocol(args, spec)
@@ -132,11 +146,7 @@ def cmd_run(args) -> int:
             camera = stack.enter_context(open_camera(args.camera, settle_s=args.settle))
         mount = rig.mount if rig is not None else _ask_to_mount(args.yes)
         devices = Devices(printer, servos, camera, mount, 0.0 if args.servos == TWIN else args.servo_settle)
-        try:
-            summary = session.run(devices, progress=not args.quiet)
-        except SessionAborted as exc:
-            print(f"tactile-sim rig run: {exc}", file=sys.stderr)
-            return 1
+        summary = session.run(devices, progress=not args.quiet)  # SessionAborted: scenes.cli reports it
     print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s)")
     return 0
 
@@ -168,7 +178,7 @@ def cmd_twin(args) -> int:
 
 
 def register(registry) -> None:
-    from scenes.commands import add_renderer_arguments
+    from scenes.commands import add_limit_argument, add_quiet_argument, add_renderer_arguments
 
     from .marlin import DEFAULT_BAUD
     from .servos import DEFAULT_BAUD as SERVO_BAUD
@@ -179,19 +189,22 @@ def register(registry) -> None:
     run = actions.add_parser("run", help="run a protocol and write a capture dataset (resumable)",
                              description="Run a tapping protocol on the rig and write a capture dataset "
                                          "(source real). Run it again on the same --out to resume.")
-    run.set_defaults(func=cmd_run)
-    run.add_argument("--printer", required=True, metavar="PORT|twin", help="the Marlin printer's serial port")
-    run.add_argument("--servos", required=True, metavar="PORT|twin", help="the servo board's serial port")
-    run.add_argument("--camera", required=True, metavar="INDEX|VIDEO|FOLDER|twin",
-                     help="an OpenCV device index, a video file, a folder of images, or twin (render the MuJoCo rig)")
+    run.set_defaults(func=functools.partial(cmd_run, parser=run))  # --dry-run decides which devices are needed
+    run.add_argument("--printer", metavar="PORT|twin",
+                     help="the Marlin printer's serial port (optional with --dry-run)")
+    run.add_argument("--servos", metavar="PORT|twin", help="the servo board's serial port (optional with --dry-run)")
+    run.add_argument("--camera", metavar="INDEX|VIDEO|FOLDER|twin",
+                     help="an OpenCV device index, a video file, a folder of images, or twin (render the MuJoCo rig); "
+                          "optional with --dry-run")
     run.add_argument("--spec", metavar="TOML")
     run.add_argument("--layout", metavar="TOML", help="the rig's layout (scenes.kinematics.RigLayout keys)")
     run.add_argument("--protocol", choices=["base", "extended"], default="base")
     run.add_argument("--objects", default="sphere", help="'all' or comma-separated indenter names")
     run.add_argument("--seed", type=int, default=0, help="seed of the extended protocol's perturbations")
-    run.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")
+    add_limit_argument(run)
     run.add_argument("--out", required=True, metavar="DIR")
-    run.add_argument("--dry-run", action="store_true", help="print the command stream; open no port")
+    run.add_argument("--dry-run", action="store_true",
+                     help="print the command stream; open no device (--printer, --servos and --camera optional)")
     run.add_argument("--baud", type=int, default=DEFAULT_BAUD, help="the printer's baud rate")
     run.add_argument("--servo-baud", type=int, default=SERVO_BAUD, help="the servo board's baud rate")
     run.add_argument("--servo-settle", type=float, default=SERVO_SETTLE_S, metavar="S",
@@ -199,7 +212,7 @@ def register(registry) -> None:
     run.add_argument("--settle", type=float, default=0.5, metavar="S", help="the camera's settle time before a frame")
     run.add_argument("--yes", action="store_true", help="do not wait for Enter when an indenter must be mounted")
     run.add_argument("--no-alignment", action="store_true", help="do not register the background against the sim")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_argument(run)
     run.add_argument("--renderer", default="phong", help="--camera twin: phong (the fast path) or pbr (the reference)")
     add_renderer_arguments(run)
     twin = actions.add_parser("twin", help="serve a printer twin and a servo twin on ptys; print their ports",

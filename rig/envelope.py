@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from scenes.errors import TactileSimError
 from scenes.kinematics import RigLayout, indenter_to_world, sensor_to_world
 
 #: The indenter keeps at least this far from the membrane except while pressing, metres.
@@ -41,7 +42,7 @@ DEPTH_TOLERANCE_M = 2e-5
 NEAR_M = 0.01
 
 
-class EnvelopeError(ValueError):
+class EnvelopeError(TactileSimError, ValueError):
     """A move that would leave the safety envelope; nothing was sent."""
 
 

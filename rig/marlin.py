@@ -51,6 +51,7 @@ import numpy as np
 from rig import gcode
 from rig.gcode import Kind
 from rig.serial_lines import SerialLines, check_seconds
+from scenes.errors import TactileSimError
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,7 @@ MAX_REPLY_LINES = 256
 HISTORY_LINES = 64
 
 
-class PrinterError(RuntimeError):
+class PrinterError(TactileSimError, RuntimeError):
     """The printer refused, reported a fault, or the port failed."""
 
 

@@ -28,6 +28,7 @@ from typing import Self
 
 from rig import servo_protocol as sp
 from rig.serial_lines import SerialLines, check_seconds
+from scenes.errors import TactileSimError
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,7 @@ MAX_GARBAGE_LINES = 3
 MAX_STALE_REPLIES = 3
 
 
-class ServoError(RuntimeError):
+class ServoError(TactileSimError, RuntimeError):
     """The servo board refused a command, reported a fault, or the port failed."""
 
 

@@ -33,6 +33,7 @@ from typing import Callable
 import numpy as np
 
 from scenes.dataset import DatasetWriter, atomic_write_json, read_meta, sample_id, write_sample_files
+from scenes.errors import TactileSimError
 from scenes.kinematics import JOINTS, RigLayout, head_for_tap, sensor_to_world
 
 from . import plan as P
@@ -51,7 +52,7 @@ WAIT_MARGIN_S = 2.0
 SERVO_SETTLE_S = 0.6
 
 
-class SessionAborted(RuntimeError):
+class SessionAborted(TactileSimError, RuntimeError):
     """A session stopped on a fault; the machine was stopped and the dataset is consistent."""
 
 

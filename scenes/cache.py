@@ -13,6 +13,8 @@ from typing import Callable
 
 import numpy as np
 
+from .errors import TactileSimError
+
 #: Environment variable that moves the cache (default ~/.cache/tactile-sim).
 CACHE_ENV = "TACTILE_SIM_CACHE"
 
@@ -43,7 +45,7 @@ def _checksum(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-class CacheError(ValueError):
+class CacheError(TactileSimError, ValueError):
     """A cache file is corrupt or belongs to another key."""
 
 

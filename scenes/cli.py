@@ -11,6 +11,8 @@ import argparse
 import sys
 from importlib.metadata import entry_points
 
+from .errors import TactileSimError
+
 ENTRY_POINT_GROUP = "tactile_sim.commands"
 
 
@@ -47,7 +49,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Errors that a command reports in one line (``tactile-sim COMMAND: error: ...``, exit
+#: status 1) instead of a traceback: the project's own, bad input, and a file or device
+#: that does not open (``OSError``, ``serial.SerialException`` among them).
+REPORTED = (TactileSimError, ValueError, OSError)
+
+
+def command_name(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
+    """The command that ``args`` ran, as the user typed it: ``tactile-sim rig run``."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = action.choices.get(getattr(args, action.dest, None))
+            if chosen is not None:
+                return command_name(chosen, args)
+    return parser.prog
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run ``tactile-sim`` with ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    The errors in :data:`REPORTED` are printed to stderr in one line naming the command;
+    any other exception is a bug and keeps its traceback.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
@@ -55,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"tactile-sim {args.command}: error: {exc}", file=sys.stderr)
+    except REPORTED as exc:
+        print(f"{command_name(parser, args)}: error: {exc}", file=sys.stderr)
         return 1
 
 

@@ -1,4 +1,5 @@
-"""Subcommands of the scenes package: the MuJoCo rig (scene), datasets, and their bench."""
+"""Subcommands of the scenes package: the MuJoCo rig (scene), datasets, and their bench;
+and the options that other packages' subcommands share (``add_*_arguments``)."""
 
 from __future__ import annotations
 
@@ -128,7 +129,7 @@ def cmd_dataset(args) -> int:
 
         protocol = replace(protocol, taps=protocol.taps[: args.limit])
     summary = generate(args.out, spec, protocol, args.renderer, renderer_options(args), workers=args.workers,
-                       executor=args.executor, address=args.address)
+                       progress=not args.quiet, executor=args.executor, address=args.address)
     where = f"Ray cluster at {args.address}" if args.address else f"{summary['workers']} {args.executor} workers"
     print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s, {where})")
     return 0
@@ -145,10 +146,35 @@ def cmd_replay(args) -> int:
     capture = read_capture(args.replay)
     ids = capture.ids[: args.limit] if args.limit else None
     summary = replay(capture, args.out, args.renderer, renderer_options(args), ids=ids, workers=args.workers,
-                     executor=args.executor, address=args.address)
+                     progress=not args.quiet, executor=args.executor, address=args.address)
     print(f"{summary['samples']} samples of {args.replay} replayed in {args.out} ({summary['new']} new, "
           f"{summary['seconds']:.1f} s)")
     return 0
+
+
+def non_negative_int(text: str) -> int:
+    """A whole number >= 0 on the command line (an argparse ``type``), e.g. ``--limit``."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
+def add_limit_argument(p) -> None:
+    """``--limit N``: only the first N taps of the protocol (0, the default: all); read it
+    back as ``args.limit``."""
+    p.add_argument("--limit", type=non_negative_int, default=0, metavar="N", help="only the first N taps (0: all)")
+
+
+def add_quiet_argument(p) -> None:
+    """``--quiet``: no progress bars on stderr; read it back as ``args.quiet`` (pass
+    ``progress=not args.quiet``)."""
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def add_renderer_arguments(p, skip: tuple[str, ...] = ()) -> None:
@@ -380,7 +406,8 @@ def register(registry) -> None:
     p.add_argument("--renderer", default="phong", help="phong (the fast path) or pbr (the physically based reference)")
     add_renderer_arguments(p)
     p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    p.add_argument("--limit", type=int, default=0, help="only the first N taps (0: all)")
+    add_limit_argument(p)
+    add_quiet_argument(p)
     p.add_argument("--executor", default="local",
                    help="local (processes on this machine, default) or ray (a Ray cluster; only this process "
                         "writes files)")

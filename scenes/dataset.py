@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import TactileSimError
 from .images import read_rgb, write_rgb
 
 FORMAT = "tactile-sim-dataset"
@@ -65,7 +66,7 @@ def sample_id(index: int, obj: str) -> str:
     return f"{index:06d}_{safe}"
 
 
-class DatasetError(ValueError):
+class DatasetError(TactileSimError, ValueError):
     """A dataset folder is corrupt, incomplete or of another kind than expected."""
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import ctypes.util
 import os
 
+from .errors import TactileSimError
+
 #: Debian packages that provide each platform.
 PACKAGES = {
     "egl": "libegl1 libegl-mesa0 libgl1-mesa-dri",
@@ -13,7 +15,7 @@ PACKAGES = {
 _LIBRARIES = {"egl": "EGL", "osmesa": "OSMesa"}
 
 
-class GLPlatformError(RuntimeError):
+class GLPlatformError(TactileSimError, RuntimeError):
     """No usable headless OpenGL platform."""
 
 

@@ -281,9 +281,9 @@ class Rig:
             try:
                 self._renderers[key] = self.mujoco.Renderer(self.model, height, width)
             except Exception as exc:  # MuJoCo raises plain Exceptions for GL failures
-                from .gl import missing_message
+                from .gl import GLPlatformError, missing_message
 
-                raise RuntimeError(f"MuJoCo could not open a rendering context: {exc}; {missing_message()}") from exc
+                raise GLPlatformError(f"MuJoCo could not open a rendering context: {exc}; {missing_message()}") from exc
         return self._renderers[key]
 
     def depth(self) -> np.ndarray:

@@ -82,3 +82,69 @@ def test_every_subcommand_prints_its_help(argv, capsys):
         main(argv + ["--help"])
     assert exit_info.value.code == 0
     assert "usage: tactile-sim" in capsys.readouterr().out
+
+
+def test_a_device_that_does_not_open_is_one_line_not_a_traceback(tmp_path, capsys):
+    argv = ["rig", "run", "--printer", "/dev/ttyUSB9", "--servos", "/dev/ttyUSB8", "--camera", "0",
+            "--objects", "sphere", "--limit", "1", "--no-alignment", "--quiet", "--out", str(tmp_path / "cap")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("tactile-sim rig run: error: cannot open printer port '/dev/ttyUSB9'"), err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    res = run(*argv)  # as a user runs it: nothing else on stderr either
+    assert res.returncode == 1 and res.stderr == err and "Traceback" not in res.stderr
+
+
+def test_the_project_errors_and_os_errors_are_reported_in_one_line(monkeypatch, capsys):
+    from rig.servos import ServoTimeout
+    from scenes import commands
+
+    for exc in (ServoTimeout("servo board on /dev/ttyACM0 did not answer"), PermissionError(13, "Permission denied")):
+        def fail(args, exc=exc):
+            raise exc
+
+        monkeypatch.setattr(commands, "cmd_scene", fail)
+        assert main(["scene", "export"]) == 1
+        err = capsys.readouterr().err
+        assert err == f"tactile-sim scene: error: {exc}\n"
+
+
+@pytest.mark.parametrize("text", ["-3", "-1", "two", "1.5", ""])
+def test_a_count_refuses_what_is_not_a_whole_number_at_least_0(text):
+    import argparse
+
+    from scenes.commands import non_negative_int
+
+    with pytest.raises(argparse.ArgumentTypeError, match=f"expected a whole number >= 0, got '{text}'"):
+        non_negative_int(text)
+    assert non_negative_int("0") == 0 and non_negative_int("12") == 12
+
+
+@pytest.mark.parametrize("argv", [
+    ["dataset", "--objects", "sphere", "--out", "OUT", "--limit", "-3"],
+    ["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--out", "OUT", "--limit", "-3"],
+])
+def test_a_negative_limit_is_refused_not_taken_from_the_end(argv, tmp_path, capsys):
+    argv = [str(tmp_path / "out") if a == "OUT" else a for a in argv]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert "argument --limit: expected a whole number >= 0, got '-3'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["dataset", "--out", "D"],
+    ["rig", "run", "--out", "D", "--dry-run"],
+    ["diagnose", "REAL", "SIM", "--out", "D"],
+    ["bench", "diagnose", "--json", "J"],
+    ["compare", "CAPTURE", "--out", "D"],
+    ["calibrate", "REAL", "--out", "D"],
+    ["calibrate", "benchmark", "--json", "J"],
+])
+def test_every_command_with_progress_bars_takes_quiet(argv):
+    from scenes.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(argv).quiet is False
+    assert parser.parse_args([*argv, "--quiet"]).quiet is True

@@ -150,6 +150,17 @@ def test_dataset_bad_input(tmp_path, headless_gl):
     assert res.returncode == 1 and "field must be one of" in res.stderr
 
 
+def test_dataset_quiet_turns_the_progress_bar_off(tmp_path, headless_gl, capsys):
+    from scenes.cli import main
+
+    argv = ["dataset", "--objects", "sphere", "--limit", "1", "--workers", "1", "--field", "plane"]
+    assert main([*argv, "--out", str(tmp_path / "loud")]) == 0
+    assert "sample/s" in capsys.readouterr().err  # tqdm's bar, so that the check below means something
+    assert main([*argv, "--quiet", "--out", str(tmp_path / "quiet")]) == 0
+    out = capsys.readouterr()
+    assert out.err == "" and out.out.startswith("1 samples in ")
+
+
 def test_scene_commands(tmp_path, headless_gl):
     from scenes.cli import main
     from scenes.images import read_rgb

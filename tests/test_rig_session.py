@@ -150,6 +150,25 @@ def test_dry_run_prints_the_stream_and_opens_nothing(tmp_path, capsys):
     assert code == 1 and "--layout" in capsys.readouterr().err
 
 
+def test_dry_run_needs_no_devices_and_a_real_run_names_those_it_lacks(tmp_path, capsys):
+    from scenes.cli import main
+
+    with_ports = ["--printer", "/dev/does-not-exist", "--servos", "/dev/nor-this", "--camera", "7"]
+    assert main(["rig", "run", *with_ports, "--objects", "sphere", "--limit", "2", "--out", str(tmp_path / "d"),
+                 "--dry-run"]) == 0
+    expected = capsys.readouterr().out
+    assert expected.startswith("printer: G28\n")
+    assert main(["rig", "run", "--objects", "sphere", "--limit", "2", "--out", str(tmp_path / "d"), "--dry-run"]) == 0
+    assert capsys.readouterr().out == expected
+    with pytest.raises(SystemExit) as exit_info:
+        main(["rig", "run", "--servos", "/dev/nor-this", "--objects", "sphere", "--out", str(tmp_path / "d")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == ("tactile-sim rig run: error: the following arguments are required without "
+                                    "--dry-run: --printer, --camera")
+    assert not (tmp_path / "d").exists()
+
+
 # --------------------------------------------------------------------------- sessions
 
 

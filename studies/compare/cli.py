@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from scenes.commands import add_renderer_arguments, renderer_options
+from scenes.commands import add_quiet_argument, add_renderer_arguments, renderer_options
 
 from .run import BACKGROUNDS, REFERENCE_TAPS
 
@@ -63,5 +63,5 @@ def register(registry) -> None:
     p.add_argument("--bootstrap", type=_positive, default=2000, help="bootstrap resamples of the taps (default 2000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
     p.add_argument("--workers", type=_positive, default=min(2, os.cpu_count() or 1))
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet_argument(p)
     add_renderer_arguments(p, skip=("field", "background"))

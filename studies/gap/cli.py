@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from scenes.commands import add_quiet_argument
+
 from . import effects as fx
 
 
@@ -107,7 +109,7 @@ def register(registry) -> None:
     p.add_argument("--factor", type=_positive, default=2,
                    help="fits run at 1/FACTOR of the image resolution (default 2); results are measured at full size")
     p.add_argument("--effects", type=_effects, default=None, help="'all' (default) or a comma-separated subset")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_argument(p)
     p.add_argument("--cases", type=_positive, default=20, help="benchmark: number of cases (default 20)")
     p.add_argument("--pairs", type=_positive, default=48, help="benchmark: pairs per case (default 48)")
     p.add_argument("--work", metavar="DIR", default=None, help="benchmark: keep the case datasets here")
@@ -121,4 +123,4 @@ def register(registry) -> None:
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
     b.add_argument("--pairs", type=_positive, default=144, help="pairs (default 144, the base protocol)")
     b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")
-    b.add_argument("--quiet", action="store_true")
+    add_quiet_argument(b)
