@@ -145,14 +145,16 @@ def film_factor(shape: tuple[int, ...], film: tuple[int, int]) -> int:
 def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film: tuple[int, int],
                   photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
                   use_cache: bool = True, depth: np.ndarray | None = None,
-                  ref_depth: np.ndarray | None = None) -> dict:
+                  ref_depth: np.ndarray | None = None, solids=None) -> dict:
     """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
     sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,), ``response``
     (S, 3) the film's response to each source at the effects' powers. Without ``depth``
     the no-contact sensor; with a contact depth map (H, W) m and the no-contact
     ``ref_depth``, that contact (the same seed as the no-contact basis: common random
     numbers, so their difference is the contact's change with little noise). Cached on
-    disk (scenes.cache) by everything it depends on."""
+    disk (scenes.cache) by everything it depends on. ``solids``: the membrane's
+    ``ElastomerBuilder`` for this spec and camera, kept across renders (it refines and
+    checks the membrane once; None builds one)."""
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
@@ -170,7 +172,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
 
     def build():
         est = reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
-                        seed=seed, variant=variant, passes=passes, photons=photons, per_source=True)
+                        seed=seed, variant=variant, passes=passes, photons=photons, per_source=True, solids=solids)
         sources = led_sources(spec, effects)
         return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
                 "response": source_response(sources, effects)}

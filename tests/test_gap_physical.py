@@ -45,7 +45,7 @@ PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240)
 
 
 def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, seed=0, use_cache=True, depth=None,
-               ref_depth=None):
+               ref_depth=None, solids=None):
     """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
     distance in metres over the image from the LED's place), its leak a ring at 0.4 of
     the image radius on the LED's side, a contact adding its indentation's shading."""
@@ -75,6 +75,7 @@ def stub(monkeypatch):
     import pbr_tactile.calibrate
 
     monkeypatch.setattr(pbr_tactile.calibrate, "emitter_basis", fake_basis)
+    monkeypatch.setattr(SourceBasis, "_builder", lambda self, spec: None)
 
 
 @pytest.fixture(scope="module")
@@ -171,3 +172,16 @@ def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidde
     fitted = next(iter(singles[name].fit.params[name].values()))
     assert fitted == pytest.approx(value, rel=0.1)
     assert singles[name].improvement["masked"]["mae"]["share"] > 0.8
+
+
+def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_renderer_takes():
+    from studies.gap.physical_benchmark import HIDDEN, draw, effect_settings
+
+    drawn = [draw(case, seed=3) for case in range(len(HIDDEN) + 4)]
+    assert sorted(next(iter(d)) for d in drawn[: len(HIDDEN)]) == sorted(HIDDEN)
+    assert draw(5, seed=3) == drawn[5]  # seeded
+    for hidden in drawn:
+        settings = effect_settings(hidden)
+        effects = Effects().with_settings(settings[1::2])
+        for name, value in hidden.items():
+            assert getattr(effects, name) == value

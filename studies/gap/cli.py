@@ -66,6 +66,22 @@ def cmd_benchmark(args) -> int:
     if args.hidden is not None and not args.stratified:
         print("tactile-sim diagnose benchmark: error: --hidden needs --stratified", file=sys.stderr)
         return 2
+    if args.physical:
+        if args.stratified:
+            print("tactile-sim diagnose benchmark: error: --physical and --stratified are separate benchmarks",
+                  file=sys.stderr)
+            return 2
+        from pathlib import Path
+
+        from .physical_benchmark import run_physical_benchmark
+        from .report import write_json
+
+        result = run_physical_benchmark(cases=args.cases, seed=args.seed, work=args.work, progress=not args.quiet,
+                                        factor=args.factor)
+        write_json(Path(args.json), result)
+        print(json.dumps({k: result[k] for k in ("cases", "top1", "top3", "mean_heldout_shrink", "seconds",
+                                                 "never_hidden")}, indent=1))
+        return 0
     from .benchmark import run_benchmark
 
     result = run_benchmark(cases=args.cases, seed=args.seed, work=args.work, pairs=args.pairs,
@@ -117,6 +133,9 @@ def register(registry) -> None:
     p.add_argument("--stratified", action="store_true",
                    help="benchmark: every effect alone on every background (none, solid, real) at strength 0.5, "
                         "at least one case per cell (--cases below 36 means 36); adds per_cell and min_cell_shrink")
+    p.add_argument("--physical", action="store_true",
+                   help="benchmark: hide physical effects in the reference (the virtual rig's camera) and diagnose "
+                        "them against the reference's replay (studies/gap/physical_benchmark.py)")
     p.add_argument("--hidden", type=_effects, default=None,
                    help="benchmark --stratified: only the cells hiding these effects (comma-separated; default all); "
                         "each case keeps its index and seed from the full run")

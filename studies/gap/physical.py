@@ -233,6 +233,7 @@ class SourceBasis:
         self.photons, self.spp, self.passes, self.seed = photons, spp, passes, seed
         self.use_cache = use_cache
         self._images: dict = {}
+        self._solids: dict = {}  # the membrane's ElastomerBuilder by spec digest, built once each
         self.renders = 0  # basis renders made here (not read from memory)
         self.seconds = 0.0
         self.cost: dict[str, dict] = {}  # per candidate: renders and seconds
@@ -251,6 +252,16 @@ class SourceBasis:
             effects = dataclasses.replace(effects, **{name: bool(value >= 0.5) if isinstance(current, bool)
                                                       else float(value)})
         return spec, effects, scale
+
+    def _builder(self, spec: SensorSpec):
+        """The membrane's ElastomerBuilder for ``spec`` (it refines and checks the membrane:
+        once per spec, not once per render)."""
+        builder = self._solids.get(spec.digest())
+        if builder is None:
+            from pbr_tactile.membrane import ElastomerBuilder
+
+            builder = self._solids[spec.digest()] = ElastomerBuilder(self.mesh, spec, self.camera)
+        return builder
 
     def images(self, key: int, name: str | None = None, value: float | None = None) -> np.ndarray:
         """(h, w, S) float32: tap ``key``'s per-source images per unit flux at the film,
@@ -271,7 +282,8 @@ class SourceBasis:
             contact = {"depth": depth, "ref_depth": self.ref}
         t0 = time.perf_counter()
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
-                              passes=self.passes, seed=self.seed, use_cache=self.use_cache, **contact)
+                              passes=self.passes, seed=self.seed, use_cache=self.use_cache,
+                              solids=self._builder(spec), **contact)
         seconds = time.perf_counter() - t0
         self.renders += 1
         self.seconds += seconds
@@ -318,6 +330,7 @@ class ReferenceModel:
         self.aliases = dict(FAST_MODELS)
         self.max_fit_samples = FIT_TAPS
         self._responses: dict = {}
+        self._plain: dict = {}  # M(identity) by sample
 
     # --- the FastModel interface ---------------------------------------------------------
 
@@ -350,6 +363,9 @@ class ReferenceModel:
         if self.renderer.get("estimator", "photons") == "photons" and "coating_gloss" in self.kinds:
             out.setdefault("coating_gloss", "a glossy coating needs the volpath estimator, and the simulated dataset "
                                             "was rendered with photons (which needs a diffuse coating)")
+        if "core_leak_cone_rad" in self.kinds and self.basis.effects.core_light_leak == 0:
+            out.setdefault("core_leak_cone_rad", "it shapes only the core leak, which is off in the simulation (its "
+                                                 "leak's image has no weight): core_light_leak stands for it")
         if any(led.peak_nm is None or led.fwhm_nm is None for led in self.spec.leds):
             for name in ("led_peak_shift", "led_spectra", "camera_response"):
                 out.setdefault(name, "the sensor spec gives no LED peak_nm / fwhm_nm")
@@ -415,7 +431,9 @@ class ReferenceModel:
                 raise ValueError("the reference model predicts samples by key")
             out = out.copy()
             for i, key in enumerate(keys):
-                change = self.image(int(key), physical) - self.image(int(key), {})
+                if key not in self._plain:
+                    self._plain[key] = self.image(int(key), {})
+                change = self.image(int(key), physical) - self._plain[key]
                 out[i] += self._resized(change)
             out = np.clip(out, 0.0, 1.0)
         image_params = {k: v for k, v in params.items() if self.kinds[k] in ("fast", "image")}
