@@ -127,7 +127,17 @@ def test_powers_leak_and_spectra_are_linear_in_the_sources(spec, scene, stub):
                         for s, n in enumerate(names))
     params = {"core_light_leak": {"fraction": 0.5},
               "led_power": {f"power_{m}": 2.0 if m == 1 else 1.0 for m in range(len(spec.leds))}}
-    assert np.allclose(model.image(0, params), np.clip(expect, 0, 1), atol=1e-6)
+    # The capture is exposed from its own no-contact frame (pbr_tactile.plugin's rule).
+    mask = camera.scaled(*FILM).mask
+    nc = model.basis.images(physical.NO_CONTACT)
+    level = np.percentile((GAIN * sum(0.5 * (2.0 if n.startswith("led1") else 1.0) * nc[..., s, None] * R[int(n[3])]
+                                      for s, n in enumerate(names)))[mask], 99.5)
+    level0 = np.percentile((GAIN * sum(nc[..., s, None] * R[int(n[3])] for s, n in enumerate(names)
+                                       if not n.endswith("_leak")))[mask], 99.5)
+    assert np.allclose(model.image(0, params), np.clip(expect * level0 / level, 0, 1), atol=1e-6)
+    # So every LED twice as bright is the same image.
+    brighter = {"led_power": {f"power_{m}": 2.0 for m in range(len(spec.leds))}}
+    assert np.allclose(model.image(0, brighter), model.image(0, {}), atol=1e-6)
     # At the identity (no leak) only the LEDs' own images count.
     plain = GAIN * sum(B[..., s, None] * R[int(n[3])] for s, n in enumerate(names) if not n.endswith("_leak"))
     assert np.allclose(model.image(0, {}), np.clip(plain, 0, 1), atol=1e-6)

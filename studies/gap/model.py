@@ -40,6 +40,15 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def working_cameras(spec: SensorSpec, factor: int) -> tuple[Camera, Camera]:
+    """(the spec's camera, the same at 1/``factor`` of its resolution), refusing a factor
+    that does not divide the image."""
+    full = Camera.from_spec(spec)
+    if full.width % factor or full.height % factor:
+        raise ValueError(f"{full.width}x{full.height} px is not divisible by factor {factor}")
+    return full, (full if factor == 1 else full.scaled(full.width // factor, full.height // factor))
+
+
 def make_models(pairs, renderer: dict, factor: int):
     """(working, full-resolution) models of a simulated dataset: the reference decomposed
     per source (``studies.gap.physical``) when the reference rendered it, else the fast
@@ -85,11 +94,8 @@ class FastModel:
             spec = spec.replace(material=replace(spec.material, ambient=1.0))  # k_a is in the profile's B
         self.spec = spec
         self.factor = int(factor)
-        full = Camera.from_spec(spec)
-        if full.width % self.factor or full.height % self.factor:
-            raise ValueError(f"{full.width}x{full.height} px is not divisible by factor {factor}")
-        self.full_camera = full
-        self.camera = full if self.factor == 1 else full.scaled(full.width // self.factor, full.height // self.factor)
+        self.full_camera, self.camera = working_cameras(spec, self.factor)
+        full = self.full_camera
         self.mesh = membrane_mesh(spec)
         field = renderer.get("field", "plane")
         fields = bake(self.mesh, self.camera, spec.leds, field)

@@ -67,6 +67,10 @@ BASIS_PASSES = 2
 LEAK_BASIS = 0.5
 #: Fits of physical effects use at most this many training taps (each costs its renders).
 FIT_TAPS = 8
+#: ``SourceBasis.images``' key of the sensor without contact (its exposure's reference).
+NO_CONTACT = -1
+#: Candidates that change only a contact.
+MECHANICS = ("membrane_compliance", "layer_spread")
 
 #: Effects fields whose change is linear in the per-source images: no render.
 LINEAR_FIELDS = ("core_light_leak", "led_spectra", "camera_response")
@@ -264,15 +268,18 @@ class SourceBasis:
         return builder
 
     def images(self, key: int, name: str | None = None, value: float | None = None) -> np.ndarray:
-        """(h, w, S) float32: tap ``key``'s per-source images per unit flux at the film,
-        for the identity or candidate ``name`` at grid ``value``."""
+        """(h, w, S) float32: tap ``key``'s per-source images per unit flux at the film
+        (``NO_CONTACT``: the sensor without contact), for the identity or candidate
+        ``name`` at grid ``value``."""
+        if key == NO_CONTACT and name in MECHANICS:
+            name = value = None  # the membrane's mechanics change nothing without a contact
         tag = (int(key), name, None if value is None else float(value))
         if tag in self._images:
             return self._images[tag]
         from pbr_tactile.calibrate import emitter_basis
 
         spec, effects, scale = self.variant(name, value)
-        depth = np.asarray(self.depth[key], np.float32)
+        depth = self.ref if key == NO_CONTACT else np.asarray(self.depth[key], np.float32)
         touched = np.abs(depth - self.ref) > CONTACT_EPS_M
         contact = {}
         if touched.any():
@@ -314,11 +321,9 @@ class ReferenceModel:
         self.spec = spec
         self.renderer = renderer
         self.factor = int(factor)
-        full = Camera.from_spec(spec)
-        if full.width % self.factor or full.height % self.factor:
-            raise ValueError(f"{full.width}x{full.height} px is not divisible by factor {factor}")
-        self.full_camera = full
-        self.camera = full if self.factor == 1 else full.scaled(full.width // self.factor, full.height // self.factor)
+        from .model import working_cameras
+
+        self.full_camera, self.camera = working_cameras(spec, self.factor)
         self.mask = self.camera.mask
         # The reference draws no image circle: an alignment moves the whole frame.
         self.circle = np.ones(self.camera.shape, np.float32)
@@ -331,6 +336,9 @@ class ReferenceModel:
         self.max_fit_samples = FIT_TAPS
         self._responses: dict = {}
         self._plain: dict = {}  # M(identity) by sample
+        self._level = None  # the identity's exposure level (``exposure``)
+        w, h = basis.film
+        self._film_mask = Camera.from_spec(spec).scaled(w, h).mask
 
     # --- the FastModel interface ---------------------------------------------------------
 
@@ -517,5 +525,36 @@ class ReferenceModel:
         names = self.basis.names
         led = led_of_source(names)
         weight = np.array([power[m] * (leak if str(s).endswith("_leak") else 1.0 - leak) for s, m in zip(names, led)])
-        linear = np.tensordot(B, weight[:, None] * R[led], axes=([2], [0]))  # (h, w, 3)
-        return np.clip(self.basis.gain * linear, 0.0, 1.0).astype(np.float32)
+        colour = weight[:, None] * R[led]  # (S, 3): each source's share in each channel
+        linear = np.tensordot(B, colour, axes=([2], [0]))  # (h, w, 3)
+        return np.clip(self.exposure(params, colour) * linear, 0.0, 1.0).astype(np.float32)
+
+    def exposure(self, params: dict, colour: np.ndarray) -> float:
+        """The dataset's exposure gain with ``params``: a reference dataset sets its one
+        exposure from its own no-contact frame (``pbr_tactile.plugin``: its
+        EXPOSURE_PERCENTILE inside the image circle to EXPOSURE_LEVEL), so a capture whose
+        physics differ is exposed differently: g(theta) = g(identity) level(identity) /
+        level(theta), the levels from the no-contact per-source images."""
+        from pbr_tactile.plugin import EXPOSURE_PERCENTILE
+
+        def level(p: dict, c: np.ndarray) -> float:
+            nc = np.tensordot(self.sources(NO_CONTACT, p), c, axes=([2], [0]))
+            return float(np.percentile(nc[self._film_mask], EXPOSURE_PERCENTILE))
+
+        if self._level is None:
+            self._level = level({}, self._identity_colour())
+        ratio = self._level / max(level(params, colour), 1e-30) if params else 1.0
+        return float(self.basis.gain * ratio)
+
+    def _identity_colour(self) -> np.ndarray:
+        from pbr_tactile.calibrate import led_of_source
+
+        n = len(self.spec.leds)
+        leak = self.catalogue["core_light_leak"].identity["fraction"]
+        R = self.responses((0.0,) * n, self.catalogue["led_spectra"].identity["on"],
+                           self.catalogue["camera_response"].identity["on"])
+        self.sources(NO_CONTACT, {})  # the basis' source names
+        names = self.basis.names
+        led = led_of_source(names)
+        weight = np.array([(leak if str(s).endswith("_leak") else 1.0 - leak) for s in names])
+        return weight[:, None] * R[led]

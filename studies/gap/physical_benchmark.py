@@ -65,7 +65,7 @@ def draw(case: int, seed: int) -> dict[str, object]:
     """The hidden effects of one case and their values: every effect of ``HIDDEN`` once
     in turn (a seeded order), then one or two at random."""
     names = list(HIDDEN)
-    order = list(np.random.default_rng(seed).permutation(names))
+    order = [str(n) for n in np.random.default_rng(seed).permutation(names)]
     rng = np.random.default_rng([seed, case])
     if case < len(order):
         chosen = [order[case]]
