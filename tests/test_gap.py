@@ -121,10 +121,26 @@ def test_optics_functions_analytic():
     assert barrel[1][240, 560] == pytest.approx(319.5 + 240.5 * (1 + 0.1 * r2), abs=1e-6)
     img = np.random.default_rng(0).random((1, 48, 64, 3)).astype(np.float32)
     assert np.allclose(fx.resample(img, fx.source_coordinates((48, 64), 60.0, (23.5, 31.5), None, None)), img)
-    assert np.allclose(fx.camera_response(img, (1, 1, 1), 1.0, 0.0), img)
-    assert np.allclose(fx.camera_response(img, (1, 1, 1), 2.0, 0.0), np.sqrt(img), atol=1e-6)
+    assert np.allclose(fx.camera_response(img, np.eye(3), 0.0, 1.0), img)
+    assert np.allclose(fx.camera_response(img, np.eye(3), 0.0, 2.0), np.sqrt(img), atol=1e-6)
     # A source over elevations 0.2 (1 -+ 0.3): a band (0, 10] hides all of it, (0, 0.2] half.
     assert fx.shadow_factor(np.zeros(3), np.array([0.0, 10.0, 0.2]), 0.2, 1.0).tolist() == pytest.approx([1, 0, 0.5])
+
+
+def test_camera_response_is_a_colour_matrix_an_offset_and_a_curve():
+    """out = clip(C in + o)^(1/gamma) with any 3x3 C: it mixes, darkens and brightens."""
+    params = {"gain_r": 0.6, "gain_g": 0.5, "gain_b": 1.2, "mix_rg": -0.2, "mix_rb": 0.1, "mix_gr": 0.3,
+              "mix_gb": 0.0, "mix_br": -0.1, "mix_bg": 0.05, "offset": -0.02, "gamma": 2.0}
+    C = fx.colour_matrix(params)
+    assert np.allclose(C, [[0.6, -0.2, 0.1], [0.3, 0.5, 0.0], [-0.1, 0.05, 1.2]])
+    pixel = np.array([[[[0.5, 0.4, 0.3]]]], np.float32)
+    by_hand = [math.sqrt(0.6 * 0.5 - 0.2 * 0.4 + 0.1 * 0.3 - 0.02), math.sqrt(0.3 * 0.5 + 0.5 * 0.4 - 0.02),
+               math.sqrt(min(-0.1 * 0.5 + 0.05 * 0.4 + 1.2 * 0.3 - 0.02, 1.0))]
+    assert fx.camera_response(pixel, C, -0.02, 2.0)[0, 0, 0].tolist() == pytest.approx(by_hand, abs=1e-6)
+    identity = {p.name: p.identity for p in fx.catalogue(3, 5.0)["camera_response"].params}
+    assert np.array_equal(fx.colour_matrix(identity), np.eye(3)) and identity["offset"] == 0.0
+    darker = fx.camera_response(pixel, 0.5 * np.eye(3), 0.0, 1.0)
+    assert darker[0, 0, 0].tolist() == pytest.approx([0.25, 0.2, 0.15])
 
 
 def test_light_functions_analytic():

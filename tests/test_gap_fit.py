@@ -83,6 +83,26 @@ def test_white_balance_gains_start_in_closed_form(spec, injector, contacts):
     assert [start[f"gain_{c}"] for c in "rgb"] == pytest.approx(gains, abs=0.01)
 
 
+def test_a_colour_matrix_that_mixes_and_darkens_starts_in_closed_form(spec):
+    """real = (C sim + o)^(1/gamma), written by hand, with a C whose rows mix the channels
+    and sum below 1: the start at the true gamma is C and o (least squares on
+    real^gamma = C sim + o), and the fit, which keeps them, darkens the image."""
+    rng = np.random.default_rng(0)
+    blocks = rng.uniform(0.15, 0.85, (4, 12, 16, 3))  # colours varied enough to pin all nine entries
+    sim = np.repeat(np.repeat(blocks, 40, axis=1), 40, axis=2).astype(np.float32)
+    C = np.array([[0.7, -0.1, 0.05], [0.1, 0.5, -0.05], [-0.05, 0.1, 0.8]])
+    real = np.clip(sim @ C.T - 0.02, 0.0, 1.0) ** (1 / 1.3)
+    d = diagnosis(make_pairs(spec, "solid", sim, real, None), ("camera_response",))
+    start = next(s for s in d.starts("camera_response") if s["gamma"] == 1.3)
+    assert np.allclose(fx.colour_matrix(start), C, atol=0.01) and start["offset"] == pytest.approx(-0.02, abs=0.01)
+    fit = d.fit(("camera_response",))
+    assert fit.train_loss < 0.05 * fit.train_loss_before
+    assert np.allclose(fx.colour_matrix(fit.params["camera_response"]), C, atol=0.03)
+    darker = d.real_w[:, d.mask_w].mean()
+    assert darker < d.sim_w[:, d.mask_w].mean() - 0.05
+    assert d.predict_train(fit.params)[:, d.mask_w].mean() == pytest.approx(darker, abs=0.005)
+
+
 def test_misalignment_keeps_the_image_circle_and_background(spec):
     """The membrane's image moves; the circle and what the background adds stay put."""
     shape, f, centre = (48, 64), 60.0, (23.5, 31.5)

@@ -7,7 +7,7 @@ images and the predicted ones over the training samples, at the working resoluti
 held-out judgement is an MAE too: a squared error would let an effect trade many small
 errors for a few large ones and win the fit while losing the judgement). Fits start from
 the best of a few starting points: closed-form ones where the effect is linear in its
-parameters for a fixed exponent (white-balance gains per gamma, vignetting coefficients),
+parameters for a fixed exponent (the colour matrix per gamma, vignetting coefficients),
 registration for shifts and rotations, small grids where the loss has several basins. A
 fit that leaves most of the training gap without having moved from its start (a kink or
 flat spot where finite-difference gradients mislead L-BFGS-B) probes a step either side
@@ -50,8 +50,11 @@ STUCK_LEFT = 0.5
 PROBE_STEP = 0.05
 #: At most this many probe-and-restart rounds.
 PROBE_ROUNDS = 3
-#: Gammas at which closed-form white-balance gains start camera_response fits.
+#: Gammas at which a closed-form colour matrix starts camera_response fits.
 START_GAMMAS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5)
+#: Weight of the pull of camera_response's closed-form colour matrix towards the white
+#: balance, relative to the mean diagonal of its normal equations.
+RESPONSE_RIDGE = 3e-3
 #: Fits stop when an iteration lowers the loss by less than this fraction.
 FTOL = 1e-4
 #: Fits use at most this many training samples (an even spread over objects): a few
@@ -213,7 +216,7 @@ class Diagnosis:
         nudges = {"core_light_leak": {k: 0.1 for k in base if k.startswith("amplitude")},
                   "path_attenuation": {"mu_per_m": 20.0}, "coating_gloss": {"k_g": 0.2},
                   "contact_shadow": {"darkness": 0.5}, "vignetting": {"a": 0.2},
-                  "blur_noise": {"sigma_px": 1.0}, "camera_response": {"crosstalk": 0.02}}
+                  "blur_noise": {"sigma_px": 1.0}}
         base.update(nudges.get(name, {}))
         if name == "misalignment":
             return self._misalignment_starts(base)
@@ -244,20 +247,41 @@ class Diagnosis:
         return sim[keep].astype(np.float64), real[keep].astype(np.float64)
 
     def _response_starts(self, base: dict) -> list[dict]:
-        """Per gamma of ``START_GAMMAS``, the white-balance gains in closed form: out =
-        (g in)^(1/gamma) makes real^gamma = g sim per channel, a least-squares line through
-        the origin, g_c = sum(s_c r_c^gamma) / sum(s_c^2)."""
+        """Per gamma of ``START_GAMMAS``, the colour matrix and offset in closed form: out =
+        (C in + o)^(1/gamma) makes real^gamma = C sim + o, linear in C and o, solved by
+        least squares over the training pixels; and the white balance alone (C diagonal,
+        o = 0), g_c = sum(s_c r_c^gamma) / sum(s_c^2). The full solution is pulled weakly
+        (``RESPONSE_RIDGE``) towards the white balance, so that where the colours hardly
+        vary (a solid background) the entries they cannot pin stay there."""
         sim, real = self._pixels()
         if len(sim) < 16:
             return [{**base, "gamma": g} for g in (0.7, 1.0, 1.4)]
         bounds = {p.name: (p.low, p.high) for p in self.catalogue["camera_response"].params}
+        # Normal equations of real_c^gamma = sim . C_c + o over the three channels at once:
+        # unknowns (C_r, C_g, C_b, o), 10 of them.
+        S = sim.T @ sim  # (3, 3)
+        s = sim.sum(axis=0)  # (3,)
+        A = np.zeros((10, 10))
+        for c in range(3):
+            A[3 * c:3 * c + 3, 3 * c:3 * c + 3] = S
+            A[3 * c:3 * c + 3, 9] = A[9, 3 * c:3 * c + 3] = s
+        A[9, 9] = 3 * len(sim)
+        ridge = RESPONSE_RIDGE * np.trace(A) / len(A)
         out = []
         for gamma in START_GAMMAS:
-            gains = (sim * real**gamma).sum(axis=0) / np.maximum((sim * sim).sum(axis=0), 1e-12)
-            start = {**base, "gamma": gamma, "crosstalk": 0.0}
-            for c, g in zip("rgb", gains):
-                start[f"gain_{c}"] = float(np.clip(g, *bounds[f"gain_{c}"]))
-            out.append(start)
+            target = real**gamma  # (K, 3)
+            b = np.concatenate([sim.T @ target[:, c] for c in range(3)] + [[target.sum()]])
+            gains = (sim * target).sum(axis=0) / np.maximum((sim * sim).sum(axis=0), 1e-12)
+            diagonal = np.diag(gains)
+            prior = np.append(diagonal.reshape(-1), 0.0)
+            x = np.linalg.solve(A + ridge * np.eye(len(A)), b + ridge * prior)
+            for matrix, offset in ((x[:9].reshape(3, 3), x[9]), (diagonal, 0.0)):
+                start = {**base, "gamma": gamma, "offset": float(np.clip(offset, *bounds["offset"]))}
+                for o, co in enumerate(fx.CHANNELS):
+                    for i, ci in enumerate(fx.CHANNELS):
+                        name = f"gain_{co}" if o == i else f"mix_{co}{ci}"
+                        start[name] = float(np.clip(matrix[o, i], *bounds[name]))
+                out.append(start)
         return out
 
     def _vignetting_start(self, base: dict) -> dict:

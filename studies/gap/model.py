@@ -262,7 +262,7 @@ class FastModel:
             out = fx.blur(out, params["blur_noise"]["sigma_px"] / self.factor)
         if "camera_response" in params:
             p = params["camera_response"]
-            out = fx.camera_response(out, (p["gain_r"], p["gain_g"], p["gain_b"]), p["gamma"], p["crosstalk"])
+            out = fx.camera_response(out, fx.colour_matrix(p), p["offset"], p["gamma"])
         return np.clip(out, 0.0, 1.0)
 
     def predict(self, sim: np.ndarray, depth: np.ndarray | None, params: dict, keys=None) -> np.ndarray:
