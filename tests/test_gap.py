@@ -152,6 +152,11 @@ def test_light_functions_analytic():
     k = fx.leak_kernel(P, N, (0.0, 0.0, 0.0), length_m=0.01)
     assert k[0].tolist() == pytest.approx([0.5, 0.2])  # 1 / (1 + (d / l)^2), cos = 1
     assert fx.attenuation(np.array([0.0, 0.01]), 100.0).tolist() == pytest.approx([1.0, math.exp(-1.0)])
+    ambient = np.full((3, 1, 1), 0.8)
+    T = np.full((3, 1, 1), 0.5)
+    assert fx.faded_ambient(ambient, T, 0.0)[:, 0, 0].tolist() == pytest.approx([0.8] * 3)
+    assert fx.faded_ambient(ambient, T, 1.0)[:, 0, 0].tolist() == pytest.approx([0.4] * 3)
+    assert fx.faded_ambient(ambient, T, 0.5)[:, 0, 0].tolist() == pytest.approx([0.6] * 3)
     colours = np.eye(3)
     same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1], floor=0.05)
     assert np.allclose(same, np.diag([1, 2, 1]))
@@ -273,6 +278,31 @@ def test_model_reproduces_the_fast_path_and_identity_changes_nothing(spec, sim_i
         assert np.abs(pred - sim).max() < 1e-5, name
     changed = model.predict(sim, contacts[:2], {"membrane_compliance": {"scale": 0.5}}, keys=[0, 1])
     assert np.abs(changed - sim).max() > 0.05
+
+
+def test_path_attenuation_with_its_ambient_share_dims_the_background(spec):
+    """No contact on a solid background: the image is the background term k_a B. With the
+    ambient share a it keeps 1 - a + a exp(-mu d), d the path from the LEDs' ring: on the
+    cylinder the height above the LEDs, on the tip that plus the arc to it; without the
+    share only the LEDs' light fades and the background stays. The tip dims most."""
+    model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4)
+    m = spec.membrane
+    apex = m.base_z + m.cylinder_length + 0.5 * math.pi * m.radius  # the LEDs are at z = 0
+    # Paths along the edges of near-equilateral triangles zigzag: up to 2 / sqrt(3) times the
+    # true geodesic (a constant factor along the axis, which the fitted mu takes up), from
+    # a ring of vertices up to one edge below the LEDs.
+    zigzag = 2 / math.sqrt(3)
+    assert apex < model.base_distance[60, 80] < zigzag * (apex + m.mesh_edge)  # the apex, on the axis
+    side = (60, 25)  # the cylinder, near its visible end
+    height = float(model.ref[side] * model.rays[2][side])
+    assert height < model.base_distance[side] < zigzag * (height + m.mesh_edge)
+    plain = model.physical(model.ref, {})
+    for share in (0.0, 0.5, 1.0):
+        faded = model.physical(model.ref, {"path_attenuation": {"mu_per_m": 30.0, "ambient_share": share}})
+        for pixel in ((60, 80), side):
+            kept = 1 - share + share * math.exp(-30.0 * model.base_distance[pixel])
+            assert (faded[pixel] / plain[pixel]).tolist() == pytest.approx([kept] * 3, rel=1e-3)
+    assert faded[60, 80].sum() / plain[60, 80].sum() < 0.8 * faded[side].sum() / plain[side].sum()
 
 
 # --- bad input -----------------------------------------------------------------------------

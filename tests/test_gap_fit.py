@@ -196,6 +196,23 @@ def test_misalignment_under_a_fixed_circle_on_the_real_background(spec, contacts
     assert found.improvement["masked"]["mae"]["share"] > 0.6
 
 
+@pytest.mark.slow
+def test_a_fade_of_every_light_is_path_attenuation(spec, injector, contacts):
+    """Issue 23.6, second case: every light fades along the sensor, the background too
+    (written unlike the catalogue: exp(-(z / L)^2) of the height z along the axis, on the
+    whole image). path_attenuation, with the background's share, comes first."""
+    from studies.gap.unlike import Unlike
+
+    sim = np.stack([injector.render(d) for d in contacts])
+    real = np.stack([Unlike(spec, injector.ref_depth).apply(x, "fade_all_light", {"length_m": 0.055}) for x in sim])
+    d = diagnosis(make_pairs(spec, "solid", sim, real, contacts), ("path_attenuation", "camera_response"))
+    singles = d.singles()
+    assert ranked(singles)[0] == "path_attenuation", ranked(singles)
+    found = singles["path_attenuation"]
+    assert found.fit.params["path_attenuation"]["ambient_share"] > 0.5
+    assert found.improvement["masked"]["mae"]["share"] > 0.5
+
+
 # --- a fit that stops at its start ----------------------------------------------------------
 
 

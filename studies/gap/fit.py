@@ -220,6 +220,8 @@ class Diagnosis:
         base.update(nudges.get(name, {}))
         if name == "misalignment":
             return self._misalignment_starts(base)
+        if name == "path_attenuation":
+            return [{**base, "mu_per_m": mu, "ambient_share": a} for mu in (20.0, 60.0) for a in (0.0, 1.0)]
         if name == "lens_distortion":
             return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
         if name == "membrane_compliance":
