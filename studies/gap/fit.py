@@ -310,20 +310,31 @@ class Diagnosis:
         and shift by phase correlation, both on the mean images of the fitting samples
         (one image, so the search is cheap), for the membrane moving under a fixed image
         circle and for the whole frame moving (``frame_share`` 0 and 1); the best are
-        refined on every sample. Registration compares what the simulated background
-        does not explain (image - ``FastModel.fixed``), so that a real no-contact
-        background, registered already, does not pin the search at the identity."""
+        refined on every sample.
+
+        Registration compares what moves. Under a fixed circle that is what the
+        simulated background does not explain (image - ``FastModel.fixed``), so that a
+        real no-contact background, registered already, does not pin the search at the
+        identity; when the whole frame moves it is the whole image, background included
+        (subtracting the fixed background from both would leave the same unmoved pattern
+        in each, and pin the shift at 0)."""
         fixed = self.work.fixed
         real = self.real_w.mean(axis=0)
         sim = self.sim_w.mean(axis=0)[None]
+        limit = self.catalogue["misalignment"].params[0].high - 1.0  # px, inside the shift's bounds
 
         def registered(angle: float, share: float) -> tuple[float, dict]:
             params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0, "frame_share": share}
             rotated = self.work.optics(sim, {"misalignment": params})[0]
-            shift, _, _ = phase_cross_correlation((real - fixed).mean(-1), (rotated - fixed).mean(-1),
+            moving = fixed if share < 1.0 else 0.0
+            shift, _, _ = phase_cross_correlation((real - moving).mean(-1), (rotated - moving).mean(-1),
                                                   upsample_factor=4, normalization=None)
-            # The model samples the simulated frame at x + (du, dv), full-resolution pixels.
-            du, dv = (float(np.clip(-v * self.work.factor, -59.0, 59.0)) for v in (shift[1], shift[0]))
+            # Real ~ the rotated image moved by ``shift`` (rows, cols), working pixels. The
+            # model samples the simulated frame at c + R (x - c) + (du, dv), full-resolution
+            # pixels: the rotated image at x + R^-1 (du, dv), so (du, dv) = -R shift.
+            c, s = np.cos(angle), np.sin(angle)
+            x, y = -shift[1] * self.work.factor, -shift[0] * self.work.factor
+            du, dv = (float(np.clip(v, -limit, limit)) for v in (c * x - s * y, s * x + c * y))
             params.update(du_px=du, dv_px=dv)
             pred = self.work.optics(sim, {"misalignment": params})[0]
             return float(np.mean(np.abs(pred - real)[self.mask_w])), params
