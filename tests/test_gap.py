@@ -416,10 +416,14 @@ def test_stratified_benchmark_covers_every_cell_and_scores_it():
     )
     from studies.gap.inject import EFFECTS
 
+    from studies.gap.unlike import MECHANISMS
+
     cells = stratified_cells()
-    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS)
+    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS) + len(MECHANISMS)
+    assert cells[:len(EFFECTS)] == [(e, "none", None) for e in EFFECTS]  # the injector's cells keep their index
+    assert {(c[2], c[0]) for c in cells[-len(MECHANISMS):]} == set(MECHANISMS.items())
     draws = [_draw_stratified(case, case, 100, 10, 0.5) for case in range(len(cells))]
-    assert {(d["hidden"][0], d["background"]) for d in draws} == set(cells)
+    assert {(d["hidden"][0], d["background"], d["mechanism"]) for d in draws} == set(cells)
     assert all(d["strength"] == 0.5 and len(d["samples"]) == 10 for d in draws)
     results = [{"hidden": ["vignetting"], "background": "none", "top1": True, "shrink": 0.8, "shrink_top1": 0.7,
                 "noise_share": 0.0},
@@ -428,8 +432,12 @@ def test_stratified_benchmark_covers_every_cell_and_scores_it():
                {"hidden": ["vignetting"], "background": "solid", "top1": True, "shrink": 0.9, "shrink_top1": 0.9,
                 "noise_share": 0.0},
                {"hidden": ["blur_noise"], "background": "none", "top1": True, "shrink": 0.1, "shrink_top1": 0.1,
-                "noise_share": 0.8}]
+                "noise_share": 0.8},
+               {"hidden": ["vignetting"], "background": "none", "mechanism": "dusk", "top1": True, "shrink": 0.65,
+                "shrink_top1": 0.65, "noise_share": 0.0}]
     out = stratify(results, 0.5)
+    # A mechanism written unlike the catalogue is a cell of its own, scored like the others.
+    assert out["per_cell"]["vignetting/dusk"]["none"]["cases"] == 1
     assert out["per_cell"]["vignetting"]["none"] == {"cases": 2, "top1": 0.5, "shrink": pytest.approx(0.6),
                                                      "shrink_top1": pytest.approx(0.5), "noise_share": 0.0}
     assert out["min_cell_shrink"] == pytest.approx(0.6) and out["min_cell"] == "vignetting x none"
@@ -444,6 +452,8 @@ def test_stratified_cases_keep_their_index_when_filtered():
     chosen = stratified_cases(len(cells), ("contact_shadow", "led_spectrum"))
     assert len(chosen) == 6 and {cells[c][0] for c in chosen} == {"contact_shadow", "led_spectrum"}
     assert {cells[c][1] for c in chosen} == {"none", "solid", "real"}
+    turned = stratified_cases(len(cells), ("misalignment",))
+    assert len(turned) == 4 and cells[turned[-1]] == ("misalignment", "real", "frame_turn")
     with pytest.raises(ValueError, match="hidden must be"):
         stratified_cases(36, ("sparkle",))
 

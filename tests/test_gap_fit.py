@@ -1,6 +1,9 @@
 """The diagnosis' fitter on the three failures of issue 12 (part 4), small and in memory:
 a white-balance change on a solid background, light fading hidden on it, and a
-misalignment under the lens's fixed image circle with the real no-contact background."""
+misalignment under the lens's fixed image circle with the real no-contact background;
+and on the cases of issue 23 (part 6), written unlike the catalogue: a colour matrix
+that mixes and darkens, a fade of every light, the background's too, and a whole-frame
+turn about the frame's corner."""
 
 from __future__ import annotations
 
