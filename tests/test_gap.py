@@ -121,10 +121,26 @@ def test_optics_functions_analytic():
     assert barrel[1][240, 560] == pytest.approx(319.5 + 240.5 * (1 + 0.1 * r2), abs=1e-6)
     img = np.random.default_rng(0).random((1, 48, 64, 3)).astype(np.float32)
     assert np.allclose(fx.resample(img, fx.source_coordinates((48, 64), 60.0, (23.5, 31.5), None, None)), img)
-    assert np.allclose(fx.camera_response(img, (1, 1, 1), 1.0, 0.0), img)
-    assert np.allclose(fx.camera_response(img, (1, 1, 1), 2.0, 0.0), np.sqrt(img), atol=1e-6)
+    assert np.allclose(fx.camera_response(img, np.eye(3), 0.0, 1.0), img)
+    assert np.allclose(fx.camera_response(img, np.eye(3), 0.0, 2.0), np.sqrt(img), atol=1e-6)
     # A source over elevations 0.2 (1 -+ 0.3): a band (0, 10] hides all of it, (0, 0.2] half.
     assert fx.shadow_factor(np.zeros(3), np.array([0.0, 10.0, 0.2]), 0.2, 1.0).tolist() == pytest.approx([1, 0, 0.5])
+
+
+def test_camera_response_is_a_colour_matrix_an_offset_and_a_curve():
+    """out = clip(C in + o)^(1/gamma) with any 3x3 C: it mixes, darkens and brightens."""
+    params = {"gain_r": 0.6, "gain_g": 0.5, "gain_b": 1.2, "mix_rg": -0.2, "mix_rb": 0.1, "mix_gr": 0.3,
+              "mix_gb": 0.0, "mix_br": -0.1, "mix_bg": 0.05, "offset": -0.02, "gamma": 2.0}
+    C = fx.colour_matrix(params)
+    assert np.allclose(C, [[0.6, -0.2, 0.1], [0.3, 0.5, 0.0], [-0.1, 0.05, 1.2]])
+    pixel = np.array([[[[0.5, 0.4, 0.3]]]], np.float32)
+    by_hand = [math.sqrt(0.6 * 0.5 - 0.2 * 0.4 + 0.1 * 0.3 - 0.02), math.sqrt(0.3 * 0.5 + 0.5 * 0.4 - 0.02),
+               math.sqrt(min(-0.1 * 0.5 + 0.05 * 0.4 + 1.2 * 0.3 - 0.02, 1.0))]
+    assert fx.camera_response(pixel, C, -0.02, 2.0)[0, 0, 0].tolist() == pytest.approx(by_hand, abs=1e-6)
+    identity = {p.name: p.identity for p in fx.catalogue(3, 5.0)["camera_response"].params}
+    assert np.array_equal(fx.colour_matrix(identity), np.eye(3)) and identity["offset"] == 0.0
+    darker = fx.camera_response(pixel, 0.5 * np.eye(3), 0.0, 1.0)
+    assert darker[0, 0, 0].tolist() == pytest.approx([0.25, 0.2, 0.15])
 
 
 def test_light_functions_analytic():
@@ -136,6 +152,11 @@ def test_light_functions_analytic():
     k = fx.leak_kernel(P, N, (0.0, 0.0, 0.0), length_m=0.01)
     assert k[0].tolist() == pytest.approx([0.5, 0.2])  # 1 / (1 + (d / l)^2), cos = 1
     assert fx.attenuation(np.array([0.0, 0.01]), 100.0).tolist() == pytest.approx([1.0, math.exp(-1.0)])
+    ambient = np.full((3, 1, 1), 0.8)
+    T = np.full((3, 1, 1), 0.5)
+    assert fx.faded_ambient(ambient, T, 0.0)[:, 0, 0].tolist() == pytest.approx([0.8] * 3)
+    assert fx.faded_ambient(ambient, T, 1.0)[:, 0, 0].tolist() == pytest.approx([0.4] * 3)
+    assert fx.faded_ambient(ambient, T, 0.5)[:, 0, 0].tolist() == pytest.approx([0.6] * 3)
     colours = np.eye(3)
     same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1], floor=0.05)
     assert np.allclose(same, np.diag([1, 2, 1]))
@@ -259,6 +280,31 @@ def test_model_reproduces_the_fast_path_and_identity_changes_nothing(spec, sim_i
     assert np.abs(changed - sim).max() > 0.05
 
 
+def test_path_attenuation_with_its_ambient_share_dims_the_background(spec):
+    """No contact on a solid background: the image is the background term k_a B. With the
+    ambient share a it keeps 1 - a + a exp(-mu d), d the path from the LEDs' ring: on the
+    cylinder the height above the LEDs, on the tip that plus the arc to it; without the
+    share only the LEDs' light fades and the background stays. The tip dims most."""
+    model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4)
+    m = spec.membrane
+    apex = m.base_z + m.cylinder_length + 0.5 * math.pi * m.radius  # the LEDs are at z = 0
+    # Paths along the edges of near-equilateral triangles zigzag: up to 2 / sqrt(3) times the
+    # true geodesic (a constant factor along the axis, which the fitted mu takes up), from
+    # a ring of vertices up to one edge below the LEDs.
+    zigzag = 2 / math.sqrt(3)
+    assert apex < model.base_distance[60, 80] < zigzag * (apex + m.mesh_edge)  # the apex, on the axis
+    side = (60, 25)  # the cylinder, near its visible end
+    height = float(model.ref[side] * model.rays[2][side])
+    assert height < model.base_distance[side] < zigzag * (height + m.mesh_edge)
+    plain = model.physical(model.ref, {})
+    for share in (0.0, 0.5, 1.0):
+        faded = model.physical(model.ref, {"path_attenuation": {"mu_per_m": 30.0, "ambient_share": share}})
+        for pixel in ((60, 80), side):
+            kept = 1 - share + share * math.exp(-30.0 * model.base_distance[pixel])
+            assert (faded[pixel] / plain[pixel]).tolist() == pytest.approx([kept] * 3, rel=1e-3)
+    assert faded[60, 80].sum() / plain[60, 80].sum() < 0.8 * faded[side].sum() / plain[side].sum()
+
+
 # --- bad input -----------------------------------------------------------------------------
 
 
@@ -370,10 +416,14 @@ def test_stratified_benchmark_covers_every_cell_and_scores_it():
     )
     from studies.gap.inject import EFFECTS
 
+    from studies.gap.unlike import MECHANISMS
+
     cells = stratified_cells()
-    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS)
+    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS) + len(MECHANISMS)
+    assert cells[:len(EFFECTS)] == [(e, "none", None) for e in EFFECTS]  # the injector's cells keep their index
+    assert {(c[2], c[0]) for c in cells[-len(MECHANISMS):]} == set(MECHANISMS.items())
     draws = [_draw_stratified(case, case, 100, 10, 0.5) for case in range(len(cells))]
-    assert {(d["hidden"][0], d["background"]) for d in draws} == set(cells)
+    assert {(d["hidden"][0], d["background"], d["mechanism"]) for d in draws} == set(cells)
     assert all(d["strength"] == 0.5 and len(d["samples"]) == 10 for d in draws)
     results = [{"hidden": ["vignetting"], "background": "none", "top1": True, "shrink": 0.8, "shrink_top1": 0.7,
                 "noise_share": 0.0},
@@ -382,8 +432,12 @@ def test_stratified_benchmark_covers_every_cell_and_scores_it():
                {"hidden": ["vignetting"], "background": "solid", "top1": True, "shrink": 0.9, "shrink_top1": 0.9,
                 "noise_share": 0.0},
                {"hidden": ["blur_noise"], "background": "none", "top1": True, "shrink": 0.1, "shrink_top1": 0.1,
-                "noise_share": 0.8}]
+                "noise_share": 0.8},
+               {"hidden": ["vignetting"], "background": "none", "mechanism": "dusk", "top1": True, "shrink": 0.65,
+                "shrink_top1": 0.65, "noise_share": 0.0}]
     out = stratify(results, 0.5)
+    # A mechanism written unlike the catalogue is a cell of its own, scored like the others.
+    assert out["per_cell"]["vignetting/dusk"]["none"]["cases"] == 1
     assert out["per_cell"]["vignetting"]["none"] == {"cases": 2, "top1": 0.5, "shrink": pytest.approx(0.6),
                                                      "shrink_top1": pytest.approx(0.5), "noise_share": 0.0}
     assert out["min_cell_shrink"] == pytest.approx(0.6) and out["min_cell"] == "vignetting x none"
@@ -398,6 +452,8 @@ def test_stratified_cases_keep_their_index_when_filtered():
     chosen = stratified_cases(len(cells), ("contact_shadow", "led_spectrum"))
     assert len(chosen) == 6 and {cells[c][0] for c in chosen} == {"contact_shadow", "led_spectrum"}
     assert {cells[c][1] for c in chosen} == {"none", "solid", "real"}
+    turned = stratified_cases(len(cells), ("misalignment",))
+    assert len(turned) == 4 and cells[turned[-1]] == ("misalignment", "real", "frame_turn")
     with pytest.raises(ValueError, match="hidden must be"):
         stratified_cases(36, ("sparkle",))
 

@@ -1,6 +1,9 @@
 """The diagnosis' fitter on the three failures of issue 12 (part 4), small and in memory:
 a white-balance change on a solid background, light fading hidden on it, and a
-misalignment under the lens's fixed image circle with the real no-contact background."""
+misalignment under the lens's fixed image circle with the real no-contact background;
+and on the cases of issue 23 (part 6), written unlike the catalogue: a colour matrix
+that mixes and darkens, a fade of every light, the background's too, and a whole-frame
+turn about the frame's corner."""
 
 from __future__ import annotations
 
@@ -81,6 +84,26 @@ def test_white_balance_gains_start_in_closed_form(spec, injector, contacts):
     d = diagnosis(make_pairs(spec, "solid", sim, real, contacts[:4]), ("camera_response",))
     start = next(s for s in d.starts("camera_response") if s["gamma"] == 1.0)
     assert [start[f"gain_{c}"] for c in "rgb"] == pytest.approx(gains, abs=0.01)
+
+
+def test_a_colour_matrix_that_mixes_and_darkens_starts_in_closed_form(spec):
+    """real = (C sim + o)^(1/gamma), written by hand, with a C whose rows mix the channels
+    and sum below 1: the start at the true gamma is C and o (least squares on
+    real^gamma = C sim + o), and the fit, which keeps them, darkens the image."""
+    rng = np.random.default_rng(0)
+    blocks = rng.uniform(0.15, 0.85, (4, 12, 16, 3))  # colours varied enough to pin all nine entries
+    sim = np.repeat(np.repeat(blocks, 40, axis=1), 40, axis=2).astype(np.float32)
+    C = np.array([[0.7, -0.1, 0.05], [0.1, 0.5, -0.05], [-0.05, 0.1, 0.8]])
+    real = np.clip(sim @ C.T - 0.02, 0.0, 1.0) ** (1 / 1.3)
+    d = diagnosis(make_pairs(spec, "solid", sim, real, None), ("camera_response",))
+    start = next(s for s in d.starts("camera_response") if s["gamma"] == 1.3)
+    assert np.allclose(fx.colour_matrix(start), C, atol=0.01) and start["offset"] == pytest.approx(-0.02, abs=0.01)
+    fit = d.fit(("camera_response",))
+    assert fit.train_loss < 0.05 * fit.train_loss_before
+    assert np.allclose(fx.colour_matrix(fit.params["camera_response"]), C, atol=0.03)
+    darker = d.real_w[:, d.mask_w].mean()
+    assert darker < d.sim_w[:, d.mask_w].mean() - 0.05
+    assert d.predict_train(fit.params)[:, d.mask_w].mean() == pytest.approx(darker, abs=0.005)
 
 
 def test_misalignment_keeps_the_image_circle_and_background(spec):
@@ -174,6 +197,53 @@ def test_misalignment_under_a_fixed_circle_on_the_real_background(spec, contacts
     assert found.fit.params["misalignment"]["rotation_rad"] == pytest.approx(rotation, abs=0.005)
     assert found.fit.params["misalignment"]["frame_share"] < 0.2
     assert found.improvement["masked"]["mae"]["share"] > 0.6
+
+
+@pytest.mark.slow
+def test_a_fade_of_every_light_is_path_attenuation(spec, injector, contacts):
+    """Issue 23.6, second case: every light fades along the sensor, the background too
+    (written unlike the catalogue: exp(-(z / L)^2) of the height z along the axis, on the
+    whole image). path_attenuation, with the background's share, comes first."""
+    from studies.gap.unlike import Unlike
+
+    sim = np.stack([injector.render(d) for d in contacts])
+    real = np.stack([Unlike(spec, injector.ref_depth).apply(x, "fade_all_light", {"length_m": 0.055}) for x in sim])
+    d = diagnosis(make_pairs(spec, "solid", sim, real, contacts), ("path_attenuation", "camera_response"))
+    singles = d.singles()
+    assert ranked(singles)[0] == "path_attenuation", ranked(singles)
+    found = singles["path_attenuation"]
+    assert found.fit.params["path_attenuation"]["ambient_share"] > 0.5
+    assert found.improvement["masked"]["mae"]["share"] > 0.5
+
+
+@pytest.mark.slow
+def test_a_whole_frame_turned_about_its_corner_is_a_misalignment(spec, contacts, reference_dir):
+    """Issue 23.6, third case: the whole frame, real background and image circle too,
+    turned 3 degrees about its corner and shifted (4, -3) px (written unlike the
+    catalogue, which turns about the image centre: a shift of about 20 px more).
+    Registering the whole images finds the shift (subtracting the unmoved background
+    from both pinned it at 0)."""
+    from studies.gap.unlike import turn_frame
+
+    background = reference_dir / "real" / "bkg.png"
+    if not background.exists():
+        pytest.skip(f"the real no-contact image {background} is missing from the reference data")
+    sim_injector = Injector(spec, background=background)
+    rotation, shift = math.radians(3.0), np.array([4.0, -3.0])
+    sim = np.stack([sim_injector.render(d) for d in contacts])
+    real = np.stack([turn_frame(x, rotation, *shift, (0.0, 0.0)) for x in sim])
+    d = diagnosis(make_pairs(spec, str(background), sim, real, contacts), ("misalignment", "blur_noise", "vignetting"))
+    singles = d.singles()
+    assert ranked(singles)[0] == "misalignment", ranked(singles)
+    found = singles["misalignment"].fit.params["misalignment"]
+    # The model samples the simulated frame at c + R (x - c) + d: here d = (R - I) c - R t.
+    camera = sim_injector.camera
+    R = np.array([[math.cos(rotation), -math.sin(rotation)], [math.sin(rotation), math.cos(rotation)]])
+    centre = np.array([camera.cx, camera.cy])
+    expected = (R - np.eye(2)) @ centre - R @ shift
+    assert found["rotation_rad"] == pytest.approx(rotation, abs=0.005)
+    assert [found["du_px"], found["dv_px"]] == pytest.approx(expected.tolist(), abs=1.0)
+    assert singles["misalignment"].improvement["masked"]["mae"]["share"] > 0.6
 
 
 # --- a fit that stops at its start ----------------------------------------------------------

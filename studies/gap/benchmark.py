@@ -16,9 +16,10 @@ strengths and the simulator's background (none or solid) from its seed.
 
 ``stratified=True`` covers the grid instead: every effect alone on every background
 (none, solid, and the real no-contact capture of the published data), at one known
-strength, and scores each cell (``per_cell``) and the worst cell's share closed
-(``min_cell_shrink``), leaving out the cells whose gap is mostly sensor noise, which no
-prediction can remove (``noise_cells``).
+strength, then each mechanism written unlike the catalogue's formulas
+(``studies.gap.unlike``) on its background, and scores each cell (``per_cell``) and the
+worst cell's share closed (``min_cell_shrink``), leaving out the cells whose gap is mostly
+sensor noise, which no prediction can remove (``noise_cells``).
 """
 
 from __future__ import annotations
@@ -82,11 +83,23 @@ def _draw(case_seed: int, n_available: int, pairs: int) -> dict:
             "strength": None}
 
 
-def stratified_cells() -> list[tuple[str, str]]:
-    """(effect, background) for every effect of the injector on every background."""
+def stratified_cells() -> list[tuple[str, str, str | None]]:
+    """(effect, background, mechanism) for every effect of the injector on every
+    background (mechanism None), then every mechanism of ``studies.gap.unlike`` on its
+    own background (effect: the catalogue effect that should come first). New cells go
+    last, so that a case keeps its index, hence its cell and seed."""
     from .inject import EFFECTS
+    from .unlike import BACKGROUNDS as UNLIKE_BACKGROUNDS
+    from .unlike import MECHANISMS
 
-    return [(effect, background) for background in STRATIFIED_BACKGROUNDS for effect in EFFECTS]
+    return ([(effect, background, None) for background in STRATIFIED_BACKGROUNDS for effect in EFFECTS]
+            + [(effect, UNLIKE_BACKGROUNDS[name], name) for name, effect in MECHANISMS.items()])
+
+
+def cell_name(effect: str, mechanism: str | None) -> str:
+    """A cell's name in ``per_cell``: the hidden effect, or effect/mechanism for one
+    written unlike the catalogue."""
+    return effect if mechanism is None else f"{effect}/{mechanism}"
 
 
 def stratified_cases(cases: int, hidden: tuple[str, ...] | None = None) -> list[int]:
@@ -102,10 +115,11 @@ def stratified_cases(cases: int, hidden: tuple[str, ...] | None = None) -> list[
 
 def _draw_stratified(case: int, case_seed: int, n_available: int, pairs: int, strength: float) -> dict:
     cells = stratified_cells()
-    effect, background = cells[case % len(cells)]
+    effect, background, mechanism = cells[case % len(cells)]
     rng = np.random.default_rng(case_seed)
     chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
-    return {"hidden": [effect], "samples": chosen, "background": background, "rng": rng, "strength": strength}
+    return {"hidden": [effect], "samples": chosen, "background": background, "rng": rng, "strength": strength,
+            "mechanism": mechanism}
 
 
 def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, pairs: int,
@@ -113,9 +127,12 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
     """Write one case's real and simulated datasets; returns what was hidden.
 
     stratified_strength : None, a random case (``_draw``); else the case-th cell of
-        ``stratified_cells`` with its effect at this strength.
+        ``stratified_cells`` with its effect at this strength (for a cell written unlike
+        the catalogue: the plain fast path, then its mechanism at this strength).
     """
     from .inject import Injector
+    from .unlike import Unlike
+    from .unlike import sample_params as unlike_params
 
     meta = read_meta(base)
     records = read_samples(base)
@@ -125,7 +142,12 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
     rng = draw["rng"]
     background = str(real_background()) if draw["background"] == "real" else draw["background"]
     injector = Injector(spec, field="plane", background=background)
-    injections = [injector.sample(effect, rng, draw["strength"]) for effect in draw["hidden"]]
+    mechanism = draw.get("mechanism")
+    if mechanism is None:
+        injections = [injector.sample(effect, rng, draw["strength"]) for effect in draw["hidden"]]
+    else:  # the plain fast path, then the mechanism written unlike the catalogue
+        injections, unlike = [], Unlike(spec, injector.ref_depth)
+        written = unlike_params(mechanism, draw["strength"], rng)
     renderer = {**meta["renderer"], "background": background}
     protocol = json.loads((base / "protocol.json").read_text())
     chosen = [records[i] for i in draw["samples"]]
@@ -137,6 +159,9 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
 
         def one(record: dict, source=source, root=root) -> dict:
             depth = np.load(base / record["depth"])
+            if source == "real" and mechanism is not None:
+                image = unlike.apply(injector.render(depth), mechanism, written)
+                return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
             if source == "real":
                 image = injector.render(depth, injections, np.random.default_rng([seed, case, record["tap_index"]]))
                 return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
@@ -149,8 +174,11 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
                 if rec.get("depth") is None:
                     rec.pop("depth")
                 writer.append(rec)
-    return {"hidden": draw["hidden"], "background": draw["background"],
-            "injections": [dataclasses.asdict(i) for i in injections], "pairs": len(chosen)}
+    out = {"hidden": draw["hidden"], "background": draw["background"],
+           "injections": [dataclasses.asdict(i) for i in injections], "pairs": len(chosen)}
+    if mechanism is not None:
+        out.update(mechanism=mechanism, mechanism_params=written)
+    return out
 
 
 def score(hidden: list[str], report: dict) -> dict:
@@ -217,13 +245,14 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
 
 
 def stratify(results: list[dict], strength: float) -> dict:
-    """Per (effect, background) cell: cases, top-1 share, mean share closed; the worst
+    """Per cell (``cell_name``) and background: cases, top-1 share, mean share closed; the worst
     cell's share closed over the cells whose gap is not mostly noise."""
     cells: dict[str, dict[str, dict]] = {}
     for r in results:
         for effect in r["hidden"]:
-            c = cells.setdefault(effect, {}).setdefault(r["background"], {"cases": 0, "top1": [], "shrink": [],
-                                                                            "shrink_top1": [], "noise_share": []})
+            row = cells.setdefault(cell_name(effect, r.get("mechanism")), {})
+            c = row.setdefault(r["background"], {"cases": 0, "top1": [], "shrink": [], "shrink_top1": [],
+                                                 "noise_share": []})
             c["cases"] += 1
             for key in ("top1", "shrink", "shrink_top1", "noise_share"):
                 c[key].append(float(r[key]))

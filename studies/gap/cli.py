@@ -132,13 +132,15 @@ def register(registry) -> None:
     p.add_argument("--json", metavar="PATH", default=None, help="benchmark: where to write the results")
     p.add_argument("--stratified", action="store_true",
                    help="benchmark: every effect alone on every background (none, solid, real) at strength 0.5, "
-                        "at least one case per cell (--cases below 36 means 36); adds per_cell and min_cell_shrink")
+                        "then each mechanism written unlike the catalogue (studies/gap/unlike.py) on its background, "
+                        "at least one case per cell (--cases below 39 means 39); adds per_cell and min_cell_shrink")
     p.add_argument("--physical", action="store_true",
                    help="benchmark: hide physical effects in the reference (the virtual rig's camera) and diagnose "
                         "them against the reference's replay (studies/gap/physical_benchmark.py)")
     p.add_argument("--hidden", type=_effects, default=None,
-                   help="benchmark --stratified: only the cells hiding these effects (comma-separated; default all); "
-                        "each case keeps its index and seed from the full run")
+                   help="benchmark --stratified: only the cells hiding these effects, or written unlike the "
+                        "catalogue for them (comma-separated; default all); each case keeps its index and seed from "
+                        "the full run")
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
     b.add_argument("--pairs", type=_positive, default=144, help="pairs (default 144, the base protocol)")
     b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")

@@ -8,9 +8,10 @@ The functions here are pure array functions, in the simulator's order:
 1. membrane: ``membrane_compliance`` (the imprint is shallower than commanded),
    ``elastic_spread`` (another width of the elastic smoothing);
 2. light and paint, per LED m: ``path_attenuation`` (absorption along the geodesic
-   path from the LED, I_m exp(-mu g_m)), ``contact_shadow`` (the imprint, pushed into
-   the sensor, hides the light arriving low along the field, from the LED's own term and
-   the background it stands for; a march towards the light over the depth map),
+   path from the LED, I_m exp(-mu g_m), and of the share of the background term that is
+   guided light, along its path from the LEDs' ring), ``contact_shadow`` (the imprint,
+   pushed into the sensor, hides the light arriving low along the field, from the LED's
+   own term and the background it stands for; a march towards the light over the depth map),
    ``coating_gloss`` (an extra specular lobe k_g (R_m . V)^alpha_g), ``core_light_leak``
    (light crossing the glass core straight from each LED: a_m |N . w_m| / (1 + (d_m /
    lambda)^2)), ``led_spectrum`` (each LED's peak shifted and its power scaled, seen
@@ -19,7 +20,8 @@ The functions here are pure array functions, in the simulator's order:
    image; a misalignment moves the membrane's image under the lens's fixed image circle
    and background, or, at ``frame_share`` 1, the whole frame), ``vignetting`` (1 / (1 + a r^2 + b r^4)), ``blur_noise`` (Gaussian blur; the
    noise is estimated, not added, since a prediction is a mean), ``camera_response``
-   (white balance, colour cross-talk, gamma).
+   (a 3x3 colour matrix, white balance and colour mixing of either sign, a black level,
+   and the response curve).
 """
 
 from __future__ import annotations
@@ -66,6 +68,15 @@ class Effect:
         return {p.name: p.identity for p in self.params}
 
 
+#: Colour channels, in image order.
+CHANNELS = ("r", "g", "b")
+#: camera_response: the colour matrix's off-diagonal entries, (output, input) channel.
+MIX_ENTRIES = tuple((o, i) for o in CHANNELS for i in CHANNELS if o != i)
+#: camera_response: bound of each off-diagonal, -: a strong colour correction matrix
+#: (a camera's, from raw to its colour space) has off-diagonals of -0.6 to 0.3.
+MIX_BOUND = 0.8
+
+
 def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
     """The effects for a sensor with ``n_leds`` LEDs whose elastic smoothing has width
     ``sigma_px`` (full-resolution pixels), keyed by name in ``EFFECTS`` order."""
@@ -76,8 +87,12 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
              for m in leds] + [Param("length_m", 0.002, 0.06, 0.015, "m", "distance at which it falls to half")]),
             "light from the LEDs travelling straight through the glass core and lighting the membrane from inside"),
         Effect("path_attenuation", "light", (
-            Param("mu_per_m", 0.0, 250.0, 0.0, "1/m", "absorption coefficient along the geodesic path"),),
-            "absorption along the light's path in the elastomer (geodesic distance from each LED)"),
+            Param("mu_per_m", 0.0, 250.0, 0.0, "1/m", "absorption coefficient along the geodesic path"),
+            Param("ambient_share", 0.0, 1.0, 0.0, "-",
+                  "share of the background term that is guided light and fades along its path from the LEDs' ring "
+                  "(0: only the LEDs' own terms fade)")),
+            "absorption along the light's path in the elastomer, of the LEDs' own terms (geodesic distance from "
+            "each LED) and of the guided light the background stands for (distance from the LEDs' ring)"),
         Effect("membrane_compliance", "membrane", (
             Param("scale", 0.1, 1.3, 1.0, "-", "imprint depth / commanded depth"),),
             "the membrane and sensor yield under force, so imprints are weaker than commanded"),
@@ -92,12 +107,16 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
             Param("elevation_rad", 0.02, 0.9, 0.2, "rad", "elevation of the arriving light above the surface"),
             Param("darkness", 0.0, 1.0, 0.0, "-", "share of the light a shadow removes")),
             "the indentation shadows light coming from an LED"),
-        Effect("camera_response", "sensor", (
-            Param("gain_r", 0.3, 3.0, 1.0, "-", "red gain"), Param("gain_g", 0.3, 3.0, 1.0, "-", "green gain"),
-            Param("gain_b", 0.3, 3.0, 1.0, "-", "blue gain"),
-            Param("gamma", 0.3, 3.0, 1.0, "-", "out = in^(1/gamma)"),
-            Param("crosstalk", 0.0, 0.4, 0.0, "-", "share of each channel leaking into the other two")),
-            "the camera's gamma, white balance and colour mixing"),
+        Effect("camera_response", "sensor", tuple(
+            [Param(f"gain_{c}", 0.2, 3.0, 1.0, "-", f"{name} out of {name} in: the colour matrix's diagonal "
+                   "(the white balance gain)") for c, name in zip(CHANNELS, ("red", "green", "blue"))]
+            + [Param(f"mix_{o}{i}", -MIX_BOUND, MIX_BOUND, 0.0, "-", f"channel {i} in channel {o}'s output: "
+                     "an off-diagonal of the colour matrix") for o, i in MIX_ENTRIES]
+            + [Param("offset", -0.2, 0.2, 0.0, "-", "added to every channel before the curve (negative: a black "
+                     "level taken off; positive: flare)"),
+               Param("gamma", 0.3, 3.0, 1.0, "-", "the response curve out = y^(1/gamma)")]),
+            "the camera's colour matrix (white balance and colour mixing, any 3x3), black level and response curve: "
+            "out = clip(C in + offset)^(1/gamma)"),
         Effect("vignetting", "optics", (
             Param("a", 0.0, 6.0, 0.0, "-", "r^2 coefficient, r = radius / focal length"),
             Param("b", 0.0, 6.0, 0.0, "-", "r^4 coefficient"),
@@ -149,6 +168,16 @@ def elastic_deform(depth: np.ndarray, ref: np.ndarray, sigma_px: float, truncate
 def attenuation(geodesic_m: np.ndarray, mu_per_m: float) -> np.ndarray:
     """exp(-mu g): the share of an LED's light left after a geodesic path of g metres."""
     return np.exp(-mu_per_m * geodesic_m)
+
+
+def faded_ambient(ambient: np.ndarray, kept: np.ndarray, share: float) -> np.ndarray:
+    """path_attenuation's background term: k_a B (1 - a + a T), a the share of k_a B that
+    is guided light, T what that light keeps where it arrives (exp(-mu d), d its path from
+    the LEDs' ring).
+
+    ambient : (3, H, W); kept : T, (H, W) or (3, H, W).  Returns (3, H, W).
+    """
+    return ambient * ((1.0 - share) + share * kept)
 
 
 def leak_kernel(P: np.ndarray, N: np.ndarray, led_position, length_m: float) -> np.ndarray:
@@ -399,13 +428,27 @@ def blur(images: np.ndarray, sigma_px: float) -> np.ndarray:
     return out
 
 
-def camera_response(images: np.ndarray, gains, gamma: float, crosstalk: float) -> np.ndarray:
-    """out = clip(gains * (C in))^(1 / gamma), C = (1 - crosstalk) I + crosstalk / 2 (J - I)."""
-    C = np.full((3, 3), crosstalk / 2.0)
-    np.fill_diagonal(C, 1.0 - crosstalk)
-    mixed = images @ (C.T * np.asarray(gains, dtype=np.float64)[None, :]).astype(images.dtype)
+def colour_matrix(params: dict) -> np.ndarray:
+    """(3, 3) colour matrix C of camera_response's parameters, out = C in: the gains on
+    the diagonal, ``mix_<out><in>`` off it."""
+    C = np.diag([params[f"gain_{c}"] for c in CHANNELS]).astype(np.float64)
+    for o, i in MIX_ENTRIES:
+        C[CHANNELS.index(o), CHANNELS.index(i)] = params[f"mix_{o}{i}"]
+    return C
+
+
+def camera_response(images: np.ndarray, matrix: np.ndarray, offset: float, gamma: float) -> np.ndarray:
+    """out = clip(C in + offset, 0, 1)^(1 / gamma), C the (3, 3) colour matrix.
+
+    images : (..., 3) float linear RGB; matrix : C, out = C in; offset : added to every
+    channel (a black level, negative, or flare, positive); gamma : of the response curve.
+    Returns images' shape, float32.
+    """
+    mixed = images @ np.asarray(matrix, np.float64).T.astype(np.float32)
+    if offset:
+        mixed += np.float32(offset)
     mixed = np.clip(mixed, 0.0, 1.0)
-    return mixed if gamma == 1.0 else np.power(mixed, 1.0 / gamma)
+    return mixed if gamma == 1.0 else np.power(mixed, np.float32(1.0 / gamma))
 
 
 def noise_std(residual: np.ndarray, mask: np.ndarray) -> float:

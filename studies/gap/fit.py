@@ -7,7 +7,7 @@ images and the predicted ones over the training samples, at the working resoluti
 held-out judgement is an MAE too: a squared error would let an effect trade many small
 errors for a few large ones and win the fit while losing the judgement). Fits start from
 the best of a few starting points: closed-form ones where the effect is linear in its
-parameters for a fixed exponent (white-balance gains per gamma, vignetting coefficients),
+parameters for a fixed exponent (the colour matrix per gamma, vignetting coefficients),
 registration for shifts and rotations, small grids where the loss has several basins. A
 fit that leaves most of the training gap without having moved from its start (a kink or
 flat spot where finite-difference gradients mislead L-BFGS-B) probes a step either side
@@ -50,8 +50,11 @@ STUCK_LEFT = 0.5
 PROBE_STEP = 0.05
 #: At most this many probe-and-restart rounds.
 PROBE_ROUNDS = 3
-#: Gammas at which closed-form white-balance gains start camera_response fits.
+#: Gammas at which a closed-form colour matrix starts camera_response fits.
 START_GAMMAS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5)
+#: Weight of the pull of camera_response's closed-form colour matrix towards the white
+#: balance, relative to the mean diagonal of its normal equations.
+RESPONSE_RIDGE = 3e-3
 #: Fits stop when an iteration lowers the loss by less than this fraction.
 FTOL = 1e-4
 #: Fits use at most this many training samples (an even spread over objects): a few
@@ -204,10 +207,12 @@ class Diagnosis:
         nudges = {"core_light_leak": {k: 0.1 for k in base if k.startswith("amplitude")},
                   "path_attenuation": {"mu_per_m": 20.0}, "coating_gloss": {"k_g": 0.2},
                   "contact_shadow": {"darkness": 0.5}, "vignetting": {"a": 0.2},
-                  "blur_noise": {"sigma_px": 1.0}, "camera_response": {"crosstalk": 0.02}}
+                  "blur_noise": {"sigma_px": 1.0}}
         base.update(nudges.get(name, {}))
         if name == "misalignment":
             return self._misalignment_starts(base, effect.name)
+        if name == "path_attenuation":
+            return [{**base, "mu_per_m": mu, "ambient_share": a} for mu in (20.0, 60.0) for a in (0.0, 1.0)]
         if name == "lens_distortion":
             return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
         if name == "membrane_compliance":
@@ -234,21 +239,42 @@ class Diagnosis:
         keep = (sim.max(axis=1) < 0.99) & (real.max(axis=1) < 0.99) & (sim.min(axis=1) > 0.004)
         return sim[keep].astype(np.float64), real[keep].astype(np.float64)
 
-    def _response_starts(self, base: dict, name: str = "camera_response") -> list[dict]:
-        """Per gamma of ``START_GAMMAS``, the white-balance gains in closed form: out =
-        (g in)^(1/gamma) makes real^gamma = g sim per channel, a least-squares line through
-        the origin, g_c = sum(s_c r_c^gamma) / sum(s_c^2)."""
+    def _response_starts(self, base: dict, effect: str = "camera_response") -> list[dict]:
+        """Per gamma of ``START_GAMMAS``, the colour matrix and offset in closed form: out =
+        (C in + o)^(1/gamma) makes real^gamma = C sim + o, linear in C and o, solved by
+        least squares over the training pixels; and the white balance alone (C diagonal,
+        o = 0), g_c = sum(s_c r_c^gamma) / sum(s_c^2). The full solution is pulled weakly
+        (``RESPONSE_RIDGE``) towards the white balance, so that where the colours hardly
+        vary (a solid background) the entries they cannot pin stay there."""
         sim, real = self._pixels()
         if len(sim) < 16:
             return [{**base, "gamma": g} for g in (0.7, 1.0, 1.4)]
-        bounds = {p.name: (p.low, p.high) for p in self.catalogue[name].params}
+        bounds = {p.name: (p.low, p.high) for p in self.catalogue[effect].params}
+        # Normal equations of real_c^gamma = sim . C_c + o over the three channels at once:
+        # unknowns (C_r, C_g, C_b, o), 10 of them.
+        S = sim.T @ sim  # (3, 3)
+        s = sim.sum(axis=0)  # (3,)
+        A = np.zeros((10, 10))
+        for c in range(3):
+            A[3 * c:3 * c + 3, 3 * c:3 * c + 3] = S
+            A[3 * c:3 * c + 3, 9] = A[9, 3 * c:3 * c + 3] = s
+        A[9, 9] = 3 * len(sim)
+        ridge = RESPONSE_RIDGE * np.trace(A) / len(A)
         out = []
         for gamma in START_GAMMAS:
-            gains = (sim * real**gamma).sum(axis=0) / np.maximum((sim * sim).sum(axis=0), 1e-12)
-            start = {**base, "gamma": gamma, "crosstalk": 0.0}
-            for c, g in zip("rgb", gains):
-                start[f"gain_{c}"] = float(np.clip(g, *bounds[f"gain_{c}"]))
-            out.append(start)
+            target = real**gamma  # (K, 3)
+            b = np.concatenate([sim.T @ target[:, c] for c in range(3)] + [[target.sum()]])
+            gains = (sim * target).sum(axis=0) / np.maximum((sim * sim).sum(axis=0), 1e-12)
+            diagonal = np.diag(gains)
+            prior = np.append(diagonal.reshape(-1), 0.0)
+            x = np.linalg.solve(A + ridge * np.eye(len(A)), b + ridge * prior)
+            for matrix, offset in ((x[:9].reshape(3, 3), x[9]), (diagonal, 0.0)):
+                start = {**base, "gamma": gamma, "offset": float(np.clip(offset, *bounds["offset"]))}
+                for o, co in enumerate(fx.CHANNELS):
+                    for i, ci in enumerate(fx.CHANNELS):
+                        name = f"gain_{co}" if o == i else f"mix_{co}{ci}"
+                        start[name] = float(np.clip(matrix[o, i], *bounds[name]))
+                out.append(start)
         return out
 
     def _vignetting_start(self, base: dict) -> dict:
@@ -275,22 +301,33 @@ class Diagnosis:
         and shift by phase correlation, both on the mean images of the fitting samples
         (one image, so the search is cheap), for the membrane moving under a fixed image
         circle and for the whole frame moving (``frame_share`` 0 and 1); the best are
-        refined on every sample. Registration compares what the simulated background
-        does not explain (image - ``FastModel.fixed``), so that a real no-contact
-        background, registered already, does not pin the search at the identity."""
+        refined on every sample.
+
+        Registration compares what moves. Under a fixed circle that is what the
+        simulated background does not explain (image - ``FastModel.fixed``), so that a
+        real no-contact background, registered already, does not pin the search at the
+        identity; when the whole frame moves it is the whole image, background included
+        (subtracting the fixed background from both would leave the same unmoved pattern
+        in each, and pin the shift at 0)."""
         fixed = self.work.fixed
         real = self.real_w.mean(axis=0)
         sim = self.sim_w.mean(axis=0)[None]
+        limit = self.catalogue[name].params[0].high - 1.0  # px, inside the shift's bounds
 
         def registered(angle: float, share: float) -> tuple[float, dict]:
             params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0}
             if "frame_share" in base:
                 params["frame_share"] = share
             rotated = self.work.optics(sim, {name: params})[0]
-            shift, _, _ = phase_cross_correlation((real - fixed).mean(-1), (rotated - fixed).mean(-1),
+            moving = fixed if share < 1.0 else 0.0
+            shift, _, _ = phase_cross_correlation((real - moving).mean(-1), (rotated - moving).mean(-1),
                                                   upsample_factor=4, normalization=None)
-            # The model samples the simulated frame at x + (du, dv), full-resolution pixels.
-            du, dv = (float(np.clip(-v * self.work.factor, -59.0, 59.0)) for v in (shift[1], shift[0]))
+            # Real ~ the rotated image moved by ``shift`` (rows, cols), working pixels. The
+            # model samples the simulated frame at c + R (x - c) + (du, dv), full-resolution
+            # pixels: the rotated image at x + R^-1 (du, dv), so (du, dv) = -R shift.
+            c, s = np.cos(angle), np.sin(angle)
+            x, y = -shift[1] * self.work.factor, -shift[0] * self.work.factor
+            du, dv = (float(np.clip(v, -limit, limit)) for v in (c * x - s * y, s * x + c * y))
             params.update(du_px=du, dv_px=dv)
             pred = self.work.optics(sim, {name: params})[0]
             return float(np.mean(np.abs(pred - real)[self.mask_w])), params

@@ -124,6 +124,8 @@ class FastModel:
         self.truncate = spec.elastic.radius_px / spec.elastic.sigma_px
         self.catalogue = fx.catalogue(len(spec.leds), self.sigma_px)
         self._geodesic = None
+        self._base_distance = None
+        self._samples = None  # where the camera's rays meet the membrane (scenes.camera.cast_rays)
         self._cache: dict[int, dict] = {}
 
     def not_applicable(self, pairs) -> dict[str, str]:
@@ -165,20 +167,42 @@ class FastModel:
         constant factor that the fitted absorption coefficient takes up.
         """
         if self._geodesic is None:
-            from scipy.sparse import coo_matrix
-            from scipy.sparse.csgraph import dijkstra
-
             from phong_reference.sources import snap_leds
 
-            sources = snap_leds(self.mesh, self.spec.leds)
-            edges = np.asarray(self.mesh.edges_unique)
-            n = len(self.mesh.vertices)
-            graph = coo_matrix((np.asarray(self.mesh.edges_unique_length), (edges[:, 0], edges[:, 1])), shape=(n, n))
-            distance = dijkstra(graph.tocsr(), directed=False, indices=np.asarray(sources.vertices).reshape(-1))
-            samples = cast_rays(self.mesh, self.camera)
-            self._geodesic = np.stack([samples.scatter(samples.interpolate(self.mesh, d).astype(np.float32))
-                                       for d in distance])
+            sources = np.asarray(snap_leds(self.mesh, self.spec.leds).vertices).reshape(-1)
+            self._geodesic = np.stack([self._surface_distance([v]) for v in sources])
         return self._geodesic
+
+    @property
+    def base_distance(self) -> np.ndarray:
+        """(H, W) path length over the undeformed membrane from the LEDs' ring, metres: from
+        the nearest point of the membrane at or below the LEDs' height along the sensor's
+        axis (the camera's z), the way the guided light that the background term stands
+        for has come (it enters all round the base); 0 off the image circle. On the
+        GelTip's cylinder it is the height above the LEDs, on its tip that plus the arc."""
+        if self._base_distance is None:
+            z = np.asarray(self.mesh.vertices)[:, 2]
+            plane = float(np.mean([led.position[2] for led in self.spec.leds]))
+            below = np.flatnonzero(z <= plane)
+            if below.size == 0:  # the membrane starts above its LEDs: from its lowest edge
+                below = np.flatnonzero(z <= z.min() + self.spec.membrane.mesh_edge)
+            self._base_distance = self._surface_distance(below)
+        return self._base_distance
+
+    def _surface_distance(self, sources) -> np.ndarray:
+        """(H, W) float32 shortest path along the mesh's edges from the nearest of the
+        ``sources`` (vertex indices), metres, at each pixel of the image circle (scipy's
+        Dijkstra, interpolated over the faces the camera's rays meet)."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        edges = np.asarray(self.mesh.edges_unique)
+        n = len(self.mesh.vertices)
+        graph = coo_matrix((np.asarray(self.mesh.edges_unique_length), (edges[:, 0], edges[:, 1])), shape=(n, n))
+        distance = dijkstra(graph.tocsr(), directed=False, indices=np.asarray(sources), min_only=True)
+        if self._samples is None:
+            self._samples = cast_rays(self.mesh, self.camera)
+        return self._samples.scatter(self._samples.interpolate(self.mesh, distance).astype(np.float32))
 
     # --- the chain ----------------------------------------------------------------------
 
@@ -252,7 +276,11 @@ class FastModel:
             share = np.tensordot(weight.T, kept, axes=1) / np.maximum(weight.sum(axis=0), 1e-12)[:, None, None]
             ambient = ambient * self._aligned(share.transpose(1, 2, 0), fill=1.0).transpose(2, 0, 1)
         if "path_attenuation" in params:
-            I = I * fx.attenuation(self.geodesic, params["path_attenuation"]["mu_per_m"])
+            p = params["path_attenuation"]
+            I = I * fx.attenuation(self.geodesic, p["mu_per_m"])
+            if p.get("ambient_share", 0.0) > 0.0:
+                kept = self._aligned(fx.attenuation(self.base_distance, p["mu_per_m"])[..., None], fill=1.0)[..., 0]
+                ambient = fx.faded_ambient(ambient, kept, p["ambient_share"])
         colours = self.colours
         if "led_spectrum" in params:
             p = params["led_spectrum"]
@@ -305,7 +333,7 @@ class FastModel:
             out = fx.blur(out, params["blur_noise"]["sigma_px"] / self.factor)
         if "camera_response" in params:
             p = params["camera_response"]
-            out = fx.camera_response(out, (p["gain_r"], p["gain_g"], p["gain_b"]), p["gamma"], p["crosstalk"])
+            out = fx.camera_response(out, fx.colour_matrix(p), p["offset"], p["gamma"])
         return np.clip(out, 0.0, 1.0)
 
     def predict(self, sim: np.ndarray, depth: np.ndarray | None, params: dict, keys=None) -> np.ndarray:
