@@ -195,3 +195,23 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
         effects = Effects().with_settings(settings[1::2])
         for name, value in hidden.items():
             assert getattr(effects, name) == value
+
+
+def test_the_renders_monte_carlo_noise_floor_comes_from_their_variance_maps(spec, scene, tmp_path):
+    from studies.gap.diagnose import render_noise
+
+    camera, ref, depth = scene
+    n = 2
+    image = np.zeros((n,) + camera.shape + (3,), np.float32)
+    pairs = pairs_of(spec, scene, image, image).subset(np.arange(n))
+    pairs.real_dir, pairs.sim_dir = tmp_path / "real", tmp_path / "sim"
+    pairs.real_meta = {"renderer": renderer()}
+    for root, v in ((pairs.real_dir, 1e-4), (pairs.sim_dir, 3e-4)):
+        (root / "variance").mkdir(parents=True)
+        for i in pairs.ids:
+            np.save(root / "variance" / f"{i}.npy", np.full(camera.shape + (3,), v / GAIN**2, np.float32))
+    out = render_noise(pairs, np.arange(n), camera.mask)
+    assert out["mae_floor"]["real"] == pytest.approx(np.sqrt(2 / np.pi) * 1e-2, rel=1e-4)
+    assert out["mae_floor_difference"] == pytest.approx(np.sqrt(2 / np.pi) * 2e-2, rel=1e-4)
+    (pairs.real_dir / "variance" / f"{pairs.ids[1]}.npy").unlink()
+    assert render_noise(pairs, np.arange(n), camera.mask)["sides"] == ["sim"]

@@ -114,6 +114,9 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                           **_physical_entry(diagnosis.work, n)}
                       for n in diagnosis.names},
     }
+    mc = render_noise(pairs, diagnosis.heldout_index, _mask(pairs))
+    if mc is not None:
+        report["noise"]["monte_carlo"] = mc
     if diagnosis.work.kind == "pbr":
         basis = diagnosis.work.basis
         report["renders"] = {"film": list(basis.film), "photons": basis.photons, "spp": basis.spp,
@@ -123,6 +126,38 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     report["seconds"] = time.perf_counter() - t0
     examples = _examples(diagnosis, final)
     return report, {"maps": maps, "labels": labels, "mask": diagnosis.mask, "examples": examples}
+
+
+def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray) -> dict | None:
+    """The Monte Carlo noise of reference-rendered images, from their datasets' own
+    variance maps (``variance/<id>.npy``, the variance of each pixel's linear mean, at
+    the dataset's exposure gain): its MAE floor, sqrt(2 / pi) sigma per pixel averaged
+    over the image circle, per side and for the difference of the two (independent
+    renders add their variances). None when neither side has them."""
+    sides = {}
+    for side, root, records, meta in (("real", pairs.real_dir, None, pairs.real_meta),
+                                      ("sim", pairs.sim_dir, pairs.records, pairs.sim_meta)):
+        gain = (meta.get("renderer") or {}).get("exposure_gain")
+        if gain is None:
+            continue
+        variances = []
+        for i in index:
+            path = Path(root) / "variance" / f"{pairs.ids[i]}.npy"
+            if not path.is_file():
+                break
+            variances.append(float(gain) ** 2 * np.load(path)[mask])
+        if len(variances) == len(index) and variances:
+            sides[side] = variances
+    if not sides:
+        return None
+    floor = {side: float(np.mean([np.sqrt(2 / np.pi) * np.sqrt(v).mean() for v in vs])) for side, vs in sides.items()}
+    both = [sum(vs) for vs in zip(*sides.values())] if len(sides) == 2 else None
+    out = {"sides": sorted(sides), "mae_floor": floor,
+           "note": "the Monte Carlo noise of the renders (from their variance maps): it cannot be predicted, and an "
+                   "effect that smooths the simulation (blur) closes the part of it that is the simulation's"}
+    if both is not None:
+        out["mae_floor_difference"] = float(np.mean([np.sqrt(2 / np.pi) * np.sqrt(v).mean() for v in both]))
+    return out
 
 
 def _physical_entry(model, name: str) -> dict:

@@ -199,6 +199,13 @@ def headline(report: dict) -> list[str]:
         last = report["selection"][-1]
         lines.append(f"Together, {' + '.join(last['effects'])} close {last['share_closed']['masked'] * 100:.1f}% of it "
                      f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])}).")
+    mc = report["noise"].get("monte_carlo")
+    if mc is not None:
+        floor = mc.get("mae_floor_difference", max(mc["mae_floor"].values()))
+        share = floor / max(gap["masked"]["mae"]["mean"], 1e-12)
+        lines.append(f"Monte Carlo noise of the renders ({' and '.join(mc['sides'])}, from their variance maps) alone "
+                     f"makes an MAE of about {floor:.4f}, {share * 100:.0f}% of the held-out gap: no effect can close "
+                     "that part, and one that smooths the simulation (blur) closes the simulation's share of it.")
     if report["noise"]["std"] > 0:
         lines.append(f"Estimated sensor noise: {report['noise']['std']:.4f} (an MAE floor of about "
                      f"{report['noise']['mae_floor']:.4f} that no effect can remove).")
