@@ -152,11 +152,6 @@ def test_light_functions_analytic():
     k = fx.leak_kernel(P, N, (0.0, 0.0, 0.0), length_m=0.01)
     assert k[0].tolist() == pytest.approx([0.5, 0.2])  # 1 / (1 + (d / l)^2), cos = 1
     assert fx.attenuation(np.array([0.0, 0.01]), 100.0).tolist() == pytest.approx([1.0, math.exp(-1.0)])
-    ambient = np.full((3, 1, 1), 0.8)
-    T = np.full((3, 1, 1), 0.5)
-    assert fx.faded_ambient(ambient, T, 0.0)[:, 0, 0].tolist() == pytest.approx([0.8] * 3)
-    assert fx.faded_ambient(ambient, T, 1.0)[:, 0, 0].tolist() == pytest.approx([0.4] * 3)
-    assert fx.faded_ambient(ambient, T, 0.5)[:, 0, 0].tolist() == pytest.approx([0.6] * 3)
     colours = np.eye(3)
     same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1], floor=0.05)
     assert np.allclose(same, np.diag([1, 2, 1]))
@@ -280,11 +275,11 @@ def test_model_reproduces_the_fast_path_and_identity_changes_nothing(spec, sim_i
     assert np.abs(changed - sim).max() > 0.05
 
 
-def test_path_attenuation_with_its_ambient_share_dims_the_background(spec):
-    """No contact on a solid background: the image is the background term k_a B. With the
-    ambient share a it keeps 1 - a + a exp(-mu d), d the path from the LEDs' ring: on the
-    cylinder the height above the LEDs, on the tip that plus the arc to it; without the
-    share only the LEDs' light fades and the background stays. The tip dims most."""
+def test_path_attenuation_of_the_background_dims_it_along_the_sensor(spec):
+    """No contact on a solid background: the image is the background term k_a B. Its own
+    coefficient mu_a makes it keep exp(-mu_a d), d the path from the LEDs' ring: on the
+    cylinder the height above the LEDs, on the tip that plus the arc to it; without it
+    only the LEDs' light fades and the background stays. The tip dims most."""
     model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4)
     m = spec.membrane
     apex = m.base_z + m.cylinder_length + 0.5 * math.pi * m.radius  # the LEDs are at z = 0
@@ -297,10 +292,10 @@ def test_path_attenuation_with_its_ambient_share_dims_the_background(spec):
     height = float(model.ref[side] * model.rays[2][side])
     assert height < model.base_distance[side] < zigzag * (height + m.mesh_edge)
     plain = model.physical(model.ref, {})
-    for share in (0.0, 0.5, 1.0):
-        faded = model.physical(model.ref, {"path_attenuation": {"mu_per_m": 30.0, "ambient_share": share}})
+    for mu_a in (0.0, 10.0, 30.0):
+        faded = model.physical(model.ref, {"path_attenuation": {"mu_per_m": 30.0, "ambient_mu_per_m": mu_a}})
         for pixel in ((60, 80), side):
-            kept = 1 - share + share * math.exp(-30.0 * model.base_distance[pixel])
+            kept = math.exp(-mu_a * model.base_distance[pixel])
             assert (faded[pixel] / plain[pixel]).tolist() == pytest.approx([kept] * 3, rel=1e-3)
     assert faded[60, 80].sum() / plain[60, 80].sum() < 0.8 * faded[side].sum() / plain[side].sum()
 

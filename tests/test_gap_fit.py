@@ -203,7 +203,7 @@ def test_misalignment_under_a_fixed_circle_on_the_real_background(spec, contacts
 def test_a_fade_of_every_light_is_path_attenuation(spec, injector, contacts):
     """Issue 23.6, second case: every light fades along the sensor, the background too
     (written unlike the catalogue: exp(-(z / L)^2) of the height z along the axis, on the
-    whole image). path_attenuation, with the background's share, comes first."""
+    whole image). path_attenuation, with the background's own coefficient, comes first."""
     from studies.gap.unlike import Unlike
 
     sim = np.stack([injector.render(d) for d in contacts])
@@ -212,7 +212,7 @@ def test_a_fade_of_every_light_is_path_attenuation(spec, injector, contacts):
     singles = d.singles()
     assert ranked(singles)[0] == "path_attenuation", ranked(singles)
     found = singles["path_attenuation"]
-    assert found.fit.params["path_attenuation"]["ambient_share"] > 0.5
+    assert found.fit.params["path_attenuation"]["ambient_mu_per_m"] > 3.0
     assert found.improvement["masked"]["mae"]["share"] > 0.5
 
 

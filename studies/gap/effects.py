@@ -8,8 +8,8 @@ The functions here are pure array functions, in the simulator's order:
 1. membrane: ``membrane_compliance`` (the imprint is shallower than commanded),
    ``elastic_spread`` (another width of the elastic smoothing);
 2. light and paint, per LED m: ``path_attenuation`` (absorption along the geodesic
-   path from the LED, I_m exp(-mu g_m), and of the share of the background term that is
-   guided light, along its path from the LEDs' ring), ``contact_shadow`` (the imprint,
+   path from the LED, I_m exp(-mu g_m), and of the guided light the background term
+   stands for, along its path from the LEDs' ring), ``contact_shadow`` (the imprint,
    pushed into the sensor, hides the light arriving low along the field, from the LED's
    own term and the background it stands for; a march towards the light over the depth map),
    ``coating_gloss`` (an extra specular lobe k_g (R_m . V)^alpha_g), ``core_light_leak``
@@ -88,9 +88,9 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
             "light from the LEDs travelling straight through the glass core and lighting the membrane from inside"),
         Effect("path_attenuation", "light", (
             Param("mu_per_m", 0.0, 250.0, 0.0, "1/m", "absorption coefficient along the geodesic path"),
-            Param("ambient_share", 0.0, 1.0, 0.0, "-",
-                  "share of the background term that is guided light and fades along its path from the LEDs' ring "
-                  "(0: only the LEDs' own terms fade)")),
+            Param("ambient_mu_per_m", 0.0, 40.0, 0.0, "1/m",
+                  "absorption coefficient of the guided light the background term stands for, along its path from "
+                  "the LEDs' ring (0: only the LEDs' own terms fade)")),
             "absorption along the light's path in the elastomer, of the LEDs' own terms (geodesic distance from "
             "each LED) and of the guided light the background stands for (distance from the LEDs' ring)"),
         Effect("membrane_compliance", "membrane", (
@@ -168,16 +168,6 @@ def elastic_deform(depth: np.ndarray, ref: np.ndarray, sigma_px: float, truncate
 def attenuation(geodesic_m: np.ndarray, mu_per_m: float) -> np.ndarray:
     """exp(-mu g): the share of an LED's light left after a geodesic path of g metres."""
     return np.exp(-mu_per_m * geodesic_m)
-
-
-def faded_ambient(ambient: np.ndarray, kept: np.ndarray, share: float) -> np.ndarray:
-    """path_attenuation's background term: k_a B (1 - a + a T), a the share of k_a B that
-    is guided light, T what that light keeps where it arrives (exp(-mu d), d its path from
-    the LEDs' ring).
-
-    ambient : (3, H, W); kept : T, (H, W) or (3, H, W).  Returns (3, H, W).
-    """
-    return ambient * ((1.0 - share) + share * kept)
 
 
 def leak_kernel(P: np.ndarray, N: np.ndarray, led_position, length_m: float) -> np.ndarray:

@@ -52,6 +52,10 @@ PROBE_STEP = 0.05
 PROBE_ROUNDS = 3
 #: Gammas at which a closed-form colour matrix starts camera_response fits.
 START_GAMMAS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5)
+#: path_attenuation starts from every pair of these absorption coefficients (1/m) of
+#: the LEDs' light and of the background's.
+ATTENUATION_STARTS_PER_M = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 65.0, 85.0)
+AMBIENT_ATTENUATION_STARTS_PER_M = (0.0, 2.0, 5.0, 10.0, 20.0)
 #: Weight of the pull of camera_response's closed-form colour matrix towards the white
 #: balance, relative to the mean diagonal of its normal equations.
 RESPONSE_RIDGE = 3e-3
@@ -212,7 +216,11 @@ class Diagnosis:
         if name == "misalignment":
             return self._misalignment_starts(base, effect.name)
         if name == "path_attenuation":
-            return [{**base, "mu_per_m": mu, "ambient_share": a} for mu in (20.0, 60.0) for a in (0.0, 1.0)]
+            # A grid: the background's coefficient dims most of the image and the LEDs'
+            # only their light, so the loss is far stiffer along the first, and L-BFGS-B,
+            # whose steps the stiff direction sets, barely moves along the other.
+            return [{**base, "mu_per_m": mu, "ambient_mu_per_m": a} for mu in ATTENUATION_STARTS_PER_M
+                    for a in AMBIENT_ATTENUATION_STARTS_PER_M if mu or a]
         if name == "lens_distortion":
             return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
         if name == "membrane_compliance":

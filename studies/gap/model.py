@@ -278,9 +278,9 @@ class FastModel:
         if "path_attenuation" in params:
             p = params["path_attenuation"]
             I = I * fx.attenuation(self.geodesic, p["mu_per_m"])
-            if p.get("ambient_share", 0.0) > 0.0:
-                kept = self._aligned(fx.attenuation(self.base_distance, p["mu_per_m"])[..., None], fill=1.0)[..., 0]
-                ambient = fx.faded_ambient(ambient, kept, p["ambient_share"])
+            if p.get("ambient_mu_per_m", 0.0) > 0.0:  # the background's guided light, from the LEDs' ring
+                kept = fx.attenuation(self.base_distance, p["ambient_mu_per_m"])[..., None]
+                ambient = ambient * self._aligned(kept, fill=1.0)[..., 0]
         colours = self.colours
         if "led_spectrum" in params:
             p = params["led_spectrum"]
