@@ -320,7 +320,7 @@ class Diagnosis:
         fixed = self.work.fixed
         real = self.real_w.mean(axis=0)
         sim = self.sim_w.mean(axis=0)[None]
-        limit = self.catalogue[name].params[0].high - 1.0  # px, inside the shift's bounds
+        limit = next(p.high for p in self.catalogue[name].params if p.name == "du_px") - 1.0  # px, inside the bounds
 
         def registered(angle: float, share: float) -> tuple[float, dict]:
             params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0}
