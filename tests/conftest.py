@@ -160,3 +160,22 @@ def diagnose_report(tiny_capture, tiny_replay, tmp_path_factory) -> Path:
     assert main(["diagnose", str(tiny_capture), str(tiny_replay), "--out", str(out), "--quiet",
                  "--effects", "camera_response"]) == 0
     return out
+
+
+@pytest.fixture(scope="session")
+def absolute_imports():
+    """A function: the modules a source file imports, failing on a relative import (the
+    gap benchmark's generators must be written apart from the diagnosis)."""
+    import ast
+
+    def read(path: Path) -> list[str]:
+        names = []
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom):
+                assert node.level == 0, f"relative import in {path.name}: {ast.dump(node)}"
+                names.append(node.module)
+            elif isinstance(node, ast.Import):
+                names += [a.name for a in node.names]
+        return names
+
+    return read
