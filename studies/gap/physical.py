@@ -237,6 +237,7 @@ class SourceBasis:
         self.photons, self.spp, self.passes, self.seed = photons, spp, passes, seed
         self.use_cache = use_cache
         self._images: dict = {}
+        self.names: list[str] | None = None  # the sources, in the basis' order (from the first render)
         self._solids: dict = {}  # the membrane's ElastomerBuilder by spec digest, built once each
         self.renders = 0  # basis renders made here (not read from memory)
         self.seconds = 0.0
@@ -298,7 +299,7 @@ class SourceBasis:
         cost["renders"] += 1
         cost["seconds"] += seconds
         names = [str(n) for n in basis["names"]]
-        if "names" not in self.__dict__:
+        if self.names is None:
             self.names = names
         elif names != self.names:
             raise ValueError(f"the basis' sources changed between renders ({self.names} against {names})")
@@ -337,6 +338,7 @@ class ReferenceModel:
         self._responses: dict = {}
         self._plain: dict = {}  # M(identity) by sample
         self._level = None  # the identity's exposure level (``exposure``)
+        self._exposures: dict = {}  # the last parameters' exposure gain
         w, h = basis.film
         self._film_mask = Camera.from_spec(spec).scaled(w, h).mask
 
@@ -541,10 +543,14 @@ class ReferenceModel:
             nc = np.tensordot(self.sources(NO_CONTACT, p), c, axes=([2], [0]))
             return float(np.percentile(nc[self._film_mask], EXPOSURE_PERCENTILE))
 
+        if not params:
+            return float(self.basis.gain)
         if self._level is None:
             self._level = level({}, self._identity_colour())
-        ratio = self._level / max(level(params, colour), 1e-30) if params else 1.0
-        return float(self.basis.gain * ratio)
+        key = repr(params)  # every tap of one prediction has the same exposure: computed once
+        if key not in self._exposures:
+            self._exposures = {key: float(self.basis.gain * self._level / max(level(params, colour), 1e-30))}
+        return self._exposures[key]
 
     def _identity_colour(self) -> np.ndarray:
         from pbr_tactile.calibrate import led_of_source
