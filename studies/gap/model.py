@@ -40,6 +40,38 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def optics(images: np.ndarray, params: dict, camera: Camera, factor: int, fixed: np.ndarray,
+           circle: np.ndarray) -> np.ndarray:
+    """The image-level effects in ``params`` (misalignment, lens_distortion, vignetting,
+    blur_noise, camera_response; full-resolution pixels) applied to (N, H, W, 3) images
+    at ``camera``'s resolution, 1/``factor`` of the full one. ``fixed`` (H, W, 3) and
+    ``circle`` (H, W): what stays put when the membrane moves under the lens
+    (``effects.misalign_membrane``)."""
+    f = camera.f
+    centre = (camera.cy, camera.cx)
+    out = images
+    mis = params.get("misalignment")
+    dist = params.get("lens_distortion")
+    if mis is not None or dist is not None:
+        if mis is not None:
+            mis = {**mis, "du_px": mis["du_px"] / factor, "dv_px": mis["dv_px"] / factor}
+        coords = fx.source_coordinates(camera.shape, f, centre, mis, dist)
+        if mis is not None and mis.get("frame_share", 0.0) < 1.0:
+            out = fx.misalign_membrane(out, coords, fixed, circle, mis.get("frame_share", 0.0))
+        else:
+            out = fx.resample(out, coords)
+    if "vignetting" in params:
+        p = params["vignetting"]
+        c = (centre[0] + p["centre_dv_px"] / factor, centre[1] + p["centre_du_px"] / factor)
+        out = out * fx.vignette(camera.shape, f, c, p["a"], p["b"])[None, ..., None]
+    if "blur_noise" in params:
+        out = fx.blur(out, params["blur_noise"]["sigma_px"] / factor)
+    if "camera_response" in params:
+        p = params["camera_response"]
+        out = fx.camera_response(out, fx.colour_matrix(p), p["offset"], p["gamma"])
+    return np.clip(out, 0.0, 1.0)
+
+
 def working_cameras(spec: SensorSpec, factor: int) -> tuple[Camera, Camera]:
     """(the spec's camera, the same at 1/``factor`` of its resolution), refusing a factor
     that does not divide the image."""
@@ -312,29 +344,7 @@ class FastModel:
 
     def optics(self, images: np.ndarray, params: dict) -> np.ndarray:
         """The optics and sensor effects in ``params`` applied to (N, H, W, 3) images."""
-        f = self.camera.f
-        centre = (self.camera.cy, self.camera.cx)
-        out = images
-        mis = params.get("misalignment")
-        dist = params.get("lens_distortion")
-        if mis is not None or dist is not None:
-            if mis is not None:
-                mis = {**mis, "du_px": mis["du_px"] / self.factor, "dv_px": mis["dv_px"] / self.factor}
-            coords = fx.source_coordinates(self.camera.shape, f, centre, mis, dist)
-            if mis is not None and mis.get("frame_share", 0.0) < 1.0:
-                out = fx.misalign_membrane(out, coords, self.fixed, self.circle, mis.get("frame_share", 0.0))
-            else:
-                out = fx.resample(out, coords)
-        if "vignetting" in params:
-            p = params["vignetting"]
-            c = (centre[0] + p["centre_dv_px"] / self.factor, centre[1] + p["centre_du_px"] / self.factor)
-            out = out * fx.vignette(self.camera.shape, f, c, p["a"], p["b"])[None, ..., None]
-        if "blur_noise" in params:
-            out = fx.blur(out, params["blur_noise"]["sigma_px"] / self.factor)
-        if "camera_response" in params:
-            p = params["camera_response"]
-            out = fx.camera_response(out, fx.colour_matrix(p), p["offset"], p["gamma"])
-        return np.clip(out, 0.0, 1.0)
+        return optics(images, params, self.camera, self.factor, self.fixed, self.circle)
 
     def predict(self, sim: np.ndarray, depth: np.ndarray | None, params: dict, keys=None) -> np.ndarray:
         """Predicted real images (N, H, W, 3) from simulated ones and their working-

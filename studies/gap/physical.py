@@ -407,7 +407,7 @@ class ReferenceModel:
         alignment, blur and camera response (the fast model's stages)."""
         from pbr_tactile import sensor
 
-        from .model import FastModel
+        from .model import optics
 
         out = np.asarray(images, np.float32)
         if "lens_distortion" in params:
@@ -427,8 +427,7 @@ class ReferenceModel:
         fast = {self.aliases[k]: v for k, v in params.items() if k in self.aliases}
         if "misalignment" in fast:
             fast["misalignment"] = {**fast["misalignment"], "frame_share": 1.0}
-        # The fast model's image stages read only camera, factor, fixed and circle.
-        return FastModel.optics(self, out, fast) if fast else np.clip(out, 0.0, 1.0)
+        return optics(out, fast, self.camera, self.factor, self.fixed, self.circle)
 
     def predict(self, sim: np.ndarray, depth, params: dict, keys=None) -> np.ndarray:
         """Predicted real images (N, H, W, 3) from simulated ones (sample ``keys``, indices
