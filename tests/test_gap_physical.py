@@ -215,3 +215,11 @@ def test_the_renders_monte_carlo_noise_floor_comes_from_their_variance_maps(spec
     assert out["mae_floor_difference"] == pytest.approx(np.sqrt(2 / np.pi) * 2e-2, rel=1e-4)
     (pairs.real_dir / "variance" / f"{pairs.ids[1]}.npy").unlink()
     assert render_noise(pairs, np.arange(n), camera.mask)["sides"] == ["sim"]
+
+
+def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_path, capsys):
+    from scenes.cli import main
+
+    assert main(["diagnose", "benchmark", "--physical", "--stratified", "--json", str(tmp_path / "b.json")]) == 2
+    assert "--physical and --stratified are separate benchmarks" in capsys.readouterr().err
+    assert not (tmp_path / "b.json").exists()
