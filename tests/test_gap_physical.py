@@ -45,7 +45,7 @@ PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240)
 
 
 def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, seed=0, use_cache=True, depth=None,
-               ref_depth=None, solids=None):
+               ref_depth=None, solids=None, no_contact_runs=0):
     """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
     distance in metres over the image from the LED's place), its leak a ring at 0.4 of
     the image radius on the LED's side, a contact adding its indentation's shading."""
@@ -167,7 +167,9 @@ def pairs_of(spec, scene, real: np.ndarray, sim: np.ndarray, **effects) -> Pairs
 
 
 @pytest.mark.parametrize("hidden, value, name", [({"core_light_leak": {"fraction": 0.3}}, 0.3, "core_light_leak"),
-                                                 ({"absorption_per_m": {"value": 60.0}}, 60.0, "absorption_per_m")])
+                                                 ({"absorption_per_m": {"value": 60.0}}, 60.0, "absorption_per_m"),
+                                                 ({"core_light_leak": {"fraction": 0.3, "exposure": 1.06}}, 0.3,
+                                                  "core_light_leak")])
 def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidden, value, name):
     sim = rendered(spec, scene, {})
     real = rendered(spec, scene, hidden)
@@ -181,7 +183,18 @@ def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidde
     assert ranked[0] == name
     fitted = next(iter(singles[name].fit.params[name].values()))
     assert fitted == pytest.approx(value, rel=0.1)
+    # The capture's exposure is fitted with it: the rule's where the capture followed it.
+    assert singles[name].fit.params[name]["exposure"] == pytest.approx(hidden[name].get("exposure", 1.0), abs=0.01)
     assert singles[name].improvement["masked"]["mae"]["share"] > 0.8
+    # Judged at the basis film: held-out images are its block means.
+    assert d.real_h.shape[1:3] == (FILM[1], FILM[0]) and d.full.factor == 8
+
+
+def test_a_reference_model_is_judged_at_its_basis_film(spec):
+    from studies.gap.model import judging_factor
+
+    assert judging_factor(spec, (80, 60)) == 8 and judging_factor(spec, (160, 120)) == 4
+    assert judging_factor(spec, (100, 60)) == 1  # a film that does not tile the image: the images' own
 
 
 def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_renderer_takes():
@@ -213,6 +226,12 @@ def test_the_renders_monte_carlo_noise_floor_comes_from_their_variance_maps(spec
     out = render_noise(pairs, np.arange(n), camera.mask)
     assert out["mae_floor"]["real"] == pytest.approx(np.sqrt(2 / np.pi) * 1e-2, rel=1e-4)
     assert out["mae_floor_difference"] == pytest.approx(np.sqrt(2 / np.pi) * 2e-2, rel=1e-4)
+    # Block means of 8x8 pixels of a film as large as the image: 64 independent pixels each.
+    judged = render_noise(pairs, np.arange(n), camera.mask, factor=8)["judged"]
+    assert judged["mae_floor"]["real"] == pytest.approx(np.sqrt(2 / np.pi) * 1e-2 / 8, rel=1e-4)
+    pairs.real_meta["renderer"]["film"] = [160, 120]  # 2x2 film pixels in a block
+    judged = render_noise(pairs, np.arange(n), camera.mask, factor=8)["judged"]
+    assert judged["mae_floor"]["real"] == pytest.approx(np.sqrt(2 / np.pi) * 1e-2 / 2, rel=1e-4)
     (pairs.real_dir / "variance" / f"{pairs.ids[1]}.npy").unlink()
     assert render_noise(pairs, np.arange(n), camera.mask)["sides"] == ["sim"]
 

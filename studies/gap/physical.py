@@ -55,18 +55,33 @@ from scenes.spec import SensorSpec
 
 from . import effects as fx
 
-#: The basis renders: film (a quarter of the default dataset film a side), photons per
-#: LED per pass, camera samples per pixel per pass, passes. Measured on 2 cores, one
-#: per-source render of a contact takes 8-10 s at these settings.
+#: The basis renders: film (a quarter of the default dataset film a side), camera samples
+#: per pixel per pass, passes; photons per LED per pass and no-contact runs per pass are
+#: the simulated dataset's (these where it records none). At 2^16 photons and no runs,
+#: the basis put a 0.3 core leak's change in the bright rings 2-3 times above what the
+#: dataset renderer's own no-contact frames show, so a leak of 0.3 was fitted at 0.16; at
+#: the dataset's 2^18 photons and 4 runs the fit's loss is lowest at 0.25-0.3. Measured on
+#: 2 cores: one per-source render of a contact takes about 8 s at 2^16 photons and no
+#: runs, 18-22 s at 2^18 and 4 runs.
 BASIS_FILM = (80, 60)
-BASIS_PHOTONS = 1 << 16
+BASIS_PHOTONS = 1 << 18
 BASIS_SPP = 16
 BASIS_PASSES = 2
+BASIS_NO_CONTACT_RUNS = 4
 #: The basis is rendered with this core leak fraction, so that each LED's leak has its
 #: own image (per unit flux, the fraction only weights it).
 LEAK_BASIS = 0.5
 #: Fits of physical effects use at most this many training taps (each costs its renders).
 FIT_TAPS = 8
+#: The capture's exposure, relative to the one the reference's rule gives it (the rule:
+#: ``ReferenceModel.exposure``), fitted with every physical candidate. A real camera's
+#: exposure is its own; a reference capture's is set by its own no-contact frame's
+#: 99.5th percentile, which the basis, at its fewer photons and lower film, predicts only
+#: to about 1 % (measured: the ratio of two leaks' gains moved from 1.009 to 1.037 with
+#: the basis' seed at 2^16 photons), and 1 % of a bright image is as large as the change
+#: a physical effect makes in a dim one.
+EXPOSURE = fx.Param("exposure", 0.8, 1.25, 1.0, "-", "the capture's exposure gain relative to the one the "
+                    "reference's rule gives it")
 #: ``SourceBasis.images``' key of the sensor without contact (its exposure's reference).
 NO_CONTACT = -1
 #: Candidates that change only a contact.
@@ -207,6 +222,9 @@ def physical_catalogue(spec: SensorSpec, effects, sigma_px: float = 5.0) -> tupl
             params = tuple(dataclasses.replace(p, low=1.0, high=1.0, identity=1.0) if p.name == "frame_share" else p
                            for p in params if p.name != "frame_share")
         add(name, params, f"the unit's {fast_name.replace('_', ' ')} ({e.doc})", "fast")
+    for name, kind in kinds.items():  # every physical candidate is fitted with the capture's exposure
+        if kind not in ("fast", "image", "unpredictable") and out[name].params:
+            out[name] = dataclasses.replace(out[name], params=out[name].params + (EXPOSURE,))
     return out, kinds, grids
 
 
@@ -219,8 +237,8 @@ class SourceBasis:
     """
 
     def __init__(self, spec: SensorSpec, renderer: dict, depth: np.ndarray, film=BASIS_FILM,
-                 photons: int = BASIS_PHOTONS, spp: int = BASIS_SPP, passes: int = BASIS_PASSES, seed: int = 1,
-                 use_cache: bool = True):
+                 photons: int | None = None, spp: int = BASIS_SPP, passes: int = BASIS_PASSES, seed: int = 1,
+                 use_cache: bool = True, no_contact_runs: int | None = None):
         from pbr_tactile.effects import Effects
 
         self.spec = spec
@@ -234,7 +252,12 @@ class SourceBasis:
         self.effects = Effects(**given)
         self.gain = renderer.get("exposure_gain")
         self.film = tuple(int(v) for v in film)
-        self.photons, self.spp, self.passes, self.seed = photons, spp, passes, seed
+        # The dataset's own photon count and no-contact runs unless given: the exposure and
+        # the leak's share of the image both moved with them (see BASIS_PHOTONS).
+        self.photons = int(photons or renderer.get("photons") or BASIS_PHOTONS)
+        self.no_contact_runs = int(renderer.get("no_contact_runs", BASIS_NO_CONTACT_RUNS)
+                                   if no_contact_runs is None else no_contact_runs)
+        self.spp, self.passes, self.seed = spp, passes, seed
         self.use_cache = use_cache
         self._images: dict = {}
         self.names: list[str] | None = None  # the sources, in the basis' order (from the first render)
@@ -291,7 +314,7 @@ class SourceBasis:
         t0 = time.perf_counter()
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
                               passes=self.passes, seed=self.seed, use_cache=self.use_cache,
-                              solids=self._builder(spec), **contact)
+                              solids=self._builder(spec), no_contact_runs=self.no_contact_runs, **contact)
         seconds = time.perf_counter() - t0
         self.renders += 1
         self.seconds += seconds
@@ -383,7 +406,11 @@ class ReferenceModel:
 
     def starts(self, name: str) -> list[dict]:
         """Starting points of one candidate's fit: every grid point of a re-rendered one,
-        both ends of a switch, a few values of the others."""
+        both ends of a switch, a few values of the others (each at the rule's exposure)."""
+        identity = self.catalogue[name].identity
+        return [{**identity, **start} for start in self._starts(name)]
+
+    def _starts(self, name: str) -> list[dict]:
         kind, base = self.kinds[name], dict(self.catalogue[name].identity)
         if kind == "render":
             return [{"value": v} for v in self.grids[name]["values"]]
@@ -467,7 +494,7 @@ class ReferenceModel:
             if self.kinds[name] not in ("render", "bool-render"):
                 continue
             grid = self.grids[name]
-            value = float(next(iter(p.values())))
+            value = float(p[self.catalogue[name].params[0].name])
             values = np.asarray(grid["values"])
             value = float(np.clip(value, values[0], values[-1]))
             j = int(np.clip(np.searchsorted(values, value), 1, len(values) - 1))
@@ -484,7 +511,7 @@ class ReferenceModel:
         return np.maximum(out, 0.0)
 
     def _identity_value(self, name: str) -> float:
-        return float(next(iter(self.catalogue[name].identity.values())))
+        return float(self.catalogue[name].identity[self.catalogue[name].params[0].name])
 
     def responses(self, shifts: tuple[float, ...], spectra: float, camera: float) -> np.ndarray:
         """(M, 3) the film's response to each LED's light per unit flux, its peak shifted by
@@ -528,7 +555,8 @@ class ReferenceModel:
         weight = np.array([power[m] * (leak if str(s).endswith("_leak") else 1.0 - leak) for s, m in zip(names, led)])
         colour = weight[:, None] * R[led]  # (S, 3): each source's share in each channel
         linear = np.tensordot(B, colour, axes=([2], [0]))  # (h, w, 3)
-        return np.clip(self.exposure(params, colour) * linear, 0.0, 1.0).astype(np.float32)
+        scale = math.prod(p.get("exposure", 1.0) for p in params.values())  # the capture's own (EXPOSURE)
+        return np.clip(scale * self.exposure(params, colour) * linear, 0.0, 1.0).astype(np.float32)
 
     def exposure(self, params: dict, colour: np.ndarray) -> float:
         """The dataset's exposure gain with ``params``: a reference dataset sets its one
@@ -546,7 +574,8 @@ class ReferenceModel:
             return float(self.basis.gain)
         if self._level is None:
             self._level = level({}, self._identity_colour())
-        key = repr(params)  # every tap of one prediction has the same exposure: computed once
+        # every tap of one prediction has the same exposure (computed once), whatever EXPOSURE
+        key = repr({k: {n: v for n, v in p.items() if n != "exposure"} for k, p in params.items()})
         if key not in self._exposures:
             self._exposures = {key: float(self.basis.gain * self._level / max(level(params, colour), 1e-30))}
         return self._exposures[key]
