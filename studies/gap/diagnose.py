@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scenes.images import block_mean
 
 from . import metrics
 from .fit import RANK_BY, Diagnosis, Judged
@@ -52,6 +53,14 @@ def _groups(pairs: Pairs, values: dict, index: np.ndarray, key) -> dict:
     return {scope: {m: metrics.group_means(values[scope][m], keys) for m in metrics.METRICS} for scope in values}
 
 
+#: Why held-out samples are judged at the resolution they are (report settings.judged_at).
+JUDGED_AT_WHY = {
+    "fast": "the images' resolution",
+    "pbr": ("the reference model's basis film (block means of the images): it predicts what a candidate changes "
+            "only there, and the renders' Monte Carlo noise, which no candidate can predict, is smaller there"),
+}
+
+
 def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor: int = 2,
              effects: tuple[str, ...] | None = None, progress=None,
              sides: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, dict]:
@@ -83,7 +92,10 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                   "fit_samples": len(diagnosis.train_index),
                   "seed": seed, "stratified_by": "object",
                   "heldout_ids": [pairs.ids[i] for i in np.flatnonzero(heldout)]},
-        "settings": {"working_resolution": [pairs.shape[1] // factor, pairs.shape[0] // factor],
+        "settings": {"working_resolution": [pairs.shape[1] // diagnosis.work.factor,
+                                            pairs.shape[0] // diagnosis.work.factor],
+                     "judged_at": [pairs.shape[1] // diagnosis.full.factor, pairs.shape[0] // diagnosis.full.factor],
+                     "judged_at_why": JUDGED_AT_WHY[diagnosis.work.kind],
                      "rank_by": "/".join(RANK_BY), "confidence": 0.95, "bootstrap_resamples": 2000,
                      "significant": "95% bootstrap interval of the paired held-out MAE improvement above 0"},
         "gap": {"all": metrics.summarise(gap_all, seed=seed),
@@ -114,12 +126,13 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                           **_physical_entry(diagnosis.work, n)}
                       for n in diagnosis.names},
     }
-    mc = render_noise(pairs, diagnosis.heldout_index, _mask(pairs))
+    mc = render_noise(pairs, diagnosis.heldout_index, _mask(pairs), diagnosis.full.factor)
     if mc is not None:
         report["noise"]["monte_carlo"] = mc
     if diagnosis.work.kind == "pbr":
         basis = diagnosis.work.basis
         report["renders"] = {"film": list(basis.film), "photons": basis.photons, "spp": basis.spp,
+                             "no_contact_runs": basis.no_contact_runs,
                              "passes": basis.passes, "seed": basis.seed, "count": basis.renders,
                              "seconds": round(basis.seconds, 1),
                              "identity": basis.cost.get("identity", {"renders": 0, "seconds": 0.0})}
@@ -128,16 +141,21 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     return report, {"maps": maps, "labels": labels, "mask": diagnosis.mask, "examples": examples}
 
 
-def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray) -> dict | None:
+def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int = 1) -> dict | None:
     """The Monte Carlo noise of reference-rendered images, from their datasets' own
     variance maps (``variance/<id>.npy``, the variance of each pixel's linear mean, at
     the dataset's exposure gain): its MAE floor, sqrt(2 / pi) sigma per pixel averaged
     over the image circle, per side and for the difference of the two (independent
-    renders add their variances). None when neither side has them."""
-    sides = {}
-    for side, root, records, meta in (("real", pairs.real_dir, None, pairs.real_meta),
-                                      ("sim", pairs.sim_dir, pairs.records, pairs.sim_meta)):
-        gain = (meta.get("renderer") or {}).get("exposure_gain")
+    renders add their variances). None when neither side has them.
+
+    factor > 1 adds ``judged``: the floor of ``factor`` x ``factor`` block means (where a
+    reference model is judged), each block's variance divided by the film pixels it
+    holds, as if they were independent. Neighbouring pixels of a photon map are not (its
+    kernel spans several), so this is a lower bound of that floor."""
+    sides, films = {}, {}
+    for side, root, meta in (("real", pairs.real_dir, pairs.real_meta), ("sim", pairs.sim_dir, pairs.sim_meta)):
+        renderer = meta.get("renderer") or {}
+        gain = renderer.get("exposure_gain")
         if gain is None:
             continue
         variances = []
@@ -145,18 +163,34 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray) -> dict | No
             path = Path(root) / "variance" / f"{pairs.ids[i]}.npy"
             if not path.is_file():
                 break
-            variances.append(float(gain) ** 2 * np.load(path)[mask])
+            variances.append(float(gain) ** 2 * np.load(path))
         if len(variances) == len(index) and variances:
             sides[side] = variances
+            films[side] = renderer.get("film") or [pairs.shape[1], pairs.shape[0]]
     if not sides:
         return None
-    floor = {side: float(np.mean([np.sqrt(2 / np.pi) * np.sqrt(v).mean() for v in vs])) for side, vs in sides.items()}
-    both = [sum(vs) for vs in zip(*sides.values())] if len(sides) == 2 else None
-    out = {"sides": sorted(sides), "mae_floor": floor,
+
+    def floor(variances: list, area: np.ndarray) -> float:
+        return float(np.mean([np.sqrt(2 / np.pi) * np.sqrt(v[area]).mean() for v in variances]))
+
+    def summary(variances: dict, area: np.ndarray) -> dict:
+        out = {"mae_floor": {side: floor(vs, area) for side, vs in variances.items()}}
+        if len(variances) == 2:  # independent renders add their variances
+            out["mae_floor_difference"] = floor([sum(vs) for vs in zip(*variances.values())], area)
+        return out
+
+    out = {"sides": sorted(sides), **summary(sides, mask),
            "note": "the Monte Carlo noise of the renders (from their variance maps): it cannot be predicted, and an "
                    "effect that smooths the simulation (blur) closes the part of it that is the simulation's"}
-    if both is not None:
-        out["mae_floor_difference"] = float(np.mean([np.sqrt(2 / np.pi) * np.sqrt(v).mean() for v in both]))
+    if factor > 1:
+        blocks = {}
+        for side, vs in sides.items():
+            held = max(1.0, (factor * float(films[side][0]) / pairs.shape[1]) ** 2)  # film pixels in a block
+            blocks[side] = [block_mean(v, factor, (0, 1)) / held for v in vs]
+        area = block_mean(mask.astype(np.float32), factor, (0, 1)) >= 0.5
+        out["judged"] = {"factor": int(factor), **summary(blocks, area),
+                         "note": "the same at the resolution the held-out samples are judged at (block means), as "
+                                 "if the film's pixels were independent: a lower bound"}
     return out
 
 

@@ -12,7 +12,8 @@ registration for shifts and rotations, small grids where the loss has several ba
 fit that leaves most of the training gap without having moved from its start (a kink or
 flat spot where finite-difference gradients mislead L-BFGS-B) probes a step either side
 of it along each parameter and restarts from the best probe, and its status says so.
-The fitted effect is then judged on held-out samples only, at full resolution: the
+The fitted effect is then judged on held-out samples only, at full resolution (a
+reference model: at its basis film, ``studies.gap.model.make_models``): the
 paired improvement of each sample's MAE, SSIM and PSNR, with bootstrap confidence
 intervals. Effects whose MAE improvement is not significant (interval reaching 0) are
 reported as such and not ranked. Forward selection then adds, one at a time, the effect
@@ -135,7 +136,7 @@ class Diagnosis:
         # Samples that are parts of one image (pairs.extra["areas"], (N, H, W) bool) are
         # compared only there.
         areas = pairs.extra.get("areas")
-        self.areas_h = None if areas is None else np.asarray(areas, bool)[self.heldout_index]
+        self.areas_h = None if areas is None else self._judged_areas(np.asarray(areas, bool)[self.heldout_index])
         weights = np.broadcast_to(self.mask_w, (len(self.train_index),) + self.mask_w.shape).astype(np.float32)
         if areas is not None:
             down = self.work.working_images(np.asarray(areas, np.float32)[..., None])[..., 0] >= 0.5
@@ -144,8 +145,10 @@ class Diagnosis:
         self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
         self._box_mask = weights[(slice(None),) + self._box][..., None]
         self._box_count = float(self._box_mask.sum()) * 3
-        self.real_h = pairs.real[self.heldout_index]
-        self.sim_h = pairs.sim[self.heldout_index]
+        # Held-out samples at the judging model's resolution (the images' own, except for
+        # a reference model: its basis film, see ``make_models``).
+        self.real_h = self.full.working_images(pairs.real[self.heldout_index])
+        self.sim_h = self.full.working_images(pairs.sim[self.heldout_index])
         self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
         self.mask = self.full.mask
         self.not_applicable = self.work.not_applicable(pairs)
@@ -158,6 +161,11 @@ class Diagnosis:
         self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h)
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
+
+    def _judged_areas(self, areas: np.ndarray) -> np.ndarray:
+        if self.full.factor == 1:
+            return areas
+        return self.full.working_images(areas.astype(np.float32)[..., None])[..., 0] >= 0.5
 
     # --- fitting --------------------------------------------------------------------------
 

@@ -81,16 +81,34 @@ def working_cameras(spec: SensorSpec, factor: int) -> tuple[Camera, Camera]:
     return full, (full if factor == 1 else full.scaled(full.width // factor, full.height // factor))
 
 
+def judging_factor(spec: SensorSpec, film: tuple[int, int]) -> int:
+    """The block size that takes the spec's camera images to ``film`` (w, h); 1 when
+    blocks of one size do not tile the image into that film."""
+    full = Camera.from_spec(spec)
+    factor = full.width // int(film[0])
+    if factor < 1 or full.width % factor or full.height % factor or full.height // factor != int(film[1]):
+        return 1
+    return factor
+
+
 def make_models(pairs, renderer: dict, factor: int):
-    """(working, full-resolution) models of a simulated dataset: the reference decomposed
-    per source (``studies.gap.physical``) when the reference rendered it, else the fast
-    simulator rebuilt from its settings."""
+    """(working, judging) models of a simulated dataset: the reference decomposed per
+    source (``studies.gap.physical``) when the reference rendered it, else the fast
+    simulator rebuilt from its settings.
+
+    The fast model is judged at the images' resolution. The reference model predicts what
+    a candidate changes at its basis film only, and its datasets carry Monte Carlo noise
+    at every pixel, so it is judged, and fitted, at the basis film (``judging_factor``):
+    there the noise it cannot predict is smaller and the detail it does not predict is
+    not counted as a gap.
+    """
     if renderer.get("renderer") == "pbr":
         from .physical import ReferenceModel, SourceBasis
 
         basis = SourceBasis(pairs.spec, renderer, pairs.depth if pairs.depth is not None else np.zeros((0,)))
-        work = ReferenceModel(pairs.spec, renderer, factor, basis)
-        return work, (ReferenceModel(pairs.spec, renderer, 1, basis) if factor != 1 else work)
+        judge = judging_factor(pairs.spec, basis.film)
+        work = ReferenceModel(pairs.spec, renderer, max(factor, judge), basis)
+        return work, (ReferenceModel(pairs.spec, renderer, judge, basis) if work.factor != judge else work)
     work = FastModel(pairs.spec, renderer, factor)
     return work, (FastModel(pairs.spec, renderer, 1) if factor != 1 else work)
 

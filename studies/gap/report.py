@@ -174,8 +174,11 @@ def headline(report: dict) -> list[str]:
                  "per light source)." if model == "pbr" else
                  "The candidates are the fast path's effect models, added to its rendering chain.")
     gap = report["gap"]["heldout"]
+    judged = report.get("settings", {}).get("judged_at")
+    at = (f", judged at {judged[0]}x{judged[1]} ({report['settings']['judged_at_why']})"
+          if judged and judged != report.get("image_size") else "")
     lines.append(f"Held-out gap: masked MAE {_fmt(gap['masked']['mae'])}, SSIM {_fmt(gap['masked']['ssim'], digits=3)}, "
-                 f"PSNR {_fmt(gap['masked']['psnr'], digits=1)} dB (full frame MAE {_fmt(gap['full']['mae'])}).")
+                 f"PSNR {_fmt(gap['masked']['psnr'], digits=1)} dB (full frame MAE {_fmt(gap['full']['mae'])}){at}.")
     regions = {k: v for k, v in report["where"]["regions"].items() if v.get("samples")}
     if regions:
         worst = max(regions, key=lambda k: regions[k]["mae"]["mean"])
@@ -201,11 +204,14 @@ def headline(report: dict) -> list[str]:
                      f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])}).")
     mc = report["noise"].get("monte_carlo")
     if mc is not None:
+        mc = mc.get("judged", mc)  # at the resolution the held-out gap is judged at
         floor = mc.get("mae_floor_difference", max(mc["mae_floor"].values()))
         share = floor / max(gap["masked"]["mae"]["mean"], 1e-12)
-        lines.append(f"Monte Carlo noise of the renders ({' and '.join(mc['sides'])}, from their variance maps) alone "
-                     f"makes an MAE of about {floor:.4f}, {share * 100:.0f}% of the held-out gap: no effect can close "
-                     "that part, and one that smooths the simulation (blur) closes the simulation's share of it.")
+        lines.append(f"Monte Carlo noise of the renders ({' and '.join(report['noise']['monte_carlo']['sides'])}, from "
+                     f"their variance maps) alone makes an MAE of about {floor:.4f}"
+                     f"{' (at least: its pixels are taken as independent)' if 'factor' in mc else ''}, {share * 100:.0f}% "
+                     "of the held-out gap: no effect can close that part, and one that smooths the simulation (blur) "
+                     "closes the simulation's share of it.")
     if report["noise"]["std"] > 0:
         lines.append(f"Estimated sensor noise: {report['noise']['std']:.4f} (an MAE floor of about "
                      f"{report['noise']['mae_floor']:.4f} that no effect can remove).")
