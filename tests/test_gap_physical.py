@@ -242,3 +242,16 @@ def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_
     assert main(["diagnose", "benchmark", "--physical", "--stratified", "--json", str(tmp_path / "b.json")]) == 2
     assert "--physical and --stratified are separate benchmarks" in capsys.readouterr().err
     assert not (tmp_path / "b.json").exists()
+
+
+def test_a_reference_diagnosis_writes_its_report_judged_at_the_basis_film(spec, scene, stub, tmp_path):
+    from studies.gap.diagnose import diagnose
+    from studies.gap.report import headline, write_report
+
+    pairs = pairs_of(spec, scene, rendered(spec, scene, {"core_light_leak": {"fraction": 0.3}}), rendered(spec, scene, {}))
+    report, artefacts = diagnose(pairs, effects=("core_light_leak", "blur"))
+    assert report["model"] == "pbr" and report["settings"]["judged_at"] == list(FILM)
+    assert report["ranking"][0] == "core_light_leak"
+    write_report(tmp_path, report, artefacts)  # figures mix full-resolution maps and judged examples
+    assert (tmp_path / "report.html").is_file() and (tmp_path / "gap_maps.png").is_file()
+    assert any("judged at 80x60" in line for line in headline(report))

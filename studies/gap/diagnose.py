@@ -138,7 +138,7 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                              "identity": basis.cost.get("identity", {"renders": 0, "seconds": 0.0})}
     report["seconds"] = time.perf_counter() - t0
     examples = _examples(diagnosis, final)
-    return report, {"maps": maps, "labels": labels, "mask": diagnosis.mask, "examples": examples}
+    return report, {"maps": maps, "labels": labels, "mask": _mask(pairs), "examples": examples}
 
 
 def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int = 1) -> dict | None:
