@@ -255,3 +255,30 @@ def test_a_reference_diagnosis_writes_its_report_judged_at_the_basis_film(spec, 
     write_report(tmp_path, report, artefacts)  # figures mix full-resolution maps and judged examples
     assert (tmp_path / "report.html").is_file() and (tmp_path / "gap_maps.png").is_file()
     assert any("judged at 80x60" in line for line in headline(report))
+    # The best-ranked effects' parameters come with bootstrap intervals over the training taps.
+    low, high = report["effects"]["core_light_leak"]["param_intervals"]["core_light_leak"]["fraction"]
+    assert low <= report["effects"]["core_light_leak"]["params"]["core_light_leak"]["fraction"] <= high
+    assert 0.2 < low <= high < 0.4
+
+
+def test_the_reference_lens_is_judged_with_the_exposure_its_capture_gets(spec, scene, stub):
+    """A vignetted reference capture is exposed after the lens, from its own no-contact
+    frame: its centre brightens while its edge keeps the level; the model predicts that."""
+    from pbr_tactile import sensor
+    from pbr_tactile.plugin import EXPOSURE_PERCENTILE
+
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
+    frames = np.stack([model._resized(model.image(i, {})) for i in range(len(depth))])
+    nc = model._resized(model.image(physical.NO_CONTACT, {}))
+    lens = sensor.vignetting(nc, camera, 0.5)
+    gain = np.percentile(nc[camera.mask], EXPOSURE_PERCENTILE) / np.percentile(lens[camera.mask], EXPOSURE_PERCENTILE)
+    real = np.clip(gain * np.stack([sensor.vignetting(f, camera, 0.5) for f in frames]), 0, 1)
+    pairs = pairs_of(spec, scene, real, frames)
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=4, effects=("vignetting", "core_light_leak", "camera_gains"))
+    singles = d.singles()
+    best = max(singles, key=lambda n: singles[n].gain)
+    assert best == "vignetting"
+    assert singles[best].fit.params[best]["strength"] == pytest.approx(0.5, abs=0.05)
+    assert singles[best].fit.params[best]["exposure"] == pytest.approx(1.0, abs=0.02)

@@ -231,7 +231,7 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
             folder = root / f"case_{seed}_{case:03d}"
             truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None)
             t_case = time.perf_counter()
-            report, _ = diagnose(load_pairs(folder / "real", folder / "sim"), seed=seed, factor=factor)
+            report, _ = diagnose(load_pairs(folder / "real", folder / "sim"), seed=seed, factor=factor, intervals=0)
             write_json(folder / "report.json", report)
             results.append({"case": case, **truth, **score(truth["hidden"], report),
                             "stopped_at_start": sorted(report.get("stopped_at_start", {})),

@@ -22,7 +22,7 @@ import numpy as np
 from scenes.images import block_mean
 
 from . import metrics
-from .fit import RANK_BY, Diagnosis, Judged
+from .fit import INTERVAL_EFFECTS, PARAM_RESAMPLES, RANK_BY, Diagnosis, Judged
 from .pairs import Pairs, load_pairs, split
 from .regions import error_maps, where
 
@@ -63,12 +63,16 @@ JUDGED_AT_WHY = {
 
 def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor: int = 2,
              effects: tuple[str, ...] | None = None, progress=None,
-             sides: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[dict, dict]:
+             sides: tuple[np.ndarray, np.ndarray] | None = None,
+             intervals: int = PARAM_RESAMPLES) -> tuple[dict, dict]:
     """Run the diagnosis; returns (report, artefacts) where artefacts holds the arrays
     the figures need (error maps, region labels, example predictions).
 
     sides : an explicit (train, held-out) pair of boolean masks over the samples, in
         place of the stratified ``split``.
+    intervals : bootstrap resamples behind the parameter intervals of the best-ranked
+        effects (``Diagnosis.intervals``); 0 leaves them out (the benchmarks, which do
+        not score them).
     """
     t0 = time.perf_counter()
     train, heldout = split(pairs, heldout_fraction, seed) if sides is None else sides
@@ -80,6 +84,7 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     diagnosis = Diagnosis(pairs, train, heldout, factor=factor, effects=effects, seed=seed, progress=progress)
     singles = diagnosis.singles()
     ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+    bounds = {n: diagnosis.intervals(singles[n].fit, intervals) for n in ranked[:INTERVAL_EFFECTS]} if intervals else {}
     steps = diagnosis.select(singles)
     final = steps[-1] if steps else None
     best_params = final.fit.params if final is not None else {}
@@ -97,14 +102,18 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                      "judged_at": [pairs.shape[1] // diagnosis.full.factor, pairs.shape[0] // diagnosis.full.factor],
                      "judged_at_why": JUDGED_AT_WHY[diagnosis.work.kind],
                      "rank_by": "/".join(RANK_BY), "confidence": 0.95, "bootstrap_resamples": 2000,
-                     "significant": "95% bootstrap interval of the paired held-out MAE improvement above 0"},
+                     "significant": "95% bootstrap interval of the paired held-out MAE improvement above 0",
+                     "param_intervals": (f"95% percentile intervals of the {INTERVAL_EFFECTS} best-ranked effects' "
+                                         f"parameters over {intervals} bootstrap resamples of the training samples, each "
+                                         "refitted from the fit" if intervals else "not computed")},
         "gap": {"all": metrics.summarise(gap_all, seed=seed),
                 "heldout": metrics.summarise(diagnosis.before, seed=seed),
                 "per_object": _groups(pairs, gap_all, every, lambda r: r.get("object")),
                 "per_position": _groups(pairs, gap_all, every, lambda r: f"path {r.get('path')} position {r.get('position')}"),
                 "per_sample": _per_sample(pairs, gap_all, every)},
         "where": located,
-        "effects": {n: _judged(j) for n, j in singles.items()},
+        "effects": {n: {**_judged(j), **({"param_intervals": bounds[n]} if n in bounds else {})}
+                    for n, j in singles.items()},
         "not_applicable": diagnosis.not_applicable,
         "ranking": ranked,
         "not_significant": [n for n in singles if n not in ranked],

@@ -74,6 +74,10 @@ JOINT_ITERATIONS = 15
 MAX_TRIALS = 3
 #: At most this many effects in a selected combination.
 MAX_COMBINATION = 4
+#: Bootstrap resamples of the training samples behind each reported parameter interval.
+PARAM_RESAMPLES = 20
+#: Parameter intervals are reported for this many of the best-ranked single effects.
+INTERVAL_EFFECTS = 3
 
 
 @dataclass
@@ -175,15 +179,20 @@ class Diagnosis:
         err *= self._box_mask
         return float(np.einsum("nhwc,nhwc->", err, err, dtype=np.float64)) / self._box_count
 
-    def _loss(self, pred: np.ndarray) -> float:
-        """The fitted loss: the smooth MAE (``LOSS_EPS``) over the training samples' circle."""
+    def _loss(self, pred: np.ndarray, weights: np.ndarray | None = None) -> float:
+        """The fitted loss: the smooth MAE (``LOSS_EPS``) over the training samples' circle;
+        ``weights`` (N,) counts each sample that many times (a bootstrap resample)."""
         rows, cols = self._box
         err = pred[:, rows, cols] - self.real_w[:, rows, cols]
         err *= err
         # sqrt(e^2 + eps^2) - eps, written so that it is exactly 0 at e = 0 in float32
         err /= np.sqrt(err + np.float32(LOSS_EPS * LOSS_EPS)) + np.float32(LOSS_EPS)
         err *= self._box_mask
-        return float(err.sum(dtype=np.float64)) / self._box_count
+        if weights is None:
+            return float(err.sum(dtype=np.float64)) / self._box_count
+        per_sample = err.sum(axis=(1, 2, 3), dtype=np.float64)
+        counts = 3.0 * self._box_mask.sum(axis=(1, 2, 3), dtype=np.float64)
+        return float(per_sample @ weights) / max(float(counts @ weights), 1e-12)
 
     def predict_train(self, params: dict) -> np.ndarray:
         return self.work.predict(self.sim_w, self.depth_w, params, keys=self.train_index)
@@ -404,6 +413,37 @@ class Diagnosis:
         mse = self._mse(self.predict_train(params))
         return Fit(names, params, mse, self.train_mse_before, count[0], time.perf_counter() - t0,
                    train_loss, self.train_loss_before, status)
+
+    def intervals(self, fit: Fit, resamples: int = PARAM_RESAMPLES, confidence: float = 0.95) -> dict:
+        """Percentile bootstrap intervals of a fit's parameters: {effect: {param: [low,
+        high]}}. Each resample draws the training samples with replacement and refits
+        from the fitted parameters (at most ``JOINT_ITERATIONS`` L-BFGS-B iterations)."""
+        names = fit.effects
+        plist, to_params, to_z = self._space(names)
+        if not plist or resamples < 2:
+            return {}
+        low = np.array([p.low for _, p in plist])
+        high = np.array([p.high for _, p in plist])
+        z0 = np.clip(to_z(fit.params), 0.0, 1.0)
+        rng = np.random.default_rng(self.seed)
+        n = len(self.train_index)
+        draws = []
+        for _ in range(resamples):
+            weights = np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)
+            scale = max(self._loss(self.sim_w, weights), 1e-12)
+
+            def loss(z: np.ndarray, weights=weights, scale=scale) -> float:
+                return self._loss(self.predict_train(to_params(z)), weights) / scale
+
+            res = optimize.minimize(loss, z0, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(plist),
+                                    options={"maxiter": JOINT_ITERATIONS, "eps": 1e-3, "ftol": FTOL})
+            draws.append(low + np.clip(res.x, 0.0, 1.0) * (high - low))
+        tail = 100 * (1 - confidence) / 2
+        lo, hi = np.percentile(np.array(draws), [tail, 100 - tail], axis=0)
+        out: dict = {name: {} for name in names}
+        for (name, p), a, b in zip(plist, lo, hi):
+            out[name][p.name] = [float(a), float(b)]
+        return out
 
     def _unstick(self, loss, x: np.ndarray, value: float, bounds, max_iterations: int, status: dict):
         """A fit stopped at its start leaving most of the gap: probe ``PROBE_STEP`` either

@@ -223,7 +223,7 @@ def physical_catalogue(spec: SensorSpec, effects, sigma_px: float = 5.0) -> tupl
                            for p in params if p.name != "frame_share")
         add(name, params, f"the unit's {fast_name.replace('_', ' ')} ({e.doc})", "fast")
     for name, kind in kinds.items():  # every physical candidate is fitted with the capture's exposure
-        if kind not in ("fast", "image", "unpredictable") and out[name].params:
+        if kind not in ("fast", "unpredictable") and out[name].params:
             out[name] = dataclasses.replace(out[name], params=out[name].params + (EXPOSURE,))
     return out, kinds, grids
 
@@ -362,6 +362,7 @@ class ReferenceModel:
         self._plain: dict = {}  # M(identity) by sample
         self._level = None  # the identity's exposure level (``exposure``)
         self._exposures: dict = {}  # the last parameters' exposure gain
+        self._film_exposures: dict = {}  # the last image-stage effects' exposure ratio
         w, h = basis.film
         self._film_mask = Camera.from_spec(spec).scaled(w, h).mask
 
@@ -473,7 +474,32 @@ class ReferenceModel:
                 out[i] += self._resized(change)
             out = np.clip(out, 0.0, 1.0)
         image_params = {k: v for k, v in params.items() if self.kinds[k] in ("fast", "image")}
-        return self.optics(out, image_params) if image_params else out
+        if not image_params:
+            return out
+        out = self.optics(out, image_params)
+        film = {k: v for k, v in params.items() if self.kinds[k] == "image" and v != self.catalogue[k].identity}
+        if film:  # the reference's own lens: its capture is exposed after it, by the rule and its own exposure
+            scale = math.prod(p.get("exposure", 1.0) for p in film.values()) * self._film_exposure(film, physical)
+            out = np.clip(out * np.float32(scale), 0.0, 1.0)
+        return out
+
+    def _film_exposure(self, film: dict, physical: dict) -> float:
+        """The exposure rule's gain ratio for the reference's image-stage effects
+        (vignetting, lens distortion) in ``film``: the no-contact frame (with the
+        ``physical`` candidates) at its 99.5th percentile inside the image circle, before
+        and after them."""
+        from pbr_tactile.plugin import EXPOSURE_PERCENTILE
+
+        key = repr((film, physical))
+        if key not in self._film_exposures:
+            before = self._resized(self.image(NO_CONTACT, physical))
+            lens = {k: {n: v for n, v in p.items() if n != "exposure"} for k, p in film.items()}
+            after = self.optics(before[None], lens)[0]
+            mask = self.camera.mask
+            ratio = (np.percentile(before[mask], EXPOSURE_PERCENTILE) /
+                     max(float(np.percentile(after[mask], EXPOSURE_PERCENTILE)), 1e-12))
+            self._film_exposures = {key: float(ratio)}
+        return self._film_exposures[key]
 
     # --- the reference per source ----------------------------------------------------------
 

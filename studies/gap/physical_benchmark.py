@@ -160,7 +160,7 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
             t_real = time.perf_counter() - t_case
             replay(root / f"case_{seed}_000" / "real", sim)  # once; then it resumes with nothing to do
             t_diag = time.perf_counter()
-            report, _ = diagnose(load_pairs(folder / "real", sim), seed=seed, factor=factor)
+            report, _ = diagnose(load_pairs(folder / "real", sim), seed=seed, factor=factor, intervals=0)
             write_json(folder / "report.json", report)
             results.append({"case": case, "hidden": list(hidden), "values": {k: v for k, v in hidden.items()},
                             **score_physical(hidden, report),

@@ -160,6 +160,13 @@ def _fmt(ci: dict, scale: float = 1.0, digits: int = 4) -> str:
     return f"{ci['mean'] * scale:.{digits}f} [{ci['low'] * scale:.{digits}f}, {ci['high'] * scale:.{digits}f}]"
 
 
+def _params(entry: dict, name: str) -> str:
+    """An effect's fitted parameters, each with its bootstrap interval where it has one."""
+    bounds = entry.get("param_intervals", {}).get(name, {})
+    return ", ".join(f"{k} = {v:.4g}" + (f" [{bounds[k][0]:.4g}, {bounds[k][1]:.4g}]" if k in bounds else "")
+                     for k, v in entry["params"][name].items())
+
+
 def headline(report: dict) -> list[str]:
     """The answer in a few sentences."""
     lines = []
@@ -190,7 +197,7 @@ def headline(report: dict) -> list[str]:
     if report["ranking"]:
         top = report["ranking"][0]
         share = report["effects"][top]["heldout"]["improvement"]["masked"]["mae"]
-        params = ", ".join(f"{k} = {v:.4g}" for k, v in report["effects"][top]["params"][top].items())
+        params = _params(report["effects"][top], top)
         counterpart = report.get("catalogue", {}).get(top, {}).get("counterpart")
         lines.append(f"The effect that explains most of it is {top}{f' ({params})' if params else ''}: it closes "
                      f"{share['share'] * 100:.1f}% [{share['share_low'] * 100:.1f}, {share['share_high'] * 100:.1f}] "
@@ -235,7 +242,7 @@ def render_html(report: dict, files: dict[str, str]) -> str:
             f"{imp['mae']['share'] * 100:.1f}% [{imp['mae']['share_low'] * 100:.1f}, {imp['mae']['share_high'] * 100:.1f}]",
             _fmt(imp["ssim"], digits=4), _fmt(imp["psnr"], digits=2),
             "yes" if e[n]["significant"] else "no",
-            ", ".join(f"{k}={v:.4g}" for k, v in e[n]["params"][n].items())])
+            _params(e[n], n)])
     sel_rows = [[i + 1, "+ " + s["added"], " + ".join(s["effects"]), _fmt(s["heldout"]["after"]["masked"]["mae"]),
                  _fmt(s["heldout"]["after"]["masked"]["ssim"], digits=3),
                  _fmt(s["heldout"]["after"]["masked"]["psnr"], digits=1), f"{s['share_closed']['masked'] * 100:.1f}%",
