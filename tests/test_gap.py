@@ -357,7 +357,8 @@ def test_diagnosis_names_a_hidden_effect(tmp_path, spec, injector, contacts, sim
     rng = np.random.default_rng(5)
     effect = injector.sample(hidden, rng, strength=0.8)
     real = real_dataset(tmp_path / "real", spec, injector, contacts, [effect])
-    code = main(["diagnose", str(real), str(sim_dir), "--out", str(tmp_path / "report"), "--quiet"])
+    code = main(["diagnose", str(real), str(sim_dir), "--out", str(tmp_path / "report"), "--quiet",
+                 "--intervals", "0"])  # parameter intervals: test_gap_physical (they double this test's time)
     assert code == 0
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert report["ranking"][0] == hidden, report["ranking"]

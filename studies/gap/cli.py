@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from scenes.commands import add_quiet_argument
+from scenes.commands import add_quiet_argument, non_negative_int
 
 from . import effects as fx
 
@@ -52,7 +52,8 @@ def cmd_diagnose(args) -> int:
     from .report import headline
 
     report = run(args.real, args.sim, args.out, heldout_fraction=args.heldout, seed=args.seed, factor=args.factor,
-                 effects=args.effects, progress=not args.quiet)
+                 effects=args.effects, progress=not args.quiet,
+                 **({} if args.intervals is None else {"intervals": args.intervals}))
     for line in headline(report):
         print(line)
     print(f"wrote {args.out}/report.html and {args.out}/report.json")
@@ -125,6 +126,9 @@ def register(registry) -> None:
     p.add_argument("--factor", type=_positive, default=2,
                    help="fits run at 1/FACTOR of the image resolution (default 2); results are measured at full size")
     p.add_argument("--effects", type=_effects, default=None, help="'all' (default) or a comma-separated subset")
+    p.add_argument("--intervals", type=non_negative_int, default=None,
+                   help="bootstrap refits behind the best-ranked effects' parameter intervals (default: "
+                        "studies.gap.fit.PARAM_RESAMPLES; 0: none, about halves a fast-path diagnosis)")
     add_quiet_argument(p)
     p.add_argument("--cases", type=_positive, default=20, help="benchmark: number of cases (default 20)")
     p.add_argument("--pairs", type=_positive, default=48, help="benchmark: pairs per case (default 48)")

@@ -241,7 +241,8 @@ def _examples(diagnosis: Diagnosis, final: Judged | None, count: int = 4) -> dic
 
 
 def run(real_dir: str | Path, sim_dir: str | Path, out: str | Path, heldout_fraction: float = 0.5, seed: int = 0,
-        factor: int = 2, effects: tuple[str, ...] | None = None, progress: bool = True) -> dict:
+        factor: int = 2, effects: tuple[str, ...] | None = None, progress: bool = True,
+        intervals: int = PARAM_RESAMPLES) -> dict:
     """Load, diagnose, and write ``out/report.json``, ``out/report.html`` and figures."""
     from .report import write_report
 
@@ -269,7 +270,7 @@ def run(real_dir: str | Path, sim_dir: str | Path, out: str | Path, heldout_frac
     if bar is not None:
         bar.reset(total=0)
         bar.set_description("fitting")
-    report, artefacts = diagnose(pairs, heldout_fraction, seed, factor, effects, fitting)
+    report, artefacts = diagnose(pairs, heldout_fraction, seed, factor, effects, fitting, intervals=intervals)
     if bar is not None:
         bar.close()
     write_report(Path(out), report, artefacts)
