@@ -99,14 +99,15 @@ UNPREDICTABLE_FIELDS = {"sensor_noise": "noise is estimated from the residual (r
 #: ``DEFAULT_GRID_SPAN`` times its value (or its accepted range where that is finite).
 #: "inner": more points between the ends, where one span of the medium's coefficients is
 #: too wide to interpolate (with (20, 120) and (50, 250) only, a hidden scattering of 139
-#: per m was fitted as 67 and ranked below absorption).
+#: per m was fitted as 67 and ranked below absorption; a hidden albedo of 0.71, between
+#: 0.6 and 0.85, as 0.65, and ranked below camera_gains).
 GRIDS = {
     "absorption_per_m": {"low": 5.0, "high": 120.0, "interpolation": "geometric", "unit": "1/m",
                          "doc": "absorption coefficient of the elastomer", "inner": (10.0, 50.0)},
     "scattering_per_m": {"low": 10.0, "high": 250.0, "interpolation": "geometric", "unit": "1/m",
                          "doc": "scattering coefficient of the elastomer", "inner": (22.0, 110.0)},
     "coating_albedo": {"low": 0.6, "high": 0.97, "interpolation": "linear", "unit": "-",
-                       "doc": "diffuse reflectance of the coating"},
+                       "doc": "diffuse reflectance of the coating", "inner": (0.72,)},
     "core_leak_cone_rad": {"low": 0.0, "high": 0.6, "interpolation": "linear", "unit": "rad",
                            "doc": "half-angle of the core leak's cone up the tube"},
     "membrane_compliance": {"low": 0.6, "high": 1.25, "interpolation": "linear", "unit": "-",
