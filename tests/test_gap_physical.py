@@ -282,3 +282,23 @@ def test_the_reference_lens_is_judged_with_the_exposure_its_capture_gets(spec, s
     assert best == "vignetting"
     assert singles[best].fit.params[best]["strength"] == pytest.approx(0.5, abs=0.05)
     assert singles[best].fit.params[best]["exposure"] == pytest.approx(1.0, abs=0.02)
+
+
+def test_a_reference_ranking_puts_the_simplest_of_the_tied_best_first(spec, scene, stub):
+    """camera_gains (a colour matrix, 11 parameters) and the LEDs' powers (3) both undo
+    a colour change of the LEDs; when the first is not significantly better, the LEDs
+    come first."""
+    sim = rendered(spec, scene, {})
+    real = rendered(spec, scene, {"led_power": {"power_0": 1.3, "power_1": 1.0, "power_2": 0.8}})
+    pairs = pairs_of(spec, scene, real, sim)
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=8, effects=("led_power", "camera_gains"))
+    singles = d.singles()
+    by_gain = sorted(singles, key=lambda n: -singles[n].gain)
+    ranked = d.rank(singles)
+    assert set(ranked) == {"led_power", "camera_gains"} and ranked[0] == "led_power"
+    if by_gain[0] == "camera_gains":  # then it must not have been significantly better
+        from studies.gap import metrics
+
+        a, b = (singles[n].after["masked"]["mae"] for n in ("led_power", "camera_gains"))
+        assert not metrics.improvement(a, b, "mae")["significant"]

@@ -83,7 +83,7 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
 
     diagnosis = Diagnosis(pairs, train, heldout, factor=factor, effects=effects, seed=seed, progress=progress)
     singles = diagnosis.singles()
-    ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+    ranked = diagnosis.rank(singles)
     bounds = {n: diagnosis.intervals(singles[n].fit, intervals) for n in ranked[:INTERVAL_EFFECTS]} if intervals else {}
     steps = diagnosis.select(singles)
     final = steps[-1] if steps else None
