@@ -436,8 +436,10 @@ class Diagnosis:
             def loss(z: np.ndarray, weights=weights, scale=scale) -> float:
                 return self._loss(self.predict_train(to_params(z)), weights) / scale
 
+            # Tolerances far below the fit's: a resample moves the optimum by little, and a
+            # refit stopped by FTOL at its start would give an interval of the tolerance.
             res = optimize.minimize(loss, z0, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(plist),
-                                    options={"maxiter": JOINT_ITERATIONS, "eps": 1e-3, "ftol": FTOL})
+                                    options={"maxiter": JOINT_ITERATIONS, "eps": 1e-4, "ftol": 1e-12, "gtol": 1e-10})
             draws.append(low + np.clip(res.x, 0.0, 1.0) * (high - low))
         tail = 100 * (1 - confidence) / 2
         lo, hi = np.percentile(np.array(draws), [tail, 100 - tail], axis=0)
