@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from scenes.images import block_mean
 
 from . import metrics
@@ -85,7 +86,7 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     singles = diagnosis.singles()
     ranked = diagnosis.rank(singles)
     bounds = {n: diagnosis.intervals(singles[n].fit, intervals) for n in ranked[:INTERVAL_EFFECTS]} if intervals else {}
-    steps = diagnosis.select(singles)
+    steps = diagnosis.select(singles, ranked)
     final = steps[-1] if steps else None
     best_params = final.fit.params if final is not None else {}
     noise = diagnosis.noise(best_params)

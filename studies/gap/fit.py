@@ -141,11 +141,10 @@ class Diagnosis:
         # Samples that are parts of one image (pairs.extra["areas"], (N, H, W) bool) are
         # compared only there.
         areas = pairs.extra.get("areas")
-        self.areas_h = None if areas is None else self._judged_areas(np.asarray(areas, bool)[self.heldout_index])
+        self.areas_h = None if areas is None else _areas_at(self.full, np.asarray(areas, bool)[self.heldout_index])
         weights = np.broadcast_to(self.mask_w, (len(self.train_index),) + self.mask_w.shape).astype(np.float32)
         if areas is not None:
-            down = self.work.working_images(np.asarray(areas, np.float32)[..., None])[..., 0] >= 0.5
-            weights = weights * down[self.train_index]
+            weights = weights * _areas_at(self.work, np.asarray(areas, bool))[self.train_index]
         r, c = np.nonzero(weights.any(axis=0))
         self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
         self._box_mask = weights[(slice(None),) + self._box][..., None]
@@ -166,11 +165,6 @@ class Diagnosis:
         self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h)
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
-
-    def _judged_areas(self, areas: np.ndarray) -> np.ndarray:
-        if self.full.factor == 1:
-            return areas
-        return self.full.working_images(areas.astype(np.float32)[..., None])[..., 0] >= 0.5
 
     # --- fitting --------------------------------------------------------------------------
 
@@ -524,7 +518,7 @@ class Diagnosis:
         first = min((n for n in ranked if tied(n)), key=lambda n: (size(n), ranked.index(n)))
         return [first] + [n for n in ranked if n != first]
 
-    def select(self, singles: dict[str, Judged]) -> list[Judged]:
+    def select(self, singles: dict[str, Judged], ranked: list[str] | None = None) -> list[Judged]:
         """Greedy forward selection, chosen on the training samples, stopped on the
         held-out ones.
 
@@ -537,7 +531,7 @@ class Diagnosis:
         closes at least ``MIN_STEP_SHARE`` of the original gap; otherwise selection stops.
         Held-out samples only decide when to stop and measure every step.
         """
-        ranked = self.rank(singles)
+        ranked = self.rank(singles) if ranked is None else ranked
         steps: list[Judged] = []
         if not ranked:
             return steps
@@ -577,6 +571,13 @@ class Diagnosis:
     def noise(self, params: dict) -> float:
         """Sensor noise estimated from the held-out residual of a prediction."""
         return fx.noise_std(self.real_h - self.predict_heldout(params), self.mask)
+
+
+def _areas_at(model, areas: np.ndarray) -> np.ndarray:
+    """(N, H, W) bool areas at ``model``'s resolution: blocks at least half inside."""
+    if model.factor == 1:
+        return areas
+    return model.working_images(areas.astype(np.float32)[..., None])[..., 0] >= 0.5
 
 
 def _fit_subset(pairs: Pairs, index: np.ndarray, count: int, seed: int) -> np.ndarray:

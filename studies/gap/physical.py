@@ -233,6 +233,19 @@ def physical_catalogue(spec: SensorSpec, effects, sigma_px: float = 5.0) -> tupl
     return out, kinds, grids
 
 
+def _level(image: np.ndarray, mask: np.ndarray) -> float:
+    """The exposure rule's level of a no-contact image: its EXPOSURE_PERCENTILE inside
+    ``mask`` (``pbr_tactile.plugin``)."""
+    from pbr_tactile.plugin import EXPOSURE_PERCENTILE
+
+    return float(np.percentile(image[mask], EXPOSURE_PERCENTILE))
+
+
+def _without_exposure(params: dict) -> dict:
+    """``params`` without the capture's own exposure (``EXPOSURE``)."""
+    return {k: {n: v for n, v in p.items() if n != EXPOSURE.name} for k, p in params.items()}
+
+
 class SourceBasis:
     """Per-tap, per-source images of the reference at a low film, rendered on demand and
     kept (on disk too, by ``emitter_basis``'s cache).
@@ -493,16 +506,11 @@ class ReferenceModel:
         (vignetting, lens distortion) in ``film``: the no-contact frame (with the
         ``physical`` candidates) at its 99.5th percentile inside the image circle, before
         and after them."""
-        from pbr_tactile.plugin import EXPOSURE_PERCENTILE
-
         key = repr((film, physical))
         if key not in self._film_exposures:
             before = self._resized(self.image(NO_CONTACT, physical))
-            lens = {k: {n: v for n, v in p.items() if n != "exposure"} for k, p in film.items()}
-            after = self.optics(before[None], lens)[0]
-            mask = self.camera.mask
-            ratio = (np.percentile(before[mask], EXPOSURE_PERCENTILE) /
-                     max(float(np.percentile(after[mask], EXPOSURE_PERCENTILE)), 1e-12))
+            after = self.optics(before[None], _without_exposure(film))[0]
+            ratio = _level(before, self.camera.mask) / max(_level(after, self.camera.mask), 1e-12)
             self._film_exposures = {key: float(ratio)}
         return self._film_exposures[key]
 
@@ -595,18 +603,15 @@ class ReferenceModel:
         EXPOSURE_PERCENTILE inside the image circle to EXPOSURE_LEVEL), so a capture whose
         physics differ is exposed differently: g(theta) = g(identity) level(identity) /
         level(theta), the levels from the no-contact per-source images."""
-        from pbr_tactile.plugin import EXPOSURE_PERCENTILE
 
         def level(p: dict, c: np.ndarray) -> float:
-            nc = np.tensordot(self.sources(NO_CONTACT, p), c, axes=([2], [0]))
-            return float(np.percentile(nc[self._film_mask], EXPOSURE_PERCENTILE))
+            return _level(np.tensordot(self.sources(NO_CONTACT, p), c, axes=([2], [0])), self._film_mask)
 
         if not params:
             return float(self.basis.gain)
         if self._level is None:
             self._level = level({}, self._identity_colour())
-        # every tap of one prediction has the same exposure (computed once), whatever EXPOSURE
-        key = repr({k: {n: v for n, v in p.items() if n != "exposure"} for k, p in params.items()})
+        key = repr(_without_exposure(params))  # one exposure for every tap of a prediction, whatever EXPOSURE
         if key not in self._exposures:
             self._exposures = {key: float(self.basis.gain * self._level / max(level(params, colour), 1e-30))}
         return self._exposures[key]
