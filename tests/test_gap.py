@@ -385,6 +385,9 @@ def test_cli_refuses_bad_arguments(tmp_path, sim_dir, capsys):
     with pytest.raises(SystemExit):
         main(["diagnose", str(sim_dir), str(sim_dir), "--out", str(tmp_path), "--effects", "sparkle"])
     assert "unknown: sparkle" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["diagnose", str(sim_dir), str(sim_dir), "--out", str(tmp_path), "--intervals", "-1"])
+    assert "--intervals: expected a whole number >= 0, got '-1'" in capsys.readouterr().err
     assert main(["diagnose", str(tmp_path / "nowhere"), str(sim_dir), "--out", str(tmp_path / "r")]) == 1
     assert "is not a dataset" in capsys.readouterr().err
     assert main(["diagnose", "benchmark", "--cases", "1"]) == 2
