@@ -67,6 +67,14 @@ FTOL = 1e-4
 MAX_FIT_SAMPLES = 32
 #: A forward-selection step must also close at least this share of the original gap.
 MIN_STEP_SHARE = 0.01
+#: A reference model's candidate that closes the held-out gap to within this share of it
+#: of the best one's ties with it for the first place (``Diagnosis.rank``). A re-rendered
+#: candidate's prediction carries the basis' Monte Carlo noise, and camera_gains' none:
+#: on the physical benchmark the hidden absorption (98 per m, fitted 97.8), albedo (0.708,
+#: fitted 0.707) and core leak were beaten by camera_gains (11 parameters) by 0.2 %, 1.7 %
+#: and 0.7 % of the gap, each significant on the paired held-out taps; at its true value
+#: the hidden absorption alone left 0.0149 where camera_gains left 0.0150.
+RANK_TIE_SHARE = 0.02
 #: L-BFGS-B iterations of the joint refit of a selected combination.
 JOINT_ITERATIONS = 15
 #: Forward selection tries at most this many remaining candidates per step (the best
@@ -499,7 +507,8 @@ class Diagnosis:
         """The significant single effects, best held-out MAE improvement first. A
         reference model's candidates are ranked by that too, except that the first is the
         one with the fewest parameters among those the best does not beat significantly
-        (paired held-out MAE): its image-level models of the unit's camera (camera_gains,
+        (paired held-out MAE) or beats by at most ``RANK_TIE_SHARE`` of the gap: its
+        image-level models of the unit's camera (camera_gains,
         11 parameters) mimic a physical colour or brightness change nearly as well and
         then would take the first place by noise alone (measured: hidden camera_response
         and led_spectra switches were fitted exactly, and ranked second to it)."""
@@ -507,9 +516,12 @@ class Diagnosis:
         if self.work.kind == "fast" or len(ranked) < 2:
             return ranked
         best = singles[ranked[0]].after[RANK_BY[0]][RANK_BY[1]]
+        margin = RANK_TIE_SHARE * float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
 
         def tied(name: str) -> bool:
             other = singles[name].after[RANK_BY[0]][RANK_BY[1]]
+            if float(np.mean(other)) - float(np.mean(best)) <= margin:
+                return True
             return not metrics.improvement(other, best, RANK_BY[1], seed=self.seed)["significant"]
 
         def size(name: str) -> int:  # the capture's exposure, fitted with every physical candidate, not counted
