@@ -150,12 +150,28 @@ def test_a_re_rendered_effect_is_interpolated_between_grid_points(spec, scene, s
     """Absorption acts as exp(-sigma_a d): the geometric interpolation is exact between grid points."""
     camera, ref, depth = scene
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
-    got = model.sources(2, {"absorption_per_m": {"value": 50.0}})
+    got = model.interpolated(2, "absorption_per_m", 50.0)
     truth = fake_basis(spec, None, camera, dataclasses.replace(Effects(), absorption_per_m=50.0,
                                                                core_light_leak=physical.LEAK_BASIS),
                        FILM, depth=depth[2], ref_depth=ref)["mean"]
     assert np.allclose(got, truth, rtol=1e-4, atol=1e-4)
     assert model.basis.cost["absorption_per_m"]["renders"] == 1  # one grid point (120) beside the identity
+
+
+def test_a_re_rendered_change_is_smoothed_as_a_ratio():
+    """A change that scales the light smoothly passes whole; the renders' noise is cut."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:60, 0:80]
+    base = np.stack([1.0 + ((xx // 10 + yy // 10) % 2), np.exp(-xx / 40.0)], axis=-1).astype(np.float32)
+    ratio = (0.5 + 0.4 * np.sin(xx / 25.0))[..., None].astype(np.float32)
+    # An exact ratio away from the film's edges (the filter's nearest-edge padding aside).
+    inner = (slice(8, -8), slice(8, -8))
+    truth = (base * ratio - base)[inner]
+    assert np.abs(physical._smoothed_change(base * ratio, base)[inner] - truth).max() < 0.02 * np.abs(truth).max()
+    noisy = base * ratio * (1 + 0.1 * rng.standard_normal(base.shape)).astype(np.float32)
+    plain = np.abs((noisy - base) - (base * ratio - base))[inner].mean()
+    smoothed = np.abs(physical._smoothed_change(noisy, base) - (base * ratio - base))[inner].mean()
+    assert smoothed < plain / 3
 
 
 def pairs_of(spec, scene, real: np.ndarray, sim: np.ndarray, **effects) -> Pairs:
