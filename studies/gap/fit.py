@@ -72,8 +72,9 @@ MIN_STEP_SHARE = 0.01
 #: candidate's prediction carries the basis' Monte Carlo noise, and camera_gains' none:
 #: on the physical benchmark the hidden absorption (98 per m, fitted 97.8), albedo (0.708,
 #: fitted 0.707) and core leak were beaten by camera_gains (11 parameters) by 0.2 %, 1.7 %
-#: and 0.7 % of the gap, each significant on the paired held-out taps; at its true value
-#: the hidden absorption alone left 0.0149 where camera_gains left 0.0150.
+#: and 0.7 % of the gap, each significant on the paired held-out taps (the absorption,
+#: predicted at its hidden value, left a masked MAE of 0.0149 on six of the taps; the
+#: fitted camera_gains, 0.0150 on the held-out six).
 RANK_TIE_SHARE = 0.02
 #: L-BFGS-B iterations of the joint refit of a selected combination.
 JOINT_ITERATIONS = 15
@@ -508,10 +509,10 @@ class Diagnosis:
         reference model's candidates are ranked by that too, except that the first is the
         one with the fewest parameters among those the best does not beat significantly
         (paired held-out MAE) or beats by at most ``RANK_TIE_SHARE`` of the gap: its
-        image-level models of the unit's camera (camera_gains,
-        11 parameters) mimic a physical colour or brightness change nearly as well and
-        then would take the first place by noise alone (measured: hidden camera_response
-        and led_spectra switches were fitted exactly, and ranked second to it)."""
+        image-level models of the unit's camera (camera_gains, 11 parameters) mimic a
+        physical colour or brightness change nearly as well and then would take the first
+        place by noise alone (measured: hidden camera_response and led_spectra switches
+        were fitted exactly, and ranked second to it)."""
         ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
         if self.work.kind == "fast" or len(ranked) < 2:
             return ranked
