@@ -120,7 +120,11 @@ def test_every_field_of_effects_is_a_candidate_and_new_ones_join(spec):
 def test_powers_leak_and_spectra_are_linear_in_the_sources(spec, scene, stub):
     camera, ref, depth = scene
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
-    B = model.basis.images(0)
+    raw = model.basis.images(0)
+    B = model.sources(0, {})  # the LEDs' own images as rendered, their leaks' smoothed
+    leak = np.array([n.endswith("_leak") for n in model.basis.names])
+    assert np.array_equal(B[..., ~leak], raw[..., ~leak]) and not np.allclose(B[..., leak], raw[..., leak])
+    assert np.allclose(B[..., leak].sum((0, 1)), raw[..., leak].sum((0, 1)), rtol=0.02)  # light kept
     R = model.responses((0.0,) * len(spec.leds), 1.0, 1.0)
     names = model.basis.names
     expect = GAIN * sum(0.5 * (2.0 if n.startswith("led1") else 1.0) * B[..., s, None] * R[int(n[3])]
@@ -129,7 +133,7 @@ def test_powers_leak_and_spectra_are_linear_in_the_sources(spec, scene, stub):
               "led_power": {f"power_{m}": 2.0 if m == 1 else 1.0 for m in range(len(spec.leds))}}
     # The capture is exposed from its own no-contact frame (pbr_tactile.plugin's rule).
     mask = camera.scaled(*FILM).mask
-    nc = model.basis.images(physical.NO_CONTACT)
+    nc = model.sources(physical.NO_CONTACT, {})
     level = np.percentile((GAIN * sum(0.5 * (2.0 if n.startswith("led1") else 1.0) * nc[..., s, None] * R[int(n[3])]
                                       for s, n in enumerate(names)))[mask], 99.5)
     level0 = np.percentile((GAIN * sum(nc[..., s, None] * R[int(n[3])] for s, n in enumerate(names)
