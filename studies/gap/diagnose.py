@@ -104,10 +104,11 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                      "judged_at_why": JUDGED_AT_WHY[diagnosis.work.kind],
                      "rank_by": "/".join(RANK_BY), "confidence": 0.95, "bootstrap_resamples": 2000,
                      "significant": "95% bootstrap interval of the paired held-out MAE improvement above 0",
-                     "param_intervals": (f"95% percentile intervals of the {INTERVAL_EFFECTS} best-ranked effects' "
-                                         f"parameters over {intervals} bootstrap resamples of the training samples, each "
-                                         "refitted from the fit: the spread over taps, not the bias of the renders "
-                                         "the fit leans on" if intervals else "not computed")},
+                     "param_intervals": (f"95% intervals of the {INTERVAL_EFFECTS} best-ranked effects' parameters: "
+                                         f"the fitted value plus the percentiles of {intervals} bootstrap resamples' "
+                                         "refits (from the fit, of the training samples drawn with replacement) less a "
+                                         "refit of the training samples themselves: the spread over taps, not the bias "
+                                         "of the renders the fit leans on" if intervals else "not computed")},
         "gap": {"all": metrics.summarise(gap_all, seed=seed),
                 "heldout": metrics.summarise(diagnosis.before, seed=seed),
                 "per_object": _groups(pairs, gap_all, every, lambda r: r.get("object")),

@@ -419,8 +419,7 @@ class Diagnosis:
                    train_loss, self.train_loss_before, status)
 
     def intervals(self, fit: Fit, resamples: int = PARAM_RESAMPLES, confidence: float = 0.95) -> dict:
-        """Percentile bootstrap intervals of a fit's parameters: {effect: {param: [low,
-        high]}}. Each resample draws the training samples with replacement and refits
+        """Bootstrap intervals of a fit's parameters: {effect: {param: [low, high]}}. Each resample draws the training samples with replacement and refits
         from the fitted parameters (at most ``JOINT_ITERATIONS`` L-BFGS-B iterations).
 
         The refits stop at tolerances far below the fit's, so the training samples

@@ -432,7 +432,7 @@ class ReferenceModel:
         self._responses: dict = {}
         self._plain: dict = {}  # M(identity) by sample
         self._level = None  # the identity's exposure level (``exposure``)
-        self._exposures: dict = {}  # the last parameters' exposure gain
+        self._exposures: dict = {}  # exposure gain by parameters (at most 17 kept)
         self._film_exposures: dict = {}  # the last image-stage effects' exposure ratio
         w, h = basis.film
         self._film_mask = Camera.from_spec(spec).scaled(w, h).mask
