@@ -27,6 +27,7 @@ from scenes.spec import SensorSpec, default_spec
 
 from .gap.diagnose import diagnose
 from .gap.effects import EFFECTS
+from .gap.fit import PARAM_RESAMPLES
 from .gap.model import FastModel
 from .gap.pairs import Pairs
 from .gap.report import write_json, write_report
@@ -78,7 +79,9 @@ def pairs_for(real: np.ndarray, spec: SensorSpec, field: str, reference_dir: Pat
 
 
 def run(out: Path, fields: tuple[str, ...] = ("plane", "linear"), reference_dir: Path | None = None,
-        spec: SensorSpec | None = None) -> dict:
+        spec: SensorSpec | None = None, intervals: int = PARAM_RESAMPLES) -> dict:
+    """Diagnose the real image against each field; ``intervals``: bootstrap resamples
+    behind the best effects' parameter intervals (``diagnose``), 0 for none."""
     reference_dir = require_reference_dir(reference_dir)
     path = reference_dir / "real" / "bkg.png"
     if not path.exists():
@@ -89,7 +92,7 @@ def run(out: Path, fields: tuple[str, ...] = ("plane", "linear"), reference_dir:
     for field in fields:
         pairs = pairs_for(real, spec, field, reference_dir)
         train = np.arange(len(pairs)) % 2 == 0
-        report, artefacts = diagnose(pairs, sides=(train, ~train), factor=2)
+        report, artefacts = diagnose(pairs, sides=(train, ~train), factor=2, intervals=intervals)
         report["study"] = {"what": "one real no-contact image against the fast path's, sectors as samples",
                            "limits": LIMITS, "contact_only_untestable": list(CONTACT_ONLY)}
         write_report(out / field, report, artefacts)

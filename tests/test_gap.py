@@ -472,7 +472,8 @@ def test_real_background_study(tmp_path, reference_dir):
     """The one real capture: the light leaking through the core explains most of it."""
     from studies.real_background_gap import run
 
-    summary = run(tmp_path, fields=("plane",), reference_dir=reference_dir)
+    # without the parameter intervals: their two bootstrap refits cost most of the run (test_gap_physical checks them)
+    summary = run(tmp_path, fields=("plane",), reference_dir=reference_dir, intervals=0)
     plane = summary["fields"]["plane"]
     assert plane["ranking"] and plane["ranking"][0] == "core_light_leak"
     assert plane["share_closed"]["masked"] > 0.5
