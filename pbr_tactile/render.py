@@ -26,7 +26,7 @@ from scenes.camera import CONTACT_EPS_M, Camera
 from scenes.spec import SensorSpec
 
 from .effects import Effects
-from .membrane import ElastomerBuilder
+from .membrane import ElastomerBuilder, shared_builder
 from .scene import geltip_scene, led_sources, write_meshes
 from .variant import choose_variant
 
@@ -469,7 +469,7 @@ def reference(
         they use. 0: off.
     no_contact_memo : see ``render_photons``.
     solids : the membrane's ElastomerBuilder, kept across contacts (it refines the
-        membrane and checks its undeformed solid once); None builds one.
+        membrane and checks its undeformed solid once); None: ``shared_builder``'s.
     control, control_spp : the no-contact frame as a control variate for this contact,
         and asking for this render as one (see ``render_photons``; photons only).
     per_source : one grey image per source of ``led_sources(spec, effects)`` instead of
@@ -492,7 +492,7 @@ def reference(
         raise ValueError("per_source images need the photon estimator")
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
     targets = {"target_rse": target_rse, "region": region, "max_passes": max_passes}
-    build = solids if solids is not None else ElastomerBuilder(membrane, spec, camera)
+    build = solids if solids is not None else shared_builder(membrane, spec, camera)
     solid = build(depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)

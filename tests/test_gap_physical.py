@@ -75,7 +75,6 @@ def stub(monkeypatch):
     import pbr_tactile.calibrate
 
     monkeypatch.setattr(pbr_tactile.calibrate, "emitter_basis", fake_basis)
-    monkeypatch.setattr(SourceBasis, "_builder", lambda self, spec: None)
 
 
 @pytest.fixture(scope="module")

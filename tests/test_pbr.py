@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -27,6 +28,21 @@ def test_undeformed_elastomer_is_a_closed_shell_of_the_membrane_thickness(mesh, 
     assert closed.volume == pytest.approx(capsule(m.radius) - capsule(m.core_radius), rel=0.01)
     gap = np.linalg.norm(solid.outer.vertices - solid.inner.vertices, axis=1)
     assert np.allclose(gap, m.radius - m.core_radius)
+
+
+def test_the_shared_builder_is_kept_for_what_it_reads(mesh, spec, camera):
+    """One builder per membrane, camera and elastic layer: turned LEDs share it, a thinner
+    membrane or another refinement does not."""
+    from pbr_tactile.membrane import shared_builder
+    from scenes.profile import turn_leds
+
+    coarse = 1e-3
+    first = shared_builder(mesh, spec, camera, coarse)
+    assert shared_builder(mesh, turn_leds(spec, (0.1, 0.0, -0.1)), camera, coarse) is first
+    thinner = dataclasses.replace(spec, membrane=dataclasses.replace(spec.membrane, radius=spec.membrane.radius - 2e-4))
+    other = shared_builder(mesh, thinner, camera, coarse)
+    assert other is not first and other.undeformed.thickness < first.undeformed.thickness
+    assert shared_builder(mesh, spec, camera, 0.8e-3) is not first
 
 
 def test_contact_dents_the_outer_surface_inwards_along_its_normals(mesh, spec, camera, ref, pressed):

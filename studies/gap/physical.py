@@ -332,7 +332,6 @@ class SourceBasis:
         self.use_cache = use_cache
         self._images: dict = {}
         self.names: list[str] | None = None  # the sources, in the basis' order (from the first render)
-        self._solids: dict = {}  # the membrane's ElastomerBuilder by spec digest, built once each
         self.renders = 0  # basis renders made here (not read from memory)
         self.seconds = 0.0
         self.cost: dict[str, dict] = {}  # per candidate: renders and seconds
@@ -351,16 +350,6 @@ class SourceBasis:
             effects = dataclasses.replace(effects, **{name: bool(value >= 0.5) if isinstance(current, bool)
                                                       else float(value)})
         return spec, effects, scale
-
-    def _builder(self, spec: SensorSpec):
-        """The membrane's ElastomerBuilder for ``spec`` (it refines and checks the membrane:
-        once per spec, not once per render)."""
-        builder = self._solids.get(spec.digest())
-        if builder is None:
-            from pbr_tactile.membrane import ElastomerBuilder
-
-            builder = self._solids[spec.digest()] = ElastomerBuilder(self.mesh, spec, self.camera)
-        return builder
 
     def images(self, key: int, name: str | None = None, value: float | None = None) -> np.ndarray:
         """(h, w, S) float32: tap ``key``'s per-source images per unit flux at the film
@@ -385,7 +374,7 @@ class SourceBasis:
         t0 = time.perf_counter()
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
                               passes=self.passes, seed=self.seed, use_cache=self.use_cache,
-                              solids=self._builder(spec), no_contact_runs=self.no_contact_runs, **contact)
+                              no_contact_runs=self.no_contact_runs, **contact)
         seconds = time.perf_counter() - t0
         self.renders += 1
         self.seconds += seconds
