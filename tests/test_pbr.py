@@ -45,6 +45,22 @@ def test_the_shared_builder_is_kept_for_what_it_reads(mesh, spec, camera):
     assert shared_builder(mesh, spec, camera, 0.8e-3) is not first
 
 
+def test_a_builder_keeps_the_solids_of_its_last_contacts(monkeypatch, mesh, spec, camera, ref, pressed):
+    from pbr_tactile import membrane
+    from pbr_tactile.membrane import ElastomerBuilder
+
+    monkeypatch.setattr(membrane, "KEPT_SOLIDS", 2)
+    build = ElastomerBuilder(mesh, spec, camera, 1e-3)
+    solid = build(pressed, ref)
+    assert build(pressed.copy(), ref) is solid  # by the contact's values
+    deeper = np.where(pressed < ref, pressed - 2e-4, pressed).astype(pressed.dtype)
+    other = build(deeper, ref)
+    assert other is not solid and other.outer.volume != solid.outer.volume
+    assert build(pressed, ref) is solid and build(deeper, ref) is other
+    build(np.where(pressed < ref, pressed - 1e-4, pressed).astype(pressed.dtype), ref)  # the oldest goes
+    assert build(deeper, ref) is other and build(pressed, ref) is not solid
+
+
 def test_contact_dents_the_outer_surface_inwards_along_its_normals(mesh, spec, camera, ref, pressed):
     flat = elastomer(mesh, spec, camera, edge=0.5e-3)
     dented = elastomer(mesh, spec, camera, pressed, ref, edge=0.5e-3)
