@@ -291,6 +291,33 @@ def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_
     assert not (tmp_path / "b.json").exists()
 
 
+def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec, scene, stub, monkeypatch):
+    """Judging a re-rendered candidate renders every held-out tap: only the best
+    ``JUDGED_RENDERS`` of them on the training taps are; the rest are screened out, say
+    why, close nothing and are never ranked, and none of their held-out taps is rendered."""
+    from studies.gap.diagnose import diagnose
+    from studies.gap.report import headline
+
+    monkeypatch.setattr(physical, "JUDGED_RENDERS", 1)
+    pairs = pairs_of(spec, scene, rendered(spec, scene, {"absorption_per_m": {"value": 60.0}}), rendered(spec, scene, {}))
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=8,
+                  effects=("core_light_leak", "absorption_per_m", "scattering_per_m", "coating_albedo"))
+    singles = d.singles()
+    screened = {n for n, j in singles.items() if "screened" in j.fit.status}
+    assert screened == {"scattering_per_m", "coating_albedo"}
+    assert singles["absorption_per_m"].significant
+    for name in screened:
+        assert not singles[name].significant and singles[name].gain == 0.0
+        assert "absorption_per_m" in singles[name].fit.status["screened"]
+        rendered_keys = {tag[0] for tag in d.work.basis._images if tag[1] == name}
+        assert rendered_keys and not rendered_keys & set(d.heldout_index.tolist())
+    assert d.rank(singles)[0] == "absorption_per_m"
+    report, _ = diagnose(pairs, effects=d.effects, factor=8, intervals=0)
+    assert set(report["screened"]) == screened and not set(report["ranking"]) & screened
+    assert any("not judged on the held-out taps" in line for line in headline(report))
+
+
 def test_a_reference_diagnosis_writes_its_report_judged_at_the_basis_film(spec, scene, stub, tmp_path):
     from studies.gap.diagnose import diagnose
     from studies.gap.report import headline, write_report

@@ -124,6 +124,8 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
         # the check around the start found (a local optimum, or a restart that moved on).
         "stopped_at_start": {n: j.fit.status["note"] for n, j in singles.items()
                              if j.fit.status.get("stopped_at_start")},
+        # Fitted on the training samples but not judged on the held-out ones, and why.
+        "screened": {n: j.fit.status["screened"] for n, j in singles.items() if "screened" in j.fit.status},
         "selection": [{"added": s.added, **_judged(s)} for s in steps],
         "explained": {"effects": list(final.fit.effects) if final else [],
                       "share_closed": ({k: final.improvement[k]["mae"]["share"] for k in final.improvement}

@@ -104,7 +104,7 @@ class Fit:
     train_loss_before: float = float("nan")  # and before
     #: how the search ended: optimizer, message, iterations, start_loss, moved (largest
     #: scaled parameter change from the start), stopped_at_start, retried, note
-    status: dict = field(default_factory=dict)
+    status: dict = field(default_factory=dict)  # and screened: why it was not judged (``Diagnosis.screened``)
 
 
 @dataclass
@@ -504,12 +504,36 @@ class Diagnosis:
         return Judged(fit, after, improvement)
 
     def singles(self) -> dict[str, Judged]:
-        out = {}
+        """Each effect fitted alone and judged on the held-out samples, except the
+        re-rendered candidates of a reference model beyond its ``judged_renders`` lowest
+        training losses (``screened``): judging one renders every held-out tap."""
+        fits = {}
         for i, name in enumerate(self.effects):
-            out[name] = self.judge(self.fit((name,)))
+            fits[name] = self.fit((name,))
             if self.progress is not None:
                 self.progress(i + 1, len(self.effects), name)
-        return out
+        screened = self.screened(fits)
+        return {name: self.judge(fit) if name not in screened else self._unjudged(fit, screened[name])
+                for name, fit in fits.items()}
+
+    def screened(self, fits: dict[str, Fit]) -> dict[str, str]:
+        """{name: why} the fitted single effects left unjudged (``singles``)."""
+        keep = getattr(self.work, "judged_renders", None)
+        costly = [n for n in fits if keep is not None and self.work.rerendered(n)]
+        if len(costly) <= (keep or 0):
+            return {}
+        order = sorted(costly, key=lambda n: fits[n].train_loss)
+        return {n: (f"not judged on the held-out samples: its training loss ({fits[n].train_loss:.4g} of "
+                    f"{fits[n].train_loss_before:.4g}) was not among the {keep} lowest of the re-rendered candidates "
+                    f"({', '.join(order[:keep])}), and judging one renders every held-out tap")
+                for n in order[keep:]}
+
+    def _unjudged(self, fit: Fit, why: str) -> Judged:
+        """A fit left unjudged (``screened``): reported as closing nothing, never significant."""
+        fit.status["screened"] = why
+        improvement = {k: {m: metrics.improvement(self.before[k][m], self.before[k][m], m, seed=self.seed)
+                           for m in metrics.METRICS} for k in self.before}
+        return Judged(fit, self.before, improvement)
 
     def rank(self, singles: dict[str, Judged]) -> list[str]:
         """The significant single effects, best held-out MAE improvement first. A

@@ -126,6 +126,7 @@ class FastModel:
     stages = fx.STAGES
     aliases: dict = {}
     max_fit_samples = None  # the diagnosis' own cap
+    judged_renders = None  # every candidate is judged on the held-out samples (none renders there)
 
     def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1):
         # A dataset rendered for a calibrated unit (``--profile``) records its profile: the

@@ -176,6 +176,12 @@ def headline(report: dict) -> list[str]:
                      f"not ({', '.join(untested)}), so the answer below is limited to the rest; a cause among the "
                      "untested ones would show as the tested effects that mimic it best, or as no effect. Why each "
                      "was not tested is listed under 'Which effect causes it'.")
+    screened = report.get("screened", {})
+    if screened:
+        lines.append(f"{len(screened)} re-rendered candidates ({', '.join(screened)}) were fitted on the training taps "
+                     "but, their training loss higher than the best re-rendered ones', not judged on the held-out "
+                     "taps (each would cost a render per held-out tap): they are listed as closing nothing, and a "
+                     "cause among them could rank only through the others.")
     model = report.get("model", "fast")
     lines.append("The candidates are the physical effects of the reference that rendered the simulation (re-rendered "
                  "per light source)." if model == "pbr" else
@@ -237,10 +243,12 @@ def render_html(report: dict, files: dict[str, str]) -> str:
     order = report["ranking"] + [n for n in e if n not in report["ranking"]]
     for n in order:
         imp = e[n]["heldout"]["improvement"]["masked"]
+        judged = n not in report.get("screened", {})
         effect_rows.append([
             (report["ranking"].index(n) + 1) if n in report["ranking"] else "-", n,
-            f"{imp['mae']['share'] * 100:.1f}% [{imp['mae']['share_low'] * 100:.1f}, {imp['mae']['share_high'] * 100:.1f}]",
-            _fmt(imp["ssim"], digits=4), _fmt(imp["psnr"], digits=2),
+            f"{imp['mae']['share'] * 100:.1f}% [{imp['mae']['share_low'] * 100:.1f}, {imp['mae']['share_high'] * 100:.1f}]"
+            if judged else "not judged (screened out)",
+            _fmt(imp["ssim"], digits=4) if judged else "-", _fmt(imp["psnr"], digits=2) if judged else "-",
             "yes" if e[n]["significant"] else "no",
             _params(e[n], n)])
     sel_rows = [[i + 1, "+ " + s["added"], " + ".join(s["effects"]), _fmt(s["heldout"]["after"]["masked"]["mae"]),
@@ -256,7 +264,8 @@ def render_html(report: dict, files: dict[str, str]) -> str:
     gap_rows = [[scope, split_name, _fmt(gap[split_name][scope]["mae"]), _fmt(gap[split_name][scope]["ssim"], digits=3),
                  _fmt(gap[split_name][scope]["psnr"], digits=1)]
                 for split_name in ("all", "heldout") for scope in ("full", "masked")]
-    na = "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in report["not_applicable"].items())
+    na = "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>"
+                 for k, v in {**report["not_applicable"], **report.get("screened", {})}.items())
     img = "".join(f'<p><img src="{html.escape(f)}" style="max-width:100%"></p>' for f in files.values())
     heads = "".join(f"<li>{html.escape(line)}</li>" for line in headline(report))
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Sim-to-real gap diagnosis</title>
@@ -277,7 +286,7 @@ Intervals are 95% bootstrap intervals over samples.</p>
 <p>Each effect fitted alone on the training samples, judged on the held-out ones: the share of the held-out masked MAE
 it closes, and the change of SSIM and PSNR (positive is better). Only significant effects are ranked.</p>
 {_table(["rank", "effect", "gap closed (MAE)", "SSIM change", "PSNR change (dB)", "significant", "fitted parameters"], effect_rows)}
-{"<p>Not applicable here:</p><ul>" + na + "</ul>" if na else ""}
+{"<p>Not applicable here, or not judged on the held-out samples:</p><ul>" + na + "</ul>" if na else ""}
 <h2>How far it shrinks</h2>
 <p>Greedy forward selection: each step adds the effect that most improves the jointly fitted combination on the
 held-out samples, while that step's improvement is significant.</p>
