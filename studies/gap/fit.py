@@ -507,14 +507,17 @@ class Diagnosis:
         """Each effect fitted alone and judged on the held-out samples, except the
         re-rendered candidates of a reference model beyond its ``judged_renders`` lowest
         training losses (``screened``): judging one renders every held-out tap."""
-        fits = {}
+        fits, out, steps = {}, {}, 2 * len(self.effects)
         for i, name in enumerate(self.effects):
             fits[name] = self.fit((name,))
             if self.progress is not None:
-                self.progress(i + 1, len(self.effects), name)
+                self.progress(i + 1, steps, name)
         screened = self.screened(fits)
-        return {name: self.judge(fit) if name not in screened else self._unjudged(fit, screened[name])
-                for name, fit in fits.items()}
+        for i, (name, fit) in enumerate(fits.items()):
+            out[name] = self.judge(fit) if name not in screened else self._unjudged(fit, screened[name])
+            if self.progress is not None:
+                self.progress(len(fits) + i + 1, steps, f"{name}, judged on the held-out samples")
+        return out
 
     def screened(self, fits: dict[str, Fit]) -> dict[str, str]:
         """{name: why} the fitted single effects left unjudged (``singles``)."""
