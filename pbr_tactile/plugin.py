@@ -40,7 +40,7 @@ from scenes.camera import CONTACT_EPS_M, Camera, check_depth
 from scenes.spec import SensorSpec
 
 from .effects import Effects
-from .membrane import ElastomerBuilder
+from .membrane import shared_builder
 from .nocontact import CACHE_VERSION
 from .render import (
     MIN_PASSES,
@@ -316,7 +316,7 @@ class PbrDatasetRenderer:
                                float(frame["rse"]))
         self._memo = dict(inputs["deposits"])  # read first, then filled by any miss
         self._control = None if inputs["control"] is None else Control(**inputs["control"])
-        self._solids = ElastomerBuilder(mesh, spec, camera)  # refined and checked once
+        self._solids = shared_builder(mesh, spec, camera)  # refined and checked once per process
 
     def _camera_size(self, image: np.ndarray) -> np.ndarray:
         """A film-sized (h, w, 3) image at the camera's (H, W, 3), float32 (see RESAMPLING)."""
