@@ -90,12 +90,8 @@ class ElastomerBuilder:
             raise ValueError("ref_depth is required with a depth map")
         from scenes.cache import make_key
 
-        key = make_key(np.asarray(depth), np.asarray(ref_depth))
-        solid = self._solids.pop(key, None) or self._deformed(depth, ref_depth)
-        self._solids[key] = solid
-        while len(self._solids) > KEPT_SOLIDS:
-            self._solids.popitem(last=False)
-        return solid
+        return _kept(self._solids, make_key(np.asarray(depth), np.asarray(ref_depth)),
+                     lambda: self._deformed(depth, ref_depth), KEPT_SOLIDS)
 
     def _deformed(self, depth: np.ndarray, ref_depth: np.ndarray) -> Elastomer:
         outer = self.layer.surface(depth, ref_depth)
@@ -122,11 +118,17 @@ def shared_builder(membrane: trimesh.Trimesh, spec: SensorSpec, camera: Camera,
 
     key = make_key(np.asarray(membrane.vertices), np.asarray(membrane.faces), dataclasses.asdict(spec.membrane),
                    dataclasses.asdict(spec.elastic), dataclasses.asdict(camera), edge)
-    builder = _builders.pop(key, None) or ElastomerBuilder(membrane, spec, camera, edge)
-    _builders[key] = builder
-    while len(_builders) > KEPT_BUILDERS:
-        _builders.popitem(last=False)
-    return builder
+    return _kept(_builders, key, lambda: ElastomerBuilder(membrane, spec, camera, edge), KEPT_BUILDERS)
+
+
+def _kept(store: OrderedDict, key: str, build, size: int):
+    """``store[key]``, built by ``build()`` when missing; ``store`` keeps the ``size``
+    most recently used."""
+    value = store.pop(key) if key in store else build()
+    store[key] = value
+    while len(store) > size:
+        store.popitem(last=False)
+    return value
 
 
 def elastomer(
