@@ -419,8 +419,9 @@ class Diagnosis:
                    train_loss, self.train_loss_before, status)
 
     def intervals(self, fit: Fit, resamples: int = PARAM_RESAMPLES, confidence: float = 0.95) -> dict:
-        """Bootstrap intervals of a fit's parameters: {effect: {param: [low, high]}}. Each resample draws the training samples with replacement and refits
-        from the fitted parameters (at most ``JOINT_ITERATIONS`` L-BFGS-B iterations).
+        """Bootstrap intervals of a fit's parameters: {effect: {param: [low, high]}}. Each
+        resample draws the training samples with replacement and refits from the fitted
+        parameters (at most ``JOINT_ITERATIONS`` L-BFGS-B iterations).
 
         The refits stop at tolerances far below the fit's, so the training samples
         themselves, refitted so, are the reference: each draw's offset from that refit is
@@ -522,8 +523,10 @@ class Diagnosis:
     def screened(self, fits: dict[str, Fit]) -> dict[str, str]:
         """{name: why} the fitted single effects left unjudged (``singles``)."""
         keep = getattr(self.work, "judged_renders", None)
-        costly = [n for n in fits if keep is not None and self.work.rerendered(n)]
-        if len(costly) <= (keep or 0):
+        if keep is None:
+            return {}
+        costly = [n for n in fits if self.work.rerendered(n)]
+        if len(costly) <= keep:
             return {}
         order = sorted(costly, key=lambda n: fits[n].train_loss)
         return {n: (f"not judged on the held-out samples: its training loss ({fits[n].train_loss:.4g} of "

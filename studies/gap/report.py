@@ -179,9 +179,9 @@ def headline(report: dict) -> list[str]:
     screened = report.get("screened", {})
     if screened:
         lines.append(f"{len(screened)} re-rendered candidates ({', '.join(screened)}) were fitted on the training taps "
-                     "but, their training loss higher than the best re-rendered ones', not judged on the held-out "
-                     "taps (each would cost a render per held-out tap): they are listed as closing nothing, and a "
-                     "cause among them could rank only through the others.")
+                     "but not judged on the held-out taps: their training loss was higher than the best re-rendered "
+                     "ones', and judging each would cost a render per held-out tap. They are listed as closing "
+                     "nothing, so a cause among them could show only through the effects that mimic it.")
     model = report.get("model", "fast")
     lines.append("The candidates are the physical effects of the reference that rendered the simulation (re-rendered "
                  "per light source)." if model == "pbr" else
