@@ -20,6 +20,8 @@ from studies.gap import metrics
 from studies.gap.benchmark import score
 from studies.gap.model import FastModel
 from studies.gap.pairs import load_pairs, split
+from studies.gap.regions import REGIONS
+from studies.gap.report import headline
 
 PROTOCOL = {"name": "test", "taps": 16}
 #: Contact pixels spread over the image: on the axis, the tip, the body, near the LEDs.
@@ -89,6 +91,25 @@ def test_metrics_of_known_images(camera):
     assert np.allclose(m["full"]["psnr"], 20.0, atol=1e-3)  # 10 log10(1 / 0.01)
     same = metrics.per_sample(a, a, camera.mask)
     assert np.allclose(same["full"]["ssim"], 1.0) and np.all(same["full"]["psnr"] == metrics.PSNR_CAP_DB)
+
+
+def test_metrics_per_region_measure_only_their_pixels(camera):
+    a = np.full((2, 480, 640, 3), 0.5, np.float32)
+    b = a.copy()
+    top = np.zeros(camera.shape, bool)
+    top[:240] = True
+    b[:, :240] += 0.1
+    b[:, 240:] += 0.3
+    m = metrics.per_sample(a, b, camera.mask, regions={"top": top, "bottom": ~top})
+    assert np.allclose(m["top"]["mae"], 0.1, atol=1e-6) and np.allclose(m["bottom"]["mae"], 0.3, atol=1e-6)
+    assert np.allclose(m["top"]["psnr"], 20.0, atol=1e-3)
+    assert 0.1 < m["masked"]["mae"][0] < 0.3
+    with pytest.raises(ValueError, match="region 'masked'"):
+        metrics.per_sample(a, b, camera.mask, regions={"masked": top})
+    with pytest.raises(ValueError, match="with pixels inside"):
+        metrics.per_sample(a, b, camera.mask, regions={"outside": ~camera.mask})
+    with pytest.raises(ValueError, match="regions or areas"):
+        metrics.per_sample(a, b, camera.mask, regions={"top": top}, areas=np.ones((2,) + camera.shape, bool))
 
 
 def test_improvement_is_significant_only_when_it_is():
@@ -364,9 +385,14 @@ def test_diagnosis_names_a_hidden_effect(tmp_path, spec, injector, contacts, sim
     assert report["ranking"][0] == hidden, report["ranking"]
     assert report["effects"][hidden]["share_closed"]["masked"] > 0.5
     assert report["explained"]["share_closed"]["masked"] > 0.5
+    # held-out samples are judged per region too: a contact effect closes where contacts are
+    closed = report["explained"]["share_closed"]
+    assert set(REGIONS) <= set(closed) and max(closed[r] for r in REGIONS) > 0.5
+    assert set(REGIONS) <= set(report["gap"]["heldout"])
     assert set(report["effects"]) == set(fx.EFFECTS)
     html = (tmp_path / "report" / "report.html").read_text()
-    assert hidden in html and "Which effect causes it" in html
+    assert hidden in html and "Which effect causes it" in html and "gap closed per region" in html
+    assert any("per region:" in line for line in headline(report))
     for name in ("gap_maps.png", "gap_split.png", "effects.png", "examples.png"):
         assert (tmp_path / "report" / name).stat().st_size > 1000
 

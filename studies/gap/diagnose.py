@@ -82,7 +82,8 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     located, labels = where(pairs.real, pairs.sim, pairs.depth, pairs.records, pairs.spec, seed)
     maps = error_maps(pairs.real, pairs.sim)
 
-    diagnosis = Diagnosis(pairs, train, heldout, factor=factor, effects=effects, seed=seed, progress=progress)
+    diagnosis = Diagnosis(pairs, train, heldout, factor=factor, effects=effects, seed=seed, progress=progress,
+                          regions=labels)
     singles = diagnosis.singles()
     ranked = diagnosis.rank(singles)
     bounds = {n: diagnosis.intervals(singles[n].fit, intervals) for n in ranked[:INTERVAL_EFFECTS]} if intervals else {}

@@ -30,6 +30,8 @@ import numpy as np
 from scipy import optimize
 from skimage.registration import phase_cross_correlation
 
+from scenes.images import block_mean
+
 from . import effects as fx
 from . import metrics
 from .model import make_models
@@ -129,11 +131,15 @@ class Diagnosis:
 
     pairs : the matched datasets; train, heldout : boolean masks over them;
     factor : the working resolution of fits (1/factor of the images');
-    effects : the names to consider (default: every one that applies).
+    effects : the names to consider (default: every one that applies);
+    regions : the image circle's regions ({name: (H, W) bool} at the images' size,
+        default ``regions.region_labels``): held-out samples are also judged in each
+        (their own scopes beside "full" and "masked"), unless samples are parts of one image.
     """
 
     def __init__(self, pairs: Pairs, train: np.ndarray, heldout: np.ndarray, factor: int = 2,
-                 effects: tuple[str, ...] | None = None, seed: int = 0, progress=None):
+                 effects: tuple[str, ...] | None = None, seed: int = 0, progress=None,
+                 regions: dict[str, np.ndarray] | None = None):
         self.pairs = pairs
         self.seed = seed
         self.progress = progress
@@ -164,6 +170,15 @@ class Diagnosis:
         self.sim_h = self.full.working_images(pairs.sim[self.heldout_index])
         self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
         self.mask = self.full.mask
+        self.regions_h = None
+        if areas is None:
+            if regions is None:
+                from .regions import region_labels
+
+                regions = region_labels(pairs.spec)
+            self.regions_h = {name: (block_mean(np.asarray(r, np.float32), self.full.factor) >= 0.5) & self.mask
+                              for name, r in regions.items()}
+            self.regions_h = {name: r for name, r in self.regions_h.items() if r.any()}
         self.not_applicable = self.work.not_applicable(pairs)
         wanted = self.names if effects is None else tuple(effects)
         unknown = [e for e in wanted if e not in self.names]
@@ -171,7 +186,8 @@ class Diagnosis:
             raise ValueError(f"unknown effect(s) {unknown}; the {self.work.kind} model's catalogue has "
                              f"{list(self.names)}")
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
-        self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h)
+        self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h,
+                                         regions=self.regions_h)
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
 
@@ -497,7 +513,7 @@ class Diagnosis:
         ``metrics.per_sample`` result; default: the simulator as it is). ``complete=False``
         measures MAE and PSNR only (no SSIM), for trials that are only compared."""
         after = metrics.per_sample(self.real_h, self.predict_heldout(fit.params), self.mask, ssim=complete,
-                                   areas=self.areas_h)
+                                   areas=self.areas_h, regions=self.regions_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
         improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed) for m in names}

@@ -28,7 +28,7 @@ def _psnr(mse: np.ndarray) -> np.ndarray:
 
 
 def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool = True,
-               areas: np.ndarray | None = None) -> dict[str, np.ndarray]:
+               areas: np.ndarray | None = None, regions: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Metrics of each sample: {"full": {mae, ssim, psnr}, "masked": {...}}, arrays (N,).
 
     real, pred : (N, H, W, 3) or (H, W, 3) float in [0, 1]; mask : (H, W) bool, the
@@ -36,7 +36,8 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
     value is the mean of the SSIM map over the mask. ``ssim=False`` leaves SSIM out (NaN),
     for quick comparisons: it costs most of the time. ``areas`` (N, H, W) bool, optional:
     each sample is measured only there ("full") and there within the mask ("masked"),
-    for samples that are parts of one image.
+    for samples that are parts of one image. ``regions`` {name: (H, W) bool}, optional:
+    each adds a scope of that name, measured within the mask there (no ``areas`` then).
     """
     real, pred = np.asarray(real), np.asarray(pred)
     if real.shape != pred.shape:
@@ -47,8 +48,15 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         raise ValueError(f"images must be (N, H, W, 3) with an (H, W) mask, got {real.shape} and {mask.shape}")
     if areas is not None and areas.shape != real.shape[:3]:
         raise ValueError(f"areas must be (N, H, W) like the images, got {areas.shape} for {real.shape}")
+    regions = {} if regions is None else regions
+    if regions and areas is not None:
+        raise ValueError("per_sample measures regions of whole images: give regions or areas, not both")
+    for name, region in regions.items():
+        if name in ("full", "masked") or region.shape != mask.shape or not (region & mask).any():
+            raise ValueError(f"region {name!r} must be an (H, W) bool mask like the image circle's, with pixels inside "
+                             f"it, and not named full or masked; got shape {region.shape}")
     n = len(real)
-    out = {k: {m: np.empty(n) for m in METRICS} for k in ("full", "masked")}
+    out = {k: {m: np.empty(n) for m in METRICS} for k in ("full", "masked", *regions)}
 
     def one(i: int) -> None:
         a, b = real[i].astype(np.float64), pred[i].astype(np.float64)
@@ -68,6 +76,11 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         out["masked"]["mae"][i] = np.abs(err[inner]).mean()
         out["masked"]["psnr"][i] = _psnr(sq[inner].mean())
         out["masked"]["ssim"][i] = smap[inner].mean()
+        for name, region in regions.items():
+            inner = mask & region
+            out[name]["mae"][i] = np.abs(err[inner]).mean()
+            out[name]["psnr"][i] = _psnr(sq[inner].mean())
+            out[name]["ssim"][i] = smap[inner].mean()
 
     # scikit-image's filters release the GIL: samples in threads use every core.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:

@@ -214,7 +214,8 @@ def headline(report: dict) -> list[str]:
     if report["selection"]:
         last = report["selection"][-1]
         lines.append(f"Together, {' + '.join(last['effects'])} close {last['share_closed']['masked'] * 100:.1f}% of it "
-                     f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])}).")
+                     f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])})"
+                     + (f"; per region: {_by_region(last['share_closed'])}." if _by_region(last["share_closed"]) else "."))
     mc = report["noise"].get("monte_carlo")
     if mc is not None:
         mc = mc.get("judged", mc)  # at the resolution the held-out gap is judged at
@@ -229,6 +230,12 @@ def headline(report: dict) -> list[str]:
         lines.append(f"Estimated sensor noise: {report['noise']['std']:.4f} (an MAE floor of about "
                      f"{report['noise']['mae_floor']:.4f} that no effect can remove).")
     return lines
+
+
+def _by_region(share_closed: dict) -> str:
+    """'12.0% at the tip, ...' of a share_closed entry's region scopes (empty if it has none)."""
+    return ", ".join(f"{share_closed[name] * 100:.1f}% {'at the' if name == 'tip' else 'in the'} "
+                     f"{name.replace('_', ' ')}" for name in REGIONS if name in share_closed)
 
 
 def _table(header: list[str], rows: list[list]) -> str:
@@ -254,7 +261,8 @@ def render_html(report: dict, files: dict[str, str]) -> str:
     sel_rows = [[i + 1, "+ " + s["added"], " + ".join(s["effects"]), _fmt(s["heldout"]["after"]["masked"]["mae"]),
                  _fmt(s["heldout"]["after"]["masked"]["ssim"], digits=3),
                  _fmt(s["heldout"]["after"]["masked"]["psnr"], digits=1), f"{s['share_closed']['masked'] * 100:.1f}%",
-                 f"{s['share_closed']['full'] * 100:.1f}%"] for i, s in enumerate(report["selection"])]
+                 f"{s['share_closed']['full'] * 100:.1f}%", _by_region(s["share_closed"]) or "-"]
+                for i, s in enumerate(report["selection"])]
     where_rows = []
     for group in ("regions", "contact", "channels", "depth"):
         for name, v in report["where"][group].items():
@@ -290,7 +298,8 @@ it closes, and the change of SSIM and PSNR (positive is better). Only significan
 <h2>How far it shrinks</h2>
 <p>Greedy forward selection: each step adds the effect that most improves the jointly fitted combination on the
 held-out samples, while that step's improvement is significant.</p>
-{_table(["step", "added", "combination", "MAE", "SSIM", "PSNR (dB)", "gap closed (masked)", "gap closed (full frame)"], sel_rows) if sel_rows else "<p>No effect was selected.</p>"}
+{_table(["step", "added", "combination", "MAE", "SSIM", "PSNR (dB)", "gap closed (masked)", "gap closed (full frame)",
+         "gap closed per region"], sel_rows) if sel_rows else "<p>No effect was selected.</p>"}
 <p>Sensor noise estimated from the remaining residual: {report['noise']['std']:.4f}. {html.escape(report['noise']['note'])}.</p>
 <h2>Figures</h2>{img}
 <p>Finished in {report['seconds']:.1f} s.</p></body></html>
