@@ -257,6 +257,33 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
             assert getattr(effects, name) == value
 
 
+def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
+    """The realistic pairing: the hidden physical effects are scored through their fast
+    catalogue counterparts, and the per-region shares they close are kept."""
+    from studies.gap.physical import COUNTERPARTS
+    from studies.gap.physical_benchmark import _per_region, counterparts, score_physical
+
+    hidden = {"absorption_per_m": 90.0, "scattering_per_m": 200.0}
+    assert counterparts(hidden) == ["path_attenuation"]  # each counterpart once
+    closes = {"full": 0.2, "masked": 0.6, "tip": 0.8, "body": 0.3, "near_leds": 0.1}
+    report = {"model": "fast", "ranking": ["path_attenuation", "vignetting"],
+              "explained": {"effects": ["path_attenuation"], "share_closed": closes},
+              "effects": {"path_attenuation": {"share_closed": closes, "params": {"mu_per_m": 80.0}}}}
+    out = score_physical(hidden, report)
+    assert out["top1"] and out["top3"] and out["counterparts"] == ["path_attenuation"]
+    assert out["fitted"] == {"path_attenuation": {"mu_per_m": 80.0}} and out["closes"]["path_attenuation"]["tip"] == 0.8
+    wrong = score_physical({"vignetting": 0.4}, {**report, "ranking": ["path_attenuation", "blur_noise"]})
+    assert not wrong["top1"] and not wrong["top3"] and COUNTERPARTS["vignetting"] == "vignetting"
+    regions = _per_region([{**out, "hidden": list(hidden)}, {**out, "hidden": ["absorption_per_m"],
+                                                            "closes": {"path_attenuation": {**closes, "tip": 0.4}}}])
+    assert regions["absorption_per_m"]["tip"] == pytest.approx(0.6) and "full" not in regions["absorption_per_m"]
+    # a reference diagnosis is scored on the hidden effects themselves
+    ref = score_physical({"absorption_per_m": 90.0}, {"ranking": ["absorption_per_m"], "explained": report["explained"],
+                                                      "effects": {"absorption_per_m": {
+                                                          "share_closed": closes, "params": {"absorption_per_m": 85.0}}}})
+    assert ref["top1"] and ref["fitted"] == {"absorption_per_m": 85.0} and "closes" not in ref
+
+
 def test_the_renders_monte_carlo_noise_floor_comes_from_their_variance_maps(spec, scene, tmp_path):
     from studies.gap.diagnose import render_noise
 
@@ -288,6 +315,8 @@ def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_
 
     assert main(["diagnose", "benchmark", "--physical", "--stratified", "--json", str(tmp_path / "b.json")]) == 2
     assert "--physical and --stratified are separate benchmarks" in capsys.readouterr().err
+    assert main(["diagnose", "benchmark", "--pairing", "fast", "--json", str(tmp_path / "b.json")]) == 2
+    assert "--pairing needs --physical" in capsys.readouterr().err
     assert not (tmp_path / "b.json").exists()
 
 

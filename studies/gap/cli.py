@@ -9,6 +9,7 @@ import sys
 from scenes.commands import add_quiet_argument, non_negative_int
 
 from . import effects as fx
+from .physical_benchmark import PAIRINGS
 
 
 def _effects(text: str) -> tuple[str, ...] | None:
@@ -67,6 +68,9 @@ def cmd_benchmark(args) -> int:
     if args.hidden is not None and not args.stratified:
         print("tactile-sim diagnose benchmark: error: --hidden needs --stratified", file=sys.stderr)
         return 2
+    if args.pairing != "reference" and not args.physical:
+        print("tactile-sim diagnose benchmark: error: --pairing needs --physical", file=sys.stderr)
+        return 2
     if args.physical:
         if args.stratified:
             print("tactile-sim diagnose benchmark: error: --physical and --stratified are separate benchmarks",
@@ -78,7 +82,7 @@ def cmd_benchmark(args) -> int:
         from .report import write_json
 
         result = run_physical_benchmark(cases=args.cases, seed=args.seed, work=args.work, progress=not args.quiet,
-                                        factor=args.factor)
+                                        factor=args.factor, pairing=args.pairing)
         write_json(Path(args.json), result)
         print(json.dumps({k: result[k] for k in ("cases", "top1", "top3", "mean_heldout_shrink", "seconds",
                                                  "never_hidden")}, indent=1))
@@ -141,6 +145,11 @@ def register(registry) -> None:
     p.add_argument("--physical", action="store_true",
                    help="benchmark: hide physical effects in the reference (the virtual rig's camera) and diagnose "
                         "them against the reference's replay (studies/gap/physical_benchmark.py)")
+    p.add_argument("--pairing", choices=PAIRINGS, default=PAIRINGS[0],
+                   help="benchmark --physical: diagnose each capture against the reference's replay (default), or "
+                        "against the fast path's replay with a profile calibrated to a capture without hidden effects "
+                        "(what a user with a real sensor and the fast path has; scored on the fast catalogue's "
+                        "counterparts, with the share each closes per region)")
     p.add_argument("--hidden", type=_effects, default=None,
                    help="benchmark --stratified: only the cells hiding these effects, or written unlike the "
                         "catalogue for them (comma-separated; default all); each case keeps its index and seed from "

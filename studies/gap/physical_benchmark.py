@@ -10,6 +10,15 @@ the basis cache, every per-source render of the diagnosis). The diagnosis sees o
 two folders and is scored as the formula benchmark scores it (``benchmark.score``):
 top-1, top-3, the held-out share closed, and per effect.
 
+``pairing="fast"`` is the realistic pairing instead: what a user with a real sensor and
+the fast path has. The fast path is calibrated (``tactile-sim calibrate``, with taps) to a
+capture of the same taps without hidden effects, which takes the renderers' difference
+at the defaults out; each case's capture is then diagnosed against the fast path's
+replay of it with that profile (``dataset --replay --renderer phong --profile``), with
+the fast catalogue. A case is scored on the hidden effects' counterparts in that
+catalogue (``physical.COUNTERPARTS``), and each case reports how much the counterpart
+closes per region of the image circle.
+
 Which physics can be hidden: the Effects switches a capture can be rendered with
 (``HIDDEN``). The membrane's mechanics, the LEDs' powers and spectra and the unit's camera
 and alignment are candidates of the diagnosis but are not switches of the virtual rig's
@@ -59,6 +68,11 @@ TAPS = 12
 RENDER = {"film": "160x120", "target_rse": "0.1", "max_passes": "4", "photons": str(1 << 18)}
 #: The replay's seed (the captures use the renderer's default, 0).
 SIM_SEED = 1000
+#: The simulated sides a case can be diagnosed against: the reference's replay, or the
+#: fast path's replay with a profile calibrated to a capture without hidden effects.
+PAIRINGS = ("reference", "fast")
+#: Taps of that capture the fast path's calibration uses (``tactile-sim calibrate --taps``).
+CALIBRATION_TAPS = 10
 
 
 def draw(case: int, seed: int) -> dict[str, object]:
@@ -120,22 +134,56 @@ def replay(capture_dir: Path, folder: Path, progress: bool = False) -> Path:
     return folder
 
 
+def calibrated_fast_path(root: Path, progress: bool = False) -> Path:
+    """The fast path's profile (``root/profile/profile.toml``), calibrated to a capture of
+    the benchmark's taps without hidden effects (``root/clean``); both kept and reused."""
+    clean = capture(root / "clean", {}, progress)
+    profile = root / "profile" / "profile.toml"
+    if not profile.is_file():
+        _run(["calibrate", str(clean), "--taps", str(CALIBRATION_TAPS), "--out", str(profile.parent)]
+             + ([] if progress else ["--quiet"]))
+    return profile
+
+
+def fast_replay(capture_dir: Path, profile: Path, folder: Path, progress: bool = False) -> Path:
+    """The realistic pairing's simulated side: the fast path of the calibrated unit,
+    replaying the capture's taps."""
+    _run(["dataset", "--replay", str(capture_dir), "--renderer", "phong", "--profile", str(profile),
+          "--out", str(folder)] + ([] if progress else ["--quiet"]))
+    return folder
+
+
+def counterparts(hidden) -> list[str]:
+    """The fast catalogue's counterparts of hidden physical effects, each once."""
+    from .physical import COUNTERPARTS
+
+    return list(dict.fromkeys(COUNTERPARTS[name] for name in hidden))
+
+
 def score_physical(hidden: dict, report: dict) -> dict:
+    """``benchmark.score`` of a case, on the hidden effects themselves for a reference
+    diagnosis and on their counterparts for a fast one; with the fitted values, and for a
+    fast one what each counterpart closes per region of the image circle."""
     from .benchmark import score
 
-    out = score(list(hidden), report)
-    fitted = {}
-    for name in hidden:
-        effect = report["effects"].get(name)
-        if effect is not None:
-            fitted[name] = effect["params"][name]
-    out["fitted"] = fitted
+    fast = report.get("model") == "fast"
+    names = counterparts(hidden) if fast else list(hidden)
+    out = score(names, report)
+    out["fitted"] = {name: report["effects"][name]["params"] if fast else report["effects"][name]["params"][name]
+                     for name in names if name in report["effects"]}
+    if fast:
+        out["counterparts"] = names
+        out["closes"] = {name: report["effects"][name]["share_closed"] for name in names if name in report["effects"]}
+        out["selection_closes"] = report["explained"]["share_closed"]
     return out
 
 
 def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | None = None, progress: bool = True,
-                           factor: int = 2) -> dict:
-    """Build ``cases`` cases, diagnose each, and score them (module doc)."""
+                           factor: int = 2, pairing: str = "reference") -> dict:
+    """Build ``cases`` cases, diagnose each against ``pairing``'s simulated side (one of
+    ``PAIRINGS``), and score them (module doc)."""
+    if pairing not in PAIRINGS:
+        raise ValueError(f"pairing must be one of {PAIRINGS}, got {pairing!r}")
     import tempfile
 
     from tqdm import tqdm
@@ -150,7 +198,8 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
         root = Path(work) if work is not None else Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         results = []
-        sim = root / "sim"
+        profile = calibrated_fast_path(root) if pairing == "fast" else None
+        sim = root / ("sim" if pairing == "reference" else "sim_fast")
         bar = tqdm(range(cases), desc="physical cases", unit="case", disable=not progress)
         for case in bar:
             hidden = draw(case, seed)
@@ -158,23 +207,47 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
             t_case = time.perf_counter()
             capture(folder / "real", hidden)
             t_real = time.perf_counter() - t_case
-            replay(root / f"case_{seed}_000" / "real", sim)  # once; then it resumes with nothing to do
+            first = root / f"case_{seed}_000" / "real"  # the taps every case shares
+            if pairing == "reference":
+                replay(first, sim)  # once; then it resumes with nothing to do
+            else:
+                fast_replay(first, profile, sim)
             t_diag = time.perf_counter()
             report, _ = diagnose(load_pairs(folder / "real", sim), seed=seed, factor=factor, intervals=0)
-            write_json(folder / "report.json", report)
+            write_json(folder / ("report.json" if pairing == "reference" else "report_fast.json"), report)
             results.append({"case": case, "hidden": list(hidden), "values": {k: v for k, v in hidden.items()},
                             **score_physical(hidden, report),
                             "seconds": time.perf_counter() - t_case, "capture_seconds": t_real,
                             "diagnosis_seconds": time.perf_counter() - t_diag,
                             "renders": report.get("renders")})
             bar.set_postfix(top1=f"{np.mean([r['top1'] for r in results]):.2f}")
-            write_json(root / "partial.json", {"results": results})
+            write_json(root / ("partial.json" if pairing == "reference" else f"partial_{pairing}.json"),
+                       {"results": results})
     out = summarise(results, seed, TAPS, time.perf_counter() - t0)
-    out.update({"physical": True, "hidden_ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in HIDDEN.items()},
+    if pairing == "fast":
+        out["per_region"] = _per_region(results)
+    out.update({"physical": True, "pairing": pairing,
+                "hidden_ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in HIDDEN.items()},
                 "not_hidden": NOT_HIDDEN, "objects": OBJECTS, "render": RENDER, "sim_seed": SIM_SEED, "factor": factor,
                 "hidden_at_least_once": sorted({h for r in results for h in r["hidden"]}),
                 "never_hidden": sorted(set(HIDDEN) - {h for r in results for h in r["hidden"]})})
     return out
+
+
+def _per_region(results: list[dict]) -> dict:
+    """Per hidden effect: the mean share of the held-out gap its counterpart closes alone
+    in each scope (masked, and each region of the image circle)."""
+    from .physical import COUNTERPARTS
+
+    rows: dict[str, dict[str, list]] = {}
+    for r in results:
+        for name in r["hidden"]:
+            closes = r["closes"].get(COUNTERPARTS[name])
+            if closes is not None:
+                for scope, share in closes.items():
+                    rows.setdefault(name, {}).setdefault(scope, []).append(share)
+    return {name: {scope: float(np.mean(v)) for scope, v in row.items() if scope != "full"}
+            for name, row in sorted(rows.items())}
 
 
 def main_json(path: str | Path, **kwargs) -> dict:
