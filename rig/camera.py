@@ -99,6 +99,8 @@ class RigCamera:
                "frame_size_px": list(self._frame_size) if self._frame_size else None,
                "size_px": list(self.size or self._frame_size or ()) or None,
                "warmup_frames": self.warmup_frames, "settle_s": self.settle_s}
+        if self.kind == "device":  # left in its automatic mode, settled on opening (``warmup_frames``)
+            out["exposure"] = "auto"
         if self.kind == "folder":
             out["images"] = len(self._paths)
         elif self._capture is not None:

@@ -40,7 +40,10 @@ class TwinCamera:
 
     def describe(self) -> dict:
         cam = self._virtual.rig.spec.camera
-        return {"kind": "twin", "size": [cam.width, cam.height]}
+        # The reference sets a capture's exposure from its no-contact frame (its rule), as
+        # an auto-exposed camera does; the fast path has no exposure.
+        return {"kind": "twin", "size": [cam.width, cam.height],
+                "exposure": "auto" if self._virtual.renderer_name == "pbr" else "fixed"}
 
     def close(self) -> None:
         pass

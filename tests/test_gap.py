@@ -296,6 +296,36 @@ def test_model_reproduces_the_fast_path_and_identity_changes_nothing(spec, sim_i
     assert np.abs(changed - sim).max() > 0.05
 
 
+def test_an_auto_exposed_capture_fits_every_candidate_with_its_exposure(spec, sim_images, contacts):
+    """A camera that sets its own exposure scales the whole image when an effect changes
+    the frame's brightness: every candidate but camera_response (which has gains) is then
+    fitted with that gain, and its prediction is scaled by it."""
+    from studies.gap.model import auto_exposed
+
+    assert auto_exposed({"renderer": {"camera": {"kind": "device", "exposure": "auto"}}})
+    assert not auto_exposed({"renderer": {"camera": {"kind": "twin", "exposure": "fixed"}}})
+    assert not auto_exposed({"renderer": {"renderer": "phong"}}) and not auto_exposed({})
+    plain = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4)
+    model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4, exposure=True)
+    assert model.ties_to_simplest and not plain.ties_to_simplest
+    for name, effect in model.catalogue.items():
+        names = [p.name for p in effect.params]
+        assert ("exposure" in names) == (name != "camera_response"), name
+        assert names[:len(plain.catalogue[name].params)] == [p.name for p in plain.catalogue[name].params]
+    sim = model.working_images(np.round(sim_images[:2] * 255) / 255) * np.float32(0.4)
+    depth = model.working_depth(contacts[:2])
+    vignetting = model.catalogue["vignetting"].identity
+    assert vignetting["exposure"] == 1.0
+    same = model.predict(sim, depth, {"vignetting": vignetting})
+    assert np.abs(same - sim).max() < 1e-6
+    brighter = model.predict(sim, depth, {"vignetting": {**vignetting, "exposure": 2.0}})
+    assert np.allclose(brighter, np.clip(2 * sim, 0, 1), atol=1e-6)
+    # in a combination the capture's exposure is one gain: the product of the effects' own
+    both = {"vignetting": {**vignetting, "exposure": 1.5},
+            "blur_noise": {**model.catalogue["blur_noise"].identity, "exposure": 1.2}}
+    assert fx.exposure_scale(both) == pytest.approx(1.8)
+
+
 def test_path_attenuation_of_the_background_dims_it_along_the_sensor(spec):
     """No contact on a solid background: the image is the background term k_a B. Its own
     coefficient mu_a makes it keep exp(-mu_a d), d the path from the LEDs' ring: on the

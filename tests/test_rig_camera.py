@@ -191,6 +191,7 @@ def test_device_warms_up_and_settles_on_fresh_frames(fake_device):
         cam.settle()
         assert cam.grab()[0, 0, 2] == pytest.approx((6 + rc.STALE_FRAMES + 1) / 255)
         assert cam.describe()["kind"] == "device" and cam.describe()["backend"] == "FAKE"
+        assert cam.describe()["exposure"] == "auto"  # the diagnosis fits the capture's exposure then
     assert device.released
     with open_camera(0, settle_s=0.0):  # the defaults: a device warms up
         assert fake_device.opened[-1].taken == rc.WARMUP_FRAMES

@@ -380,6 +380,8 @@ def test_killing_the_process_mid_run_loses_and_duplicates_nothing(tmp_path):
     records = read_samples(out)
     assert [r["tap_index"] for r in records] == list(range(8))
     assert f"8 samples in {out} ({8 - before} new" in done.stdout
+    # the fast path's twin has no exposure of its own (the reference's sets it: "auto")
+    assert json.loads((out / "dataset.json").read_text())["renderer"]["camera"]["exposure"] == "fixed"
 
 
 def test_a_background_that_cannot_be_registered_is_recorded_not_fatal(spec, capsys):

@@ -26,6 +26,7 @@ The functions here are pure array functions, in the simulator's order:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -70,6 +71,27 @@ class Effect:
 
 #: Colour channels, in image order.
 CHANNELS = ("r", "g", "b")
+#: The capture's exposure. A camera that sets its own exposure (auto-exposure, settled on
+#: the sensor's frame: ``rig.camera``, and the reference's rule for the virtual rig) scales
+#: the whole image whenever an effect changes how bright the frame is: a core leak darkens
+#: it, absorption or vignetting brighten its middle. Where the real dataset's camera says
+#: so (``renderer.camera.exposure`` "auto"), every candidate without gains of its own is
+#: fitted with it (``with_exposure``).
+CAPTURE_EXPOSURE = Param("exposure", 0.25, 4.0, 1.0, "-", "the capture's own exposure gain (an auto-exposed camera's)")
+
+
+def exposure_scale(params: dict) -> float:
+    """The product of the capture's exposure gains (parameters named ``exposure``) in
+    ``params`` ({effect: {param: value}})."""
+    return math.prod(p.get("exposure", 1.0) for p in params.values())
+
+
+def with_exposure(catalogue: dict[str, Effect], exposure: Param = CAPTURE_EXPOSURE,
+                  names: tuple[str, ...] | None = None) -> dict[str, Effect]:
+    """``catalogue`` with ``exposure`` fitted alongside every effect of ``names`` (default:
+    every one with parameters but camera_response, whose colour matrix holds a gain)."""
+    names = tuple(n for n, e in catalogue.items() if e.params and n != "camera_response") if names is None else names
+    return {n: dataclasses.replace(e, params=e.params + (exposure,)) if n in names else e for n, e in catalogue.items()}
 #: camera_response: the colour matrix's off-diagonal entries, (output, input) channel.
 MIX_ENTRIES = tuple((o, i) for o in CHANNELS for i in CHANNELS if o != i)
 #: camera_response: bound of each off-diagonal, -: a strong colour correction matrix

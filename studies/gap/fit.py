@@ -565,9 +565,12 @@ class Diagnosis:
         image-level models of the unit's camera (camera_gains, 11 parameters) mimic a
         physical colour or brightness change nearly as well and then would take the first
         place by noise alone (measured: hidden camera_response and led_spectra switches
-        were fitted exactly, and ranked second to it)."""
+        were fitted exactly, and ranked second to it). A fast model does the same when
+        its candidates are fitted with the capture's exposure (``FastModel.ties_to_simplest``):
+        its camera_response then beat a hidden absorption's path_attenuation by 1.7 % of the
+        gap."""
         ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
-        if self.work.kind == "fast" or len(ranked) < 2:
+        if not self.work.ties_to_simplest or len(ranked) < 2:
             return ranked
         best = singles[ranked[0]].after[RANK_BY[0]][RANK_BY[1]]
         margin = RANK_TIE_SHARE * float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))

@@ -109,8 +109,16 @@ def make_models(pairs, renderer: dict, factor: int):
         judge = judging_factor(pairs.spec, basis.film)
         work = ReferenceModel(pairs.spec, renderer, max(factor, judge), basis)
         return work, (ReferenceModel(pairs.spec, renderer, judge, basis) if work.factor != judge else work)
-    work = FastModel(pairs.spec, renderer, factor)
-    return work, (FastModel(pairs.spec, renderer, 1) if factor != 1 else work)
+    exposure = auto_exposed(pairs.real_meta)
+    work = FastModel(pairs.spec, renderer, factor, exposure)
+    return work, (FastModel(pairs.spec, renderer, 1, exposure) if factor != 1 else work)
+
+
+def auto_exposed(meta: dict) -> bool:
+    """Whether a dataset's camera set its own exposure (``renderer.camera.exposure`` is
+    "auto" in its dataset.json: ``rig.camera``'s devices and the virtual rig's reference)."""
+    camera = (meta.get("renderer") or {}).get("camera")
+    return isinstance(camera, dict) and camera.get("exposure") == "auto"
 
 
 class FastModel:
@@ -118,7 +126,9 @@ class FastModel:
     the dataset's resolution.
 
     spec : the sensor; renderer : the dataset's renderer settings (``field``,
-    ``background``, ``rectify``); factor : integer downsampling of the working resolution.
+    ``background``, ``rectify``); factor : integer downsampling of the working resolution;
+    exposure : the real camera sets its own exposure, so every candidate without gains
+    of its own is fitted with the capture's exposure (``effects.with_exposure``).
     """
 
     kind = "fast"
@@ -128,7 +138,7 @@ class FastModel:
     max_fit_samples = None  # the diagnosis' own cap
     judged_renders = None  # every candidate is judged on the held-out samples (none renders there)
 
-    def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1):
+    def __init__(self, spec: SensorSpec, renderer: dict, factor: int = 1, exposure: bool = False):
         # A dataset rendered for a calibrated unit (``--profile``) records its profile: the
         # chain is then the unit's (phong_reference.profiled): its LEDs (and their fitted
         # constants, where the profile has them) and image circle,
@@ -174,6 +184,12 @@ class FastModel:
         self.sigma_px = float(spec.elastic.sigma_px)
         self.truncate = spec.elastic.radius_px / spec.elastic.sigma_px
         self.catalogue = fx.catalogue(len(spec.leds), self.sigma_px)
+        # With the capture's exposure every candidate holds a gain, and camera_response's
+        # 11 parameters then mimic a physical change nearly as well as its own model: the
+        # ranking's tie rule (``Diagnosis.rank``) puts the simplest of the tied best first.
+        self.ties_to_simplest = bool(exposure)
+        if exposure:
+            self.catalogue = fx.with_exposure(self.catalogue)
         self._geodesic = None
         self._base_distance = None
         self._samples = None  # where the camera's rays meet the membrane (scenes.camera.cast_rays)
@@ -387,7 +403,8 @@ class FastModel:
             # numpy and scipy release the GIL in the heavy operations: samples in threads.
             with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
                 list(pool.map(one, range(len(out))))
-        return self.optics(out, params)
+        scale = fx.exposure_scale(params)
+        return self.optics(out * np.float32(scale) if scale != 1.0 else out, params)
 
     def _plain(self, depth: np.ndarray, key: int | None) -> np.ndarray:
         if key is None:
