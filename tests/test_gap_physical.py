@@ -267,6 +267,7 @@ def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
     assert counterparts(hidden) == ["path_attenuation"]  # each counterpart once
     closes = {"full": 0.2, "masked": 0.6, "tip": 0.8, "body": 0.3, "near_leds": 0.1}
     report = {"model": "fast", "ranking": ["path_attenuation", "vignetting"],
+              "gap": {"heldout": {"masked": {"mae": {"mean": 0.02}}}},
               "explained": {"effects": ["path_attenuation"], "share_closed": closes},
               "effects": {"path_attenuation": {"share_closed": closes, "params": {"mu_per_m": 80.0}}}}
     out = score_physical(hidden, report)
@@ -277,8 +278,17 @@ def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
     regions = _per_region([{**out, "hidden": list(hidden)}, {**out, "hidden": ["absorption_per_m"],
                                                             "closes": {"path_attenuation": {**closes, "tip": 0.4}}}])
     assert regions["absorption_per_m"]["tip"] == pytest.approx(0.6) and "full" not in regions["absorption_per_m"]
+    # the calibration's own residual: a case whose gap it makes is set apart
+    from studies.gap.physical_benchmark import RESIDUAL_SHARE, _against_residual
+
+    cases = [{**out, "hidden": list(hidden), "case": 0}, {**wrong, "hidden": ["vignetting"], "case": 1, "gap": 0.0101}]
+    summary = _against_residual(cases, 0.01, ["path_attenuation"])
+    assert cases[0]["residual_share"] == pytest.approx(0.5) and cases[1]["residual_share"] >= RESIDUAL_SHARE
+    assert summary["below_residual"] == [1] and summary["above_residual"]["cases"] == 1
+    assert summary["above_residual"]["top1"] == 1.0 and summary["residual"]["heldout_masked_mae"] == 0.01
     # a reference diagnosis is scored on the hidden effects themselves
     ref = score_physical({"absorption_per_m": 90.0}, {"ranking": ["absorption_per_m"], "explained": report["explained"],
+                                                      "gap": report["gap"],
                                                       "effects": {"absorption_per_m": {
                                                           "share_closed": closes, "params": {"absorption_per_m": 85.0}}}})
     assert ref["top1"] and ref["fitted"] == {"absorption_per_m": 85.0} and "closes" not in ref
@@ -430,7 +440,7 @@ def test_a_reference_candidate_within_the_tie_margin_of_the_best_ties_with_it():
     catalogue = {"camera_gains": SimpleNamespace(params=[SimpleNamespace(name=f"p{i}") for i in range(11)]),
                  "absorption_per_m": SimpleNamespace(params=[SimpleNamespace(name="value"),
                                                               SimpleNamespace(name="exposure")])}
-    model = SimpleNamespace(work=SimpleNamespace(kind="pbr"), catalogue=catalogue, seed=0,
+    model = SimpleNamespace(work=SimpleNamespace(kind="pbr", ties_to_simplest=True), catalogue=catalogue, seed=0,
                             before={"masked": {"mae": before}})
     best = 0.004 + 0.0005 * rng.standard_normal(20)
     for lag, first in ((0.5 * fitmod.RANK_TIE_SHARE, "absorption_per_m"), (3 * fitmod.RANK_TIE_SHARE, "camera_gains")):

@@ -17,7 +17,10 @@ at the defaults out; each case's capture is then diagnosed against the fast path
 replay of it with that profile (``dataset --replay --renderer phong --profile``), with
 the fast catalogue. A case is scored on the hidden effects' counterparts in that
 catalogue (``physical.COUNTERPARTS``), and each case reports how much the counterpart
-closes per region of the image circle.
+closes per region of the image circle. What the calibrated fast path leaves on the capture
+it was calibrated to is in every case's gap too (``residual``); a case whose gap is mostly
+that residual (``RESIDUAL_SHARE``) is listed in ``below_residual``, and ``above_residual``
+scores the others.
 
 Which physics can be hidden: the Effects switches a capture can be rendered with
 (``HIDDEN``). The membrane's mechanics, the LEDs' powers and spectra and the unit's camera
@@ -73,6 +76,10 @@ SIM_SEED = 1000
 PAIRINGS = ("reference", "fast")
 #: Taps of that capture the fast path's calibration uses (``tactile-sim calibrate --taps``).
 CALIBRATION_TAPS = 10
+#: A fast-pairing case is below the calibration's residual when what the calibrated fast
+#: path leaves on the capture it was calibrated to is at least this share of the case's
+#: held-out gap: the hidden effect then makes at most a fifth of it.
+RESIDUAL_SHARE = 0.8
 
 
 def draw(case: int, seed: int) -> dict[str, object]:
@@ -169,6 +176,7 @@ def score_physical(hidden: dict, report: dict) -> dict:
     fast = report.get("model") == "fast"
     names = counterparts(hidden) if fast else list(hidden)
     out = score(names, report)
+    out["gap"] = float(report["gap"]["heldout"]["masked"]["mae"]["mean"])
     out["fitted"] = {name: report["effects"][name]["params"] if fast else report["effects"][name]["params"][name]
                      for name in names if name in report["effects"]}
     if fast:
@@ -223,15 +231,41 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
             bar.set_postfix(top1=f"{np.mean([r['top1'] for r in results]):.2f}")
             write_json(root / ("partial.json" if pairing == "reference" else f"partial_{pairing}.json"),
                        {"results": results})
+        residual = None
+        if pairing == "fast" and results:  # the calibrated fast path against the capture it was calibrated to
+            clean, _ = diagnose(load_pairs(root / "clean", sim), seed=seed, factor=factor, intervals=0)
+            write_json(root / "clean" / "report_fast.json", clean)
+            residual = float(clean["gap"]["heldout"]["masked"]["mae"]["mean"])
     out = summarise(results, seed, TAPS, time.perf_counter() - t0)
-    if pairing == "fast":
-        out["per_region"] = _per_region(results)
+    if residual is not None:
+        out.update(_against_residual(results, residual, clean["ranking"]))
     out.update({"physical": True, "pairing": pairing,
                 "hidden_ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in HIDDEN.items()},
                 "not_hidden": NOT_HIDDEN, "objects": OBJECTS, "render": RENDER, "sim_seed": SIM_SEED, "factor": factor,
                 "hidden_at_least_once": sorted({h for r in results for h in r["hidden"]}),
                 "never_hidden": sorted(set(HIDDEN) - {h for r in results for h in r["hidden"]})})
     return out
+
+
+def _against_residual(results: list[dict], residual: float, ranking: list[str]) -> dict:
+    """What the calibrated fast path leaves on the capture it was calibrated to (its
+    held-out masked MAE, the same split), each case's gap against it (``residual_share``),
+    and the scores over the cases whose hidden effect makes more than
+    1 - ``RESIDUAL_SHARE`` of their gap."""
+    for r in results:
+        r["residual_share"] = residual / r["gap"] if r["gap"] > 0 else float("inf")
+    above = [r for r in results if r["residual_share"] < RESIDUAL_SHARE]
+    return {"per_region": _per_region(results),
+            "residual": {"heldout_masked_mae": residual, "ranking": ranking,
+                         "what": "the calibrated fast path against the capture without hidden effects it was "
+                                 "calibrated to: what calibration leaves, in every case's gap too"},
+            "below_residual": [r["case"] for r in results if r["residual_share"] >= RESIDUAL_SHARE],
+            "above_residual": {"cases": len(above),
+                               "top1": float(np.mean([r["top1"] for r in above])) if above else 0.0,
+                               "top3": float(np.mean([r["top3"] for r in above])) if above else 0.0,
+                               "mean_heldout_shrink": float(np.mean([r["shrink"] for r in above])) if above else 0.0,
+                               "what": f"cases whose calibration residual is below {RESIDUAL_SHARE:.0%} of their "
+                                       "held-out gap"}}
 
 
 def _per_region(results: list[dict]) -> dict:
