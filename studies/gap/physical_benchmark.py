@@ -234,7 +234,7 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
         residual = None
         if pairing == "fast" and results:  # the calibrated fast path against the capture it was calibrated to
             clean, _ = diagnose(load_pairs(root / "clean", sim), seed=seed, factor=factor, intervals=0)
-            write_json(root / "clean" / "report_fast.json", clean)
+            write_json(root / "clean_report_fast.json", clean)
             residual = float(clean["gap"]["heldout"]["masked"]["mae"]["mean"])
     out = summarise(results, seed, TAPS, time.perf_counter() - t0)
     if residual is not None:
