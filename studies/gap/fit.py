@@ -126,6 +126,11 @@ class Judged:
         return self.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
 
 
+#: Scopes judged on every metric; a region of the image circle (``Diagnosis.regions_h``)
+#: is judged on the MAE it closes only (its bootstrap intervals cost as much as these').
+WHOLE_SCOPES = ("full", "masked")
+
+
 class Diagnosis:
     """Fitting and judging effects on one pair of datasets.
 
@@ -516,8 +521,8 @@ class Diagnosis:
                                    areas=self.areas_h, regions=self.regions_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
-        improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed) for m in names}
-                       for k in after}
+        improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed)
+                           for m in (names if k in WHOLE_SCOPES else ("mae",))} for k in after}
         return Judged(fit, after, improvement)
 
     def singles(self) -> dict[str, Judged]:
@@ -554,7 +559,7 @@ class Diagnosis:
         """A fit left unjudged (``screened``): reported as closing nothing, never significant."""
         fit.status["screened"] = why
         improvement = {k: {m: metrics.improvement(self.before[k][m], self.before[k][m], m, seed=self.seed)
-                           for m in metrics.METRICS} for k in self.before}
+                           for m in (metrics.METRICS if k in WHOLE_SCOPES else ("mae",))} for k in self.before}
         return Judged(fit, self.before, improvement)
 
     def rank(self, singles: dict[str, Judged]) -> list[str]:
