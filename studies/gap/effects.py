@@ -71,6 +71,11 @@ class Effect:
 
 #: Colour channels, in image order.
 CHANNELS = ("r", "g", "b")
+#: camera_response: the colour matrix's off-diagonal entries, (output, input) channel.
+MIX_ENTRIES = tuple((o, i) for o in CHANNELS for i in CHANNELS if o != i)
+#: camera_response: bound of each off-diagonal, -: a strong colour correction matrix
+#: (a camera's, from raw to its colour space) has off-diagonals of -0.6 to 0.3.
+MIX_BOUND = 0.8
 #: The capture's exposure. A camera that sets its own exposure (auto-exposure, settled on
 #: the sensor's frame: ``rig.camera``, and the reference's rule for the virtual rig) scales
 #: the whole image whenever an effect changes how bright the frame is: a core leak darkens
@@ -92,11 +97,6 @@ def with_exposure(catalogue: dict[str, Effect], exposure: Param = CAPTURE_EXPOSU
     every one with parameters but camera_response, whose colour matrix holds a gain)."""
     names = tuple(n for n, e in catalogue.items() if e.params and n != "camera_response") if names is None else names
     return {n: dataclasses.replace(e, params=e.params + (exposure,)) if n in names else e for n, e in catalogue.items()}
-#: camera_response: the colour matrix's off-diagonal entries, (output, input) channel.
-MIX_ENTRIES = tuple((o, i) for o in CHANNELS for i in CHANNELS if o != i)
-#: camera_response: bound of each off-diagonal, -: a strong colour correction matrix
-#: (a camera's, from raw to its colour space) has off-diagonals of -0.6 to 0.3.
-MIX_BOUND = 0.8
 
 
 def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:

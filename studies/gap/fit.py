@@ -126,11 +126,6 @@ class Judged:
         return self.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
 
 
-#: Scopes judged on every metric; a region of the image circle (``Diagnosis.regions_h``)
-#: is judged on the MAE it closes only (its bootstrap intervals cost as much as these').
-WHOLE_SCOPES = ("full", "masked")
-
-
 class Diagnosis:
     """Fitting and judging effects on one pair of datasets.
 
@@ -181,9 +176,9 @@ class Diagnosis:
                 from .regions import region_labels
 
                 regions = region_labels(pairs.spec)
-            self.regions_h = {name: (block_mean(np.asarray(r, np.float32), self.full.factor) >= 0.5) & self.mask
-                              for name, r in regions.items()}
-            self.regions_h = {name: r for name, r in self.regions_h.items() if r.any()}
+            judged = {name: (block_mean(np.asarray(r, np.float32), self.full.factor) >= 0.5) & self.mask
+                      for name, r in regions.items()}
+            self.regions_h = {name: r for name, r in judged.items() if r.any()}
         self.not_applicable = self.work.not_applicable(pairs)
         wanted = self.names if effects is None else tuple(effects)
         unknown = [e for e in wanted if e not in self.names]
@@ -521,8 +516,10 @@ class Diagnosis:
                                    areas=self.areas_h, regions=self.regions_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
+        # a region of the image circle is judged on the MAE it closes only: its bootstrap
+        # intervals cost as much as the whole circle's, and nothing reads the others
         improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed)
-                           for m in (names if k in WHOLE_SCOPES else ("mae",))} for k in after}
+                           for m in (names if k in metrics.SCOPES else ("mae",))} for k in after}
         return Judged(fit, after, improvement)
 
     def singles(self) -> dict[str, Judged]:
@@ -559,7 +556,7 @@ class Diagnosis:
         """A fit left unjudged (``screened``): reported as closing nothing, never significant."""
         fit.status["screened"] = why
         improvement = {k: {m: metrics.improvement(self.before[k][m], self.before[k][m], m, seed=self.seed)
-                           for m in (metrics.METRICS if k in WHOLE_SCOPES else ("mae",))} for k in self.before}
+                           for m in (metrics.METRICS if k in metrics.SCOPES else ("mae",))} for k in self.before}
         return Judged(fit, self.before, improvement)
 
     def rank(self, singles: dict[str, Judged]) -> list[str]:

@@ -16,6 +16,8 @@ from scipy import stats
 from skimage.metrics import structural_similarity
 
 METRICS = ("mae", "ssim", "psnr")
+#: The scopes every sample is measured in: the whole frame and the image circle.
+SCOPES = ("full", "masked")
 #: Which way is better for each metric.
 HIGHER_IS_BETTER = {"mae": False, "ssim": True, "psnr": True}
 #: PSNR of identical images is infinite; it is capped here (dB) so means stay finite.
@@ -52,11 +54,11 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
     if regions and areas is not None:
         raise ValueError("per_sample measures regions of whole images: give regions or areas, not both")
     for name, region in regions.items():
-        if name in ("full", "masked") or region.shape != mask.shape or not (region & mask).any():
+        if name in SCOPES or region.shape != mask.shape or not (region & mask).any():
             raise ValueError(f"region {name!r} must be an (H, W) bool mask like the image circle's, with pixels inside "
                              f"it, and not named full or masked; got shape {region.shape}")
     n = len(real)
-    out = {k: {m: np.empty(n) for m in METRICS} for k in ("full", "masked", *regions)}
+    out = {k: {m: np.empty(n) for m in METRICS} for k in (*SCOPES, *regions)}
 
     def one(i: int) -> None:
         a, b = real[i].astype(np.float64), pred[i].astype(np.float64)

@@ -213,9 +213,10 @@ def headline(report: dict) -> list[str]:
         lines.append("No effect of the catalogue closes a significant part of the held-out gap.")
     if report["selection"]:
         last = report["selection"][-1]
+        by_region = _by_region(last["share_closed"])
         lines.append(f"Together, {' + '.join(last['effects'])} close {last['share_closed']['masked'] * 100:.1f}% of it "
                      f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])})"
-                     + (f"; per region: {_by_region(last['share_closed'])}." if _by_region(last["share_closed"]) else "."))
+                     + (f"; per region: {by_region}." if by_region else "."))
     mc = report["noise"].get("monte_carlo")
     if mc is not None:
         mc = mc.get("judged", mc)  # at the resolution the held-out gap is judged at
