@@ -327,6 +327,11 @@ def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_
     assert "--physical and --stratified are separate benchmarks" in capsys.readouterr().err
     assert main(["diagnose", "benchmark", "--pairing", "fast", "--json", str(tmp_path / "b.json")]) == 2
     assert "--pairing needs --physical" in capsys.readouterr().err
+    from studies.gap.physical_benchmark import run_physical_benchmark
+
+    with pytest.raises(ValueError, match="pairing must be one of"):
+        run_physical_benchmark(cases=1, work=tmp_path / "w", pairing="phong")
+    assert not (tmp_path / "w").exists()
     assert not (tmp_path / "b.json").exists()
 
 
