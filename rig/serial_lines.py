@@ -7,6 +7,17 @@ import time
 
 import serial
 
+try:
+    from termios import error as TermiosError
+except ImportError:  # not POSIX: pyserial raises no termios errors there
+    class TermiosError(Exception):
+        """Stands in for termios.error where there is no termios."""
+
+#: What a port raises when its device fails or goes away. pyserial's flush() on POSIX
+#: calls termios.tcdrain, whose error is not an OSError: an unplugged cable raised a bare
+#: "error: (5, 'Input/output error')" from a write, not the driver's error.
+PORT_ERRORS = (serial.SerialException, OSError, TermiosError)
+
 #: One blocking read on the port, seconds; bounds how late a deadline is noticed.
 READ_POLL_S = 0.02
 #: A run of bytes this long without a line break is cut into a line of its own (garbage,
@@ -75,14 +86,14 @@ class SerialLines:
         try:
             self.serial.write((line + "\n").encode("ascii"))
             self.serial.flush()
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self.error(f"cannot write {line!r} to {self.name}: {exc}") from exc
 
     def read_line(self, deadline: float) -> bytes | None:
         """The next line, or None once ``time.monotonic()`` passes ``deadline``."""
         try:
             return self._reader.read_line(deadline)
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self.error(f"cannot read from {self.name}: {exc}") from exc
 
     def close(self) -> None:

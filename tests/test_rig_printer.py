@@ -303,3 +303,32 @@ def test_negative_timeouts_are_refused_before_the_port_is_opened():
         MarlinPrinter("/dev/tactile-sim-no-such-printer", reply_timeout_s=-1)
     with pytest.raises(ValueError, match="banner_timeout_s must be >= 0 seconds, got nan"):
         MarlinPrinter("/dev/tactile-sim-no-such-printer", banner_timeout_s=math.nan)
+
+
+def test_a_port_that_fails_in_its_drain_raises_the_drivers_error():
+    """pyserial's flush() drains through termios, whose error is not an OSError: a cable
+    pulled mid-write must still come out as the driver's error naming the port."""
+    import termios
+
+    from rig.serial_lines import SerialLines
+
+    class Unplugged:
+        port = "/dev/ttyUSB0"
+        timeout = None
+
+        def write(self, data):
+            return len(data)
+
+        def flush(self):
+            raise termios.error(5, "Input/output error")
+
+        def read(self, n):
+            raise termios.error(5, "Input/output error")
+
+        in_waiting = 0
+
+    link = SerialLines(Unplugged(), 115200, 1.0, "printer", PrinterError)
+    with pytest.raises(PrinterError, match="cannot write 'M105' to /dev/ttyUSB0.*Input/output error"):
+        link.write("M105")
+    with pytest.raises(PrinterError, match="cannot read from /dev/ttyUSB0"):
+        link.read_line(time.monotonic() + 1.0)
