@@ -5,12 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from scenes.camera import Camera
+from scenes.camera import Camera, undistorted_radius
 
 from .effects import Effects
-
-#: Fixed-point iterations that invert the radial distortion polynomial.
-UNDISTORT_ITERATIONS = 8
 
 
 def vignetting(image: np.ndarray, camera: Camera, strength: float) -> np.ndarray:
@@ -28,8 +25,9 @@ def distort(image: np.ndarray, camera: Camera, k1: float, k2: float) -> np.ndarr
     """Resample a pinhole image as seen through a lens with radial distortion.
 
     A ray at normalised radius r_u lands at r_d = r_u (1 + k1 r_u^2 + k2 r_u^4) (Brown's
-    model, coordinates divided by the focal length); each output pixel is read at its
-    undistorted position, found by fixed-point iteration, with bilinear interpolation.
+    model, coordinates divided by the focal length; ``scenes.camera.undistorted_radius``,
+    the one convention of the reference and the diagnosis's catalogue): each output pixel
+    is read at its undistorted position, bilinear; black where no ray lands.
     """
     if k1 == 0 and k2 == 0:
         return image
@@ -37,13 +35,9 @@ def distort(image: np.ndarray, camera: Camera, k1: float, k2: float) -> np.ndarr
     scale = h / camera.height
     f, cx, cy = camera.f * scale, camera.cx * scale, camera.cy * scale
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    xd, yd = (u - cx) / f, (v - cy) / f
-    xu, yu = xd.copy(), yd.copy()
-    for _ in range(UNDISTORT_ITERATIONS):
-        r2 = xu**2 + yu**2
-        factor = 1.0 + k1 * r2 + k2 * r2**2
-        xu, yu = xd / factor, yd / factor
-    coords = [yu * f + cy, xu * f + cx]
+    r_d = np.hypot(u - cx, v - cy) / f
+    stretch = np.divide(undistorted_radius(r_d, k1, k2), r_d, out=np.ones_like(r_d), where=r_d > 0)
+    coords = [np.nan_to_num(cy + (v - cy) * stretch, nan=-2.0), np.nan_to_num(cx + (u - cx) * stretch, nan=-2.0)]
     return np.stack([ndimage.map_coordinates(image[..., c], coords, order=1, mode="constant") for c in range(image.shape[2])],
                     axis=-1).astype(image.dtype)
 

@@ -128,6 +128,34 @@ def project(points: np.ndarray, camera: Camera) -> np.ndarray:
     return np.stack([camera.f * points[..., 0] / z + camera.cx, camera.f * points[..., 1] / z + camera.cy], axis=-1)
 
 
+#: Samples of the table that inverts the radial lens polynomial (``undistorted_radius``).
+LENS_TABLE_SAMPLES = 8192
+
+
+def undistorted_radius(r_d: np.ndarray, k1: float, k2: float) -> np.ndarray:
+    """Where a radially distorted point came from: the lens's one convention.
+
+    A Brown-Conrady lens moves the pinhole point at normalised radius r_u (its distance to
+    the principal point over f) to r_d = r_u (1 + k1 r_u^2 + k2 r_u^4): k1 > 0 is a
+    pincushion, k1 < 0 a barrel (OpenCV's convention). This inverts it on the branch that
+    rises from 0, by a table of the polynomial; radii beyond that branch's fold (a strong
+    barrel reaches no further) are NaN: no ray lands there.
+
+    r_d : array of radii >= 0, focal lengths.  Returns r_u, same shape.
+    """
+    r_d = np.asarray(r_d, dtype=np.float64)
+    if k1 == 0 and k2 == 0:
+        return r_d.copy()
+    # The table reaches past the largest radius asked: r_u < r_d where the lens only
+    # stretches; a barrel's r_u can be larger, so the table goes a few times further.
+    top = 4.0 * max(float(np.nanmax(r_d, initial=0.0)), 1.0)
+    r_u = np.linspace(0.0, top, LENS_TABLE_SAMPLES)
+    table = r_u * (1.0 + k1 * r_u**2 + k2 * r_u**4)
+    rising = np.diff(table) > 0
+    end = len(r_u) if rising.all() else int(np.argmin(rising)) + 1
+    return np.interp(r_d, table[:end], r_u[:end], right=np.nan)
+
+
 def back_project(depth: np.ndarray, camera: Camera, channels_first: bool = False) -> np.ndarray:
     """Point cloud of a planar z-depth map: P = D (u - c_x, v - c_y, f) / f.
 

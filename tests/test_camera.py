@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scenes.camera import back_project, check_depth, project, reference_depth
+from scenes.camera import back_project, check_depth, project, reference_depth, undistorted_radius
 
 #: The issue's bound on D_ref against the published sim_depth/bkg.npy, metres RMS.
 DREF_RMS_BOUND_M = 0.1e-3
@@ -92,3 +92,24 @@ def test_block_mean_averages_whole_blocks_over_the_image_axes():
     assert block_mean(image, 1) is image
     with pytest.raises(ValueError, match="6x4 pixels cannot be averaged in blocks of 4x4"):
         block_mean(image, 4)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(-0.3, 0.6), st.floats(-0.05, 0.1))
+def test_undistorted_radius_inverts_the_lens_polynomial(k1, k2):
+    r_d = np.linspace(0.0, 1.7, 200)
+    r_u = undistorted_radius(r_d, k1, k2)
+    reached = np.isfinite(r_u)
+    assert reached[0] and reached[:50].all()  # the centre of the image circle is always seen
+    assert np.allclose(r_u[reached] * (1 + k1 * r_u[reached] ** 2 + k2 * r_u[reached] ** 4), r_d[reached], atol=1e-5)
+    assert (np.diff(r_u[reached]) > 0).all()  # one branch, rising from 0
+
+
+def test_a_strong_barrel_reaches_no_further_than_its_fold():
+    # r_d = r_u (1 - 0.4 r_u^2) is largest at r_u = 1 / sqrt(1.2): r_d = 0.6086
+    fold = (1 / 1.2**0.5) * (1 - 0.4 / 1.2)
+    r_u = undistorted_radius(np.array([0.5, fold - 1e-3, fold + 1e-3, 1.0]), -0.4, 0.0)
+    assert np.isfinite(r_u[:2]).all() and np.isnan(r_u[2:]).all()
+    assert r_u[0] > 0.5  # a barrel draws points in: each pixel looks further out
+    assert undistorted_radius(np.array([0.7]), 0.2, 0.0)[0] < 0.7  # a pincushion pushes them out
+    assert np.array_equal(undistorted_radius(np.array([0.3, 1.2]), 0.0, 0.0), [0.3, 1.2])

@@ -137,15 +137,40 @@ def test_optics_functions_analytic():
     shifted = fx.source_coordinates((480, 640), f, centre,
                                     {"du_px": 3.0, "dv_px": -2.0, "rotation_rad": 0.0, "scale": 1.0}, None)
     assert np.allclose(shifted[1] - grid[1], 3.0) and np.allclose(shifted[0] - grid[0], -2.0)
-    barrel = fx.source_coordinates((480, 640), f, centre, None, {"k1": 0.1, "k2": 0.0})
-    r2 = (240.5**2 + 0.5**2) / f**2  # pixel (row 240, col 560) from the centre (239.5, 319.5)
-    assert barrel[1][240, 560] == pytest.approx(319.5 + 240.5 * (1 + 0.1 * r2), abs=1e-6)
+    pincushion = fx.source_coordinates((480, 640), f, centre, None, {"k1": 0.1, "k2": 0.0})
+    # pixel (row 240, col 560) of the real image, r_d from the centre (239.5, 319.5), looks
+    # at r_u in the simulated one: r_d = r_u (1 + k1 r_u^2) (Brown, as the reference's lens)
+    dv, du = pincushion[0][240, 560] - 239.5, pincushion[1][240, 560] - 319.5
+    r_u, r_d = math.hypot(du, dv) / f, math.hypot(0.5, 240.5) / f
+    assert r_u * (1 + 0.1 * r_u**2) == pytest.approx(r_d, abs=1e-6) and du / dv == pytest.approx(240.5 / 0.5)
     img = np.random.default_rng(0).random((1, 48, 64, 3)).astype(np.float32)
     assert np.allclose(fx.resample(img, fx.source_coordinates((48, 64), 60.0, (23.5, 31.5), None, None)), img)
     assert np.allclose(fx.camera_response(img, np.eye(3), 0.0, 1.0), img)
     assert np.allclose(fx.camera_response(img, np.eye(3), 0.0, 2.0), np.sqrt(img), atol=1e-6)
     # A source over elevations 0.2 (1 -+ 0.3): a band (0, 10] hides all of it, (0, 0.2] half.
     assert fx.shadow_factor(np.zeros(3), np.array([0.0, 10.0, 0.2]), 0.2, 1.0).tolist() == pytest.approx([1, 0, 0.5])
+
+
+@pytest.mark.parametrize("k1, k2", [(0.2, 0.05), (-0.2, 0.0), (-0.45, 0.0)])
+def test_the_catalogues_lens_is_the_references_lens(camera, k1, k2):
+    """One lens convention: the fast catalogue's lens_distortion resamples an image as the
+    reference's sensor.distort does, at the same k1 and k2 (a pincushion, a barrel, and a
+    barrel folding inside the frame, black past the fold in both)."""
+    from pbr_tactile.sensor import distort
+
+    h, w = 120, 160
+    v, u = np.mgrid[0:h, 0:w]
+    image = np.stack([0.5 + 0.4 * np.sin(u / 9.0), 0.5 + 0.4 * np.cos(v / 7.0), 0.3 + 0.002 * u], -1).astype(np.float32)
+    s = h / camera.height
+    coords = fx.source_coordinates((h, w), camera.f * s, (camera.cy * s, camera.cx * s), None, {"k1": k1, "k2": k2})
+    catalogue, reference = fx.resample(image[None], coords)[0], distort(image, camera, k1, k2)
+    # where both read the image (at its edge OpenCV blends in the black border, scipy not)
+    inner = (coords[0] >= 0) & (coords[0] <= h - 1) & (coords[1] >= 0) & (coords[1] <= w - 1)
+    assert inner.mean() > 0.15 and np.abs(catalogue - reference)[inner].max() < 0.01
+    assert np.abs(catalogue - image)[inner].mean() > 0.02  # the lens did move the image
+    assert np.abs(catalogue - reference).mean() < 0.002
+    if k1 < -0.4:  # the fold at r_d 0.54 f: the corners see nothing in either
+        assert catalogue[0, 0].max() == reference[0, 0].max() == 0.0
 
 
 def test_camera_response_is_a_colour_matrix_an_offset_and_a_curve():

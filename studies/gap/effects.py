@@ -367,24 +367,29 @@ def source_coordinates(shape: tuple[int, int], f: float, centre: tuple[float, fl
                        distortion: dict | None) -> np.ndarray:
     """For each output (real) pixel, where to sample the simulated image: (2, H, W) (row, col).
 
-    Lens distortion first maps a distorted (real) pixel to the undistorted one, x_u = c +
-    (x_d - c)(1 + k1 r^2 + k2 r^4), r = |x_d - c| / f; misalignment then maps it into the
-    simulated frame by a similarity about the image centre: x_s = c + scale R(theta)
-    (x_u - c) + (du, dv).
+    Lens distortion first maps a distorted (real) pixel to the undistorted one: Brown's
+    r_d = r_u (1 + k1 r_u^2 + k2 r_u^4), r = |x - c| / f, inverted
+    (``scenes.camera.undistorted_radius``: the reference's lens, ``pbr_tactile.sensor``,
+    has the same k1 and k2); misalignment then maps it into the simulated frame by a
+    similarity about the image centre: x_s = c + scale R(theta) (x_u - c) + (du, dv).
+    Pixels no ray reaches (past a strong barrel's fold) sample outside the image.
     """
+    from scenes.camera import undistorted_radius
+
     h, w = shape
     cv, cu = centre
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     y, x = v - cv, u - cu
     if distortion is not None:
-        r2 = (x * x + y * y) / (f * f)
-        k = 1.0 + distortion["k1"] * r2 + distortion["k2"] * r2 * r2
-        x, y = x * k, y * k
+        r_d = np.hypot(x, y) / f
+        r_u = undistorted_radius(r_d, distortion["k1"], distortion["k2"])
+        stretch = np.divide(r_u, r_d, out=np.ones_like(r_d), where=r_d > 0)
+        x, y = x * stretch, y * stretch
     if misalignment is not None:
         c, s = math.cos(misalignment["rotation_rad"]), math.sin(misalignment["rotation_rad"])
         sc = misalignment["scale"]
         x, y = sc * (c * x - s * y) + misalignment["du_px"], sc * (s * x + c * y) + misalignment["dv_px"]
-    return np.stack([y + cv, x + cu])
+    return np.nan_to_num(np.stack([y + cv, x + cu]), nan=-2.0)
 
 
 def misalign_membrane(images: np.ndarray, coords: np.ndarray, fixed: np.ndarray, circle: np.ndarray,
