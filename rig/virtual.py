@@ -41,9 +41,10 @@ class TwinCamera:
     def describe(self) -> dict:
         cam = self._virtual.rig.spec.camera
         # The reference sets a capture's exposure from its no-contact frame (its rule), as
-        # an auto-exposed camera does; the fast path has no exposure.
-        return {"kind": "twin", "size": [cam.width, cam.height],
-                "exposure": "auto" if self._virtual.renderer_name == "pbr" else "fixed"}
+        # an auto-exposed camera does, unless a profile's camera sets the image (its gains
+        # and response, pbr_tactile.plugin); the fast path has no exposure.
+        auto = self._virtual.renderer_name == "pbr" and self._virtual.options.get("profile") is None
+        return {"kind": "twin", "size": [cam.width, cam.height], "exposure": "auto" if auto else "fixed"}
 
     def close(self) -> None:
         pass

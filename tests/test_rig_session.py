@@ -384,6 +384,24 @@ def test_killing_the_process_mid_run_loses_and_duplicates_nothing(tmp_path):
     assert json.loads((out / "dataset.json").read_text())["renderer"]["camera"]["exposure"] == "fixed"
 
 
+@pytest.mark.parametrize("renderer, options, exposure", [("pbr", {}, "auto"), ("pbr", {"profile": "unit.toml"}, "fixed"),
+                                                         ("phong", {}, "fixed")])
+def test_the_twin_camera_says_who_sets_its_exposure(spec, renderer, options, exposure):
+    """The reference's own rule sets a capture's exposure ("auto": the diagnosis fits it);
+    with a profile, the unit's gains and response set the image instead."""
+    from scenes.gl import GLPlatformError, choose_gl
+
+    try:
+        choose_gl()
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
+    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    from rig.virtual import VirtualRig
+
+    with VirtualRig(spec, ("sphere",), renderer, options) as rig:
+        assert rig.camera.describe()["exposure"] == exposure
+
+
 def test_a_background_that_cannot_be_registered_is_recorded_not_fatal(spec, capsys):
     from rig.cli import _alignment_hook
 
