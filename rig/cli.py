@@ -112,6 +112,9 @@ def cmd_run(args, parser=None) -> int:
                          "--servos twin too")
     if options and not virtual:
         raise ValueError(f"renderer options ({', '.join(sorted(options))}) are for --camera twin only")
+    unit = _unit(args.unit or [])
+    if unit and not virtual:
+        raise ValueError("--unit is for --camera twin only: a real sensor is the unit it is")
     source_meta = {"rig": {"virtual": virtual, "printer": args.printer, "servos": args.servos}}
     session = prepare(args.out, spec, protocol, layout, source_meta=source_meta,
                       after_background=None if args.no_alignment else _alignment_hook(spec, options))
@@ -131,7 +134,7 @@ def cmd_run(args, parser=None) -> int:
         if twins:
             from .virtual import VirtualRig
 
-            rig = stack.enter_context(VirtualRig(spec, protocol.objects, args.renderer, options, layout))
+            rig = stack.enter_context(VirtualRig(spec, protocol.objects, args.renderer, options, layout, unit=unit))
             if virtual:
                 session.hidden = rig.hidden()
         printer_port = rig.printer.port if args.printer == TWIN else args.printer
@@ -149,6 +152,22 @@ def cmd_run(args, parser=None) -> int:
         summary = session.run(devices, progress=not args.quiet)  # SessionAborted: scenes.cli reports it
     print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s)")
     return 0
+
+
+def _unit(settings: list[str]) -> dict:
+    """``--unit NAME=VALUE[,VALUE...]`` settings as {name: float or tuple}; checked by
+    ``rig.virtual.unit_spec``."""
+    out = {}
+    for text in settings:
+        name, sep, value = text.partition("=")
+        try:
+            values = tuple(float(v) for v in value.split(","))
+        except ValueError:
+            values = ()
+        if not sep or not name or not values:
+            raise ValueError(f"--unit {text!r}: expected NAME=VALUE or NAME=VALUE,VALUE,... with numbers")
+        out[name.strip()] = values[0] if len(values) == 1 else values
+    return out
 
 
 def _ask_to_mount(yes: bool):
@@ -183,6 +202,7 @@ def register(registry) -> None:
     from .marlin import DEFAULT_BAUD
     from .servos import DEFAULT_BAUD as SERVO_BAUD
     from .session import SERVO_SETTLE_S
+    from .virtual import UNIT
 
     p = registry.command("rig", lambda args: p.print_help() or 2, "drive the tapping rig (real or virtual)")
     actions = p.add_subparsers(dest="action", metavar="ACTION")
@@ -214,6 +234,9 @@ def register(registry) -> None:
     run.add_argument("--no-alignment", action="store_true", help="do not register the background against the sim")
     add_quiet_argument(run)
     run.add_argument("--renderer", default="phong", help="--camera twin: phong (the fast path) or pbr (the reference)")
+    run.add_argument("--unit", action="append", metavar="NAME=VALUE",
+                     help="--camera twin: the sensor the twin renders differs from the recorded spec (hidden in "
+                          "virtual.json): " + "; ".join(f"{k}: {v}" for k, v in UNIT.items()))
     add_renderer_arguments(run)
     twin = actions.add_parser("twin", help="serve a printer twin and a servo twin on ptys; print their ports",
                               description="Serve a Marlin printer twin and a servo board twin on pseudo-terminals "

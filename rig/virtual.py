@@ -9,14 +9,58 @@ virtual rig writes a capture dataset with known ground truth.
 
 What the camera twin renders with is hidden from whoever reads the capture: the session
 writes it to ``virtual.json`` (:meth:`VirtualRig.hidden`), which neither the diagnosis
-nor the comparison reads.
+nor the comparison reads. That includes the twin's *unit* (``UNIT``): where the sensor
+it renders differs from the spec the capture records, as a built sensor differs from its
+drawing (a softer membrane, another elastomer, LEDs of another bin).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 
 from scenes.kinematics import RigLayout
+
+#: What the twin's unit may differ in from the recorded spec, by the physical
+#: catalogue's names (``studies.gap.physical``), with what each value means.
+UNIT = {
+    "membrane_compliance": "imprint depth / commanded depth, in [0.3, 2] (the rendered dent is this times deeper)",
+    "layer_spread": "the elastomer's Poisson ratio, in [0, 0.5] (sets the elastic layer's decay length)",
+    "led_peak_shift": "nm added to each LED's emission peak: one value for every LED, or one per LED, each in "
+                      "[-40, 40]",
+}
+
+
+def unit_spec(spec, unit: dict):
+    """(the spec the twin renders, the compliance it presses with) for ``unit`` (names
+    of ``UNIT``); a ValueError naming the entry for anything else."""
+    spec_, compliance = spec, 1.0
+    for name, value in unit.items():
+        values = tuple(value) if isinstance(value, (tuple, list)) else (value,)
+        if name not in UNIT:
+            raise ValueError(f"unit {name!r} is not one the twin can change; it can change: {', '.join(UNIT)}")
+        if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+            raise ValueError(f"unit {name} must be finite numbers, got {value!r}")
+        if name == "membrane_compliance":
+            if len(values) != 1 or not 0.3 <= values[0] <= 2.0:
+                raise ValueError(f"unit membrane_compliance must be one number in [0.3, 2], got {value!r}")
+            compliance = float(values[0])
+        elif name == "layer_spread":
+            if len(values) != 1 or not 0.0 <= values[0] <= 0.5:
+                raise ValueError(f"unit layer_spread (a Poisson ratio) must be one number in [0, 0.5], got {value!r}")
+            spec_ = spec_.replace(elastic=dataclasses.replace(spec_.elastic, poisson_ratio=float(values[0])))
+        else:
+            shifts = values * len(spec.leds) if len(values) == 1 else values
+            if len(shifts) != len(spec.leds) or not all(-40.0 <= v <= 40.0 for v in shifts):
+                raise ValueError(f"unit led_peak_shift must be 1 or {len(spec.leds)} shifts in [-40, 40] nm, got "
+                                 f"{value!r}")
+            if any(led.peak_nm is None for led in spec.leds):
+                raise ValueError("unit led_peak_shift needs every LED's peak_nm in the spec")
+            spec_ = spec_.replace(leds=tuple(dataclasses.replace(led, peak_nm=led.peak_nm + float(d))
+                                             for led, d in zip(spec_.leds, shifts)))
+    return spec_, compliance
 
 
 class TwinCamera:
@@ -34,6 +78,9 @@ class TwinCamera:
         with self._virtual.lock:
             depth = np.asarray(self._virtual.rig.depth(), np.float32)
         self.frames += 1
+        if self._virtual.compliance != 1.0:  # the unit's membrane gives more (or less) than commanded
+            ref = self._virtual.ref_depth
+            depth = (ref - self._virtual.compliance * (ref - depth)).astype(np.float32)
         from scenes.generate import render_sample
 
         return np.asarray(render_sample(renderer, depth)["image"], np.float32)
@@ -60,10 +107,11 @@ class VirtualRig:
     renderer : a renderer plugin's name (``phong``, ``pbr``) for the camera twin.
     options : that renderer's options (e.g. ``{"profile": PATH, "effects": {...}}``).
     printer_faults, servo_faults : rig.twins faults to inject.
+    unit : how the sensor the camera twin renders differs from ``spec`` (``UNIT``).
     """
 
     def __init__(self, spec, objects, renderer: str = "phong", options: dict | None = None,
-                 layout: RigLayout = RigLayout(), printer_faults=None, servo_faults=None):
+                 layout: RigLayout = RigLayout(), printer_faults=None, servo_faults=None, unit: dict | None = None):
         import threading
 
         from scenes.geometry import membrane_mesh
@@ -74,6 +122,9 @@ class VirtualRig:
         from .twins.servos import ServoTwin
 
         self.spec, self.layout = spec, layout
+        self.unit = dict(unit or {})
+        self.unit_spec, self.compliance = unit_spec(spec, self.unit)
+        self.ref_depth = None
         self.renderer_name, self.options = renderer, dict(options or {})
         self.mesh = membrane_mesh(spec)
         self.rig = Rig(rig_scene(spec, {name: indenter(name) for name in objects}, membrane=self.mesh), spec, layout)
@@ -108,24 +159,26 @@ class VirtualRig:
             from scenes.generate import make_renderer, renderer_plugin
 
             plugin = renderer_plugin(self.renderer_name)
-            camera = Camera.from_spec(self.spec)
-            self._settings = plugin.prepare(self.spec, self.mesh, camera, self.options)
+            spec = self.unit_spec  # the unit's membrane and LEDs (its camera and shape are the spec's)
+            camera = Camera.from_spec(spec)
+            self._settings = plugin.prepare(spec, self.mesh, camera, self.options)
             with self.lock:
                 joints = {name: self.rig.qpos(name) for name in ("printer_x", "printer_y", "printer_z")}
                 mounted = self.rig.mounted
                 self.rig.set_joints(printer_x=self.layout.home[0], printer_y=self.layout.home[1],
                                     printer_z=self.layout.home[2])
-                ref_depth = self.rig.depth()
+                self.ref_depth = self.rig.depth()
                 self.rig.set_joints(**joints)
                 self.rig.mount(mounted)
-            shared = plugin.shared(self.spec, self.mesh, camera, self.options) if hasattr(plugin, "shared") else None
-            self._renderer = make_renderer(plugin, self.spec, self.mesh, camera, ref_depth, self.options, shared)
+            shared = plugin.shared(spec, self.mesh, camera, self.options) if hasattr(plugin, "shared") else None
+            self._renderer = make_renderer(plugin, spec, self.mesh, camera, self.ref_depth, self.options, shared)
         return self._renderer
 
     def hidden(self) -> dict:
         """What the camera twin renders with (for ``virtual.json``)."""
         self.renderer()
-        return {"renderer": self.renderer_name, "options": self.options, "settings": self._settings}
+        return {"renderer": self.renderer_name, "options": self.options, "settings": self._settings,
+                "unit": self.unit}
 
     def close(self) -> None:
         for part in (self.printer, self.servos):

@@ -148,6 +148,13 @@ def test_dry_run_prints_the_stream_and_opens_nothing(tmp_path, capsys):
     code = main(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--objects", "sphere",
                  "--layout", str(tmp_path / "missing.toml"), "--out", str(tmp_path / "e"), "--dry-run"])
     assert code == 1 and "--layout" in capsys.readouterr().err
+    # a twin's unit is for the twin only, and its settings are numbers
+    for unit, message in [("membrane_compliance=1.2", "--unit is for --camera twin only"),
+                          ("membrane_compliance", "expected NAME=VALUE"), ("led_peak_shift=a,b", "expected NAME=VALUE")]:
+        assert main(["rig", "run", "--objects", "sphere", "--unit", unit, "--out", str(tmp_path / "f"),
+                     "--dry-run"]) == 1
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "f").exists()
 
 
 def test_dry_run_needs_no_devices_and_a_real_run_names_those_it_lacks(tmp_path, capsys):
@@ -400,6 +407,51 @@ def test_the_twin_camera_says_who_sets_its_exposure(spec, renderer, options, exp
 
     with VirtualRig(spec, ("sphere",), renderer, options) as rig:
         assert rig.camera.describe()["exposure"] == exposure
+
+
+def test_a_twin_unit_is_refused_where_it_cannot_be_built(spec):
+    from rig.virtual import unit_spec
+
+    unit, compliance = unit_spec(spec, {"membrane_compliance": 1.3, "layer_spread": 0.3, "led_peak_shift": (5, -5, 0)})
+    assert compliance == 1.3 and unit.elastic.poisson_ratio == 0.3 and spec.elastic.poisson_ratio == 0.5
+    assert [b.peak_nm - a.peak_nm for a, b in zip(spec.leds, unit.leds)] == [5, -5, 0]
+    assert [b.peak_nm - a.peak_nm for a, b in zip(spec.leds, unit_spec(spec, {"led_peak_shift": 4})[0].leds)] == [4] * 3
+    assert unit_spec(spec, {}) == (spec, 1.0)
+    for bad, message in [({"compliance": 1.2}, "not one the twin can change.*membrane_compliance"),
+                         ({"membrane_compliance": 5.0}, r"membrane_compliance must be one number in \[0.3, 2\]"),
+                         ({"layer_spread": 0.7}, "a Poisson ratio"), ({"led_peak_shift": (1, 2)}, "1 or 3 shifts"),
+                         ({"layer_spread": float("nan")}, "must be finite numbers")]:
+        with pytest.raises(ValueError, match=message):
+            unit_spec(spec, bad)
+
+
+def test_a_twin_unit_presses_deeper_and_renders_its_own_spec(spec, monkeypatch):
+    """The twin's unit is what it renders: its compliance scales the imprint it renders,
+    its elastomer is the renderer's, and virtual.json names it; the capture records the spec."""
+    from scenes.gl import GLPlatformError, choose_gl
+
+    try:
+        choose_gl()
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
+    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    import scenes.generate
+    from rig.virtual import VirtualRig
+
+    seen = []
+    monkeypatch.setattr(scenes.generate, "render_sample", lambda renderer, depth: seen.append(depth) or
+                        {"image": np.zeros((*depth.shape, 3), np.float32)})
+    unit = {"membrane_compliance": 1.5, "layer_spread": 0.25}
+    with VirtualRig(spec, ("sphere",), "phong", {}, unit=unit) as rig:
+        rig.renderer()
+        ref = np.asarray(rig.ref_depth, np.float32)
+        pressed = ref.copy()
+        pressed[200:260, 300:340] -= 1e-3
+        rig.rig.depth = lambda: pressed
+        rig.camera.grab()
+        np.testing.assert_allclose(seen[-1], ref - 1.5 * (ref - pressed), atol=1e-6)
+        assert rig.unit_spec.elastic.poisson_ratio == 0.25 and rig.spec == spec
+        assert rig.hidden()["unit"] == unit
 
 
 def test_a_background_that_cannot_be_registered_is_recorded_not_fatal(spec, capsys):
