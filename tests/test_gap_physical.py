@@ -244,17 +244,31 @@ def test_a_reference_model_is_judged_at_its_basis_film(spec):
     assert judging_factor(spec, (100, 60)) == 1  # a film that does not tile the image: the images' own
 
 
-def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_renderer_takes():
-    from studies.gap.physical_benchmark import HIDDEN, draw, effect_settings
+def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_renderer_takes(spec):
+    from rig.cli import _unit
+    from rig.virtual import unit_spec
+    from studies.gap.physical import physical_catalogue
+    from studies.gap.physical_benchmark import HIDDEN, UNIT_HIDDEN, draw, effect_settings
 
     drawn = [draw(case, seed=3) for case in range(len(HIDDEN) + 4)]
     assert sorted(next(iter(d)) for d in drawn[: len(HIDDEN)]) == sorted(HIDDEN)
     assert draw(5, seed=3) == drawn[5]  # seeded
+    assert set(HIDDEN) <= set(physical_catalogue(spec, Effects())[0])  # each a candidate of the diagnosis, by name
     for hidden in drawn:
         settings = effect_settings(hidden)
-        effects = Effects().with_settings(settings[1::2])
+        flags, values = settings[0::2], settings[1::2]
+        effects = Effects().with_settings([v for f, v in zip(flags, values) if f == "--effect"])
+        unit, compliance = unit_spec(spec, _unit([v for f, v in zip(flags, values) if f == "--unit"]))
         for name, value in hidden.items():
-            assert getattr(effects, name) == value
+            if name == "membrane_compliance":
+                assert compliance == value and 0.75 <= value <= 1.25 and abs(value - 1) >= 0.15
+            elif name == "layer_spread":
+                assert unit.elastic.poisson_ratio == value
+            elif name == "led_peak_shift":
+                assert [b.peak_nm - a.peak_nm for a, b in zip(spec.leds, unit.leds)] == pytest.approx([value] * 3)
+                assert 8 <= abs(value) <= 20
+            else:
+                assert name not in UNIT_HIDDEN and getattr(effects, name) == value
 
 
 def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():

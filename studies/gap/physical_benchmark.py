@@ -22,10 +22,12 @@ it was calibrated to is in every case's gap too (``residual``); a case whose gap
 that residual (``RESIDUAL_SHARE``) is listed in ``below_residual``, and ``above_residual``
 scores the others.
 
-Which physics can be hidden: the Effects switches a capture can be rendered with
-(``HIDDEN``). The membrane's mechanics, the LEDs' powers and spectra and the unit's camera
-and alignment are candidates of the diagnosis but are not switches of the virtual rig's
-camera yet, so no case hides them (``NOT_HIDDEN`` says why).
+Which physics can be hidden (``HIDDEN``): the Effects switches a capture can be rendered
+with (``rig run --effect``), and where the unit the camera twin renders differs from the
+spec its capture records (``rig run --unit``, ``rig.virtual.UNIT``): the membrane's
+compliance, the elastomer's Poisson ratio (the layer's spread) and the LEDs' peaks. The
+LEDs' powers one by one and a calibrated unit's camera and alignment are candidates of
+the diagnosis that no case hides (``NOT_HIDDEN`` says why).
 """
 
 from __future__ import annotations
@@ -37,10 +39,13 @@ from pathlib import Path
 import numpy as np
 
 #: Hidden effects and the ranges their values are drawn from (the defaults are
-#: ``Effects()``'s): a core leak as the paper proposes it; absorption and scattering of
-#: pigmented and clouded silicones (a few to a few hundred per metre); a coating that
-#: reflects less; the contact's own shadow off; lens fall-off and distortion of small
-#: board lenses; flat-white LEDs; an ideal camera response.
+#: ``Effects()``'s and the spec's): a core leak as the paper proposes it; absorption and
+#: scattering of pigmented and clouded silicones (a few to a few hundred per metre); a
+#: coating that reflects less; the contact's own shadow off; lens fall-off and distortion
+#: of small board lenses; flat-white LEDs; an ideal camera response; a membrane that
+#: takes 15-22 % more or less of the commanded press than the model; a more compressible
+#: elastomer (Poisson ratio 0.25-0.4 for 0.5); LEDs of another bin (every peak 8-20 nm
+#: off, either way).
 HIDDEN = {
     "core_light_leak": (0.15, 0.5),
     "absorption_per_m": (60.0, 110.0),
@@ -51,16 +56,23 @@ HIDDEN = {
     "lens_distortion": (0.12, 0.25),  # |k1|, either sign; k2 = 0
     "led_spectra": False,
     "camera_response": False,
+    "membrane_compliance": (0.15, 0.22),  # |compliance - 1|, either sign
+    "layer_spread": (0.25, 0.4),
+    "led_peak_shift": (8.0, 20.0),  # nm, every LED, either sign
 }
+#: Hidden effects that are the twin's unit (``rig run --unit``), not Effects switches.
+UNIT_HIDDEN = ("membrane_compliance", "layer_spread", "led_peak_shift")
 #: Candidates no case hides, and why.
 NOT_HIDDEN = {
     "coating_gloss": "a glossy coating needs the volpath estimator, about 10 times slower than photons at the same "
                      "noise",
     "sensor_noise": "noise is estimated, not predicted",
     "core_leak_cone_rad": "it shapes only a core leak, so it is hidden only together with one",
-    "membrane_compliance, layer_spread, led_power, led_peak_shift, camera_gains, alignment, blur":
-        "not switches of the virtual rig's camera yet (they need a hidden spec or profile that the replay does not "
-        "copy)",
+    "led_power": "one LED's power is no switch of the twin's unit (the spec's LEDs have no power), and all of them "
+                 "together are undone by the capture's exposure rule",
+    "camera_gains, alignment, blur": "a calibrated unit's camera: a twin with a profile sets its image by the "
+                                     "profile's gains, not the exposure rule its replay has, so every table would "
+                                     "differ at once",
 }
 #: Chance that a case after the first pass over HIDDEN hides two effects.
 TWO_EFFECTS = 0.4
@@ -101,18 +113,22 @@ def draw(case: int, seed: int) -> dict[str, object]:
         elif name == "lens_distortion":
             k1 = float(rng.uniform(*spec)) * float(rng.choice([-1.0, 1.0]))
             out[name] = (round(k1, 4), 0.0)
+        elif name in ("membrane_compliance", "led_peak_shift"):
+            side = float(rng.choice([-1.0, 1.0]))
+            out[name] = round((1.0 if name == "membrane_compliance" else 0.0) + side * float(rng.uniform(*spec)), 4)
         else:
             out[name] = round(float(rng.uniform(*spec)), 4)
     return out
 
 
 def effect_settings(hidden: dict) -> list[str]:
-    """``--effect NAME=VALUE`` arguments of ``hidden``."""
+    """``rig run`` arguments of ``hidden``: ``--effect NAME=VALUE`` for an Effects switch,
+    ``--unit NAME=VALUE`` for the twin's unit (``UNIT_HIDDEN``)."""
     out = []
     for name, value in hidden.items():
         text = (("true" if value else "false") if isinstance(value, bool) else
                 ",".join(str(v) for v in value) if isinstance(value, tuple) else str(value))
-        out += ["--effect", f"{name}={text}"]
+        out += ["--unit" if name in UNIT_HIDDEN else "--effect", f"{name}={text}"]
     return out
 
 
@@ -177,7 +193,9 @@ def score_physical(hidden: dict, report: dict) -> dict:
     names = counterparts(hidden) if fast else list(hidden)
     out = score(names, report)
     out["gap"] = float(report["gap"]["heldout"]["masked"]["mae"]["mean"])
-    out["fitted"] = {name: report["effects"][name]["params"] if fast else report["effects"][name]["params"][name]
+    # a reference candidate's own value where it has one parameter of its name (else all of them)
+    out["fitted"] = {name: report["effects"][name]["params"] if fast else
+                     report["effects"][name]["params"].get(name, report["effects"][name]["params"])
                      for name in names if name in report["effects"]}
     if fast:
         out["counterparts"] = names
