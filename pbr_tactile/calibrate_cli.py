@@ -238,17 +238,9 @@ def cmd_bench_calibrate(args) -> int:
 
 
 def _grid(items: list[str]) -> dict:
-    grid = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        try:
-            values = tuple(float(x) for x in text.split(","))
-        except ValueError:
-            values = ()
-        if not sep or not values:
-            raise ValueError(f"--grid {item!r}: expected NAME=V1,V2,... (an effect and its values)")
-        grid[name.strip()] = values
-    return grid
+    from scenes.commands import name_values
+
+    return name_values(items, "--grid", "NAME=V1,V2,... (an effect and its values)")
 
 
 def register(registry) -> None:

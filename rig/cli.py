@@ -157,17 +157,10 @@ def cmd_run(args, parser=None) -> int:
 def _unit(settings: list[str]) -> dict:
     """``--unit NAME=VALUE[,VALUE...]`` settings as {name: float or tuple}; checked by
     ``rig.virtual.unit_spec``."""
-    out = {}
-    for text in settings:
-        name, sep, value = text.partition("=")
-        try:
-            values = tuple(float(v) for v in value.split(","))
-        except ValueError:
-            values = ()
-        if not sep or not name or not values:
-            raise ValueError(f"--unit {text!r}: expected NAME=VALUE or NAME=VALUE,VALUE,... with numbers")
-        out[name.strip()] = values[0] if len(values) == 1 else values
-    return out
+    from scenes.commands import name_values
+
+    parsed = name_values(settings, "--unit", "NAME=VALUE or NAME=VALUE,VALUE,... with numbers")
+    return {name: values[0] if len(values) == 1 else values for name, values in parsed.items()}
 
 
 def _ask_to_mount(yes: bool):

@@ -165,6 +165,22 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def name_values(items: list[str], flag: str, expected: str) -> dict[str, tuple[float, ...]]:
+    """``NAME=V1,V2,...`` command-line settings as {name: values}; a ValueError naming
+    ``flag``, the setting and what was ``expected`` for anything else."""
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        try:
+            values = tuple(float(x) for x in text.split(","))
+        except ValueError:
+            values = ()
+        if not sep or not name.strip() or not values:
+            raise ValueError(f"{flag} {item!r}: expected {expected}")
+        out[name.strip()] = values
+    return out
+
+
 def add_limit_argument(p) -> None:
     """``--limit N``: only the first N taps of the protocol (0, the default: all); read it
     back as ``args.limit``."""

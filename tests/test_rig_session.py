@@ -179,9 +179,8 @@ def test_dry_run_needs_no_devices_and_a_real_run_names_those_it_lacks(tmp_path, 
 # --------------------------------------------------------------------------- sessions
 
 
-@pytest.fixture
-def virtual(spec):
-    """Make a virtual rig (twins with faults) and drivers connected to it."""
+def _needs_virtual_rig():
+    """Skip, saying why, where the MuJoCo rig cannot be built (no GL context, no MuJoCo)."""
     from scenes.gl import GLPlatformError, choose_gl
 
     try:
@@ -189,6 +188,12 @@ def virtual(spec):
     except GLPlatformError as exc:
         pytest.skip(str(exc))
     pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+
+
+@pytest.fixture
+def virtual(spec):
+    """Make a virtual rig (twins with faults) and drivers connected to it."""
+    _needs_virtual_rig()
     from rig.marlin import MarlinPrinter
     from rig.servos import ServoBoard
     from rig.session import Devices
@@ -396,13 +401,7 @@ def test_killing_the_process_mid_run_loses_and_duplicates_nothing(tmp_path):
 def test_the_twin_camera_says_who_sets_its_exposure(spec, renderer, options, exposure):
     """The reference's own rule sets a capture's exposure ("auto": the diagnosis fits it);
     with a profile, the unit's gains and response set the image instead."""
-    from scenes.gl import GLPlatformError, choose_gl
-
-    try:
-        choose_gl()
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    _needs_virtual_rig()
     from rig.virtual import VirtualRig
 
     with VirtualRig(spec, ("sphere",), renderer, options) as rig:
@@ -428,13 +427,7 @@ def test_a_twin_unit_is_refused_where_it_cannot_be_built(spec):
 def test_a_twin_unit_presses_deeper_and_renders_its_own_spec(spec, monkeypatch):
     """The twin's unit is what it renders: its compliance scales the imprint it renders,
     its elastomer is the renderer's, and virtual.json names it; the capture records the spec."""
-    from scenes.gl import GLPlatformError, choose_gl
-
-    try:
-        choose_gl()
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    _needs_virtual_rig()
     import scenes.generate
     from rig.virtual import VirtualRig
 
