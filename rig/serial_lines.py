@@ -8,15 +8,16 @@ import time
 import serial
 
 try:
-    from termios import error as TermiosError
+    import termios
+
+    _TERMIOS_ERRORS: tuple = (termios.error,)
 except ImportError:  # not POSIX: pyserial raises no termios errors there
-    class TermiosError(Exception):
-        """Stands in for termios.error where there is no termios."""
+    _TERMIOS_ERRORS = ()
 
 #: What a port raises when its device fails or goes away. pyserial's flush() on POSIX
 #: calls termios.tcdrain, whose error is not an OSError: an unplugged cable raised a bare
 #: "error: (5, 'Input/output error')" from a write, not the driver's error.
-PORT_ERRORS = (serial.SerialException, OSError, TermiosError)
+PORT_ERRORS = (serial.SerialException, OSError, *_TERMIOS_ERRORS)
 
 #: One blocking read on the port, seconds; bounds how late a deadline is noticed.
 READ_POLL_S = 0.02
