@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from scenes.camera import Camera, undistorted_radius
+from scenes.camera import Camera, undistortion_stretch
 
 from .effects import Effects
 
@@ -36,7 +36,7 @@ def distort(image: np.ndarray, camera: Camera, k1: float, k2: float) -> np.ndarr
     f, cx, cy = camera.f * scale, camera.cx * scale, camera.cy * scale
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     r_d = np.hypot(u - cx, v - cy) / f
-    stretch = np.divide(undistorted_radius(r_d, k1, k2), r_d, out=np.ones_like(r_d), where=r_d > 0)
+    stretch = undistortion_stretch(r_d, k1, k2)
     coords = [np.nan_to_num(cy + (v - cy) * stretch, nan=-2.0), np.nan_to_num(cx + (u - cx) * stretch, nan=-2.0)]
     return np.stack([ndimage.map_coordinates(image[..., c], coords, order=1, mode="constant") for c in range(image.shape[2])],
                     axis=-1).astype(image.dtype)

@@ -156,6 +156,14 @@ def undistorted_radius(r_d: np.ndarray, k1: float, k2: float) -> np.ndarray:
     return np.interp(r_d, table[:end], r_u[:end], right=np.nan)
 
 
+def undistortion_stretch(r_d: np.ndarray, k1: float, k2: float) -> np.ndarray:
+    """r_u / r_d (``undistorted_radius``): what a distorted pixel's offset from the
+    principal point is multiplied by to reach its undistorted position; 1 at the centre,
+    NaN past a barrel's fold."""
+    r_d = np.asarray(r_d, dtype=np.float64)
+    return np.divide(undistorted_radius(r_d, k1, k2), r_d, out=np.ones_like(r_d), where=r_d > 0)
+
+
 def back_project(depth: np.ndarray, camera: Camera, channels_first: bool = False) -> np.ndarray:
     """Point cloud of a planar z-depth map: P = D (u - c_x, v - c_y, f) / f.
 

@@ -374,22 +374,21 @@ def source_coordinates(shape: tuple[int, int], f: float, centre: tuple[float, fl
     similarity about the image centre: x_s = c + scale R(theta) (x_u - c) + (du, dv).
     Pixels no ray reaches (past a strong barrel's fold) sample outside the image.
     """
-    from scenes.camera import undistorted_radius
+    from scenes.camera import undistortion_stretch
 
     h, w = shape
     cv, cu = centre
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     y, x = v - cv, u - cu
     if distortion is not None:
-        r_d = np.hypot(x, y) / f
-        r_u = undistorted_radius(r_d, distortion["k1"], distortion["k2"])
-        stretch = np.divide(r_u, r_d, out=np.ones_like(r_d), where=r_d > 0)
+        stretch = undistortion_stretch(np.hypot(x, y) / f, distortion["k1"], distortion["k2"])
         x, y = x * stretch, y * stretch
     if misalignment is not None:
         c, s = math.cos(misalignment["rotation_rad"]), math.sin(misalignment["rotation_rad"])
         sc = misalignment["scale"]
         x, y = sc * (c * x - s * y) + misalignment["du_px"], sc * (s * x + c * y) + misalignment["dv_px"]
-    return np.nan_to_num(np.stack([y + cv, x + cu]), nan=-2.0)
+    coords = np.stack([y + cv, x + cu])
+    return coords if distortion is None else np.nan_to_num(coords, nan=-2.0)
 
 
 def misalign_membrane(images: np.ndarray, coords: np.ndarray, fixed: np.ndarray, circle: np.ndarray,
