@@ -60,6 +60,8 @@ HIDDEN = {
     "layer_spread": (0.25, 0.4),
     "led_peak_shift": (8.0, 20.0),  # nm, every LED, either sign
 }
+#: Hidden effects drawn as an offset of either sign from their default (value: the default).
+EITHER_SIDE = {"membrane_compliance": 1.0, "led_peak_shift": 0.0}
 #: Hidden effects that are the twin's unit (``rig run --unit``), not Effects switches.
 UNIT_HIDDEN = ("membrane_compliance", "layer_spread", "led_peak_shift")
 #: Candidates no case hides, and why.
@@ -113,9 +115,9 @@ def draw(case: int, seed: int) -> dict[str, object]:
         elif name == "lens_distortion":
             k1 = float(rng.uniform(*spec)) * float(rng.choice([-1.0, 1.0]))
             out[name] = (round(k1, 4), 0.0)
-        elif name in ("membrane_compliance", "led_peak_shift"):
+        elif name in EITHER_SIDE:
             side = float(rng.choice([-1.0, 1.0]))
-            out[name] = round((1.0 if name == "membrane_compliance" else 0.0) + side * float(rng.uniform(*spec)), 4)
+            out[name] = round(EITHER_SIDE[name] + side * float(rng.uniform(*spec)), 4)
         else:
             out[name] = round(float(rng.uniform(*spec)), 4)
     return out
