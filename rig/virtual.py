@@ -30,27 +30,42 @@ UNIT = {
     "layer_spread": "the elastomer's Poisson ratio, in [0, 0.5] (sets the elastic layer's decay length)",
     "led_peak_shift": "nm added to each LED's emission peak: one value for every LED, or one per LED, each in "
                       "[-40, 40]",
+    "camera_gains": "the camera's white balance: a gain per channel (R, G, B), each in [0.25, 4], on the exposed image",
+    "alignment": "the camera's seat in the tube: du, dv (px, the image moves right and down) and a turn (rad, about "
+                 "the image's centre, clockwise on screen), |shift| <= 40 px, |turn| <= 0.2",
+    "blur": "the lens's defocus: the radius of its blur disc in px, in [0, 8]",
 }
+#: Entries of ``UNIT`` that are the camera's, not the sensor's: they act on the rendered
+#: image (``unit_image``), in this order.
+CAMERA_UNIT = ("blur", "alignment", "camera_gains")
+
+
+def _values(name: str, value) -> tuple:
+    values = tuple(value) if isinstance(value, (tuple, list)) else (value,)
+    if name not in UNIT:
+        raise ValueError(f"unit {name!r} is not one the twin can change; it can change: {', '.join(UNIT)}")
+    if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+        raise ValueError(f"unit {name} must be finite numbers, got {value!r}")
+    return tuple(float(v) for v in values)
 
 
 def unit_spec(spec, unit: dict):
     """(the spec the twin renders, the compliance it presses with) for ``unit`` (names
-    of ``UNIT``); a ValueError naming the entry for anything else."""
+    of ``UNIT``; the camera's entries, ``CAMERA_UNIT``, are checked here and applied by
+    ``unit_image``); a ValueError naming the entry for anything else."""
     spec_, compliance = spec, 1.0
     for name, value in unit.items():
-        values = tuple(value) if isinstance(value, (tuple, list)) else (value,)
-        if name not in UNIT:
-            raise ValueError(f"unit {name!r} is not one the twin can change; it can change: {', '.join(UNIT)}")
-        if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
-            raise ValueError(f"unit {name} must be finite numbers, got {value!r}")
-        if name == "membrane_compliance":
+        values = _values(name, value)
+        if name in CAMERA_UNIT:
+            _camera_entry(name, values)
+        elif name == "membrane_compliance":
             if len(values) != 1 or not 0.3 <= values[0] <= 2.0:
                 raise ValueError(f"unit membrane_compliance must be one number in [0.3, 2], got {value!r}")
-            compliance = float(values[0])
+            compliance = values[0]
         elif name == "layer_spread":
             if len(values) != 1 or not 0.0 <= values[0] <= 0.5:
                 raise ValueError(f"unit layer_spread (a Poisson ratio) must be one number in [0, 0.5], got {value!r}")
-            spec_ = spec_.replace(elastic=dataclasses.replace(spec_.elastic, poisson_ratio=float(values[0])))
+            spec_ = spec_.replace(elastic=dataclasses.replace(spec_.elastic, poisson_ratio=values[0]))
         else:
             shifts = values * len(spec.leds) if len(values) == 1 else values
             if len(shifts) != len(spec.leds) or not all(-40.0 <= v <= 40.0 for v in shifts):
@@ -58,9 +73,67 @@ def unit_spec(spec, unit: dict):
                                  f"{value!r}")
             if any(led.peak_nm is None for led in spec.leds):
                 raise ValueError("unit led_peak_shift needs every LED's peak_nm in the spec")
-            spec_ = spec_.replace(leds=tuple(dataclasses.replace(led, peak_nm=led.peak_nm + float(d))
+            spec_ = spec_.replace(leds=tuple(dataclasses.replace(led, peak_nm=led.peak_nm + d)
                                              for led, d in zip(spec_.leds, shifts)))
     return spec_, compliance
+
+
+def _camera_entry(name: str, values: tuple) -> tuple:
+    """``values`` of a camera entry, checked against ``UNIT``'s ranges."""
+    if name == "camera_gains":
+        ok = len(values) == 3 and all(0.25 <= v <= 4.0 for v in values)
+    elif name == "alignment":
+        ok = len(values) == 3 and abs(values[0]) <= 40 and abs(values[1]) <= 40 and abs(values[2]) <= 0.2
+    else:
+        ok = len(values) == 1 and 0.0 <= values[0] <= 8.0
+    if not ok:
+        raise ValueError(f"unit {name} is {UNIT[name]}; got {values!r}")
+    return values
+
+
+def _disc(radius: float, supersample: int = 8) -> np.ndarray:
+    """A defocused lens's point spread: a uniform disc of ``radius`` px, each kernel cell
+    weighted by the share of it inside (supersampled), summing to 1."""
+    half = int(math.ceil(radius))
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    grid = np.arange(-half, half + 1)[:, None] + sub[None, :]
+    x = grid.reshape(-1)
+    inside = (x[:, None] ** 2 + x[None, :] ** 2 <= radius**2).astype(np.float64)
+    n = 2 * half + 1
+    kernel = inside.reshape(n, supersample, n, supersample).mean(axis=(1, 3))
+    return kernel / kernel.sum()
+
+
+def unit_image(image: np.ndarray, unit: dict) -> np.ndarray:
+    """The camera entries of ``unit`` on a rendered (H, W, 3) image in [0, 1]: the lens's
+    defocus (a disc, ``_disc``), then the camera's seat (the picture turned about its centre
+    and shifted, linear resampling, edge pixels repeated), then the white balance,
+    clipped to [0, 1]. The image is unchanged where ``unit`` has none of them.
+
+    A physical camera, not the diagnosis's image models: a disc, not a Gaussian; the seat
+    is a rigid motion of the sensor under the lens (so the image circle moves too)."""
+    stages = {name: _camera_entry(name, _values(name, unit[name])) for name in CAMERA_UNIT if name in unit}
+    if not stages:
+        return image
+    from scipy import ndimage
+
+    out = np.asarray(image, np.float64)
+    if stages.get("blur", (0.0,))[0] > 0:
+        kernel = _disc(stages["blur"][0])
+        out = np.stack([ndimage.convolve(out[..., c], kernel, mode="nearest") for c in range(out.shape[-1])], -1)
+    if "alignment" in stages:
+        du, dv, turn = stages["alignment"]
+        h, w = out.shape[:2]
+        centre = np.array([(h - 1) / 2, (w - 1) / 2])
+        c, s = math.cos(turn), math.sin(turn)
+        # output (row, col) reads the input at R(-turn) (p - centre - shift) + centre, (row, col) order
+        inverse = np.array([[c, -s], [s, c]])
+        offset = centre - inverse @ (centre + np.array([dv, du]))
+        out = np.stack([ndimage.affine_transform(out[..., k], inverse, offset=offset, order=1, mode="nearest")
+                        for k in range(out.shape[-1])], -1)
+    if "camera_gains" in stages:
+        out = out * np.asarray(stages["camera_gains"])
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
 class TwinCamera:
@@ -83,7 +156,8 @@ class TwinCamera:
             depth = (ref - self._virtual.compliance * (ref - depth)).astype(np.float32)
         from scenes.generate import render_sample
 
-        return np.asarray(render_sample(renderer, depth)["image"], np.float32)
+        image = np.asarray(render_sample(renderer, depth)["image"], np.float32)
+        return unit_image(image, self._virtual.unit)  # the unit's own camera, if it differs
 
     def describe(self) -> dict:
         cam = self._virtual.rig.spec.camera

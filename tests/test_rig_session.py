@@ -419,30 +419,57 @@ def test_a_twin_unit_is_refused_where_it_cannot_be_built(spec):
     for bad, message in [({"compliance": 1.2}, "not one the twin can change.*membrane_compliance"),
                          ({"membrane_compliance": 5.0}, r"membrane_compliance must be one number in \[0.3, 2\]"),
                          ({"layer_spread": 0.7}, "a Poisson ratio"), ({"led_peak_shift": (1, 2)}, "1 or 3 shifts"),
-                         ({"layer_spread": float("nan")}, "must be finite numbers")]:
+                         ({"layer_spread": float("nan")}, "must be finite numbers"),
+                         ({"camera_gains": (1.0, 1.1)}, r"camera_gains is .* \(R, G, B\).*got \(1.0, 1.1\)"),
+                         ({"camera_gains": (1.0, 1.1, 9.0)}, "each in \\[0.25, 4\\]"),
+                         ({"alignment": (1.0, 2.0, 0.5)}, r"\|turn\| <= 0.2"), ({"blur": -1.0}, "defocus")]:
         with pytest.raises(ValueError, match=message):
             unit_spec(spec, bad)
 
 
+def test_a_twin_units_camera_blurs_moves_and_balances_the_image_as_a_camera_would():
+    """The unit's own camera on a rendered image: a defocus disc of the stated radius that
+    keeps the light, a rigid motion that carries a point where the turn and shift put it,
+    and per-channel gains, clipped."""
+    from rig.virtual import unit_image
+
+    image = np.zeros((41, 61, 3), np.float32)
+    image[20, 40] = 1.0  # 10 px right of the centre (row 20, col 30)
+    blurred = unit_image(image, {"blur": 2.5})
+    rows, cols = np.nonzero(blurred[..., 0] > 0)
+    assert blurred[..., 0].sum() == pytest.approx(1.0, abs=1e-6)
+    assert np.hypot(rows - 20, cols - 40).max() <= 2.5 + 0.75 and np.hypot(rows - 20, cols - 40).max() >= 2.5 - 0.75
+    assert np.ptp(blurred[20, 39:42, 0]) < 1e-6  # a disc is flat inside, unlike a Gaussian
+    turn = 0.2
+    moved = unit_image(image, {"alignment": (3.0, -2.0, turn)})
+    row, col = np.unravel_index(np.argmax(moved[..., 0]), moved.shape[:2])
+    assert (row, col) == (round(20 - 2.0 + 10 * np.sin(turn)), round(30 + 3.0 + 10 * np.cos(turn)))
+    balanced = unit_image(np.full((4, 4, 3), 0.5, np.float32), {"camera_gains": (1.2, 1.0, 2.5)})
+    np.testing.assert_allclose(balanced[0, 0], [0.6, 0.5, 1.0])
+    assert unit_image(image, {"membrane_compliance": 1.2}) is image  # no camera entry: the image as it is
+
+
 def test_a_twin_unit_presses_deeper_and_renders_its_own_spec(spec, monkeypatch):
     """The twin's unit is what it renders: its compliance scales the imprint it renders,
-    its elastomer is the renderer's, and virtual.json names it; the capture records the spec."""
+    its elastomer is the renderer's, its camera takes the image, and virtual.json names it;
+    the capture records the spec."""
     _needs_virtual_rig()
     import scenes.generate
     from rig.virtual import VirtualRig
 
     seen = []
     monkeypatch.setattr(scenes.generate, "render_sample", lambda renderer, depth: seen.append(depth) or
-                        {"image": np.zeros((*depth.shape, 3), np.float32)})
-    unit = {"membrane_compliance": 1.5, "layer_spread": 0.25}
+                        {"image": np.full((*depth.shape, 3), 0.4, np.float32)})
+    unit = {"membrane_compliance": 1.5, "layer_spread": 0.25, "camera_gains": (2.0, 1.0, 0.5)}
     with VirtualRig(spec, ("sphere",), "phong", {}, unit=unit) as rig:
         rig.renderer()
         ref = np.asarray(rig.ref_depth, np.float32)
         pressed = ref.copy()
         pressed[200:260, 300:340] -= 1e-3
         rig.rig.depth = lambda: pressed
-        rig.camera.grab()
+        image = rig.camera.grab()
         np.testing.assert_allclose(seen[-1], ref - 1.5 * (ref - pressed), atol=1e-6)
+        np.testing.assert_allclose(image[0, 0], [0.8, 0.4, 0.2], rtol=1e-6)  # through the unit's own camera
         assert rig.unit_spec.elastic.poisson_ratio == 0.25 and rig.spec == spec
         assert rig.hidden()["unit"] == unit
 
