@@ -252,7 +252,11 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
 
     drawn = [draw(case, seed=3) for case in range(len(HIDDEN) + 4)]
     assert sorted(next(iter(d)) for d in drawn[: len(HIDDEN)]) == sorted(HIDDEN)
+    assert all(len(d) == 1 for d in drawn[: len(HIDDEN)])
     assert draw(5, seed=3) == drawn[5]  # seeded
+    few = [draw(case, seed=3, cases=12) for case in range(12)]  # fewer cases than effects: still every one
+    assert sorted(name for d in few for name in d) == sorted(HIDDEN) and max(len(d) for d in few) == 2
+    drawn += few
     assert set(HIDDEN) <= set(physical_catalogue(spec, Effects())[0])  # each a candidate of the diagnosis, by name
     for hidden in drawn:
         settings = effect_settings(hidden)
@@ -267,8 +271,37 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
             elif name == "led_peak_shift":
                 assert [b.peak_nm - a.peak_nm for a, b in zip(spec.leds, unit.leds)] == pytest.approx([value] * 3)
                 assert 8 <= abs(value) <= 20
+            elif name == "camera_gains":
+                assert _unit([f"camera_gains={','.join(map(str, value))}"])[name] == value
+                assert all(0.1 <= abs(g - 1) <= 0.3 for g in value)
+            elif name == "alignment":
+                assert all(2 <= abs(d) <= 6 for d in value[:2]) and 0.01 <= abs(value[2]) <= 0.04
+            elif name == "blur":
+                assert 1.5 <= value <= 3.5
             else:
                 assert name not in UNIT_HIDDEN and getattr(effects, name) == value
+
+
+def test_a_reference_case_that_is_mostly_monte_carlo_noise_is_listed_apart():
+    """Both renders' noise is in a reference case's gap and no candidate closes it: a case
+    whose gap is mostly that noise (sqrt(2) x the replay's judged floor) is set apart, and
+    the others are scored on their own."""
+    from studies.gap.physical_benchmark import RESIDUAL_SHARE, _against_noise, score_physical
+
+    def report(gap, first):
+        closes = {"full": 0.1, "masked": 0.3}
+        return {"model": "pbr", "ranking": [first, "alignment"], "gap": {"heldout": {"masked": {"mae": {"mean": gap}}}},
+                "explained": {"effects": [first], "share_closed": closes},
+                "effects": {first: {"share_closed": closes, "params": {first: 1.06, "exposure": 1.0}}},
+                "noise": {"mae_floor": 0.004, "monte_carlo": {"judged": {"mae_floor": {"sim": 0.005}}}}}
+
+    quiet = score_physical({"membrane_compliance": 1.17}, report(0.0078, "alignment"))
+    loud = score_physical({"led_peak_shift": 14.6}, report(0.0435, "led_peak_shift"))
+    assert quiet["noise_floor"] == pytest.approx(0.005 * 2**0.5) and quiet["noise_floor_share"] >= RESIDUAL_SHARE
+    assert loud["noise_floor_share"] == pytest.approx(0.005 * 2**0.5 / 0.0435) and loud["fitted"] == {"led_peak_shift": 1.06}
+    summary = _against_noise([{**quiet, "case": 0}, {**loud, "case": 1}])
+    assert summary["below_noise"] == [0] and summary["above_noise"]["cases"] == 1
+    assert summary["above_noise"]["top1"] == 1.0 and summary["above_noise"]["mean_heldout_shrink"] == 0.3
 
 
 def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
@@ -306,6 +339,7 @@ def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
                                                       "effects": {"absorption_per_m": {
                                                           "share_closed": closes, "params": {"absorption_per_m": 85.0}}}})
     assert ref["top1"] and ref["fitted"] == {"absorption_per_m": 85.0} and "closes" not in ref
+    assert ref["noise_floor"] is None and ref["noise_floor_share"] == 0.0  # no variance maps: not set apart
 
 
 def test_the_renders_monte_carlo_noise_floor_comes_from_their_variance_maps(spec, scene, tmp_path):

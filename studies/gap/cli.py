@@ -85,7 +85,8 @@ def cmd_benchmark(args) -> int:
                                         factor=args.factor, pairing=args.pairing)
         write_json(Path(args.json), result)
         print(json.dumps({k: result[k] for k in ("cases", "top1", "top3", "mean_heldout_shrink", "seconds",
-                                                 "never_hidden", "below_residual", "above_residual") if k in result},
+                                                 "never_hidden", "below_residual", "above_residual", "below_noise",
+                                                 "above_noise") if k in result},
                          indent=1))
         return 0
     from .benchmark import run_benchmark

@@ -20,19 +20,25 @@ catalogue (``physical.COUNTERPARTS``), and each case reports how much the counte
 closes per region of the image circle. What the calibrated fast path leaves on the capture
 it was calibrated to is in every case's gap too (``residual``); a case whose gap is mostly
 that residual (``RESIDUAL_SHARE``) is listed in ``below_residual``, and ``above_residual``
-scores the others.
+scores the others. A reference case's gap holds both renders' Monte Carlo noise, which no
+candidate closes; a case whose gap is mostly that noise is listed in ``below_noise`` in
+the same way, and ``above_noise`` scores the others.
 
 Which physics can be hidden (``HIDDEN``): the Effects switches a capture can be rendered
 with (``rig run --effect``), and where the unit the camera twin renders differs from the
 spec its capture records (``rig run --unit``, ``rig.virtual.UNIT``): the membrane's
-compliance, the elastomer's Poisson ratio (the layer's spread) and the LEDs' peaks. The
-LEDs' powers one by one and a calibrated unit's camera and alignment are candidates of
-the diagnosis that no case hides (``NOT_HIDDEN`` says why).
+compliance, the elastomer's Poisson ratio (the layer's spread), the LEDs' peaks, and the
+unit's own camera (its white balance, its seat in the tube, its focus), which the twin
+applies to the image it renders as a physical camera would (``rig.virtual.unit_image``: a
+defocus disc, a rigid motion of the picture, gains), not by the diagnosis's image models.
+The LEDs' powers one by one, the coating's gloss, the leak's cone and the sensor's noise
+are candidates of the diagnosis that no case hides (``NOT_HIDDEN`` says why).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
@@ -45,7 +51,9 @@ import numpy as np
 #: of small board lenses; flat-white LEDs; an ideal camera response; a membrane that
 #: takes 15-22 % more or less of the commanded press than the model; a more compressible
 #: elastomer (Poisson ratio 0.25-0.4 for 0.5); LEDs of another bin (every peak 8-20 nm
-#: off, either way).
+#: off, either way); a camera whose white balance differs by 10-30 % per channel, either
+#: way; a camera seated 2-6 px off in each direction and turned 0.01-0.04 rad (either
+#: way); a lens defocused to a blur disc of 1.5-3.5 px radius (at the camera's 640x480).
 HIDDEN = {
     "core_light_leak": (0.15, 0.5),
     "absorption_per_m": (60.0, 110.0),
@@ -59,22 +67,23 @@ HIDDEN = {
     "membrane_compliance": (0.15, 0.22),  # |compliance - 1|, either sign
     "layer_spread": (0.25, 0.4),
     "led_peak_shift": (8.0, 20.0),  # nm, every LED, either sign
+    "camera_gains": (0.1, 0.3),  # |gain - 1| per channel, each either sign
+    "alignment": ((2.0, 6.0), (0.01, 0.04)),  # |du|, |dv| px; |turn| rad; each either sign
+    "blur": (1.5, 3.5),  # px, the defocus disc's radius
 }
 #: Hidden effects drawn as an offset of either sign from their default (value: the default).
 EITHER_SIDE = {"membrane_compliance": 1.0, "led_peak_shift": 0.0}
 #: Hidden effects that are the twin's unit (``rig run --unit``), not Effects switches.
-UNIT_HIDDEN = ("membrane_compliance", "layer_spread", "led_peak_shift")
+UNIT_HIDDEN = ("membrane_compliance", "layer_spread", "led_peak_shift", "camera_gains", "alignment", "blur")
 #: Candidates no case hides, and why.
 NOT_HIDDEN = {
     "coating_gloss": "a glossy coating needs the volpath estimator, about 10 times slower than photons at the same "
                      "noise",
     "sensor_noise": "noise is estimated, not predicted",
-    "core_leak_cone_rad": "it shapes only a core leak, so it is hidden only together with one",
+    "core_leak_cone_rad": "it only aims a core leak's light up the tube, so without a leak it changes nothing; no "
+                          "case pairs it with one",
     "led_power": "one LED's power is no switch of the twin's unit (the spec's LEDs have no power), and all of them "
                  "together are undone by the capture's exposure rule",
-    "camera_gains, alignment, blur": "a calibrated unit's camera: a twin with a profile sets its image by the "
-                                     "profile's gains, not the exposure rule its replay has, so every table would "
-                                     "differ at once",
 }
 #: Chance that a case after the first pass over HIDDEN hides two effects.
 TWO_EFFECTS = 0.4
@@ -90,20 +99,24 @@ SIM_SEED = 1000
 PAIRINGS = ("reference", "fast")
 #: Taps of that capture the fast path's calibration uses (``tactile-sim calibrate --taps``).
 CALIBRATION_TAPS = 10
-#: A fast-pairing case is below the calibration's residual when what the calibrated fast
-#: path leaves on the capture it was calibrated to is at least this share of the case's
-#: held-out gap: the hidden effect then makes at most a fifth of it.
+#: A case is below its floor when what no candidate can close is at least this share of
+#: its held-out gap, so that the hidden effect makes at most a fifth of it: for the fast
+#: pairing, what the calibrated fast path leaves on the capture it was calibrated to; for
+#: the reference pairing, the two renders' Monte Carlo noise.
 RESIDUAL_SHARE = 0.8
 
 
-def draw(case: int, seed: int) -> dict[str, object]:
-    """The hidden effects of one case and their values: every effect of ``HIDDEN`` once
-    in turn (a seeded order), then one or two at random."""
+def draw(case: int, seed: int, cases: int | None = None) -> dict[str, object]:
+    """The hidden effects of one case of ``cases`` and their values: every effect of
+    ``HIDDEN`` once in a seeded order, spread over the first cases (where there are fewer
+    cases than effects, a case hides each ``cases``-th of that order, so every effect is
+    hidden; None: one case per effect), then one or two at random."""
     names = list(HIDDEN)
     order = [str(n) for n in np.random.default_rng(seed).permutation(names)]
     rng = np.random.default_rng([seed, case])
-    if case < len(order):
-        chosen = [order[case]]
+    first = len(order) if cases is None else max(1, min(int(cases), len(order)))
+    if case < first:
+        chosen = order[case::first]
     else:
         count = 2 if rng.random() < TWO_EFFECTS else 1
         chosen = [str(n) for n in rng.choice(names, size=count, replace=False)]
@@ -113,14 +126,24 @@ def draw(case: int, seed: int) -> dict[str, object]:
         if isinstance(spec, bool):
             out[name] = spec
         elif name == "lens_distortion":
-            k1 = float(rng.uniform(*spec)) * float(rng.choice([-1.0, 1.0]))
+            k1 = float(rng.uniform(*spec)) * _side(rng)
             out[name] = (round(k1, 4), 0.0)
+        elif name == "camera_gains":
+            out[name] = tuple(round(1.0 + _side(rng) * float(rng.uniform(*spec)), 4) for _ in range(3))
+        elif name == "alignment":
+            (shift, turn) = spec
+            out[name] = (round(_side(rng) * float(rng.uniform(*shift)), 3),
+                         round(_side(rng) * float(rng.uniform(*shift)), 3),
+                         round(_side(rng) * float(rng.uniform(*turn)), 4))
         elif name in EITHER_SIDE:
-            side = float(rng.choice([-1.0, 1.0]))
-            out[name] = round(EITHER_SIDE[name] + side * float(rng.uniform(*spec)), 4)
+            out[name] = round(EITHER_SIDE[name] + _side(rng) * float(rng.uniform(*spec)), 4)
         else:
             out[name] = round(float(rng.uniform(*spec)), 4)
     return out
+
+
+def _side(rng) -> float:
+    return float(rng.choice([-1.0, 1.0]))
 
 
 def effect_settings(hidden: dict) -> list[str]:
@@ -199,6 +222,11 @@ def score_physical(hidden: dict, report: dict) -> dict:
     out["fitted"] = {name: report["effects"][name]["params"] if fast else
                      report["effects"][name]["params"].get(name, report["effects"][name]["params"])
                      for name in names if name in report["effects"]}
+    if not fast:  # the capture is rendered as the replay is, so its noise is the replay's: the difference's is sqrt(2) x
+        mc = report.get("noise", {}).get("monte_carlo")  # absent where the replay kept no variance: not set apart
+        floor = math.sqrt(2.0) * mc["judged"]["mae_floor"]["sim"] if mc else None
+        out["noise_floor"] = floor
+        out["noise_floor_share"] = 0.0 if floor is None else floor / out["gap"] if out["gap"] > 0 else float("inf")
     if fast:
         out["counterparts"] = names
         out["closes"] = {name: report["effects"][name]["share_closed"] for name in names if name in report["effects"]}
@@ -230,7 +258,7 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
         sim = root / ("sim" if pairing == "reference" else "sim_fast")
         bar = tqdm(range(cases), desc="physical cases", unit="case", disable=not progress)
         for case in bar:
-            hidden = draw(case, seed)
+            hidden = draw(case, seed, cases)
             folder = root / f"case_{seed}_{case:03d}"
             t_case = time.perf_counter()
             capture(folder / "real", hidden)
@@ -259,8 +287,10 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
     out = summarise(results, seed, TAPS, time.perf_counter() - t0)
     if residual is not None:
         out.update(_against_residual(results, residual, clean["ranking"]))
+    elif results:
+        out.update(_against_noise(results))
     out.update({"physical": True, "pairing": pairing,
-                "hidden_ranges": {k: list(v) if isinstance(v, tuple) else v for k, v in HIDDEN.items()},
+                "hidden_ranges": HIDDEN,
                 "not_hidden": NOT_HIDDEN, "objects": OBJECTS, "render": RENDER, "sim_seed": SIM_SEED, "factor": factor,
                 "hidden_at_least_once": sorted({h for r in results for h in r["hidden"]}),
                 "never_hidden": sorted(set(HIDDEN) - {h for r in results for h in r["hidden"]})})
@@ -274,18 +304,30 @@ def _against_residual(results: list[dict], residual: float, ranking: list[str]) 
     1 - ``RESIDUAL_SHARE`` of their gap."""
     for r in results:
         r["residual_share"] = residual / r["gap"] if r["gap"] > 0 else float("inf")
-    above = [r for r in results if r["residual_share"] < RESIDUAL_SHARE]
     return {"per_region": _per_region(results),
             "residual": {"heldout_masked_mae": residual, "ranking": ranking,
                          "what": "the calibrated fast path against the capture without hidden effects it was "
                                  "calibrated to: what calibration leaves, in every case's gap too"},
-            "below_residual": [r["case"] for r in results if r["residual_share"] >= RESIDUAL_SHARE],
-            "above_residual": {"cases": len(above),
-                               "top1": float(np.mean([r["top1"] for r in above])) if above else 0.0,
-                               "top3": float(np.mean([r["top3"] for r in above])) if above else 0.0,
-                               "mean_heldout_shrink": float(np.mean([r["shrink"] for r in above])) if above else 0.0,
-                               "what": f"cases whose calibration residual is below {RESIDUAL_SHARE:.0%} of their "
-                                       "held-out gap"}}
+            **_split(results, "residual_share", "residual", "calibration residual")}
+
+
+def _against_noise(results: list[dict]) -> dict:
+    """The scores over the reference cases whose gap is more than 1 - ``RESIDUAL_SHARE``
+    the hidden effects' own, not the renders' Monte Carlo noise (``noise_floor_share``)."""
+    return _split(results, "noise_floor_share", "noise", "renders' Monte Carlo noise floor (sqrt(2) x the replay's, "
+                  "at the film the diagnosis judges at)")
+
+
+def _split(results: list[dict], share: str, name: str, what: str) -> dict:
+    """``below_<name>``: the cases whose ``share`` of their gap is at least
+    ``RESIDUAL_SHARE``; ``above_<name>``: the scores of the others."""
+    above = [r for r in results if r[share] < RESIDUAL_SHARE]
+    return {f"below_{name}": [r["case"] for r in results if r[share] >= RESIDUAL_SHARE],
+            f"above_{name}": {"cases": len(above),
+                              "top1": float(np.mean([r["top1"] for r in above])) if above else 0.0,
+                              "top3": float(np.mean([r["top3"] for r in above])) if above else 0.0,
+                              "mean_heldout_shrink": float(np.mean([r["shrink"] for r in above])) if above else 0.0,
+                              "what": f"cases whose {what} is below {RESIDUAL_SHARE:.0%} of their held-out gap"}}
 
 
 def _per_region(results: list[dict]) -> dict:
