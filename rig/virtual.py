@@ -119,18 +119,16 @@ def unit_image(image: np.ndarray, unit: dict) -> np.ndarray:
 
     out = np.asarray(image, np.float64)
     if stages.get("blur", (0.0,))[0] > 0:
-        kernel = _disc(stages["blur"][0])
-        out = np.stack([ndimage.convolve(out[..., c], kernel, mode="nearest") for c in range(out.shape[-1])], -1)
+        out = ndimage.convolve(out, _disc(stages["blur"][0])[..., None], mode="nearest")  # each channel alone
     if "alignment" in stages:
         du, dv, turn = stages["alignment"]
         h, w = out.shape[:2]
-        centre = np.array([(h - 1) / 2, (w - 1) / 2])
+        centre = np.array([(h - 1) / 2, (w - 1) / 2, 0.0])
         c, s = math.cos(turn), math.sin(turn)
-        # output (row, col) reads the input at R(-turn) (p - centre - shift) + centre, (row, col) order
-        inverse = np.array([[c, -s], [s, c]])
-        offset = centre - inverse @ (centre + np.array([dv, du]))
-        out = np.stack([ndimage.affine_transform(out[..., k], inverse, offset=offset, order=1, mode="nearest")
-                        for k in range(out.shape[-1])], -1)
+        # output (row, col, channel) reads the input at R(-turn) (p - centre - shift) + centre; channels stay
+        inverse = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        offset = centre - inverse @ (centre + np.array([dv, du, 0.0]))
+        out = ndimage.affine_transform(out, inverse, offset=offset, order=1, mode="nearest")
     if "camera_gains" in stages:
         out = out * np.asarray(stages["camera_gains"])
     return np.clip(out, 0.0, 1.0).astype(np.float32)

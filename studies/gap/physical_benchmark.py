@@ -222,15 +222,15 @@ def score_physical(hidden: dict, report: dict) -> dict:
     out["fitted"] = {name: report["effects"][name]["params"] if fast else
                      report["effects"][name]["params"].get(name, report["effects"][name]["params"])
                      for name in names if name in report["effects"]}
-    if not fast:  # the capture is rendered as the replay is, so its noise is the replay's: the difference's is sqrt(2) x
-        mc = report.get("noise", {}).get("monte_carlo")  # absent where the replay kept no variance: not set apart
-        floor = math.sqrt(2.0) * mc["judged"]["mae_floor"]["sim"] if mc else None
-        out["noise_floor"] = floor
-        out["noise_floor_share"] = 0.0 if floor is None else floor / out["gap"] if out["gap"] > 0 else float("inf")
     if fast:
         out["counterparts"] = names
         out["closes"] = {name: report["effects"][name]["share_closed"] for name in names if name in report["effects"]}
         out["selection_closes"] = report["explained"]["share_closed"]
+    else:  # the capture is rendered as the replay is, so its noise is the replay's: the difference's is sqrt(2) x
+        mc = report.get("noise", {}).get("monte_carlo")  # absent where the replay kept no variance: not set apart
+        floor = math.sqrt(2.0) * mc["judged"]["mae_floor"]["sim"] if mc else None
+        out["noise_floor"] = floor
+        out["noise_floor_share"] = 0.0 if floor is None else floor / out["gap"] if out["gap"] > 0 else float("inf")
     return out
 
 
