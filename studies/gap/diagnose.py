@@ -120,6 +120,12 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                     for n, j in singles.items()},
         "not_applicable": diagnosis.not_applicable,
         "ranking": ranked,
+        # the two first-ranked effects, fitted together, where they took the first place
+        # from a single effect with more parameters that closes no more (``Diagnosis.rank``)
+        "first_pair": None if diagnosis.first_pair is None else {
+            **_judged(diagnosis.first_pair), "instead_of": diagnosis.first_pair.instead_of,
+            "parameters": sum(diagnosis.size(n) for n in diagnosis.first_pair.fit.effects),
+            "instead_of_parameters": diagnosis.size(diagnosis.first_pair.instead_of)},
         "not_significant": [n for n in singles if n not in ranked],
         # Fits whose search ended where it started while leaving most of the gap, and what
         # the check around the start found (a local optimum, or a restart that moved on).

@@ -78,6 +78,9 @@ MIN_STEP_SHARE = 0.01
 #: predicted at its hidden value, left a masked MAE of 0.0149 on six of the taps; the
 #: fitted camera_gains, 0.0150 on the held-out six).
 RANK_TIE_SHARE = 0.02
+#: A pair drawn from this many of the best-ranked single candidates of a reference model
+#: may take the first place from a single one with more parameters (``Diagnosis.rank``).
+PAIR_POOL = 4
 #: L-BFGS-B iterations of the joint refit of a selected combination.
 JOINT_ITERATIONS = 15
 #: Forward selection tries at most this many remaining candidates per step (the best
@@ -186,6 +189,7 @@ class Diagnosis:
             raise ValueError(f"unknown effect(s) {unknown}; the {self.work.kind} model's catalogue has "
                              f"{list(self.names)}")
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
+        self.first_pair: Judged | None = None  # the pair ranked first, if one was (``rank``)
         self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h,
                                          regions=self.regions_h)
         self.train_mse_before = self._mse(self.sim_w)
@@ -559,6 +563,10 @@ class Diagnosis:
                            for m in (metrics.METRICS if k in metrics.SCOPES else ("mae",))} for k in self.before}
         return Judged(fit, self.before, improvement)
 
+    def size(self, name: str) -> int:
+        """A candidate's parameters, the capture's exposure (fitted with every physical one) not counted."""
+        return sum(p.name != "exposure" for p in self.catalogue[name].params)
+
     def rank(self, singles: dict[str, Judged]) -> list[str]:
         """The significant single effects, best held-out MAE improvement first. A
         reference model's candidates are ranked by that too, except that the first is the
@@ -572,22 +580,61 @@ class Diagnosis:
         its camera_response then beat a hidden absorption's path_attenuation by 1.7 % of the
         gap."""
         ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+        self.first_pair = None
         if not self.work.ties_to_simplest or len(ranked) < 2:
             return ranked
         best = singles[ranked[0]].after[RANK_BY[0]][RANK_BY[1]]
         margin = RANK_TIE_SHARE * float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
 
-        def tied(name: str) -> bool:
-            other = singles[name].after[RANK_BY[0]][RANK_BY[1]]
+        def tied(judged: Judged) -> bool:
+            other = judged.after[RANK_BY[0]][RANK_BY[1]]
             if float(np.mean(other)) - float(np.mean(best)) <= margin:
                 return True
             return not metrics.improvement(other, best, RANK_BY[1], seed=self.seed)["significant"]
 
-        def size(name: str) -> int:  # the capture's exposure, fitted with every physical candidate, not counted
-            return sum(p.name != "exposure" for p in self.catalogue[name].params)
-
-        first = min((n for n in ranked if tied(n)), key=lambda n: (size(n), ranked.index(n)))
+        first = min((n for n in ranked if tied(singles[n])), key=lambda n: (self.size(n), ranked.index(n)))
+        self.first_pair = self._pair(singles, ranked, first, tied)
+        if self.first_pair is not None:
+            self.first_pair.instead_of = first
+            pair = sorted(self.first_pair.fit.effects, key=ranked.index)
+            return pair + [n for n in ranked if n not in pair]
         return [first] + [n for n in ranked if n != first]
+
+    def _pair(self, singles: dict[str, Judged], ranked: list[str], first: str, tied) -> Judged | None:
+        """The pair that takes the first place from ``first``, if one does: drawn from the
+        ``PAIR_POOL`` best-ranked candidates, with fewer parameters than ``first``, tied
+        with the best single (``tied``, as ``rank``'s rule) and better than each of its two
+        alone by what a selection step must close (significant, ``MIN_STEP_SHARE``).
+        Among several, the fewest parameters, then the lowest held-out MAE.
+
+        A hidden cause of two physical effects (LED peaks shifted and the camera's
+        response off; the coating's albedo and the medium's absorption) is mimicked by the
+        unit's flexible camera model (camera_gains, 11 parameters) better than by either
+        effect alone, so ranking single candidates named the camera: the same parsimony
+        as the tie rule, over pairs."""
+        pool = ranked[:PAIR_POOL]
+        gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
+        found = []
+        for i, a in enumerate(pool):
+            for b in pool[i + 1:]:
+                if self.size(a) + self.size(b) >= self.size(first):
+                    continue
+                start = {**singles[a].fit.params, b: singles[b].fit.params[b]}
+                fit = self.fit((a, b), start=start, free=(b,))
+                joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
+                fit = joint if joint.train_loss < fit.train_loss else fit
+                judged = self.judge(fit, complete=False)
+                if tied(judged) and all(self._adds(judged, singles[n], gap) for n in (a, b)):
+                    found.append((self.size(a) + self.size(b), float(np.mean(judged.after[RANK_BY[0]][RANK_BY[1]])), judged))
+        if not found:
+            return None
+        return self.judge(min(found, key=lambda t: t[:2])[2].fit)
+
+    def _adds(self, pair: Judged, single: Judged, gap: float) -> bool:
+        """Whether ``pair`` improves on one of its members alone as a selection step must."""
+        step = metrics.improvement(single.after[RANK_BY[0]][RANK_BY[1]], pair.after[RANK_BY[0]][RANK_BY[1]],
+                                   RANK_BY[1], seed=self.seed)
+        return step["significant"] and step["mean"] >= MIN_STEP_SHARE * gap
 
     def select(self, singles: dict[str, Judged], ranked: list[str] | None = None) -> list[Judged]:
         """Greedy forward selection, chosen on the training samples, stopped on the
@@ -609,7 +656,12 @@ class Diagnosis:
         current = singles[ranked[0]]
         current.added = ranked[0]
         steps.append(current)
-        candidates = [n for n in singles if n != ranked[0]]
+        pair = self.first_pair
+        if pair is not None and set(pair.fit.effects) == set(ranked[:2]):  # ranked first as a pair: its second step
+            pair.added = ranked[1]
+            steps.append(pair)
+            current = pair
+        candidates = [n for n in singles if n not in current.fit.effects]
         gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
         while candidates and len(current.fit.effects) < MAX_COMBINATION:
             chosen = current.fit.effects

@@ -209,6 +209,14 @@ def headline(report: dict) -> list[str]:
                      f"{share['share'] * 100:.1f}% [{share['share_low'] * 100:.1f}, {share['share_high'] * 100:.1f}] "
                      "of the held-out gap on its own."
                      + (f" Its counterpart in the fast path's catalogue is {counterpart}." if counterpart else ""))
+        pair = report.get("first_pair")
+        if pair:
+            share = pair["heldout"]["improvement"]["masked"]["mae"]
+            fitted = "; ".join(f"{n}: {_params(pair, n)}" for n in pair["effects"])
+            lines.append(f"It is ranked first with {report['ranking'][1]}: together ({pair['parameters']} parameters; "
+                         f"{fitted}) they close {share['share'] * 100:.1f}% [{share['share_low'] * 100:.1f}, "
+                         f"{share['share_high'] * 100:.1f}], as much as {pair['instead_of']} "
+                         f"({pair['instead_of_parameters']} parameters) alone, and more than either alone.")
     else:
         lines.append("No effect of the catalogue closes a significant part of the held-out gap.")
     if report["selection"]:
