@@ -501,3 +501,58 @@ def test_a_reference_candidate_within_the_tie_margin_of_the_best_ties_with_it():
         singles = {"camera_gains": judged(best, before),
                    "absorption_per_m": judged(best + lag * before.mean(), before)}
         assert model.rank(singles)[0] == first
+
+
+def test_two_hidden_colour_effects_are_ranked_first_as_a_pair_over_the_flexible_camera_model(spec, scene, stub):
+    """LED peaks shifted and the camera's response off: a colour matrix with a curve
+    (camera_gains, 11 parameters) mimics the two better than either alone; the pair (4
+    parameters) closes as much, so it takes the first two places, at the hidden values."""
+    sim = rendered(spec, scene, {})
+    hidden = {"led_peak_shift": {"shift_nm_0": 15.0, "shift_nm_1": 15.0, "shift_nm_2": 15.0},
+              "camera_response": {"on": 0.0}}
+    pairs = pairs_of(spec, scene, rendered(spec, scene, hidden), sim)
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=8, effects=("led_peak_shift", "camera_response", "camera_gains",
+                                                            "led_power"))
+    singles = d.singles()
+    ranked = d.rank(singles)
+    assert set(ranked[:2]) == set(hidden) and d.first_pair is not None
+    assert d.first_pair.instead_of == "camera_gains"  # the single it displaced
+    fitted = d.first_pair.fit.params
+    assert fitted["camera_response"]["on"] == pytest.approx(0.0, abs=0.1)
+    assert [fitted["led_peak_shift"][f"shift_nm_{m}"] for m in range(3)] == pytest.approx([15.0] * 3, abs=5.0)
+    steps = d.select(singles, ranked)
+    assert set(steps[1].fit.effects) == set(hidden)  # the selection goes on from the pair
+
+
+def test_a_pair_takes_the_first_place_only_if_each_of_its_two_adds_to_the_other():
+    """The rule on stated held-out errors: a 1+1-parameter pair as good as camera_gains
+    (11) comes first; not if one of its two adds nothing to the other alone."""
+    from types import SimpleNamespace
+
+    from studies.gap import metrics
+    from studies.gap.fit import Fit, Judged
+
+    rng = np.random.default_rng(0)
+    before = 0.02 + 0.001 * rng.standard_normal(20)
+
+    def judged(names: tuple, mae: np.ndarray) -> Judged:
+        fit = Fit(names, {n: {"value": 1.0} for n in names}, 0.0, 0.0, 0, 0.0)
+        return Judged(fit, {"masked": {"mae": mae}}, {"masked": {"mae": metrics.improvement(before, mae, "mae")}})
+
+    one = [SimpleNamespace(name="value", identity=0.0), SimpleNamespace(name="exposure", identity=1.0)]
+    catalogue = {"camera_gains": SimpleNamespace(params=[SimpleNamespace(name=f"p{i}") for i in range(11)]),
+                 "absorption_per_m": SimpleNamespace(params=one), "coating_albedo": SimpleNamespace(params=one)}
+    best = 0.004 + 0.0005 * rng.standard_normal(20)
+    for albedo_alone, first in ((0.012, "absorption_per_m"), (0.006, "camera_gains")):
+        singles = {"camera_gains": judged(("camera_gains",), best),
+                   "absorption_per_m": judged(("absorption_per_m",), best + 0.006),
+                   "coating_albedo": judged(("coating_albedo",), best + albedo_alone)}
+        pair = judged(("absorption_per_m", "coating_albedo"), best + 0.006 - (0.006 if first != "camera_gains" else 0))
+        d = Diagnosis.__new__(Diagnosis)
+        d.__dict__.update(work=SimpleNamespace(kind="pbr", ties_to_simplest=True), catalogue=catalogue, seed=0,
+                          before={"masked": {"mae": before}}, names=tuple(catalogue),
+                          fit=lambda names, start=None, free=None, max_iterations=0: pair.fit,
+                          judge=lambda fit, against=None, complete=True: pair)
+        ranked = d.rank(singles)
+        assert ranked[0] == first and (d.first_pair is not None) == (first != "camera_gains")

@@ -222,7 +222,7 @@ def score_physical(hidden: dict, report: dict) -> dict:
     out["fitted"] = {name: report["effects"][name]["params"] if fast else
                      report["effects"][name]["params"].get(name, report["effects"][name]["params"])
                      for name in names if name in report["effects"]}
-    chosen = report["selection"][-1]["params"] if report["selection"] else {}
+    chosen = report["selection"][-1]["params"] if report.get("selection") else {}
     out["fitted_in_selection"] = {name: chosen[name].get(name, chosen[name]) for name in names if name in chosen}
     if fast:
         out["counterparts"] = names
