@@ -364,6 +364,12 @@ def test_the_renders_monte_carlo_noise_floor_comes_from_their_variance_maps(spec
     pairs.real_meta["renderer"]["film"] = [160, 120]  # 2x2 film pixels in a block
     judged = render_noise(pairs, np.arange(n), camera.mask, factor=8)["judged"]
     assert judged["mae_floor"]["real"] == pytest.approx(np.sqrt(2 / np.pi) * 1e-2 / 2, rel=1e-4)
+    # Low-passed as the reference model compares them: a Gaussian of one block, whose
+    # squared weights sum to (sum_x g(x)^2)^2 for the 1-D kernel g (truncated at 4 sigma).
+    g = np.exp(-0.5 * np.arange(-4, 5) ** 2)
+    g /= g.sum()
+    low = render_noise(pairs, np.arange(n), camera.mask, factor=8, sigma=1.0)["judged"]
+    assert low["mae_floor"]["real"] == pytest.approx(judged["mae_floor"]["real"] * float(np.sum(g ** 2)), rel=1e-4)
     (pairs.real_dir / "variance" / f"{pairs.ids[1]}.npy").unlink()
     assert render_noise(pairs, np.arange(n), camera.mask)["sides"] == ["sim"]
 
@@ -556,3 +562,37 @@ def test_a_pair_takes_the_first_place_only_if_each_of_its_two_adds_to_the_other(
                           judge=lambda fit, against=None, complete=True: pair)
         ranked = d.rank(singles)
         assert ranked[0] == first and (d.first_pair is not None) == (first != "camera_gains")
+
+
+def test_an_alignment_closes_the_simulations_noise_only_where_it_is_compared_unsmoothed(spec, scene, stub,
+                                                                                          monkeypatch):
+    """Over a noisy simulation, an alignment fits a sub-pixel displacement whose
+    interpolation smooths the noise, and so closes part of a gap that is all noise; the
+    reference model compares its images low-passed (``compared``), where it closes (almost)
+    none of it, while a real displacement is still found and closed."""
+    clean = rendered(spec, scene, {})
+    rng = np.random.default_rng(1)
+
+    def noisy(images: np.ndarray) -> np.ndarray:  # white noise at the judged film's pixels
+        noise = np.repeat(np.repeat(rng.normal(0.0, 0.01, (len(images), FILM[1], FILM[0], 3)), 8, 1), 8, 2)
+        return np.clip(images + noise, 0.0, 1.0).astype(np.float32)
+
+    def alignment(real: np.ndarray, sim: np.ndarray):
+        pairs = pairs_of(spec, scene, real, sim)
+        train, heldout = split(pairs, 0.5, seed=0)
+        return Diagnosis(pairs, train, heldout, factor=8, effects=("alignment",)).singles()["alignment"]
+
+    real, sim = noisy(clean), noisy(clean)
+    low = alignment(real, sim).improvement["masked"]["mae"]
+    monkeypatch.setattr(physical, "COMPARED_SIGMA_FILM_PX", 0.0)  # the images themselves
+    raw = alignment(real, sim).improvement["masked"]["mae"]
+    monkeypatch.undo()
+    assert raw["significant"] and raw["share"] > 0.03
+    assert low["share"] < raw["share"] / 3
+    model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), scene[2], film=FILM))
+    moved = model.optics(clean, {"alignment": {"du_px": 6.0, "dv_px": -4.0, "rotation_rad": 0.03, "scale": 1.0}})
+    found = alignment(noisy(moved), noisy(clean))
+    assert found.significant and found.improvement["masked"]["mae"]["share"] > 0.3  # the rest is the noise
+    fitted = found.fit.params["alignment"]
+    assert (fitted["du_px"], fitted["dv_px"]) == pytest.approx((6.0, -4.0), abs=1.5)
+    assert fitted["rotation_rad"] == pytest.approx(0.03, abs=0.01)

@@ -57,8 +57,9 @@ def _groups(pairs: Pairs, values: dict, index: np.ndarray, key) -> dict:
 #: Why held-out samples are judged at the resolution they are (report settings.judged_at).
 JUDGED_AT_WHY = {
     "fast": "the images' resolution",
-    "pbr": ("the reference model's basis film (block means of the images): it predicts what a candidate changes "
-            "only there, and the renders' Monte Carlo noise, which no candidate can predict, is smaller there"),
+    "pbr": ("the reference model's basis film (block means of the images), low-passed by a Gaussian of one film "
+            "pixel: it predicts what a candidate changes only there, and the renders' Monte Carlo noise, which no "
+            "candidate can predict and a resampling one would smooth, is smaller there"),
 }
 
 
@@ -147,7 +148,8 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                           **_physical_entry(diagnosis.work, n)}
                       for n in diagnosis.names},
     }
-    mc = render_noise(pairs, diagnosis.heldout_index, _mask(pairs), diagnosis.full.factor)
+    mc = render_noise(pairs, diagnosis.heldout_index, _mask(pairs), diagnosis.full.factor,
+                      getattr(diagnosis.full, "compared_sigma_px", 0.0))
     if mc is not None:
         report["noise"]["monte_carlo"] = mc
     if diagnosis.work.kind == "pbr":
@@ -162,7 +164,8 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     return report, {"maps": maps, "labels": labels, "mask": _mask(pairs), "examples": examples}
 
 
-def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int = 1) -> dict | None:
+def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int = 1,
+                 sigma: float = 0.0) -> dict | None:
     """The Monte Carlo noise of reference-rendered images, from their datasets' own
     variance maps (``variance/<id>.npy``, the variance of each pixel's linear mean, at
     the dataset's exposure gain): its MAE floor, sqrt(2 / pi) sigma per pixel averaged
@@ -172,7 +175,9 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int 
     factor > 1 adds ``judged``: the floor of ``factor`` x ``factor`` block means (where a
     reference model is judged), each block's variance divided by the film pixels it
     holds, as if they were independent. Neighbouring pixels of a photon map are not (its
-    kernel spans several), so this is a lower bound of that floor."""
+    kernel spans several), so this is a lower bound of that floor. sigma > 0: the blocks
+    low-passed by a Gaussian of that many blocks, as the reference model compares them
+    (``ReferenceModel.compared``): each variance is the squared kernel's weighted sum."""
     sides, films = {}, {}
     for side, root, meta in (("real", pairs.real_dir, pairs.real_meta), ("sim", pairs.sim_dir, pairs.sim_meta)):
         renderer = meta.get("renderer") or {}
@@ -207,12 +212,26 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int 
         blocks = {}
         for side, vs in sides.items():
             held = max(1.0, (factor * float(films[side][0]) / pairs.shape[1]) ** 2)  # film pixels in a block
-            blocks[side] = [block_mean(v, factor, (0, 1)) / held for v in vs]
+            blocks[side] = [_low_passed_variance(block_mean(v, factor, (0, 1)) / held, sigma) for v in vs]
         area = block_mean(mask.astype(np.float32), factor, (0, 1)) >= 0.5
-        out["judged"] = {"factor": int(factor), **summary(blocks, area),
+        out["judged"] = {"factor": int(factor), "sigma": float(sigma), **summary(blocks, area),
                          "note": "the same at the resolution the held-out samples are judged at (block means), as "
                                  "if the film's pixels were independent: a lower bound"}
     return out
+
+
+def _low_passed_variance(variance: np.ndarray, sigma: float) -> np.ndarray:
+    """(H, W, C) the variance of independent pixels' values once low-passed by a Gaussian
+    of ``sigma`` pixels (scipy.ndimage's, 'nearest' borders): sum_j w_j^2 v_j per pixel."""
+    if sigma <= 0:
+        return variance
+    from scipy import ndimage
+
+    size = 2 * int(4 * sigma + 0.5) + 1  # gaussian_filter's kernel (truncate 4)
+    delta = np.zeros((size, size), np.float64)
+    delta[size // 2, size // 2] = 1.0
+    weights = ndimage.gaussian_filter(delta, sigma, mode="constant")
+    return ndimage.convolve(np.asarray(variance, np.float64), (weights ** 2)[..., None], mode="nearest")
 
 
 def _physical_entry(model, name: str) -> dict:

@@ -190,8 +190,14 @@ class Diagnosis:
                              f"{list(self.names)}")
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
         self.first_pair: Judged | None = None  # the pair ranked first, if one was (``rank``)
-        self.before = metrics.per_sample(self.real_h, self.sim_h, self.mask, areas=self.areas_h,
-                                         regions=self.regions_h)
+        # What fits and judgements compare: a model's ``compared`` images where it has one
+        # (the reference's, low-passed), else the images themselves.
+        self._compared_w = getattr(self.work, "compared", _same)
+        self._compared_h = getattr(self.full, "compared", _same)
+        self._real_w_compared = self._compared_w(self.real_w)
+        self._real_h_compared = self._compared_h(self.real_h)
+        self.before = metrics.per_sample(self._real_h_compared, self._compared_h(self.sim_h), self.mask,
+                                         areas=self.areas_h, regions=self.regions_h)
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
 
@@ -199,7 +205,7 @@ class Diagnosis:
 
     def _mse(self, pred: np.ndarray) -> float:
         rows, cols = self._box
-        err = pred[:, rows, cols] - self.real_w[:, rows, cols]
+        err = self._compared_w(pred)[:, rows, cols] - self._real_w_compared[:, rows, cols]
         err *= self._box_mask
         return float(np.einsum("nhwc,nhwc->", err, err, dtype=np.float64)) / self._box_count
 
@@ -207,7 +213,7 @@ class Diagnosis:
         """The fitted loss: the smooth MAE (``LOSS_EPS``) over the training samples' circle;
         ``weights`` (N,) counts each sample that many times (a bootstrap resample)."""
         rows, cols = self._box
-        err = pred[:, rows, cols] - self.real_w[:, rows, cols]
+        err = self._compared_w(pred)[:, rows, cols] - self._real_w_compared[:, rows, cols]
         err *= err
         # sqrt(e^2 + eps^2) - eps, written so that it is exactly 0 at e = 0 in float32
         err /= np.sqrt(err + np.float32(LOSS_EPS * LOSS_EPS)) + np.float32(LOSS_EPS)
@@ -516,7 +522,8 @@ class Diagnosis:
         """Held-out metrics of a fit and their paired improvement over ``against`` (a
         ``metrics.per_sample`` result; default: the simulator as it is). ``complete=False``
         measures MAE and PSNR only (no SSIM), for trials that are only compared."""
-        after = metrics.per_sample(self.real_h, self.predict_heldout(fit.params), self.mask, ssim=complete,
+        after = metrics.per_sample(self._real_h_compared, self._compared_h(self.predict_heldout(fit.params)),
+                                   self.mask, ssim=complete,
                                    areas=self.areas_h, regions=self.regions_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
@@ -694,6 +701,10 @@ class Diagnosis:
     def noise(self, params: dict) -> float:
         """Sensor noise estimated from the held-out residual of a prediction."""
         return fx.noise_std(self.real_h - self.predict_heldout(params), self.mask)
+
+
+def _same(images: np.ndarray) -> np.ndarray:
+    return images
 
 
 def _areas_at(model, areas: np.ndarray) -> np.ndarray:
