@@ -69,6 +69,7 @@ DEFAULTS = {
     "film": [320, 240],
     "seed": 0,
     "profile": None,
+    "led_power": None,
 }
 #: The no-contact frame's EXPOSURE_PERCENTILE inside the image circle maps to this value.
 EXPOSURE_LEVEL = 0.8
@@ -161,7 +162,21 @@ def options_from(options: dict, camera: Camera) -> dict:
     if profile is not None and estimator != "photons":
         raise ValueError("option profile needs estimator photons (it renders one image per source)")
     opts["profile"] = profile
+    power = given["led_power"]
+    if power is not None and (isinstance(power, str) or not isinstance(power, (list, tuple))):
+        raise ValueError(f"option led_power must be a list of each LED's radiance scale, got {power!r}")
+    if power is not None and profile is not None:
+        raise ValueError("option led_power cannot go with a profile (the profile's gains are its LEDs' powers)")
+    opts["led_power"] = None if power is None else list(power)
     return opts
+
+
+def _led_power(spec: SensorSpec, opts: dict):
+    """The LEDs' radiance scales of validated options (``scene.led_powers``): 1 for each
+    LED unless the option gives one per LED."""
+    from .scene import led_powers
+
+    return 1.0 if opts["led_power"] is None else led_powers(spec, opts["led_power"])
 
 
 def unit_of(spec: SensorSpec, opts: dict):
@@ -194,7 +209,9 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
         raise ValueError(f"option estimator: photons needs a vectorised (llvm_ or cuda_) Mitsuba variant, got "
                          f"{variant}; apt-get install libllvm19, or use estimator volpath")
     spec, camera, effects, profile = unit_of(spec, opts)
-    frame_opts = {k: v for k, v in opts.items() if k not in ("target_rse", "effect_settings", "profile")}
+    power = _led_power(spec, opts)  # checked before any work
+    frame_opts = {k: v for k, v in opts.items() if k not in ("target_rse", "effect_settings", "profile")
+                  and not (k == "led_power" and v is None)}  # the LEDs' own powers: the keys frames had before
     frame_opts["effects"] = effects.to_dict()  # the frame has every pass; the unit's spec is in the key
     frame_opts["per_source"] = profile is not None
     key = make_key(FRAME_VERSION, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
@@ -209,7 +226,7 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
                         estimator=opts["estimator"], photons=opts["photons"],
                         kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
                         no_contact_memo=memo, control_spp=opts["camera_spp"] * CONTROL_SPP_FACTOR if photons else 0,
-                        per_source=profile is not None)
+                        per_source=profile is not None, led_power=power)
         rse = contact_rse(est, camera.scaled(width, height).mask)
         control = {} if est.control is None else {CONTROL_PREFIX + k: getattr(est.control, k)
                                                   for k in ("images", "mean", "variance")}
@@ -282,6 +299,7 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
         "kernel_radius_mm": opts["kernel_radius_mm"],
         "no_contact_runs": opts["no_contact_runs"],
         "seed": opts["seed"],
+        **({"led_power": opts["led_power"]} if opts["led_power"] is not None else {}),
         "film": [width, height],
         "resampling": None if (width, height) == (camera.width, camera.height) else
         f"rendered at {width}x{height} (a quarter of the camera time per halving of each side) and resampled "
@@ -305,6 +323,7 @@ class PbrDatasetRenderer:
         self.ref_depth = check_depth(np.asarray(ref_depth), camera, "ref_depth")
         spec, camera, self.effects, self.profile = unit_of(spec, opts)  # with a profile, the unit's
         self.spec, self.mesh, self.camera, self.opts = spec, mesh, camera, opts
+        self.led_power = _led_power(spec, opts)
         if self.profile is not None:
             from .scene import led_sources
 
@@ -356,7 +375,8 @@ class PbrDatasetRenderer:
                             estimator=opts["estimator"], photons=opts["photons"],
                             kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
                             target_rse=opts["target_rse"], max_passes=opts["max_passes"], no_contact_memo=self._memo,
-                            solids=self._solids, control=self._control, per_source=self.profile is not None)
+                            solids=self._solids, control=self._control, per_source=self.profile is not None,
+                            led_power=self.led_power)
         linear = self._camera_size(est.mean)
         rse = est.rse if est.rse is not None and math.isfinite(est.rse) else None
         return {

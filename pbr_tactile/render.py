@@ -449,6 +449,7 @@ def reference(
     control: Control | None = None,
     control_spp: int = 0,
     per_source: bool = False,
+    led_power=1.0,
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
@@ -474,6 +475,7 @@ def reference(
         and asking for this render as one (see ``render_photons``; photons only).
     per_source : one grey image per source of ``led_sources(spec, effects)`` instead of
         RGB (see ``render_photons``; photons only).
+    led_power : each LED's radiance scale, one for all or one per LED (``led_sources``).
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -496,7 +498,7 @@ def reference(
     solid = build(depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
         meshes = write_meshes(solid, folder)
-        scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed)
+        scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed, led_power=led_power)
         if estimator == "photons":
             light_scene = flat_scene = None
             if depth is not None:
@@ -505,12 +507,13 @@ def reference(
                 # contact_shadow off, is what the light sees: no shadow, no guiding by
                 # the dent; only the camera sees it.
                 flat = write_meshes(build(), f"{folder}/undeformed")
-                flat_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed)
+                flat_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed,
+                                          led_power=led_power)
                 if not effects.contact_shadow:
                     light_scene = flat_scene
             elif no_contact_runs:
                 flat_scene = scene  # the no-contact frame: its map is the cached one
-            est = render_photons(scene, led_sources(spec, effects), effects, photons=photons,
+            est = render_photons(scene, led_sources(spec, effects, led_power), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
                                  pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,

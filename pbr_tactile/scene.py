@@ -130,7 +130,7 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
     return np.c_[xy, pos[:, 2]]
 
 
-def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float = 1.0) -> list[dict]:
+def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -> list[dict]:
     """The LEDs as spherical emitters: name, centre (m), radius (m), radiance spectrum on
     WAVELENGTHS_NM, its (peak_nm, fwhm_nm, scale) and whether it sits in the elastomer.
 
@@ -140,11 +140,14 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float
     directional: ``cone_axis`` (+z, up the tube) and ``cone_half_angle_rad`` say where its
     photons go (``pbr_tactile.photons.Source``); every source has both keys (None and 0
     for a Lambertian one).
+
+    led_power : the radiance scale of every LED (the camera's exposure), or one per LED
+        (``led_powers``: a unit's LEDs of another bin).
     """
-    if not (math.isfinite(led_power) and led_power > 0):
-        raise ValueError(f"led_power must be a finite radiance scale > 0, got {led_power}")
+    powers = led_powers(spec, led_power)
     sources = []
     for m, (led, centre) in enumerate(zip(spec.leds, led_centres(spec))):
+        led_power = powers[m]
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak
@@ -164,6 +167,17 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power: float
     return sources
 
 
+def led_powers(spec: SensorSpec, led_power) -> tuple[float, ...]:
+    """Each LED's radiance scale from one for all of them or one per LED; a ValueError
+    naming what was expected otherwise."""
+    values = tuple(led_power) if isinstance(led_power, (tuple, list, np.ndarray)) else (led_power,) * len(spec.leds)
+    if len(values) != len(spec.leds) or not all(isinstance(v, (int, float, np.floating)) and math.isfinite(v)
+                                                  and v > 0 for v in values):
+        raise ValueError(f"led_power must be a finite radiance scale > 0, or one per LED ({len(spec.leds)}), "
+                         f"got {led_power!r}")
+    return tuple(float(v) for v in values)
+
+
 def geltip_scene(
     meshes: dict[str, str],
     spec: SensorSpec,
@@ -173,12 +187,12 @@ def geltip_scene(
     height: int | None = None,
     spp: int = 64,
     seed: int = 0,
-    led_power: float = 1.0,
+    led_power=1.0,
 ) -> dict:
     """The Mitsuba scene dict of a sensor with the given meshes (see ``write_meshes``).
 
     width, height : film size (default: the camera's); the field of view is the camera's.
-    led_power : radiance scale of every LED (the camera's exposure).
+    led_power : radiance scale of every LED (the camera's exposure), or one per LED.
     """
     width = width or camera.width
     height = height or camera.height

@@ -30,6 +30,8 @@ UNIT = {
     "layer_spread": "the elastomer's Poisson ratio, in [0, 0.5] (sets the elastic layer's decay length)",
     "led_peak_shift": "nm added to each LED's emission peak: one value for every LED, or one per LED, each in "
                       "[-40, 40]",
+    "led_power": "each LED's radiant power relative to the spec's: one value for every LED, or one per LED, each in "
+                 "[0.25, 4] (LEDs of another bin; the pbr camera twin only)",
     "camera_gains": "the camera's white balance: a gain per channel (R, G, B), each in [0.25, 4], on the exposed image",
     "alignment": "the camera's seat in the tube: du, dv (px, the image moves right and down) and a turn (rad, about "
                  "the image's centre, clockwise on screen), |shift| <= 40 px, |turn| <= 0.2",
@@ -49,6 +51,14 @@ def _values(name: str, value) -> tuple:
     return tuple(float(v) for v in values)
 
 
+def _led_power(spec, values: tuple) -> tuple:
+    """Each LED's power of a ``led_power`` entry, checked against ``UNIT``'s range."""
+    powers = values * len(spec.leds) if len(values) == 1 else values
+    if len(powers) != len(spec.leds) or not all(0.25 <= v <= 4.0 for v in powers):
+        raise ValueError(f"unit led_power must be 1 or {len(spec.leds)} powers in [0.25, 4], got {values!r}")
+    return powers
+
+
 def unit_spec(spec, unit: dict):
     """(the spec the twin renders, the compliance it presses with) for ``unit`` (names
     of ``UNIT``; the camera's entries, ``CAMERA_UNIT``, are checked here and applied by
@@ -58,6 +68,8 @@ def unit_spec(spec, unit: dict):
         values = _values(name, value)
         if name in CAMERA_UNIT:
             _camera_entry(name, values)
+        elif name == "led_power":
+            _led_power(spec, values)
         elif name == "membrane_compliance":
             if len(values) != 1 or not 0.3 <= values[0] <= 2.0:
                 raise ValueError(f"unit membrane_compliance must be one number in [0.3, 2], got {value!r}")
@@ -198,6 +210,11 @@ class VirtualRig:
         self.unit_spec, self.compliance = unit_spec(spec, self.unit)
         self.ref_depth = None
         self.renderer_name, self.options = renderer, dict(options or {})
+        if "led_power" in self.unit:  # the reference renders each LED's power; the fast path's LEDs have only colours
+            if renderer != "pbr":
+                raise ValueError(f"unit led_power needs the pbr camera twin (--renderer pbr); got {renderer!r}, whose "
+                                 "LEDs have a colour but no power of their own")
+            self.options["led_power"] = list(_led_power(spec, _values("led_power", self.unit["led_power"])))
         self.mesh = membrane_mesh(spec)
         self.rig = Rig(rig_scene(spec, {name: indenter(name) for name in objects}, membrane=self.mesh), spec, layout)
         self.lock = threading.Lock()

@@ -130,6 +130,36 @@ def test_spectra_and_effects():
         Effects(absorption_per_m=-1.0)
 
 
+def test_each_led_can_have_its_own_power_and_the_image_is_linear_in_it(monkeypatch, mesh, spec, camera):
+    """A unit's LEDs of another bin: each LED's power scales its light and its leak's, and
+    nothing else (the light pass is per unit flux); the reference passes it to the
+    sources it renders."""
+    from pbr_tactile import render
+    from pbr_tactile.render import source_response
+    from pbr_tactile.scene import led_sources
+
+    effects = Effects(core_light_leak=0.25)
+    powers = (2.0, 1.0, 0.5)
+    plain, own = led_sources(spec, effects), led_sources(spec, effects, powers)
+    scale = [powers[int(s["name"][3])] for s in plain]  # led<m> and led<m>_leak
+    np.testing.assert_allclose(source_response(own, effects), np.array(scale)[:, None] * source_response(plain, effects))
+    assert [(s["centre"], s["radius"], s["name"]) for s in own] == [(s["centre"], s["radius"], s["name"]) for s in plain]
+    assert led_sources(spec, effects, 2.0)[0]["scale"] == pytest.approx(2 * plain[0]["scale"])  # one for every LED
+    for bad in ((1.0, 2.0), (1.0, -1.0, 1.0), (1.0, float("nan"), 1.0)):
+        with pytest.raises(ValueError, match=r"led_power must be a finite radiance scale > 0, or one per LED \(3\)"):
+            led_sources(spec, effects, bad)
+    seen = []
+
+    def photons(scene, sources, *args, **kwargs):
+        seen.append(sources)
+        raise StopIteration
+
+    monkeypatch.setattr(render, "render_photons", photons)
+    with pytest.raises(StopIteration):
+        render.reference(None, None, mesh, spec, camera, effects, spp=2, width=40, height=30, led_power=powers)
+    assert [s["scale"] for s in seen[0]] == [s["scale"] for s in own]
+
+
 def test_effects_from_command_line_settings():
     e = Effects().with_settings(["contact_shadow=off", "scattering_per_m=0", "lens_distortion=0.1,0.02"])
     assert (e.contact_shadow, e.scattering_per_m, e.lens_distortion) == (False, 0.0, (0.1, 0.02))

@@ -288,6 +288,9 @@ def test_resuming_with_other_settings_is_refused(monkeypatch, tmp_path, prepared
         ({"film": "320x240"}, r"got '320x240'"),
         ({"film": [320.0, 240.0]}, r"got \[320.0, 240.0\]"),
         ({"seed": -1}, "option seed must be a whole number >= 0, got -1"),
+        ({"led_power": 2.0}, "option led_power must be a list of each LED's radiance scale, got 2.0"),
+        ({"led_power": [1.0, 2.0]}, r"led_power must be .* one per LED \(3\), got \[1.0, 2.0\]"),
+        ({"led_power": [1.0, 0.0, 1.0]}, "led_power must be a finite radiance scale > 0"),
     ],
 )
 def test_bad_options_are_refused_before_any_work(options, message, spec, mesh, camera, monkeypatch):

@@ -416,15 +416,27 @@ def test_a_twin_unit_is_refused_where_it_cannot_be_built(spec):
     assert [b.peak_nm - a.peak_nm for a, b in zip(spec.leds, unit.leds)] == [5, -5, 0]
     assert [b.peak_nm - a.peak_nm for a, b in zip(spec.leds, unit_spec(spec, {"led_peak_shift": 4})[0].leds)] == [4] * 3
     assert unit_spec(spec, {}) == (spec, 1.0)
+    assert unit_spec(spec, {"led_power": (1.2, 0.8, 1.0)}) == (spec, 1.0)  # the renderer's, not the spec's
     for bad, message in [({"compliance": 1.2}, "not one the twin can change.*membrane_compliance"),
                          ({"membrane_compliance": 5.0}, r"membrane_compliance must be one number in \[0.3, 2\]"),
                          ({"layer_spread": 0.7}, "a Poisson ratio"), ({"led_peak_shift": (1, 2)}, "1 or 3 shifts"),
                          ({"layer_spread": float("nan")}, "must be finite numbers"),
                          ({"camera_gains": (1.0, 1.1)}, r"camera_gains is .* \(R, G, B\).*got \(1.0, 1.1\)"),
                          ({"camera_gains": (1.0, 1.1, 9.0)}, "each in \\[0.25, 4\\]"),
-                         ({"alignment": (1.0, 2.0, 0.5)}, r"\|turn\| <= 0.2"), ({"blur": -1.0}, "defocus")]:
+                         ({"alignment": (1.0, 2.0, 0.5)}, r"\|turn\| <= 0.2"), ({"blur": -1.0}, "defocus"),
+                         ({"led_power": (1.0, 2.0)}, r"led_power must be 1 or 3 powers in \[0.25, 4\]"),
+                         ({"led_power": 9.0}, r"led_power must be 1 or 3 powers in \[0.25, 4\], got \(9.0,\)")]:
         with pytest.raises(ValueError, match=message):
             unit_spec(spec, bad)
+
+
+def test_a_twin_units_led_powers_go_to_the_reference_and_only_there(spec):
+    """The reference renders each LED's power (pbr option led_power); the fast path's LEDs
+    have only colours, so the phong twin refuses the entry before building anything."""
+    from rig.virtual import VirtualRig
+
+    with pytest.raises(ValueError, match="unit led_power needs the pbr camera twin"):
+        VirtualRig(spec, ("sphere",), "phong", {}, unit={"led_power": (1.2, 0.8, 1.0)})
 
 
 def test_a_twin_units_camera_blurs_moves_and_balances_the_image_as_a_camera_would():

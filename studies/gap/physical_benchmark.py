@@ -82,8 +82,9 @@ NOT_HIDDEN = {
     "sensor_noise": "noise is estimated, not predicted",
     "core_leak_cone_rad": "it only aims a core leak's light up the tube, so without a leak it changes nothing; no "
                           "case pairs it with one",
-    "led_power": "one LED's power is no switch of the twin's unit (the spec's LEDs have no power), and all of them "
-                 "together are undone by the capture's exposure rule",
+    "led_power": "the twin renders it (rig run --unit led_power), but hiding it here reorders the seeded draw, so "
+                 "every case's capture is new: it joins HIDDEN with the next cold run of the benchmark (all of the "
+                 "LEDs' powers together are undone by the capture's exposure rule; a range must change their ratios)",
 }
 #: Chance that a case after the first pass over HIDDEN hides two effects.
 TWO_EFFECTS = 0.4
