@@ -173,8 +173,8 @@ def led_powers(spec: SensorSpec, led_power) -> tuple[float, ...]:
     values = tuple(led_power) if isinstance(led_power, (tuple, list, np.ndarray)) else (led_power,) * len(spec.leds)
     if len(values) != len(spec.leds) or not all(isinstance(v, (int, float, np.floating)) and math.isfinite(v)
                                                   and v > 0 for v in values):
-        raise ValueError(f"led_power must be a finite radiance scale > 0, or one per LED ({len(spec.leds)}), "
-                         f"got {led_power!r}")
+        raise ValueError(f"led_power must be a finite radiance scale > 0, got {led_power!r}; or one per LED "
+                         f"({len(spec.leds)})")
     return tuple(float(v) for v in values)
 
 

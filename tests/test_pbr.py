@@ -142,11 +142,16 @@ def test_each_led_can_have_its_own_power_and_the_image_is_linear_in_it(monkeypat
     powers = (2.0, 1.0, 0.5)
     plain, own = led_sources(spec, effects), led_sources(spec, effects, powers)
     scale = [powers[int(s["name"][3])] for s in plain]  # led<m> and led<m>_leak
-    np.testing.assert_allclose(source_response(own, effects), np.array(scale)[:, None] * source_response(plain, effects))
-    assert [(s["centre"], s["radius"], s["name"]) for s in own] == [(s["centre"], s["radius"], s["name"]) for s in plain]
+    expected = np.array(scale)[:, None] * source_response(plain, effects)
+    np.testing.assert_allclose(source_response(own, effects), expected)
+
+    def where(sources):
+        return [(s["centre"], s["radius"], s["name"]) for s in sources]
+
+    assert where(own) == where(plain)
     assert led_sources(spec, effects, 2.0)[0]["scale"] == pytest.approx(2 * plain[0]["scale"])  # one for every LED
     for bad in ((1.0, 2.0), (1.0, -1.0, 1.0), (1.0, float("nan"), 1.0)):
-        with pytest.raises(ValueError, match=r"led_power must be a finite radiance scale > 0, or one per LED \(3\)"):
+        with pytest.raises(ValueError, match=r"led_power must be a finite radiance scale > 0, got .*; or one per LED \(3\)"):
             led_sources(spec, effects, bad)
     seen = []
 

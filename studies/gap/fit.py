@@ -626,22 +626,24 @@ class Diagnosis:
             for b in pool[i + 1:]:
                 if self.size(a) + self.size(b) >= self.size(first):
                     continue
-                start = {**singles[a].fit.params, b: singles[b].fit.params[b]}
-                fit = self.fit((a, b), start=start, free=(b,))
-                joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
-                fit = joint if joint.train_loss < fit.train_loss else fit
-                judged = self.judge(fit, complete=False)
-                if tied(judged) and all(self._adds(judged, singles[n], gap) for n in (a, b)):
-                    found.append((self.size(a) + self.size(b), float(np.mean(judged.after[RANK_BY[0]][RANK_BY[1]])), judged))
+                judged = self.judge(self._jointly(self._added(singles[a].fit, b, singles)), complete=False)
+                after = judged.after[RANK_BY[0]][RANK_BY[1]]
+                if tied(judged) and all(_adds(metrics.improvement(singles[n].after[RANK_BY[0]][RANK_BY[1]], after,
+                                                                  RANK_BY[1], seed=self.seed), gap) for n in (a, b)):
+                    found.append((self.size(a) + self.size(b), float(np.mean(after)), judged))
         if not found:
             return None
         return self.judge(min(found, key=lambda t: t[:2])[2].fit)
 
-    def _adds(self, pair: Judged, single: Judged, gap: float) -> bool:
-        """Whether ``pair`` improves on one of its members alone as a selection step must."""
-        step = metrics.improvement(single.after[RANK_BY[0]][RANK_BY[1]], pair.after[RANK_BY[0]][RANK_BY[1]],
-                                   RANK_BY[1], seed=self.seed)
-        return step["significant"] and step["mean"] >= MIN_STEP_SHARE * gap
+    def _added(self, fit: Fit, name: str, singles: dict[str, Judged]) -> Fit:
+        """Effect ``name`` fitted on top of ``fit`` (held fixed), from its single fit."""
+        return self.fit(fit.effects + (name,), start={**fit.params, name: singles[name].fit.params[name]},
+                        free=(name,))
+
+    def _jointly(self, fit: Fit) -> Fit:
+        """``fit``'s effects refitted together (``JOINT_ITERATIONS``), where that fits better."""
+        joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
+        return joint if joint.train_loss < fit.train_loss else fit
 
     def select(self, singles: dict[str, Judged], ranked: list[str] | None = None) -> list[Judged]:
         """Greedy forward selection, chosen on the training samples, stopped on the
@@ -671,23 +673,16 @@ class Diagnosis:
         candidates = [n for n in singles if n not in current.fit.effects]
         gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
         while candidates and len(current.fit.effects) < MAX_COMBINATION:
-            chosen = current.fit.effects
 
             def screened(name: str, params=current.fit.params) -> float:
                 return self._loss(self.predict_train({**params, name: singles[name].fit.params[name]}))
 
             order = sorted(candidates, key=screened)
-            trials = []
-            for name in order[:MAX_TRIALS]:
-                start = {**current.fit.params, name: singles[name].fit.params[name]}
-                trials.append((name, self.fit(chosen + (name,), start=start, free=(name,))))
+            trials = [(name, self._added(current.fit, name, singles)) for name in order[:MAX_TRIALS]]
             added, fit = min(trials, key=lambda t: t[1].train_loss)
-            joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
-            if joint.train_loss < fit.train_loss:
-                fit = joint
+            fit = self._jointly(fit)
             step = self.judge(fit, against=current.after, complete=False)
-            gain = step.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
-            if not step.significant or gain < MIN_STEP_SHARE * gap:
+            if not _adds(step.improvement[RANK_BY[0]][RANK_BY[1]], gap):
                 break
             # Reported against the simulator as it is, with every metric.
             best = self.judge(fit)
@@ -701,6 +696,12 @@ class Diagnosis:
     def noise(self, params: dict) -> float:
         """Sensor noise estimated from the held-out residual of a prediction."""
         return fx.noise_std(self.real_h - self.predict_heldout(params), self.mask)
+
+
+def _adds(improvement: dict, gap: float) -> bool:
+    """Whether a paired held-out improvement (``metrics.improvement``) is what a selection
+    step must close: significant, and at least ``MIN_STEP_SHARE`` of the gap."""
+    return improvement["significant"] and improvement["mean"] >= MIN_STEP_SHARE * gap
 
 
 def _same(images: np.ndarray) -> np.ndarray:
