@@ -440,6 +440,7 @@ class ReferenceModel:
         self.max_fit_samples = FIT_TAPS
         self.judged_renders = JUDGED_RENDERS
         self._responses: dict = {}
+        self._unshifted: dict = {}  # the film's response to the spec's own LEDs, by switch (``responses``)
         self._plain: dict = {}  # M(identity) by sample
         self._level = None  # the identity's exposure level (``exposure``)
         self._exposures: dict = {}  # exposure gain by parameters (at most 17 kept)
@@ -681,16 +682,23 @@ class ReferenceModel:
             return self._responses[key]
         leds = tuple(dataclasses.replace(led, peak_nm=led.peak_nm + s) if s else led
                      for led, s in zip(self.spec.leds, shifts))
-        spec = self.spec.replace(leds=leds)
-        identity = _switch_response(self.spec, bool(self.catalogue["led_spectra"].identity["on"]),
-                                    bool(self.catalogue["camera_response"].identity["on"]))
+        spec = self.spec.replace(leds=leds) if any(shifts) else self.spec
+
+        def unshifted(on_s: bool, on_c: bool) -> np.ndarray:  # four at most: kept
+            if (on_s, on_c) not in self._unshifted:
+                self._unshifted[on_s, on_c] = _switch_response(self.spec, on_s, on_c)
+            return self._unshifted[on_s, on_c]
+
+        identity = unshifted(bool(self.catalogue["led_spectra"].identity["on"]),
+                             bool(self.catalogue["camera_response"].identity["on"]))
         out = 0.0
         for on_s, w_s in ((True, spectra), (False, 1.0 - spectra)):
             for on_c, w_c in ((True, camera), (False, 1.0 - camera)):
                 if w_s * w_c == 0:
                     continue
-                total = _switch_response(self.spec, on_s, on_c).sum()  # unshifted: a shift keeps its own change
-                out = out + w_s * w_c * _switch_response(spec, on_s, on_c) * (identity.sum() / total)
+                total = unshifted(on_s, on_c).sum()  # unshifted: a shift keeps its own change
+                shifted = unshifted(on_s, on_c) if spec is self.spec else _switch_response(spec, on_s, on_c)
+                out = out + w_s * w_c * shifted * (identity.sum() / total)
         self._responses[key] = np.asarray(out, np.float64)
         return self._responses[key]
 
