@@ -144,24 +144,22 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
     led_power : the radiance scale of every LED (the camera's exposure), or one per LED
         (``led_powers``: a unit's LEDs of another bin).
     """
-    powers = led_powers(spec, led_power)
     sources = []
-    for m, (led, centre) in enumerate(zip(spec.leds, led_centres(spec))):
-        led_power = powers[m]
+    for m, (led, centre, power) in enumerate(zip(spec.leds, led_centres(spec), led_powers(spec, led_power))):
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak
         if leak < 1:
             sources.append({"name": f"led{m}", "centre": tuple(map(float, centre)), "radius": LED_RADIUS_M,
-                            "spectrum": shape * led_power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
-                            "scale": led_power * (1 - leak), "in_elastomer": True, "cone_axis": None,
+                            "spectrum": shape * power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
+                            "scale": power * (1 - leak), "in_elastomer": True, "cone_axis": None,
                             "cone_half_angle_rad": 0.0})
         if leak > 0:
             r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
             xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
             sources.append({"name": f"led{m}_leak", "centre": (float(xy[0]), float(xy[1]), float(centre[2])),
-                            "radius": LED_RADIUS_M, "spectrum": shape * led_power * leak, "peak_nm": peak,
-                            "fwhm_nm": fwhm, "scale": led_power * leak, "in_elastomer": False,
+                            "radius": LED_RADIUS_M, "spectrum": shape * power * leak, "peak_nm": peak,
+                            "fwhm_nm": fwhm, "scale": power * leak, "in_elastomer": False,
                             "cone_axis": LEAK_AXIS if effects.core_leak_cone_rad > 0 else None,
                             "cone_half_angle_rad": float(effects.core_leak_cone_rad)})
     return sources

@@ -585,7 +585,8 @@ class Diagnosis:
         were fitted exactly, and ranked second to it). A fast model does the same when
         its candidates are fitted with the capture's exposure (``FastModel.ties_to_simplest``):
         its camera_response then beat a hidden absorption's path_attenuation by 1.7 % of the
-        gap."""
+        gap. A pair with fewer parameters than that first one may take the first two
+        places (``_pair``)."""
         ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
         self.first_pair = None
         if not self.work.ties_to_simplest or len(ranked) < 2:
@@ -628,8 +629,12 @@ class Diagnosis:
                     continue
                 judged = self.judge(self._jointly(self._added(singles[a].fit, b, singles)), complete=False)
                 after = judged.after[RANK_BY[0]][RANK_BY[1]]
-                if tied(judged) and all(_adds(metrics.improvement(singles[n].after[RANK_BY[0]][RANK_BY[1]], after,
-                                                                  RANK_BY[1], seed=self.seed), gap) for n in (a, b)):
+
+                def adds_to(alone: Judged) -> bool:  # the pair against one of its two alone
+                    before = alone.after[RANK_BY[0]][RANK_BY[1]]
+                    return _adds(metrics.improvement(before, after, RANK_BY[1], seed=self.seed), gap)
+
+                if tied(judged) and adds_to(singles[a]) and adds_to(singles[b]):
                     found.append((self.size(a) + self.size(b), float(np.mean(after)), judged))
         if not found:
             return None
