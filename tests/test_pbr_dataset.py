@@ -291,6 +291,7 @@ def test_resuming_with_other_settings_is_refused(monkeypatch, tmp_path, prepared
         ({"led_power": 2.0}, "option led_power must be a list of each LED's radiance scale, got 2.0"),
         ({"led_power": [1.0, 2.0]}, r"led_power must be a finite radiance scale > 0, got \[1.0, 2.0\]; or one per LED \(3\)"),
         ({"led_power": [1.0, 0.0, 1.0]}, "led_power must be a finite radiance scale > 0"),
+        ({"led_power": [1.0, 1.0, 1.0], "profile": "unit/profile.toml"}, "option led_power cannot go with a profile"),
     ],
 )
 def test_bad_options_are_refused_before_any_work(options, message, spec, mesh, camera, monkeypatch):

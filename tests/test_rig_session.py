@@ -437,6 +437,10 @@ def test_a_twin_units_led_powers_go_to_the_reference_and_only_there(spec):
 
     with pytest.raises(ValueError, match="unit led_power needs the pbr camera twin"):
         VirtualRig(spec, ("sphere",), "phong", {}, unit={"led_power": (1.2, 0.8, 1.0)})
+    _needs_virtual_rig()
+    with VirtualRig(spec, ("sphere",), "pbr", {"film": [80, 60]}, unit={"led_power": 1.5}) as rig:
+        assert rig.options == {"film": [80, 60], "led_power": [1.5, 1.5, 1.5]}  # one for every LED
+        assert rig.unit_spec == spec
 
 
 def test_a_twin_units_camera_blurs_moves_and_balances_the_image_as_a_camera_would():
