@@ -48,7 +48,8 @@ def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, se
                ref_depth=None, solids=None, no_contact_runs=0):
     """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
     distance in metres over the image from the LED's place), its leak a ring at 0.4 of
-    the image radius on the LED's side, a contact adding its indentation's shading."""
+    the image radius on the LED's side (nearer the centre, the tip, the narrower its cone up
+    the tube), a contact adding its indentation's shading."""
     w, h = film
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     x, y = (u - w / 2) / (h / 2), (v - h / 2) / (h / 2)
@@ -65,7 +66,8 @@ def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, se
         images.append(50.0 * np.exp(-effects.absorption_per_m * d) * (1 + 0.8 * dent * (1 + np.cos(np.arctan2(y, x) - a))))
         names.append(f"led{m}")
         if effects.core_light_leak > 0:
-            images.append(80.0 * np.exp(-((rho - 0.4) / 0.12) ** 2) * (1 + np.cos(np.arctan2(y, x) - a)) + 5 * dent)
+            ring = 0.4 * (1.0 - effects.core_leak_cone_rad)
+            images.append(80.0 * np.exp(-((rho - ring) / 0.12) ** 2) * (1 + np.cos(np.arctan2(y, x) - a)) + 5 * dent)
             names.append(f"led{m}_leak")
     return {"mean": np.stack(images, axis=-1).astype(np.float32), "names": np.array(names)}
 
@@ -237,6 +239,30 @@ def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidde
     assert d.real_h.shape[1:3] == (FILM[1], FILM[0]) and d.full.factor == 8
 
 
+@pytest.mark.parametrize("hidden, first", [({"core_leak_cone_rad": {"value": 0.3, "fraction": 0.3}},
+                                             "core_leak_cone_rad"),
+                                            ({"core_light_leak": {"fraction": 0.3}}, "core_light_leak")])
+def test_a_leak_aimed_up_the_tube_is_a_candidate_though_the_simulation_has_no_leak(spec, scene, stub, hidden, first):
+    """Without a leak in the simulation the leak's cone has nothing to shape, so it is
+    fitted with a fraction of its own: it finds a hidden cone, and a plain leak (its cone
+    at 0, the simulation's) ties with it and ranks first, being simpler."""
+    sim = rendered(spec, scene, {})
+    real = rendered(spec, scene, hidden)
+    pairs = pairs_of(spec, scene, real, sim)
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=4, effects=("core_light_leak", "core_leak_cone_rad", "camera_gains"))
+    assert "core_leak_cone_rad" not in d.not_applicable
+    assert [p.name for p in d.work.catalogue["core_leak_cone_rad"].params[:2]] == ["value", "fraction"]
+    singles = d.singles()
+    assert d.rank(singles)[0] == first
+    cone = singles["core_leak_cone_rad"].fit.params["core_leak_cone_rad"]
+    assert cone["fraction"] == pytest.approx(0.3, rel=0.1)
+    assert cone["value"] == pytest.approx(hidden.get("core_leak_cone_rad", {"value": 0.0})["value"], abs=0.05)
+    if first == "core_leak_cone_rad":  # a Lambertian leak cannot put the cone's light where it goes
+        closes = {n: singles[n].improvement["masked"]["mae"]["share"] for n in ("core_light_leak", first)}
+        assert closes[first] > 0.95 and closes["core_light_leak"] < closes[first] - 0.05
+
+
 def test_a_reference_model_is_judged_at_its_basis_film(spec):
     from studies.gap.model import judging_factor
 
@@ -248,14 +274,15 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
     from rig.cli import _unit
     from rig.virtual import unit_spec
     from studies.gap.physical import physical_catalogue
-    from studies.gap.physical_benchmark import HIDDEN, UNIT_HIDDEN, draw, effect_settings
+    from studies.gap.physical_benchmark import HIDDEN, UNIT_HIDDEN, WITH, draw, effect_settings
 
     drawn = [draw(case, seed=3) for case in range(len(HIDDEN) + 4)]
     assert sorted(next(iter(d)) for d in drawn[: len(HIDDEN)]) == sorted(HIDDEN)
-    assert all(len(d) == 1 for d in drawn[: len(HIDDEN)])
+    assert all(len(d) == 1 + (next(iter(d)) in WITH) for d in drawn[: len(HIDDEN)])
     assert draw(5, seed=3) == drawn[5]  # seeded
     few = [draw(case, seed=3, cases=12) for case in range(12)]  # fewer cases than effects: still every one
-    assert sorted(name for d in few for name in d) == sorted(HIDDEN) and max(len(d) for d in few) == 2
+    assert set(name for d in few for name in d) == set(HIDDEN) and max(len(d) for d in few) >= 2
+    assert all(WITH[n] in d for d in drawn + few for n in d if n in WITH)  # a cone is never hidden without its leak
     drawn += few
     assert set(HIDDEN) <= set(physical_catalogue(spec, Effects())[0])  # each a candidate of the diagnosis, by name
     for hidden in drawn:
@@ -278,6 +305,9 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
                 assert all(2 <= abs(d) <= 6 for d in value[:2]) and 0.01 <= abs(value[2]) <= 0.04
             elif name == "blur":
                 assert 1.5 <= value <= 3.5
+            elif name == "led_power":  # LEDs of another bin: their ratios change, not only all of them
+                assert _unit([f"led_power={','.join(map(str, value))}"])[name] == value and len(value) == 3
+                assert all(0.2 <= abs(p - 1) <= 0.45 for p in value) and unit == spec
             else:
                 assert name not in UNIT_HIDDEN and getattr(effects, name) == value
 

@@ -151,7 +151,7 @@ GRIDS = {
     "coating_albedo": {"low": 0.6, "high": 0.97, "interpolation": "linear", "unit": "-",
                        "doc": "diffuse reflectance of the coating", "inner": (0.72,)},
     "core_leak_cone_rad": {"low": 0.0, "high": 0.6, "interpolation": "linear", "unit": "rad",
-                           "doc": "half-angle of the core leak's cone up the tube"},
+                           "doc": "half-angle of the core leak's cone up the tube", "inner": (0.3,)},
     "membrane_compliance": {"low": 0.6, "high": 1.25, "interpolation": "linear", "unit": "-",
                             "doc": "imprint depth / commanded depth"},
     "layer_spread": {"low": 0.0, "high": 0.5, "interpolation": "linear", "unit": "-",
@@ -245,6 +245,15 @@ def physical_catalogue(spec: SensorSpec, effects, sigma_px: float = 5.0) -> tupl
         elif name == "core_light_leak":
             add(name, (fx.Param("fraction", 0.0, 1.0, float(value), "-", "share of each LED's power emitted into the "
                                 "glass core"),), doc, kind)
+        elif name == "core_leak_cone_rad" and not effects.core_light_leak:
+            # No leak in the simulation, so no cone to shape: the candidate is a leak aimed up
+            # the tube, with its own fraction (``ReferenceModel._light``).
+            grid = _grid_for(name, float(value))
+            grids[name] = grid
+            add(name, (fx.Param("value", grid["low"], grid["high"], float(value), grid["unit"], grid["doc"]),
+                       fx.Param("fraction", 0.0, 1.0, 0.0, "-", "share of each LED's power its core leak emits, in "
+                                "the cone (the simulation has no leak; core_light_leak's where both are fitted)")),
+                doc, kind)
         elif name == "vignetting":
             add(name, (fx.Param("strength", 0.0, 0.9, float(value), "-", "relative fall-off at the image circle's "
                                 "edge, 1 - strength (r / R)^2"),), doc, kind)
@@ -492,9 +501,6 @@ class ReferenceModel:
         if self.renderer.get("estimator", "photons") == "photons" and "coating_gloss" in self.kinds:
             out.setdefault("coating_gloss", "a glossy coating needs the volpath estimator, and the simulated dataset "
                                             "was rendered with photons (which needs a diffuse coating)")
-        if "core_leak_cone_rad" in self.kinds and self.basis.effects.core_light_leak == 0:
-            out.setdefault("core_leak_cone_rad", "it shapes only the core leak, which is off in the simulation (its "
-                                                 "leak's image has no weight): core_light_leak stands for it")
         if any(led.peak_nm is None or led.fwhm_nm is None for led in self.spec.leds):
             for name in ("led_peak_shift", "led_spectra", "camera_response"):
                 out.setdefault(name, "the sensor spec gives no LED peak_nm / fwhm_nm")
@@ -512,8 +518,8 @@ class ReferenceModel:
 
     def _starts(self, name: str) -> list[dict]:
         kind, base = self.kinds[name], dict(self.catalogue[name].identity)
-        if kind == "render":
-            return [{"value": v} for v in self.grids[name]["values"]]
+        if kind == "render":  # a leak's cone with its own fraction starts from a leak
+            return [{"value": v, **({"fraction": 0.3} if "fraction" in base else {})} for v in self.grids[name]["values"]]
         if kind.startswith("bool-"):
             return [{"on": 0.0}, {"on": 1.0}]
         if name == "core_light_leak":
@@ -704,7 +710,8 @@ class ReferenceModel:
 
     def _light(self, params: dict) -> tuple[np.ndarray, np.ndarray, float]:
         """The light of ``params``: (M,) LED powers, (M, 3) the film's response to each
-        LED, and the core leak fraction (each at the identity where ``params`` has none)."""
+        LED, and the core leak fraction (each at the identity where ``params`` has none; a leak
+        cone's own fraction where it has one and core_light_leak is not in ``params``)."""
         n = len(self.spec.leds)
         p = {name: params.get(name, self.catalogue[name].identity) for name in
              ("core_light_leak", "led_power", "led_peak_shift", "led_spectra", "camera_response")
@@ -712,7 +719,11 @@ class ReferenceModel:
         power = np.array([p["led_power"][f"power_{m}"] for m in range(n)], np.float64)
         shifts = tuple(p["led_peak_shift"][f"shift_nm_{m}"] for m in range(n))
         R = self.responses(shifts, p["led_spectra"]["on"], p["camera_response"]["on"])
-        return power, R, float(p["core_light_leak"]["fraction"])
+        fraction = p["core_light_leak"]["fraction"]
+        cone = params.get("core_leak_cone_rad", {})
+        if "fraction" in cone and "core_light_leak" not in params:  # a leak of its own (``physical_catalogue``)
+            fraction = cone["fraction"]
+        return power, R, float(fraction)
 
     def colour(self, params: dict) -> np.ndarray:
         """(S, 3) each source's share in each channel with ``params``."""
