@@ -31,8 +31,11 @@ compliance, the elastomer's Poisson ratio (the layer's spread), the LEDs' peaks,
 unit's own camera (its white balance, its seat in the tube, its focus), which the twin
 applies to the image it renders as a physical camera would (``rig.virtual.unit_image``: a
 defocus disc, a rigid motion of the picture, gains), not by the diagnosis's image models.
-The LEDs' powers one by one, the coating's gloss, the leak's cone and the sensor's noise
-are candidates of the diagnosis that no case hides (``NOT_HIDDEN`` says why).
+The twin's unit also has LEDs of another bin (their powers one by one, which the
+capture's exposure rule does not undo unless all change alike). A leak's cone is hidden
+with a leak (``WITH``): without one it changes nothing. The coating's gloss and the
+sensor's noise are candidates of the diagnosis that no case hides (``NOT_HIDDEN`` says
+why).
 """
 
 from __future__ import annotations
@@ -53,7 +56,10 @@ import numpy as np
 #: elastomer (Poisson ratio 0.25-0.4 for 0.5); LEDs of another bin (every peak 8-20 nm
 #: off, either way); a camera whose white balance differs by 10-30 % per channel, either
 #: way; a camera seated 2-6 px off in each direction and turned 0.01-0.04 rad (either
-#: way); a lens defocused to a blur disc of 1.5-3.5 px radius (at the camera's 640x480).
+#: way); a lens defocused to a blur disc of 1.5-3.5 px radius (at the camera's 640x480);
+#: a core leak guided up the glass wall, in a cone of 0.25-0.45 rad about the tube's axis
+#: (total internal reflection holds within about 0.33); LEDs of another bin, each 20-45 %
+#: brighter or dimmer than the spec's.
 HIDDEN = {
     "core_light_leak": (0.15, 0.5),
     "absorption_per_m": (60.0, 110.0),
@@ -70,21 +76,22 @@ HIDDEN = {
     "camera_gains": (0.1, 0.3),  # |gain - 1| per channel, each either sign
     "alignment": ((2.0, 6.0), (0.01, 0.04)),  # |du|, |dv| px; |turn| rad; each either sign
     "blur": (1.5, 3.5),  # px, the defocus disc's radius
+    "core_leak_cone_rad": (0.25, 0.45),  # rad; with a leak (WITH)
+    "led_power": (0.2, 0.45),  # |power - 1| per LED, each either sign
 }
+#: Hidden effects that change nothing alone, and the one each is hidden with (its value
+#: drawn from its own range) where the case does not hide that already.
+WITH = {"core_leak_cone_rad": "core_light_leak"}
 #: Hidden effects drawn as an offset of either sign from their default (value: the default).
 EITHER_SIDE = {"membrane_compliance": 1.0, "led_peak_shift": 0.0}
 #: Hidden effects that are the twin's unit (``rig run --unit``), not Effects switches.
-UNIT_HIDDEN = ("membrane_compliance", "layer_spread", "led_peak_shift", "camera_gains", "alignment", "blur")
+UNIT_HIDDEN = ("membrane_compliance", "layer_spread", "led_peak_shift", "camera_gains", "alignment", "blur",
+               "led_power")
 #: Candidates no case hides, and why.
 NOT_HIDDEN = {
     "coating_gloss": "a glossy coating needs the volpath estimator, about 10 times slower than photons at the same "
                      "noise",
     "sensor_noise": "noise is estimated, not predicted",
-    "core_leak_cone_rad": "it only aims a core leak's light up the tube, so without a leak it changes nothing; no "
-                          "case pairs it with one",
-    "led_power": "the twin renders it (rig run --unit led_power), but hiding it here reorders the seeded draw, so "
-                 "every case's capture is new: it joins HIDDEN with the next cold run of the benchmark (all of the "
-                 "LEDs' powers together are undone by the capture's exposure rule; a range must change their ratios)",
 }
 #: Chance that a case after the first pass over HIDDEN hides two effects.
 TWO_EFFECTS = 0.4
@@ -111,7 +118,8 @@ def draw(case: int, seed: int, cases: int | None = None) -> dict[str, object]:
     """The hidden effects of one case of ``cases`` and their values: every effect of
     ``HIDDEN`` once in a seeded order, spread over the first cases (where there are fewer
     cases than effects, a case hides each ``cases``-th of that order, so every effect is
-    hidden; None: one case per effect), then one or two at random."""
+    hidden; None: one case per effect), then one or two at random; each with what it
+    needs (``WITH``)."""
     names = list(HIDDEN)
     order = [str(n) for n in np.random.default_rng(seed).permutation(names)]
     rng = np.random.default_rng([seed, case])
@@ -121,6 +129,7 @@ def draw(case: int, seed: int, cases: int | None = None) -> dict[str, object]:
     else:
         count = 2 if rng.random() < TWO_EFFECTS else 1
         chosen = [str(n) for n in rng.choice(names, size=count, replace=False)]
+    chosen += [WITH[n] for n in chosen if n in WITH and WITH[n] not in chosen]
     out = {}
     for name in chosen:
         spec = HIDDEN[name]
@@ -129,8 +138,8 @@ def draw(case: int, seed: int, cases: int | None = None) -> dict[str, object]:
         elif name == "lens_distortion":
             k1 = float(rng.uniform(*spec)) * _side(rng)
             out[name] = (round(k1, 4), 0.0)
-        elif name == "camera_gains":
-            out[name] = tuple(round(1.0 + _side(rng) * float(rng.uniform(*spec)), 4) for _ in range(3))
+        elif name in ("camera_gains", "led_power"):  # per channel; per LED of the default spec
+            out[name] = tuple(round(1.0 + _side(rng) * float(rng.uniform(*spec)), 4) for _ in range(_count(name)))
         elif name == "alignment":
             (shift, turn) = spec
             out[name] = (round(_side(rng) * float(rng.uniform(*shift)), 3),
@@ -141,6 +150,13 @@ def draw(case: int, seed: int, cases: int | None = None) -> dict[str, object]:
         else:
             out[name] = round(float(rng.uniform(*spec)), 4)
     return out
+
+
+def _count(name: str) -> int:
+    """How many values a per-channel or per-LED hidden effect has."""
+    from scenes.spec import default_spec
+
+    return len(default_spec().leds) if name == "led_power" else 3
 
 
 def _side(rng) -> float:
