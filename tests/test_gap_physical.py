@@ -168,6 +168,7 @@ def test_a_change_of_the_lights_colours_acts_on_the_simulated_image_as_a_matrix(
     for i in keys:
         model.basis._images[(i, None, None)] = model.basis._images[(i, None, None)] * np.float32(
             1 + 0.2 * rng.standard_normal(model.basis._images[(i, None, None)].shape))
+    model._rendered.clear()
     pred = model.predict(sim, depth, params, keys=keys)
     seen = sim.max(axis=-1) < 0.98  # a saturated simulated pixel has lost its colour
     assert seen.mean() > 0.5
@@ -180,13 +181,17 @@ def test_a_change_of_the_lights_colours_acts_on_the_simulated_image_as_a_matrix(
 
 
 def test_a_re_rendered_effect_is_interpolated_between_grid_points(spec, scene, stub):
-    """Absorption acts as exp(-sigma_a d): the geometric interpolation is exact between grid points."""
+    """Absorption acts as exp(-sigma_a d): the geometric interpolation is exact between grid
+    points (the leaks' images, which it leaves alone, smoothed as every one is)."""
     camera, ref, depth = scene
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
     got = model.interpolated(2, "absorption_per_m", 50.0)
     truth = fake_basis(spec, None, camera, dataclasses.replace(Effects(), absorption_per_m=50.0,
                                                                core_light_leak=physical.LEAK_BASIS),
                        FILM, depth=depth[2], ref_depth=ref)["mean"]
+    leak = np.array([n.endswith("_leak") for n in model.basis.names])
+    film = camera.scaled(*FILM)
+    truth[..., leak] = physical._axially_smoothed(truth[..., leak], (film.cx, film.cy), physical.LEAK_SMOOTH_PX)
     assert np.allclose(got, truth, rtol=1e-4, atol=1e-4)
     assert model.basis.cost["absorption_per_m"]["renders"] == 1  # one grid point (120) beside the identity
 
@@ -205,6 +210,27 @@ def test_a_re_rendered_change_is_smoothed_as_a_ratio():
     plain = np.abs((noisy - base) - (base * ratio - base))[inner].mean()
     smoothed = np.abs(physical._smoothed_change(noisy, base) - (base * ratio - base))[inner].mean()
     assert smoothed < plain / 3
+
+
+def test_a_leak_image_is_smoothed_around_the_tubes_axis_more_than_along_it():
+    """Around each circle about the centre a Gaussian of sigma px of arc: an azimuthal
+    cosine at radius r keeps exp(-(sigma / r)^2 / 2) of itself; a glow that depends on the
+    radius alone keeps its profile (a ring 3 px wide), a constant is exact, and noise is cut."""
+    h, w = 60, 80
+    v, u = np.mgrid[0:h, 0:w]
+    cx, cy = 39.5, 29.5
+    r, azimuth = np.hypot(u - cx, v - cy), np.arctan2(v - cy, u - cx)
+    ring = np.exp(-(((r - 12) / 3) ** 2))
+    images = np.stack([ring, np.cos(azimuth), np.ones((h, w))], axis=-1).astype(np.float32)
+    out = physical._axially_smoothed(images, (cx, cy), (4.0, 0.0))
+    assert np.abs(out[..., 2] - 1).max() < 1e-6
+    assert np.abs(out[..., 0] - ring).max() < 0.03
+    band = (r > 15) & (r < 25)
+    kept = np.exp(-0.5 * (4.0 / r[band]) ** 2)
+    assert np.abs(out[..., 1][band] - kept * images[..., 1][band]).max() < 0.01
+    assert np.abs(out[..., 1][band] - images[..., 1][band]).max() > 0.015  # it did smooth
+    noise = np.random.default_rng(0).standard_normal((h, w, 1)).astype(np.float32)
+    assert physical._axially_smoothed(noise, (cx, cy), (4.0, 0.75))[r < 28].std() < 0.25
 
 
 def pairs_of(spec, scene, real: np.ndarray, sim: np.ndarray, **effects) -> Pairs:
