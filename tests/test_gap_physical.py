@@ -358,6 +358,10 @@ def test_a_reference_case_that_is_mostly_monte_carlo_noise_is_listed_apart():
     summary = _against_noise([{**quiet, "case": 0}, {**loud, "case": 1}])
     assert summary["below_noise"] == [0] and summary["above_noise"]["cases"] == 1
     assert summary["above_noise"]["top1"] == 1.0 and summary["above_noise"]["mean_heldout_shrink"] == 0.3
+    # A measured floor (two renders of the same physics) replaces that lower bound.
+    measured = score_physical({"led_peak_shift": 14.6}, report(0.0435, "led_peak_shift"), floor=0.037)
+    assert measured["noise_floor"] == 0.037 and measured["noise_floor_bound"] == pytest.approx(0.005 * 2**0.5)
+    assert _against_noise([{**measured, "case": 1}])["below_noise"] == [1]
 
 
 def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
@@ -473,12 +477,13 @@ def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec,
 
 
 def test_a_reference_diagnosis_writes_its_report_judged_at_the_basis_film(spec, scene, stub, tmp_path):
-    from studies.gap.diagnose import diagnose
+    from studies.gap.diagnose import diagnose, heldout_gap
     from studies.gap.report import headline, write_report
 
     pairs = pairs_of(spec, scene, rendered(spec, scene, {"core_light_leak": {"fraction": 0.3}}), rendered(spec, scene, {}))
     report, artefacts = diagnose(pairs, effects=("core_light_leak", "blur"))
     assert report["model"] == "pbr" and report["settings"]["judged_at"] == list(FILM)
+    assert heldout_gap(pairs) == report["gap"]["heldout"]["masked"]["mae"]["mean"] > 0  # the benchmark's floor
     assert report["ranking"][0] == "core_light_leak"
     write_report(tmp_path, report, artefacts)  # figures mix full-resolution maps and judged examples
     assert (tmp_path / "report.html").is_file() and (tmp_path / "gap_maps.png").is_file()

@@ -164,6 +164,14 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     return report, {"maps": maps, "labels": labels, "mask": _mask(pairs), "examples": examples}
 
 
+def heldout_gap(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor: int = 2) -> float:
+    """The held-out masked MAE between the two sides as ``diagnose`` judges it (its split,
+    resolution and comparison) before any effect: its report's gap.heldout.masked.mae."""
+    train, heldout = split(pairs, heldout_fraction, seed)
+    diagnosis = Diagnosis(pairs, train, heldout, factor=factor, seed=seed, progress=False)
+    return float(metrics.summarise(diagnosis.before, seed=seed)["masked"]["mae"]["mean"])
+
+
 def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int = 1,
                  sigma: float = 0.0) -> dict | None:
     """The Monte Carlo noise of reference-rendered images, from their datasets' own
