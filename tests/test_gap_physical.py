@@ -364,6 +364,23 @@ def test_a_reference_case_that_is_mostly_monte_carlo_noise_is_listed_apart():
     assert _against_noise([{**measured, "case": 1}])["below_noise"] == [1]
 
 
+def test_a_hidden_leak_aimed_up_the_tube_is_named_by_the_cones_candidate_alone():
+    """Its candidate carries the leak's fraction, so a case hiding a leak and its cone is
+    scored on the cone's candidate, which gives both fitted values."""
+    from studies.gap.physical_benchmark import score_physical
+
+    cone = {"value": 0.296, "fraction": 0.485, "exposure": 0.7}
+    report = {"model": "pbr", "ranking": ["core_leak_cone_rad", "camera_gains", "led_power", "core_light_leak"],
+              "gap": {"heldout": {"masked": {"mae": {"mean": 0.2}}}},
+              "explained": {"effects": ["core_leak_cone_rad"], "share_closed": {"masked": 0.96}},
+              "effects": {"core_leak_cone_rad": {"share_closed": {"masked": 0.96}, "params": {"core_leak_cone_rad": cone}},
+                          "core_light_leak": {"share_closed": {"masked": 0.6}, "params": {"core_light_leak": {}}}}}
+    scored = score_physical({"core_light_leak": 0.459, "core_leak_cone_rad": 0.2957}, report)
+    assert scored["top1"] and scored["top3"] and scored["fitted"] == {"core_leak_cone_rad": cone}
+    alone = score_physical({"core_light_leak": 0.459}, report)  # a Lambertian leak is its own candidate's
+    assert not alone["top1"] and not alone["top3"]
+
+
 def test_a_fast_diagnosis_of_a_physical_case_is_scored_on_the_counterparts():
     """The realistic pairing: the hidden physical effects are scored through their fast
     catalogue counterparts, and the per-region shares they close are kept."""

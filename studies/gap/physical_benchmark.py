@@ -85,6 +85,11 @@ HIDDEN = {
 #: Hidden effects that change nothing alone, and the one each is hidden with (its value
 #: drawn from its own range) where the case does not hide that already.
 WITH = {"core_leak_cone_rad": "core_light_leak"}
+#: Hidden effects that another hidden one's candidate carries, scored through it: against
+#: a simulation without a leak the leak's cone is fitted with a leak fraction of its own
+#: (``physical.physical_catalogue``), so it names the leak too, and a Lambertian leak
+#: cannot match a leak aimed up the tube.
+CARRIED_BY = {"core_light_leak": "core_leak_cone_rad"}
 #: Hidden effects drawn as an offset of either sign from their default (value: the default).
 EITHER_SIDE = {"membrane_compliance": 1.0, "led_peak_shift": 0.0}
 #: Hidden effects that are the twin's unit (``rig run --unit``), not Effects switches.
@@ -247,7 +252,7 @@ def score_physical(hidden: dict, report: dict, floor: float | None = None) -> di
     from .benchmark import score
 
     fast = report.get("model") == "fast"
-    names = counterparts(hidden) if fast else list(hidden)
+    names = counterparts(hidden) if fast else [n for n in hidden if CARRIED_BY.get(n) not in hidden]
     out = score(names, report)
     out["gap"] = float(report["gap"]["heldout"]["masked"]["mae"]["mean"])
     # a reference candidate's own value where it has one parameter of its name (else all of them)
