@@ -57,7 +57,7 @@ def _groups(pairs: Pairs, values: dict, index: np.ndarray, key) -> dict:
 #: Why held-out samples are judged at the resolution they are (report settings.judged_at).
 JUDGED_AT_WHY = {
     "fast": "the images' resolution",
-    "pbr": ("the reference model's basis film (block means of the images), low-passed by a Gaussian of one film "
+    "pbr": ("the reference model's basis film (block means of the images), low-passed by a Gaussian of about a film "
             "pixel: it predicts what a candidate changes only there, and the renders' Monte Carlo noise, which no "
             "candidate can predict and a resampling one would smooth, is smaller there"),
 }
