@@ -373,7 +373,8 @@ def test_a_hidden_leak_aimed_up_the_tube_is_named_by_the_cones_candidate_alone()
     report = {"model": "pbr", "ranking": ["core_leak_cone_rad", "camera_gains", "led_power", "core_light_leak"],
               "gap": {"heldout": {"masked": {"mae": {"mean": 0.2}}}},
               "explained": {"effects": ["core_leak_cone_rad"], "share_closed": {"masked": 0.96}},
-              "effects": {"core_leak_cone_rad": {"share_closed": {"masked": 0.96}, "params": {"core_leak_cone_rad": cone}},
+              "effects": {"core_leak_cone_rad": {"share_closed": {"masked": 0.96},
+                                                 "params": {"core_leak_cone_rad": cone}},
                           "core_light_leak": {"share_closed": {"masked": 0.6}, "params": {"core_light_leak": {}}}}}
     scored = score_physical({"core_light_leak": 0.459, "core_leak_cone_rad": 0.2957}, report)
     assert scored["top1"] and scored["top3"] and scored["fitted"] == {"core_leak_cone_rad": cone}

@@ -583,7 +583,8 @@ class ReferenceModel:
     def _starts(self, name: str) -> list[dict]:
         kind, base = self.kinds[name], dict(self.catalogue[name].identity)
         if kind == "render":  # a leak's cone with its own fraction starts from a leak
-            return [{"value": v, **({"fraction": 0.3} if "fraction" in base else {})} for v in self.grids[name]["values"]]
+            own = {"fraction": 0.3} if "fraction" in base else {}
+            return [{"value": v, **own} for v in self.grids[name]["values"]]
         if kind.startswith("bool-"):
             return [{"on": 0.0}, {"on": 1.0}]
         if name == "core_light_leak":
