@@ -515,8 +515,7 @@ class ReferenceModel:
         self._level = None  # the identity's exposure level (``exposure``)
         self._exposures: dict = {}  # exposure gain by parameters (at most 17 kept)
         self._film_exposures: dict = {}  # the last image-stage effects' exposure ratio
-        w, h = basis.film
-        self._film_mask = Camera.from_spec(spec).scaled(w, h).mask
+        self._film = Camera.from_spec(spec).scaled(*basis.film)  # the basis' own camera
 
     # --- the FastModel interface ---------------------------------------------------------
 
@@ -720,10 +719,8 @@ class ReferenceModel:
             image = self.basis.images(key, name, value)
             leak = np.array([str(n).endswith("_leak") for n in self.basis.names])
             if leak.any():
-                w, h = self.basis.film
-                film = Camera.from_spec(self.spec).scaled(w, h)
                 image = image.copy()
-                image[..., leak] = _axially_smoothed(image[..., leak], (film.cx, film.cy), LEAK_SMOOTH_PX)
+                image[..., leak] = _axially_smoothed(image[..., leak], (self._film.cx, self._film.cy), LEAK_SMOOTH_PX)
             self._rendered[tag] = image
         return self._rendered[tag]
 
@@ -842,7 +839,7 @@ class ReferenceModel:
         level(theta), the levels from the no-contact per-source images."""
 
         def level(p: dict, c: np.ndarray) -> float:
-            return _level(np.tensordot(self.sources(NO_CONTACT, p), c, axes=([2], [0])), self._film_mask)
+            return _level(np.tensordot(self.sources(NO_CONTACT, p), c, axes=([2], [0])), self._film.mask)
 
         if not params:
             return float(self.basis.gain)
