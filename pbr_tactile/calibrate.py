@@ -203,23 +203,27 @@ class Nonlinear:
     shift_px: tuple[float, float]
     vignetting: tuple[float, float]
     gamma: float
+    #: each unit's arc span, rad, where the basis' units are LED groups (ImageModel.arcs)
+    span_rad: tuple[float, ...] = ()
 
     def vector(self) -> np.ndarray:
         """The searched coordinates: the scale as its log, the fall-off as V(1) and its
-        r^4 share (see MIN_EDGE_ILLUMINATION)."""
+        r^4 share (see MIN_EDGE_ILLUMINATION), then the spans."""
         total = -sum(self.vignetting)
         quartic = -self.vignetting[1] / total if total > 0 else 0.0
         return np.r_[self.rotation_rad, self.led_azimuth_rad, self.leak, math.log(self.scale), self.shift_px,
-                     1.0 - total, quartic, self.gamma]
+                     1.0 - total, quartic, self.gamma, self.span_rad]
 
     @classmethod
-    def from_vector(cls, z: np.ndarray, leds: int) -> Nonlinear:
+    def from_vector(cls, z: np.ndarray, leds: int, arcs: bool = False) -> Nonlinear:
+        """``leds`` units; ``arcs``: the vector ends with their spans."""
         z = np.asarray(z, np.float64)
         n = leds
         total, quartic = 1.0 - float(z[4 + 2 * n]), float(z[5 + 2 * n])
         return cls(float(z[0]), tuple(map(float, z[1:1 + n])), tuple(map(float, z[1 + n:1 + 2 * n])),
                    float(math.exp(z[1 + 2 * n])), (float(z[2 + 2 * n]), float(z[3 + 2 * n])),
-                   (-total * (1.0 - quartic), -total * quartic), float(z[6 + 2 * n]))
+                   (-total * (1.0 - quartic), -total * quartic), float(z[6 + 2 * n]),
+                   tuple(map(float, z[7 + 2 * n:7 + 3 * n])) if arcs else ())
 
     def tied(self) -> Nonlinear:
         """The same image with the LED azimuth offsets' mean moved into the rotation,
@@ -231,21 +235,57 @@ class Nonlinear:
                                    led_azimuth_rad=tuple(a - mean for a in self.led_azimuth_rad))
 
     @classmethod
-    def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
-        return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2)
+    def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0, span_rad: tuple = ()) -> Nonlinear:
+        """``span_rad``: the units' spans as the spec lays them out, where they are groups."""
+        return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2, tuple(span_rad))
 
 
-def _bounds(leds: int, leak: bool) -> list[tuple[float, float]]:
+def _bounds(leds: int, leak: bool, arcs: list | None = None) -> list[tuple[float, float]]:
+    """The search's bounds; ``arcs`` (ImageModel.arcs): a span in [0, 2 pi] for each
+    unit of more than one LED (a single LED's is fixed)."""
     b = AZIMUTH_BOUND_RAD
+    spans = [] if arcs is None else [(0.0, 2 * math.pi) if len(a) > 1 else (0.0, 0.0) for a in arcs]
     return ([(-4 * math.pi, 4 * math.pi)] + [(-b, b)] * leds + [(0.0, 1.0 if leak else 0.0)] * leds
             + [tuple(map(math.log, SCALE_BOUNDS))] + [(-SHIFT_BOUND_PX, SHIFT_BOUND_PX)] * 2
-            + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS])
+            + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS] + spans)
+
+
+def basis_layout(spec: SensorSpec) -> tuple[SensorSpec, list | None, tuple, np.ndarray, np.ndarray]:
+    """How the basis renders a spec's LEDs: the spec it renders (its single LEDs, then
+    one LED of each group's build at the arc's centre: a group's LEDs differ only by a
+    turn about the axis, which the rotationally symmetric membrane turns into an image
+    rotation, so one render per group stands for all of them), each unit's arc offsets
+    (``LEDGroup.offsets``; None without groups) and span (rad; () without groups), and
+    for each of ``spec.leds`` its unit (L,) and its offset along the arc (L,) as a share
+    of the span."""
+    if not spec.led_groups:
+        return spec, None, (), np.arange(len(spec.leds)), np.zeros(len(spec.leds))
+    singles = [led for led in spec.leds if led.group is None]
+    groups = list(spec.led_groups)
+    rendered = singles + [g.led_at(g.arc_centre_rad, g.name) for g in groups]
+    arcs = [np.zeros(1)] * len(singles) + [g.offsets() for g in groups]
+    spans = (0.0,) * len(singles) + tuple(g.arc_span_rad for g in groups)
+    unit, share = [], []
+    for led in spec.leds:
+        if led.group is None:
+            unit.append(singles.index(led))
+            share.append(0.0)
+        else:
+            g = [x.name for x in groups].index(led.group)
+            unit.append(len(singles) + g)
+            share.append(float(groups[g].offsets()[[x.name for x in groups[g].leds()].index(led.name)]))
+    return spec.replace(leds=tuple(rendered), led_groups=()), arcs, spans, np.array(unit), np.array(share)
 
 
 class ImageModel:
     """The image model of the module doc at a film's resolution, for one basis."""
 
-    def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None):
+    def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None,
+                 arcs: list | None = None, spans: tuple = ()):
+        """basis (h, w, S) per unit flux of sources ``names``; ``arcs`` and ``spans``
+        (``basis_layout``): each unit's LEDs along its arc as shares of its span
+        (Nonlinear.span_rad, which starts at ``spans``), its source rendered at the arc's
+        centre; None: each unit is one LED."""
         self.A = np.asarray(basis, np.float64)
         self.h, self.w, self.S = self.A.shape
         self.led = led_of_source(names)
@@ -255,14 +295,27 @@ class ImageModel:
         r = circle_radius(circle, (self.h, self.w), (camera.height, camera.width))
         self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
         self.r = np.minimum(r, 1.0)
+        self.arcs = None if arcs is None else [np.asarray(a, np.float64) for a in arcs]
+        self.spans = tuple(float(v) for v in spans)
+        if self.arcs is not None and not len(self.arcs) == len(self.spans) == self.leds:
+            raise ValueError(f"arcs: {len(self.arcs)} units and {len(self.spans)} spans for a basis of {self.leds} "
+                             "LEDs")
 
-    def moved(self, image: np.ndarray, nl: Nonlinear, m: int | None, variance: bool = False) -> np.ndarray:
-        """(h, w) ``image`` moved by LED m's alignment (m None: the membrane's, without an
-        LED's azimuth): the point seen at p came from T^-1 p (unshift, rotate back,
-        unscale about the principal point). ``variance``: ``image`` is a variance map and
+    def nonlinear(self, z: np.ndarray) -> Nonlinear:
+        """The Nonlinear of a searched vector for this model's units."""
+        return Nonlinear.from_vector(z, self.leds, self.arcs is not None)
+
+    def start(self, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
+        """A search's start: the LEDs where the spec has them."""
+        return Nonlinear.start(self.leds, rotation_rad, leak, self.spans)
+
+    def moved(self, image: np.ndarray, nl: Nonlinear, turn: float, variance: bool = False) -> np.ndarray:
+        """(h, w) ``image`` turned by ``turn`` rad (an LED's azimuth; 0 for the membrane)
+        and moved by the alignment: the point seen at p came from T^-1 p (unshift, rotate
+        back, unscale about the principal point). ``variance``: ``image`` is a variance map and
         the result the variance of the moved image (bilinear weights w: sum w^2 sigma^2,
         with sigma^2 taken as locally even), which interpolation lowers up to fourfold."""
-        turn = nl.rotation_rad + (0.0 if m is None else nl.led_azimuth_rad[m])
+        turn = nl.rotation_rad + turn
         coords = Alignment(0.0, nl.scale, nl.shift_px).sampling((self.h, self.w), self.camera, turn)
         out = ndimage.map_coordinates(image, coords, order=1, mode="nearest")
         if variance:
@@ -270,14 +323,25 @@ class ImageModel:
             out = out * np.prod(np.square(1.0 - f) + np.square(f), axis=0)
         return out
 
+    def turns(self, nl: Nonlinear, m: int) -> list[float]:
+        """Unit m's LEDs' azimuths, rad, from where its source was rendered: its offset,
+        plus each LED's place along its arc."""
+        if self.arcs is None:
+            return [nl.led_azimuth_rad[m]]
+        return [nl.led_azimuth_rad[m] + nl.span_rad[m] * float(o) for o in self.arcs[m]]
+
     def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int, azimuths: bool = True) -> np.ndarray:
+        if not azimuths and self.arcs is not None:
+            raise ValueError("a contact's change with LED groups is not modelled: render it per LED")
         out = np.zeros((self.h, self.w, self.leds))
         for m in range(self.leds):
             f = nl.leak[m]
+            turns = self.turns(nl, m) if azimuths else [0.0]
             for k in np.nonzero(self.led == m)[0]:
                 share = (f if self.has_leak[k] else 1.0 - f) ** power
                 if share > 0:
-                    out[..., m] += share * self.moved(images[..., k], nl, m if azimuths else None, power == 2)
+                    for turn in turns:
+                        out[..., m] += share * self.moved(images[..., k], nl, turn, power == 2)
         return out
 
     def falloff(self, nl: Nonlinear) -> np.ndarray:
@@ -449,13 +513,13 @@ class ImageFitter:
 
     def loss(self, z: np.ndarray) -> float:
         """The censored mean squared error at nonlinear parameters ``z``."""
-        return float(np.sum(self.solve(Nonlinear.from_vector(z, self.model.leds))[2] ** 2))
+        return float(np.sum(self.solve(self.model.nonlinear(z))[2] ** 2))
 
     def fit(self, start: Nonlinear, max_evaluations: int = 1500) -> ImageFit:
         """Bounded least squares over the nonlinear parameters from ``start`` (the gains
         solved inside every evaluation: variable projection)."""
         leds = self.model.leds
-        bounds = np.array(_bounds(leds, self.leak and self.model.has_leak.any()))
+        bounds = np.array(_bounds(leds, self.leak and self.model.has_leak.any(), self.model.arcs))
         free = bounds[:, 1] > bounds[:, 0]
         z0 = np.clip(start.vector(), bounds[:, 0], bounds[:, 1])
         if self.common_turn:
@@ -472,12 +536,12 @@ class ImageFitter:
             return z
 
         def residuals(zf):
-            return self.solve(Nonlinear.from_vector(full(zf), leds))[2]
+            return self.solve(self.model.nonlinear(full(zf)))[2]
 
         result = optimize.least_squares(residuals, z0[free], bounds=(bounds[free, 0], bounds[free, 1]),
                                         diff_step=1e-3, max_nfev=max_evaluations, x_scale="jac")
         z = full(result.x)
-        nl = Nonlinear.from_vector(z, self.model.leds)
+        nl = self.model.nonlinear(z)
         gains, offset, res = self.solve(nl)
         loss = float(np.sum(res**2))
         moved = loss < start_loss * (1 - MIN_IMPROVEMENT)
@@ -487,9 +551,8 @@ class ImageFitter:
     def search(self, rotations: int = ROTATION_STARTS, max_evaluations: int = 2000, keep: int = 2) -> ImageFit:
         """Fit from ``rotations`` evenly spaced starting rotations: each start's gains
         first (a cheap screen), then the ``keep`` best refined in full."""
-        leds = self.model.leds
         leak = 0.3 if self.leak and self.model.has_leak.any() else 0.0
-        starts = [Nonlinear.start(leds, 2 * math.pi * k / rotations, leak) for k in range(rotations)]
+        starts = [self.model.start(2 * math.pi * k / rotations, leak) for k in range(rotations)]
         screened = sorted(starts, key=lambda nl: self.loss(nl.vector()))[:keep]
         fits = [self.fit(nl, max_evaluations) for nl in screened]
         return min(fits, key=lambda f: f.loss)
@@ -591,13 +654,18 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     s = height / camera.height
     centre = (camera.cx, camera.cy) if circle is None else circle[:2]
     sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
+    if taps is not None and spec.led_groups:
+        raise ValueError(f"sensor {spec.name!r} lays its LEDs out in groups, and a fit with taps needs each tap "
+                         "rendered per LED, which is not built yet: calibrate from the no-contact image alone "
+                         "(--taps 0)")
+    rendered, arcs, spans, unit, share_of_span = basis_layout(spec)
     points = _grid_points(grid)
     base = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
     fits = []
     for i, point in enumerate(points):
         effects = dataclasses.replace(base, **point)
-        basis = emitter_basis(spec, mesh, camera, effects, film, photons, spp, passes, seed, use_cache)
-        model = ImageModel(basis["mean"], basis["names"], camera, circle)
+        basis = emitter_basis(rendered, mesh, camera, effects, film, photons, spp, passes, seed, use_cache)
+        model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans)
         train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
         fit = ImageFitter(model, r, train, leak=leak).search()
         fits.append((_debiased(fit, model, basis, [train]), point, basis, model))
@@ -623,8 +691,9 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     default = {name: getattr(Effects(), name) for name in grid}
     same = [b for _, p, b, _ in fits if p == default]
     default_basis = same[0] if same else emitter_basis(
-        spec, mesh, camera, dataclasses.replace(base, **default), film, photons, spp, passes, seed, use_cache)
-    before = _uncalibrated(spec, camera, default_basis, circle, r, train)
+        rendered, mesh, camera, dataclasses.replace(base, **default), film, photons, spp, passes, seed, use_cache)
+    before = _uncalibrated(rendered, ImageModel(default_basis["mean"], default_basis["names"], camera, circle, arcs,
+                                                spans), r, train)
     judged = {ch: test & ~clipped[..., c] for c, ch in enumerate("rgb")}
     heldout = {ch: r2(after[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
     heldout_before = {ch: r2(before[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
@@ -636,15 +705,18 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     nl = fit.nl.tied() if taps is None else dataclasses.replace(
         fit.nl, rotation_rad=math.remainder(fit.nl.rotation_rad, 2 * math.pi))
     data = "one no-contact image" if taps is None else f"one no-contact image and {len(taps.ids)} taps"
+    # each LED's own values: its unit's, and its turn from where the spec has it
+    led_azimuth = tuple(float(nl.led_azimuth_rad[u] + ((nl.span_rad[u] - spans[u]) * o if spans else 0.0))
+                        for u, o in zip(unit, share_of_span))
     profile = Profile(
         sensor=spec.name, leds=tuple(led.name for led in spec.leds),
-        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px,
-                            nl.led_azimuth_rad),
+        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px, led_azimuth),
         camera=CameraProfile(gamma=nl.gamma, offset=tuple(np.clip(fit.offset, 0.0, 1.0)),
                              saturation=tuple(CLIP_LEVEL if saturated[ch] else 1.0 for ch in "rgb"),
                              vignetting=nl.vignetting, image_circle=circle),
         reference={"effects": {**point, "coating_albedo": Effects().coating_albedo},
-                   "led_leak": list(nl.leak), "led_gains": fit.gains.tolist(), "film": [width, height], "photons": photons,
+                   "led_leak": [nl.leak[u] for u in unit], "led_gains": fit.gains[unit].tolist(), "film": [width, height],
+                   "photons": photons,
                    "spp": spp, "passes": passes, "seed": seed},
         phong={"ambient": 1.0, "background": fast_table},
         fit={"data": data, "converged": fit.converged, "heldout_r2": heldout,
@@ -656,7 +728,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "image_circle": circle, "film": [width, height], "sectors": SECTORS,
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "noise": f.noise, "converged": f.converged} for f, p, _, _ in fits],
-        "best_effects": point, "parameters": _parameters(fit, tie=taps is None), "intervals": intervals,
+        "best_effects": point, "parameters": _parameters(fit, tie=taps is None, spec=spec), "intervals": intervals,
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,
         "taps": tap_report,
     }
@@ -689,14 +761,23 @@ NOT_IDENTIFIABLE_WITH_TAPS = [
 ]
 
 
-def _parameters(fit: ImageFit, tie: bool = True) -> dict:
-    """The fitted values as plain data; ``tie``: the rotation and azimuths tied (only one
-    image: see NOT_IDENTIFIABLE), else the rotation only wrapped."""
+def _parameters(fit: ImageFit, tie: bool = True, spec: SensorSpec | None = None) -> dict:
+    """The fitted values as plain data, per unit (an LED, or an LED group); ``tie``: the
+    rotation and azimuths tied (only one image: see NOT_IDENTIFIABLE), else the rotation
+    only wrapped. With the ``spec`` of LED groups, each group's fitted arc too (its
+    centre's turn against the membrane is the rotation plus its azimuth offset)."""
     nl = fit.nl.tied() if tie else dataclasses.replace(fit.nl, rotation_rad=math.remainder(fit.nl.rotation_rad,
                                                                                             2 * math.pi))
-    return {"rotation_rad": nl.rotation_rad, "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
-            "scale": nl.scale, "shift_px": list(nl.shift_px), "vignetting": list(nl.vignetting), "gamma": nl.gamma,
-            "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist()}
+    out = {"rotation_rad": nl.rotation_rad, "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
+           "scale": nl.scale, "shift_px": list(nl.shift_px), "vignetting": list(nl.vignetting), "gamma": nl.gamma,
+           "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist()}
+    if nl.span_rad:
+        out["arc_span_rad"] = list(nl.span_rad)
+    if spec is not None and spec.led_groups:
+        first = len(spec.leds) - sum(g.count for g in spec.led_groups)  # the single LEDs' units come first
+        out["led_groups"] = {g.name: {"arc_centre_rad": g.arc_centre_rad + nl.led_azimuth_rad[first + i],
+                                      "arc_span_rad": nl.span_rad[first + i]} for i, g in enumerate(spec.led_groups)}
+    return out
 
 
 def _bootstrap(fit: ImageFit, model: ImageModel, r: np.ndarray, sector: np.ndarray, count: int, seed: int,
@@ -847,21 +928,20 @@ def _fast_path_background(r, circle, camera: Camera, train, test, clipped, judge
     return {**table, "coefficients": table["coefficients"].tolist()}, section
 
 
-def _uncalibrated(spec, camera, basis: dict, circle, r, train) -> np.ndarray:
-    """The reference with its default effects (``basis`` rendered with them), mapped to
-    the real image by the best affine map per channel on the training pixels (what
-    uncalibrated means here)."""
-    own = np.array([not str(n).endswith("_leak") for n in basis["names"]])
+def _uncalibrated(rendered: SensorSpec, model: ImageModel, r, train) -> np.ndarray:
+    """The reference with its default effects (``model`` of a basis rendered with them,
+    of the LEDs ``rendered``: see ``basis_layout``), its LEDs where the spec has them,
+    mapped to the real image by the best affine map per channel on the training pixels
+    (what uncalibrated means here)."""
     default = Effects()
     from .render import source_response
     from .scene import led_sources
 
-    response = source_response(led_sources(spec, default), default)
-    linear = basis["mean"][..., own] @ response
+    response = source_response(led_sources(rendered, default), default)
+    linear = model.warped(model.start()) @ response
     out = np.zeros_like(r)
     for c in range(3):
         x, y = linear[..., c][train], r[..., c][train]
         a, b = np.polyfit(x, y, 1)
         out[..., c] = np.clip(a * linear[..., c] + b, 0.0, 1.0)
-    inside = ImageModel(basis["mean"], basis["names"], camera, circle).inside
-    return np.where(inside[..., None], out, 0.0)
+    return np.where(model.inside[..., None], out, 0.0)

@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 
 from scenes.camera import Camera
-from scenes.spec import SensorSpec
+from scenes.spec import GLASS_WALL_M, SensorSpec
 
 from .effects import Effects
 from .membrane import Elastomer
@@ -30,8 +30,6 @@ from .spectra import CAMERA_BANDS_NM, gaussian, led_spectrum, mitsuba_spectrum
 
 #: Refractive indices (dimensionless): silicone elastomer, glass core, air.
 IOR_SILICONE, IOR_GLASS, IOR_AIR = 1.41, 1.49, 1.0
-#: Wall thickness of the glass tube, metres.
-GLASS_THICKNESS_M = 2.0e-3
 #: Radius of each LED's spherical emitter, metres.
 LED_RADIUS_M = 0.35e-3
 #: The direction a directional core leak (Effects.core_leak_cone_rad) emits about: up the
@@ -43,7 +41,7 @@ LEAK_AXIS = (0.0, 0.0, 1.0)
 MAX_DEPTH = 160
 
 
-def write_meshes(solid: Elastomer, folder: str | Path, glass_thickness: float = GLASS_THICKNESS_M) -> dict[str, str]:
+def write_meshes(solid: Elastomer, folder: str | Path, glass_thickness: float = GLASS_WALL_M) -> dict[str, str]:
     """Write the scene's meshes as PLY files; returns {role: path}.
 
     Roles: ``coating`` (outer surface, normals out of the elastomer), ``core`` (elastomer
@@ -155,7 +153,7 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
                             "scale": power * (1 - leak), "in_elastomer": True, "cone_axis": None,
                             "cone_half_angle_rad": 0.0})
         if leak > 0:
-            r = spec.membrane.core_radius - GLASS_THICKNESS_M / 2
+            r = spec.membrane.core_radius - GLASS_WALL_M / 2
             xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
             sources.append({"name": f"led{m}_leak", "centre": (float(xy[0]), float(xy[1]), float(centre[2])),
                             "radius": LED_RADIUS_M, "spectrum": shape * power * leak, "peak_nm": peak,

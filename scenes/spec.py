@@ -16,6 +16,9 @@ DEFAULT_SPEC_PATH = Path(__file__).with_name("geltip.toml")
 
 #: Largest plausible sensor dimension in metres; anything larger is a unit mistake.
 MAX_SENSOR_SIZE_M = 1.0
+#: Thickness of the glass tube's wall under the membrane, m: the tube's inner radius is
+#: ``membrane.core_radius`` less this.
+GLASS_WALL_M = 2.0e-3
 
 
 @dataclass(frozen=True)
@@ -63,6 +66,47 @@ class LED:
     k_s: float  # specular coefficient
     peak_nm: float | None = None  # emission peak wavelength (physically based renderer)
     fwhm_nm: float | None = None  # emission full width at half maximum
+    group: str | None = None  # the LEDGroup it belongs to; None for a single LED
+
+
+@dataclass(frozen=True)
+class LEDGroup:
+    """LEDs of one colour and build evenly spaced along an arc of a ring about the
+    camera's axis: ``count`` LEDs at the centres of ``count`` equal parts of the arc
+    ``arc_span_rad`` wide about ``arc_centre_rad`` (0 is +x, towards +y), so that a
+    span of 2 pi is a full ring and one LED sits at the centre. Each aims along +z tilted
+    by ``tilt_rad`` away from the axis, outwards in its own radial plane."""
+
+    name: str
+    count: int  # -, LEDs in the arc
+    arc_centre_rad: float  # rad, azimuth of the arc's middle
+    arc_span_rad: float  # rad, in [0, 2 pi]: the arc the LEDs share
+    ring_radius: float  # m, distance of each LED from the camera's axis
+    height: float  # m, z of the LEDs in the camera frame
+    tilt_rad: float  # rad, the aim's angle from +z, outwards
+    colour: tuple[float, float, float]  # linear RGB in [0, 1]
+    k_d: float
+    k_s: float
+    peak_nm: float | None = None
+    fwhm_nm: float | None = None
+
+    def offsets(self) -> np.ndarray:
+        """(count,) each LED's azimuth from the arc's centre, as a share of the span:
+        (j + 1/2) / count - 1/2."""
+        return (np.arange(self.count) + 0.5) / self.count - 0.5
+
+    def led_at(self, azimuth: float, name: str) -> LED:
+        """One LED of this group's build at ``azimuth`` rad."""
+        c, s = math.cos(azimuth), math.sin(azimuth)
+        t = self.tilt_rad
+        return LED(name=name, position=(self.ring_radius * c, self.ring_radius * s, self.height),
+                   direction=(math.sin(t) * c, math.sin(t) * s, math.cos(t)), colour=self.colour, k_d=self.k_d,
+                   k_s=self.k_s, peak_nm=self.peak_nm, fwhm_nm=self.fwhm_nm, group=self.name)
+
+    def leds(self) -> tuple[LED, ...]:
+        """The group's LEDs, named ``<name><j>``."""
+        return tuple(self.led_at(self.arc_centre_rad + self.arc_span_rad * float(o), f"{self.name}{j}")
+                     for j, o in enumerate(self.offsets()))
 
 
 @dataclass(frozen=True)
@@ -91,9 +135,10 @@ class SensorSpec:
     name: str
     membrane: MembraneSpec
     camera: CameraSpec
-    leds: tuple[LED, ...]
+    leds: tuple[LED, ...]  # every LED: the single ones, then each group's
     material: Material
     elastic: Elastic
+    led_groups: tuple[LEDGroup, ...] = ()  # the groups some of ``leds`` were laid out by
 
     def digest(self) -> str:
         """Stable hash of every field, for cache keys."""
@@ -102,6 +147,13 @@ class SensorSpec:
 
     def replace(self, **changes) -> "SensorSpec":
         return dataclasses.replace(self, **changes)
+
+    def group_of(self, name: str) -> LEDGroup:
+        """The LED group called ``name``."""
+        for group in self.led_groups:
+            if group.name == name:
+                return group
+        raise KeyError(f"sensor {self.name!r} has no LED group {name!r}")
 
 
 def _take(table: dict, key: str, kind, where: str, default=dataclasses.MISSING):
@@ -194,9 +246,12 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     if not 0 < camera.fov_y < math.pi:
         raise ValueError(f"{source}: camera.fov_y must be in (0, pi) rad, got {camera.fov_y}")
 
-    leds_data = data.get("leds")
-    if not isinstance(leds_data, list) or not leds_data:
-        raise ValueError(f"{source}: needs at least one [[leds]] table")
+    leds_data = data.get("leds", [])
+    groups_data = data.get("led_groups", [])
+    if not isinstance(leds_data, list) or not isinstance(groups_data, list):
+        raise ValueError(f"{source}: leds and led_groups must be arrays of tables ([[leds]], [[led_groups]])")
+    if not leds_data and not groups_data:
+        raise ValueError(f"{source}: needs at least one [[leds]] or [[led_groups]] table")
     leds = []
     for i, t in enumerate(leds_data):
         where = f"{source}: leds[{i}]"
@@ -204,27 +259,17 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         norm = float(np.linalg.norm(direction))
         if norm < 1e-9:
             raise ValueError(f"{where}.direction must be non-zero")
-        colour = _vec3(t, "colour", where)
-        if not all(0.0 <= v <= 1.0 for v in colour):
-            raise ValueError(f"{where}.colour must be linear RGB in [0, 1], got {colour}")
-        leds.append(
-            LED(
-                name=_take(t, "name", str, where, f"led{i}"),
-                position=_vec3(t, "position", where),
-                direction=tuple(float(v) for v in direction / norm),
-                colour=colour,
-                k_d=_take(t, "k_d", float, where),
-                k_s=_take(t, "k_s", float, where),
-                peak_nm=_take(t, "peak_nm", float, where, None),
-                fwhm_nm=_take(t, "fwhm_nm", float, where, None),
-            )
-        )
-        for key in ("peak_nm", "fwhm_nm"):
-            value = getattr(leds[-1], key)
-            if value is not None and not 1.0 <= value <= 2000.0:
-                raise ValueError(f"{where}.{key} must be in nanometres (1-2000), got {value}")
+        leds.append(LED(name=_take(t, "name", str, where, f"led{i}"), position=_vec3(t, "position", where),
+                        direction=tuple(float(v) for v in direction / norm), **_optics(t, where)))
         if max(abs(v) for v in leds[-1].position) > MAX_SENSOR_SIZE_M:
             raise ValueError(f"{where}.position {leds[-1].position} looks like millimetres; use metres")
+    groups = tuple(_led_group(t, f"{source}: led_groups[{i}]", membrane) for i, t in enumerate(groups_data))
+    for group in groups:
+        leds.extend(group.leds())
+    names = [led.name for led in leds] + [group.name for group in groups]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(f"{source}: LED and LED group names must be unique, repeated: {', '.join(repeated)}")
 
     t = data.get("material", {})
     material = Material(
@@ -247,7 +292,49 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         leds=tuple(leds),
         material=material,
         elastic=elastic,
+        led_groups=groups,
     )
+
+
+def _optics(t: dict, where: str) -> dict:
+    """An LED's (or an LED group's) colour, Phong constants and emission spectrum."""
+    colour = _vec3(t, "colour", where)
+    if not all(0.0 <= v <= 1.0 for v in colour):
+        raise ValueError(f"{where}.colour must be linear RGB in [0, 1], got {colour}")
+    out = {"colour": colour, "k_d": _take(t, "k_d", float, where), "k_s": _take(t, "k_s", float, where),
+           "peak_nm": _take(t, "peak_nm", float, where, None), "fwhm_nm": _take(t, "fwhm_nm", float, where, None)}
+    for key in ("peak_nm", "fwhm_nm"):
+        if out[key] is not None and not 1.0 <= out[key] <= 2000.0:
+            raise ValueError(f"{where}.{key} must be in nanometres (1-2000), got {out[key]}")
+    return out
+
+
+def _led_group(t: dict, where: str, membrane: MembraneSpec) -> LEDGroup:
+    """An [[led_groups]] table, checked: at least one LED, a span in [0, 2 pi], a ring
+    that does not cut the glass wall."""
+    count = _take(t, "count", int, where)
+    if count < 1:
+        raise ValueError(f"{where}.count must be at least 1 LED, got {count}")
+    span = _take(t, "arc_span_rad", float, where)
+    if not 0.0 <= span <= 2 * math.pi + 1e-12:
+        raise ValueError(f"{where}.arc_span_rad must be in [0, 2 pi] rad (at most the whole ring, 360 deg), got "
+                         f"{span} ({math.degrees(span):.1f} deg)")
+    radius = _positive(_take(t, "ring_radius", float, where), f"{where}.ring_radius")
+    height = _take(t, "height", float, where)
+    if max(radius, abs(height)) > MAX_SENSOR_SIZE_M:
+        raise ValueError(f"{where}: ring_radius {radius} and height {height} look like millimetres; use metres")
+    inner = membrane.core_radius - GLASS_WALL_M
+    if inner < radius < membrane.core_radius and height >= membrane.base_z:
+        raise ValueError(f"{where}.ring_radius {radius * 1e3:.2f} mm puts the LEDs inside the glass wall "
+                         f"({inner * 1e3:.2f} to {membrane.core_radius * 1e3:.2f} mm from the axis, above the "
+                         f"membrane's base at z = {membrane.base_z * 1e3:.1f} mm): place them in the tube, under the "
+                         "wall (height below the base) or outside it")
+    tilt = _take(t, "tilt_rad", float, where, 0.0)
+    if not abs(tilt) < math.pi / 2:
+        raise ValueError(f"{where}.tilt_rad must be within (-pi/2, pi/2) of the axis, got {tilt}")
+    return LEDGroup(name=_take(t, "name", str, where), count=count,
+                    arc_centre_rad=_take(t, "arc_centre_rad", float, where), arc_span_rad=min(span, 2 * math.pi),
+                    ring_radius=radius, height=height, tilt_rad=tilt, **_optics(t, where))
 
 
 def read_toml(path: str | Path, what: str) -> dict:

@@ -1,0 +1,153 @@
+"""LED groups: arcs of LEDs in the sensor spec (scenes.spec), how the reference's
+calibration renders and fits them (pbr_tactile.calibrate), analytic cases first."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pbr_tactile import calibrate as cal
+from scenes.spec import GLASS_WALL_M, default_spec, load_spec, spec_from_dict
+
+SPEC_2023 = "scenes/sensors/geltip_2023.toml"
+
+
+def _group(**change) -> dict:
+    group = {"name": "red", "count": 6, "arc_centre_rad": 0.5, "arc_span_rad": 2 * math.pi / 3,
+             "ring_radius": 0.0105, "height": -0.012, "colour": [1.0, 0.0, 0.0], "k_d": 0.9, "k_s": 0.1}
+    return {**group, **change}
+
+
+def _data(*groups, leds=()) -> dict:
+    return {"name": "arcs", "leds": list(leds), "led_groups": list(groups)}
+
+
+# -- the spec ------------------------------------------------------------------------------
+
+def test_a_group_lays_its_leds_evenly_along_its_arc():
+    spec = spec_from_dict(_data(_group(count=6, arc_centre_rad=0.5, arc_span_rad=2 * math.pi / 3, tilt_rad=0.2)))
+    assert [led.name for led in spec.leds] == [f"red{j}" for j in range(6)]
+    azimuths = np.array([math.atan2(led.position[1], led.position[0]) for led in spec.leds])
+    step = (2 * math.pi / 3) / 6
+    np.testing.assert_allclose(np.diff(azimuths), step, atol=1e-12)
+    assert np.mean(azimuths) == pytest.approx(0.5)
+    for led, a in zip(spec.leds, azimuths):
+        assert math.hypot(*led.position[:2]) == pytest.approx(0.0105)
+        assert led.position[2] == -0.012 and led.group == "red"
+        # aimed up the tube, tilted outwards in its own radial plane
+        d = np.array(led.direction)
+        assert np.linalg.norm(d) == pytest.approx(1.0)
+        assert d[2] == pytest.approx(math.cos(0.2))
+        assert math.atan2(d[1], d[0]) == pytest.approx(a)
+
+
+def test_a_full_ring_repeats_no_led_and_one_led_sits_at_the_centre():
+    ring = spec_from_dict(_data(_group(count=4, arc_span_rad=2 * math.pi, arc_centre_rad=0.0)))
+    xy = np.array([led.position[:2] for led in ring.leds])
+    gaps = np.linalg.norm(xy - np.roll(xy, 1, axis=0), axis=1)
+    np.testing.assert_allclose(gaps, gaps[0])  # four LEDs a quarter-turn apart, none doubled
+    one = spec_from_dict(_data(_group(count=1, arc_centre_rad=1.0)))
+    assert math.atan2(one.leds[0].position[1], one.leds[0].position[0]) == pytest.approx(1.0)
+
+
+def test_single_leds_and_groups_mix_single_ones_first():
+    single = {"name": "blue", "position": [0.012, 0.0, 0.0], "direction": [0, 0, 1], "colour": [0, 0, 1],
+              "k_d": 0.9, "k_s": 0.1}
+    spec = spec_from_dict(_data(_group(count=2), leds=[single]))
+    assert [led.name for led in spec.leds] == ["blue", "red0", "red1"]
+    assert spec.leds[0].group is None and spec.group_of("red").count == 2
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"count": 0}, "count must be at least 1"),
+    ({"arc_span_rad": math.radians(361.0)}, "at most the whole ring, 360 deg"),
+    ({"arc_span_rad": -0.1}, "arc_span_rad must be in"),
+    ({"ring_radius": 0.009 - GLASS_WALL_M / 2, "height": 0.0}, "inside the glass wall"),
+    ({"ring_radius": 10.5}, "look like millimetres"),
+    ({"tilt_rad": 2.0}, "tilt_rad"),
+    ({"colour": [2.0, 0.0, 0.0]}, "colour must be linear RGB"),
+])
+def test_a_bad_group_is_refused_naming_it(change, message):
+    with pytest.raises(ValueError, match=message) as err:
+        spec_from_dict(_data(_group(**change)), source="s.toml")
+    assert "led_groups[0]" in str(err.value)
+
+
+def test_names_must_be_unique_and_some_led_must_exist():
+    with pytest.raises(ValueError, match="unique, repeated: red"):
+        spec_from_dict(_data(_group(), _group()))
+    with pytest.raises(ValueError, match=r"at least one \[\[leds\]\] or \[\[led_groups\]\]"):
+        spec_from_dict({"name": "dark"})
+
+
+def test_a_ring_under_the_glass_wall_is_accepted():
+    """Below the membrane's base the wall is not there: the real unit's LEDs shine into
+    its end from underneath."""
+    spec = spec_from_dict(_data(_group(ring_radius=0.009 - GLASS_WALL_M / 2, height=-0.012)))
+    assert len(spec.leds) == 6
+
+
+# -- the basis and the image model -----------------------------------------------------------
+
+def test_the_basis_renders_one_led_per_group_at_its_arcs_centre():
+    spec = spec_from_dict(_data(_group(name="red", arc_centre_rad=0.5), _group(name="green", arc_centre_rad=2.6,
+                                                                                 count=3)))
+    rendered, arcs, spans, unit, share = cal.basis_layout(spec)
+    assert len(rendered.leds) == 2 and rendered.led_groups == ()
+    assert math.atan2(rendered.leds[1].position[1], rendered.leds[1].position[0]) == pytest.approx(2.6)
+    assert [len(a) for a in arcs] == [6, 3] and spans == pytest.approx((2 * math.pi / 3,) * 2)
+    assert unit.tolist() == [0] * 6 + [1] * 3
+    np.testing.assert_allclose(share[:6], spec.group_of("red").offsets())
+    plain = default_spec()
+    same, none, no_spans, unit, share = cal.basis_layout(plain)
+    assert same is plain and none is None and no_spans == () and unit.tolist() == [0, 1, 2] and not share.any()
+
+
+def _led_image(rho, phi, azimuth, kappa=6.0):
+    """An LED's grey image: bright at the rim near its own azimuth (a von Mises lobe
+    sharp enough that the LEDs' spread along the arc shows)."""
+    return (0.05 + rho**2) * np.exp(kappa * (np.cos(phi - azimuth) - 1.0))
+
+
+def test_a_fit_finds_each_groups_centre_and_span(camera):
+    """The sensor is drawn LED by LED from formulas (no rotated basis); the model sees one
+    image per group at its arc's spec centre, and recovers each arc's centre and span."""
+    h, w = 60, 80
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    s = h / camera.height
+    cx, cy = (camera.cx + 0.5) * s - 0.5, (camera.cy + 0.5) * s - 0.5
+    rho, phi = np.hypot(u - cx, v - cy) / (camera.mask_radius_px * s), np.arctan2(v - cy, u - cx)
+    centres, count = (0.3, 0.3 + 2.1, 0.3 + 4.2), 5
+    spec_span, true_span, true_turn = 1.6, (1.1, 1.9, 1.4), (0.15, -0.1, 0.05)
+    offsets = (np.arange(count) + 0.5) / count - 0.5
+    A = np.stack([_led_image(rho, phi, c) for c in centres], -1)
+    names = np.array([f"led{m}" for m in range(3)])
+    gains = np.array([[0.5, 0.05, 0.02], [0.03, 0.45, 0.05], [0.05, 0.1, 0.5]]) * 0.35
+    linear = sum(_led_image(rho, phi, c + t + span * o)[..., None] * g
+                 for c, t, span, g in zip(centres, true_turn, true_span, gains) for o in offsets)
+    real = np.clip(linear + 0.01, 0, 1) ** (1 / 2.0)
+    circle = (camera.cx, camera.cy, camera.mask_radius_px)  # turns stay inside the frame
+    model = cal.ImageModel(A, names, camera, circle, [offsets] * 3, (spec_span,) * 3)
+    sector = cal.sector_index((h, w), (cx, cy))
+    train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
+    fitter = cal.ImageFitter(model, real, train, leak=False)
+    fit = fitter.fit(model.start(), max_evaluations=600)
+    pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
+    assert min(cal.r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
+    turns = fit.nl.rotation_rad + np.array(fit.nl.led_azimuth_rad)
+    np.testing.assert_allclose(turns, true_turn, atol=0.03)
+    np.testing.assert_allclose(fit.nl.span_rad, true_span, rtol=0.05)
+    # each arc held at the spec's span (its LEDs summed once, each group only turned):
+    # the same image is not reached
+    rigid = cal.ImageModel(model.warped(model.start()), names, camera, circle)
+    held = cal.ImageFitter(rigid, real, train, leak=False).fit(rigid.start(), max_evaluations=600)
+    assert held.loss > 5 * fit.loss
+
+
+def test_a_contact_change_with_groups_is_refused(camera):
+    A = np.ones((6, 8, 1))
+    model = cal.ImageModel(A, np.array(["led0"]), camera, None, [np.zeros(2)], (0.5,))
+    with pytest.raises(ValueError, match="LED groups is not modelled"):
+        model.tap_design(A, model.start())
