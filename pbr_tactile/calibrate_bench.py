@@ -42,15 +42,10 @@ import numpy as np
 
 from scenes.profile import turn_leds
 
-from .calibrate import (
-    BASIS_EFFECTS,
-    GRID,
-    ImageModel,
-    Nonlinear,
-    calibrate_background,
-    emitter_basis,
-)
+from .basis import BASIS_EFFECTS, emitter_basis
+from .calibrate import GRID, calibrate_background
 from .effects import Effects
+from .image_model import ImageModel, Nonlinear
 
 #: Ranges the hidden values are drawn from (uniform).
 RANGES = {
@@ -163,13 +158,14 @@ def _noise(model: ImageModel, variance: np.ndarray, nl: Nonlinear, gains: np.nda
 
 def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int, int] = (160, 120),
               grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, progress=None, cold: bool = False,
-              taps: int = 0, on_case=None) -> dict:
+              taps: int = 0, on_case=None, fast_path_fit=None) -> dict:
     """Run ``cases`` blind recoveries; returns the benchmark's JSON (see the module doc).
     cold : render every basis afresh (no disk cache), as a first calibration would.
     taps : virtual taps per sensor (at most calibrate_taps.MAX_TAPS; 0: the no-contact
     image only).
     on_case : called after each case with the summary of the cases so far (a run that is
-    stopped keeps what it finished)."""
+    stopped keeps what it finished).
+    fast_path_fit : with taps, the fast path's LED fit (``calibrate_background``)."""
     from scenes.captures import MAX_TAPS
 
     if not 0 <= taps <= MAX_TAPS:
@@ -201,7 +197,7 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
             unit, mesh, camera, fx, still, gains_scaled, depths, ref_depth, film, photons, spp, case_seed, not cold, ids)
         t0 = time.perf_counter()
         cal = calibrate_background(real, spec, mesh, camera, film=film, grid=grid, photons=photons, spp=spp, seed=seed,
-                                   bootstrap=0, use_cache=not cold, taps=real_taps)
+                                   bootstrap=0, use_cache=not cold, taps=real_taps, fast_path_fit=fast_path_fit)
         seconds = time.perf_counter() - t0
         fit = {**cal.report["parameters"], "effects": cal.report["best_effects"]}
         noise = _noise(model, hidden["variance"], still, gains_scaled)

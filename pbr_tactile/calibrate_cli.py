@@ -170,7 +170,8 @@ def cmd_calibrate(args) -> int:
     t0 = time.perf_counter()
     cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
                                grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
-                               bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps)
+                               bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps,
+                               fast_path_fit=fast_path_fit())
     bar.close()
     cal.report["seconds"] = time.perf_counter() - t0
     paths = write_outputs(cal, Path(args.out), what)
@@ -209,7 +210,7 @@ def cmd_benchmark(args) -> int:
     result = benchmark(spec, membrane_mesh(spec), camera, cases=cases, seed=args.seed,
                        film=(args.width, args.width * 3 // 4), grid=_grid(args.grid) if args.grid else GRID,
                        photons=args.photons, spp=args.spp, progress=lambda done, total: bar.update(done - bar.n),
-                       taps=0 if args.taps is None else args.taps, on_case=write)
+                       taps=0 if args.taps is None else args.taps, on_case=write, fast_path_fit=fast_path_fit())
     bar.close()  # the last case's summary, the result, is already written
     print(f"median relative error {result['median_relative_error']:.3f}, share within 10 % "
           f"{result['share_within_10pct']:.2f} over {cases} cases; wrote {args.json}")
@@ -227,7 +228,8 @@ def cmd_bench_calibrate(args) -> int:
 
     spec = load_spec(args.spec)
     camera = Camera.from_spec(spec)
-    result = benchmark(spec, membrane_mesh(spec), camera, cases=1, seed=args.seed, cold=True, taps=args.taps)
+    result = benchmark(spec, membrane_mesh(spec), camera, cases=1, seed=args.seed, cold=True, taps=args.taps,
+                       fast_path_fit=fast_path_fit())
     out = {"seconds": result["seconds_per_case"], "what": f"one no-contact image and {args.taps} taps of a virtual "
            "sensor, default grid, basis and tap renders not cached (cold), bootstrap off; the seconds of calibration "
            "only (not of rendering the virtual sensor)", "taps": args.taps,
@@ -235,6 +237,14 @@ def cmd_bench_calibrate(args) -> int:
     atomic_write_json(Path(args.json), out)
     print(f"calibrated in {out['seconds']:.0f} s; wrote {args.json}")
     return 0
+
+
+def fast_path_fit():
+    """The fast path's fit of its LED constants to a unit's taps (its renderer plugin's
+    ``calibrate``), which a calibration with taps writes into the profile."""
+    from scenes.generate import renderer_plugin
+
+    return renderer_plugin("phong").calibrate
 
 
 def _grid(items: list[str]) -> dict:

@@ -43,18 +43,15 @@ import math
 
 import numpy as np
 
+from scenes import captures
+from scenes.camera import Camera
 from scenes.captures import RealTaps, contact_region
 from scenes.images import block_mean
 
-from .calibrate import (
-    ImageFit,
-    ImageFitter,
-    ImageModel,
-    Nonlinear,
-    TapView,
-    emitter_basis,
-    film_factor,
-)
+from .basis import emitter_basis
+from .effects import Effects
+from .image_model import ImageFit, ImageFitter, ImageModel, Nonlinear, TapView, debiased
+from .real_image import film_factor
 
 #: Each tap is rendered with every LED at azimuths -this, 0 and +this (radians) for its
 #: change's quadratic in the azimuth.
@@ -152,3 +149,55 @@ def film_views(taps: RealTaps, changes: dict, background_film: np.ndarray, insid
         views.append(TapView(changes["change"][t], real, contact_region(real, background_film, inside),
                              slope=slope, curve=curve))
     return views
+
+
+def rank_with_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray, train: np.ndarray,
+                    effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak,
+                    use_cache) -> dict:
+    """A grid point judged by the fitted taps with the LEDs where the spec has them (the
+    cheap form of ``_fit_taps``: a sixth of its renders, the same at every point, so the
+    losses compare): ``loss``, ``noise`` (``_debiased``), ``converged``, and ``known``
+    the changes rendered (by tap index), which the full fit reuses."""
+    fitted = np.flatnonzero(captures.split(len(taps.ids)))
+    subset = captures.RealTaps(taps.images[fitted], taps.depths[fitted], taps.ref_depth,
+                               [taps.ids[i] for i in fitted])
+    changes = tap_changes(spec, mesh, camera, effects, film, subset, basis, photons, spp, passes, seed, use_cache,
+                             azimuths=False)
+    views = [v for v in film_views(subset, changes, r, model.inside, film) if v.pixels.sum() >= captures.MIN_REGION]
+    joint = fit_with_taps(model, r, train, views, fit, leak) if views else None
+    if joint is not None:
+        joint = debiased(joint, model, basis, [train] + [v.pixels for v in views])
+    return {"loss": math.inf if joint is None else joint.loss, "noise": 0.0 if joint is None else joint.noise,
+            "converged": joint is not None and joint.converged,
+            "known": dict(zip(fitted.tolist(), changes["change"]))}
+
+
+def fit_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray, train: np.ndarray,
+              effects: Effects, spec, mesh, camera: Camera, film, photons, spp, passes, seed, leak, use_cache,
+              known: dict | None = None):
+    """The fit with taps (``pbr_tactile.calibrate_taps``): (fit, fitted taps' views, the
+    report's ``taps`` section). ``known``: zero-azimuth changes already rendered."""
+    changes = tap_changes(spec, mesh, camera, effects, film, taps, basis, photons, spp, passes, seed, use_cache,
+                             known=known)
+    views = film_views(taps, changes, r, model.inside, film)
+    seen = [int(v.pixels.sum()) >= captures.MIN_REGION for v in views]
+    fitted = captures.split(len(views))
+    fit_views = [v for v, f, ok in zip(views, fitted, seen) if f and ok]
+    judge_views = [v for v, f, ok in zip(views, fitted, seen) if not f and ok]
+    if not fit_views:
+        raise ValueError(f"none of the fitted taps ({', '.join(np.asarray(taps.ids)[fitted])}) shows a contact: each "
+                         f"differs from the no-contact image in fewer than {captures.MIN_REGION} film pixels by more than "
+                         f"{captures.CHANGE_LEVEL:.3f}")
+    background_only = fit
+    fit = fit_with_taps(model, r, train, fit_views, background_only, leak)
+    ids = np.asarray(taps.ids)
+    report = {
+        "fitted": ids[fitted & np.array(seen)].tolist(), "judged": ids[~fitted & np.array(seen)].tolist(),
+        "without_contact": ids[~np.array(seen)].tolist(),
+        "split": "alternate taps: even ones fitted with the image's training sectors, odd ones judged; each on its "
+                 "contact region (where the real tap differs from the real no-contact image)",
+        "heldout": tap_scores(model, fit, judge_views, r), "fit": tap_scores(model, fit, fit_views, r),
+        "heldout_before_taps": tap_scores(model, background_only, judge_views, r),
+    }
+    return fit, fit_views, report
+

@@ -80,7 +80,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     if args.profile:
         from scenes.profile import load_profile
 
-        from .calibrate import profile_effects
+        from .profiled import profile_effects
 
         if args.estimator != "photons":
             raise ValueError("--profile needs the photon estimator (it renders one image per source)")
@@ -117,7 +117,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     np.save(out["linear"], est.mean)
     np.save(out["variance"], est.variance)
     if profile is not None:
-        from .calibrate import profiled_image
+        from .profiled import profiled_image
         from .scene import led_sources
 
         names = [s["name"] for s in led_sources(spec, effects)]

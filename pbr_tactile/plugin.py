@@ -186,7 +186,7 @@ def unit_of(spec: SensorSpec, opts: dict):
         return spec, Camera.from_spec(spec), opts["effects"], None
     from scenes.profile import load_profile
 
-    from .calibrate import profile_effects
+    from .profiled import profile_effects
 
     profile = load_profile(opts["profile"], spec)
     unit = profile.sensor_spec(spec)
@@ -276,7 +276,7 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
         unit_settings = {
             "profile": opts["profile"], "profile_data": profile.to_dict(), "effects": effects.to_dict(),
             "exposure_gain": None, "sources": names,
-            "exposure": "the calibrated unit's camera (pbr_tactile.calibrate.profiled_image of the per-source images: "
+            "exposure": "the calibrated unit's camera (pbr_tactile.profiled.profiled_image of the per-source images: "
                         "the profile's gains, alignment, lens fall-off, response and clipping), no dataset exposure",
             "linear": f"linear/<id>.npy: (H, W, {len(names)}) float32, one grey image per source ({', '.join(names)}) "
                       "per unit flux, at the camera's size; variance/<id>.npy: the variance of that mean"}
@@ -348,7 +348,7 @@ class PbrDatasetRenderer:
 
     def _image(self, linear: np.ndarray) -> np.ndarray:
         if self.profile is not None:
-            from .calibrate import profiled_image
+            from .profiled import profiled_image
 
             return profiled_image(linear, self.names, self.profile, self.camera).astype(np.float32)
         return np.clip(self.gain * linear, 0.0, 1.0).astype(np.float32)

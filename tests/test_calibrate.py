@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from pbr_tactile import calibrate as cal
+from pbr_tactile import image_model as im
+from pbr_tactile import real_image as ri
 from pbr_tactile.calibrate_cli import real_background
 from scenes.profile import (
     PROFILE_VERSION,
@@ -80,22 +82,22 @@ def _disc(camera, centre=(322.0, 236.0), radius=230.0, value=0.5):
 
 
 def test_image_circle_is_found(camera):
-    cx, cy, radius = cal.image_circle(_disc(camera))
+    cx, cy, radius = ri.image_circle(_disc(camera))
     assert abs(cx - 322) < 0.5 and abs(cy - 236) < 0.5 and abs(radius - 230) < 1.0
-    assert cal.image_circle(np.full((camera.height, camera.width, 3), 0.4)) is None
+    assert ri.image_circle(np.full((camera.height, camera.width, 3), 0.4)) is None
 
 
 def test_bad_real_images_are_refused(camera):
     with pytest.raises(ValueError, match="640x480 RGB"):
-        cal.check_real(np.zeros((240, 320, 3)), camera)
+        ri.check_real(np.zeros((240, 320, 3)), camera)
     with pytest.raises(ValueError, match="blank"):
-        cal.check_real(np.zeros((camera.height, camera.width, 3)), camera)
+        ri.check_real(np.zeros((camera.height, camera.width, 3)), camera)
     with pytest.raises(ValueError, match="saturated almost everywhere"):
-        cal.check_real(np.ones((camera.height, camera.width, 3)), camera)
+        ri.check_real(np.ones((camera.height, camera.width, 3)), camera)
     nan = _disc(camera)
     nan[0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="finite"):
-        cal.check_real(nan, camera)
+        ri.check_real(nan, camera)
 
 
 def test_real_background_inputs(tmp_path):
@@ -122,12 +124,12 @@ def test_censored_gains_ignore_clipped_pixels_above_the_level():
     X = rng.uniform(0, 1, (400, 2))
     truth = np.array([0.9, 0.6])
     y = X @ truth + 0.05
-    clipped = y >= cal.CLIP_LEVEL
+    clipped = y >= ri.CLIP_LEVEL
     assert 20 < clipped.sum() < 380
-    gains, offset = cal.solve_gains(X, np.minimum(y, cal.CLIP_LEVEL), clipped, gamma=1.0)
+    gains, offset = im.solve_gains(X, np.minimum(y, ri.CLIP_LEVEL), clipped, gamma=1.0)
     np.testing.assert_allclose(gains, truth, atol=1e-6)
     assert abs(offset - 0.05) < 1e-6
-    naive, _ = cal.solve_gains(X, np.minimum(y, cal.CLIP_LEVEL), np.zeros_like(clipped), gamma=1.0)
+    naive, _ = im.solve_gains(X, np.minimum(y, ri.CLIP_LEVEL), np.zeros_like(clipped), gamma=1.0)
     assert np.abs(naive - truth).max() > 0.02  # without censoring the clip pulls the gains down
 
 
@@ -149,18 +151,18 @@ def _synthetic_basis(h=60, w=80, camera=None):
 def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
     A, names = _synthetic_basis(camera=camera)
     circle = (321.0, 241.0, 236.0)
-    model = cal.ImageModel(A, names, camera, circle)
-    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.05, -0.08, 0.1), leak=(0.3, 0.5, 0.2), scale=1.05,
+    model = im.ImageModel(A, names, camera, circle)
+    truth = im.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.05, -0.08, 0.1), leak=(0.3, 0.5, 0.2), scale=1.05,
                           shift_px=(6.0, -4.0), vignetting=(-0.4, 0.0), gamma=1.8)
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
-    real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, cal.CLIP_LEVEL))
-    sector = cal.sector_index(real.shape[:2], (40, 30))
+    real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, ri.CLIP_LEVEL))
+    sector = ri.sector_index(real.shape[:2], (40, 30))
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
-    fit = cal.ImageFitter(model, real, train).search(rotations=6)
+    fit = im.ImageFitter(model, real, train).search(rotations=6)
     assert fit.converged
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
     for c in range(2):
-        assert cal.r2(pred[..., c], real[..., c], test) > 0.99
+        assert ri.r2(pred[..., c], real[..., c], test) > 0.99
     # The three synthetic LEDs differ only in gains, so a turn by a third is the same
     # sensor with its LEDs renamed: the rotation is known modulo 2 pi / 3, the LEDs'
     # parameters up to that renaming; and only each LED's whole turn, the rotation plus
@@ -191,8 +193,8 @@ def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, sp
                     "response": np.ones((len(names), 3))},
              50.0: {"mean": wrong, "variance": np.zeros_like(A), "names": names, "response": np.ones((len(names), 3))}}
     monkeypatch.setattr(cal, "emitter_basis", lambda spec_, mesh, camera_, effects, *a, **k: bases[effects.scattering_per_m])
-    model = cal.ImageModel(A, names, camera, None)
-    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
+    model = im.ImageModel(A, names, camera, None)
+    truth = im.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
                           shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.15  # nothing clipped
     k = camera.height // A.shape[0]
@@ -207,11 +209,11 @@ def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, sp
 
 def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
     A, names = _synthetic_basis(camera=camera)
-    model = cal.ImageModel(A, names, camera, None)
+    model = im.ImageModel(A, names, camera, None)
     rng = np.random.default_rng(1)
     real = rng.uniform(0.2, 0.8, (A.shape[0], A.shape[1], 3))  # no structure the model can follow
-    fitter = cal.ImageFitter(model, real, model.inside)
-    fit = fitter.fit(cal.Nonlinear.start(3), max_evaluations=3)
+    fitter = im.ImageFitter(model, real, model.inside)
+    fit = fitter.fit(im.Nonlinear.start(3), max_evaluations=3)
     assert not fit.converged
 
 
@@ -223,7 +225,7 @@ def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
 def test_benchmark_scoring_forgives_only_the_led_renaming():
     from pbr_tactile.calibrate_bench import _errors
 
-    truth = cal.Nonlinear(0.3, (0.01, -0.02, 0.03), (0.2, 0.4, 0.0), 1.02, (3.0, -2.0), (-0.3, 0.0), 2.0)
+    truth = im.Nonlinear(0.3, (0.01, -0.02, 0.03), (0.2, 0.4, 0.0), 1.02, (3.0, -2.0), (-0.3, 0.0), 2.0)
     gains = np.array([[0.9, 0.2, 0.3], [0.1, 0.8, 0.2], [0.3, 0.3, 0.7]])
     effects = {"absorption_per_m": 20.0}
     k = 1  # the fit turned by one LED spacing: its LED j is the true LED j + 1

@@ -12,6 +12,8 @@ import pytest
 
 from pbr_tactile import calibrate as cal
 from pbr_tactile import calibrate_taps as ct
+from pbr_tactile import image_model as im
+from pbr_tactile import real_image as ri
 from scenes import captures
 from scenes.dataset import DatasetError
 
@@ -50,16 +52,16 @@ def _synthetic(camera, h=60, w=80):
 def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     A, names, change = _synthetic(camera)
     circle = (321.0, 241.0, 236.0)
-    model = cal.ImageModel(A, names, camera, circle)
+    model = im.ImageModel(A, names, camera, circle)
     # azimuths with a non-zero mean: one image sees only rotation + azimuth per LED
-    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.12, 0.05, 0.16), leak=(0.3, 0.5, 0.2), scale=1.0,
+    truth = im.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.12, 0.05, 0.16), leak=(0.3, 0.5, 0.2), scale=1.0,
                           shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
     offset, sat = (0.01, 0.02, 0.0), (1.0, 1.0, 1.0)
     real = model.render(truth, gains, offset, sat)
-    sector = cal.sector_index(real.shape[:2], (40, 30))
+    sector = ri.sector_index(real.shape[:2], (40, 30))
     train = (sector % 2 == 0) & model.inside
-    alone = cal.ImageFitter(model, real, train).search(rotations=6)
+    alone = im.ImageFitter(model, real, train).search(rotations=6)
     assert alone.converged
     # without taps the membrane's turn is off by the azimuths' mean (0.11 rad)
     assert abs(math.remainder(alone.nl.tied().rotation_rad - 0.7, 2 * math.pi / 3)) > 0.08
@@ -71,7 +73,7 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
         tap = model.render(truth, gains, offset, sat, change=change(*p, truth.led_azimuth_rad))
         # the model: the change at -d, 0, +d as tap_changes renders it
         minus, zero, plus = (change(*p, (a, a, a)) for a in (-d, 0.0, d))
-        views.append(cal.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
+        views.append(im.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
                                  slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
     assert all(v.pixels.sum() >= captures.MIN_REGION for v in views)
     fitted = captures.split(len(views))
@@ -93,18 +95,18 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
 def test_the_common_turn_ties_the_leds_and_recovers_the_rings_turn(camera):
     """Calibration's default with taps: one turn of the LED ring against the membrane."""
     A, names, change = _synthetic(camera)
-    model = cal.ImageModel(A, names, camera, (321.0, 241.0, 236.0))
-    truth = cal.Nonlinear(rotation_rad=-0.4, led_azimuth_rad=(0.1, 0.1, 0.1), leak=(0.3, 0.5, 0.2), scale=1.0,
+    model = im.ImageModel(A, names, camera, (321.0, 241.0, 236.0))
+    truth = im.Nonlinear(rotation_rad=-0.4, led_azimuth_rad=(0.1, 0.1, 0.1), leak=(0.3, 0.5, 0.2), scale=1.0,
                           shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
     real = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    train = (cal.sector_index(real.shape[:2], (40, 30)) % 2 == 0) & model.inside
-    alone = cal.ImageFitter(model, real, train).search(rotations=6)
+    train = (ri.sector_index(real.shape[:2], (40, 30)) % 2 == 0) & model.inside
+    alone = im.ImageFitter(model, real, train).search(rotations=6)
     d, views = ct.AZIMUTH_STEP_RAD, []
     for p in [(0.3, 0.2), (0.45, 2.9), (0.25, -0.6)]:
         tap = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), change=change(*p, truth.led_azimuth_rad))
         minus, zero, plus = (change(*p, (a, a, a)) for a in (-d, 0.0, d))
-        views.append(cal.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
+        views.append(im.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
                                  slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
     fit = ct.fit_with_taps(model, real, train, views, alone)
     assert fit.converged and len(set(fit.nl.led_azimuth_rad)) == 1
@@ -128,9 +130,8 @@ def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
         return {"change": stack, "slope": np.zeros_like(stack), "curve": np.zeros_like(stack)}
 
     monkeypatch.setattr(ct, "tap_changes", changes)
-    monkeypatch.setattr(cal, "_fast_path_from_taps", lambda profile, report, *args: profile)
-    model = cal.ImageModel(A, names, camera, None)
-    truth = cal.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
+    model = im.ImageModel(A, names, camera, None)
+    truth = im.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
                           shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
     k = camera.height // A.shape[0]
@@ -236,10 +237,10 @@ def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     widest = sorted(np.argsort([-(d < ref_depth - 1e-6).sum() for d in depths])[:2])
     taps, depths = [taps[i] for i in widest], depths[widest]
     # a "real" sensor: the reference with another seed, its LEDs turned and its membrane too
-    truth = cal.Nonlinear(0.3, (0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 1.0, (0.0, 0.0), (-0.2, 0.0), 2.0)
+    truth = im.Nonlinear(0.3, (0.0, 0.0, 0.0), (0.2, 0.2, 0.2), 1.0, (0.0, 0.0), (-0.2, 0.0), 2.0)
     unit = turn_leds(spec, (0.05, -0.05, 0.0))
     basis = cal.emitter_basis(unit, mesh, camera, effects, film, photons, spp, 2, seed=7)
-    model = cal.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
+    model = im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
     gains = np.full((3, 3), 0.5 / np.percentile(basis["mean"], 90))
     background = np.repeat(np.repeat(model.render(truth, gains, (0, 0, 0), (1, 1, 1)), 8, axis=0), 8, axis=1)
     real, _ = virtual_taps(unit, mesh, camera, effects, truth, gains, depths, ref_depth, film, photons, spp, 7, True,

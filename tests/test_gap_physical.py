@@ -2,7 +2,7 @@
 reference's own switches (studies.gap.physical).
 
 The per-source renders are replaced here by an analytic stand-in for
-``pbr_tactile.calibrate.emitter_basis`` (each LED's light falls off as exp(-sigma_a d)
+``pbr_tactile.basis.emitter_basis`` (each LED's light falls off as exp(-sigma_a d)
 from its place on the image, its leak into the core lights a ring, a contact brightens
 where it presses), so that the chain (per-source weights, spectra, grid interpolation,
 fits, report) is checked exactly and in seconds; the blind benchmark on the reference
@@ -74,9 +74,9 @@ def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, se
 
 @pytest.fixture
 def stub(monkeypatch):
-    import pbr_tactile.calibrate
+    import pbr_tactile.basis
 
-    monkeypatch.setattr(pbr_tactile.calibrate, "emitter_basis", fake_basis)
+    monkeypatch.setattr(pbr_tactile.basis, "emitter_basis", fake_basis)
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from pbr_tactile import calibrate as cal
-from scenes.spec import GLASS_WALL_M, default_spec, load_spec, spec_from_dict
+from pbr_tactile import basis as bs
+from pbr_tactile import image_model as im
+from pbr_tactile import real_image as ri
+from scenes.spec import GLASS_WALL_M, default_spec, spec_from_dict
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"
 
@@ -94,14 +96,14 @@ def test_a_ring_under_the_glass_wall_is_accepted():
 def test_the_basis_renders_one_led_per_group_at_its_arcs_centre():
     spec = spec_from_dict(_data(_group(name="red", arc_centre_rad=0.5), _group(name="green", arc_centre_rad=2.6,
                                                                                  count=3)))
-    rendered, arcs, spans, unit, share = cal.basis_layout(spec)
+    rendered, arcs, spans, unit, share = bs.basis_layout(spec)
     assert len(rendered.leds) == 2 and rendered.led_groups == ()
     assert math.atan2(rendered.leds[1].position[1], rendered.leds[1].position[0]) == pytest.approx(2.6)
     assert [len(a) for a in arcs] == [6, 3] and spans == pytest.approx((2 * math.pi / 3,) * 2)
     assert unit.tolist() == [0] * 6 + [1] * 3
     np.testing.assert_allclose(share[:6], spec.group_of("red").offsets())
     plain = default_spec()
-    same, none, no_spans, unit, share = cal.basis_layout(plain)
+    same, none, no_spans, unit, share = bs.basis_layout(plain)
     assert same is plain and none is None and no_spans == () and unit.tolist() == [0, 1, 2] and not share.any()
 
 
@@ -129,25 +131,25 @@ def test_a_fit_finds_each_groups_centre_and_span(camera):
                  for c, t, span, g in zip(centres, true_turn, true_span, gains) for o in offsets)
     real = np.clip(linear + 0.01, 0, 1) ** (1 / 2.0)
     circle = (camera.cx, camera.cy, camera.mask_radius_px)  # turns stay inside the frame
-    model = cal.ImageModel(A, names, camera, circle, [offsets] * 3, (spec_span,) * 3)
-    sector = cal.sector_index((h, w), (cx, cy))
+    model = im.ImageModel(A, names, camera, circle, [offsets] * 3, (spec_span,) * 3)
+    sector = ri.sector_index((h, w), (cx, cy))
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
-    fitter = cal.ImageFitter(model, real, train, leak=False)
+    fitter = im.ImageFitter(model, real, train, leak=False)
     fit = fitter.fit(model.start(), max_evaluations=600)
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
-    assert min(cal.r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
+    assert min(ri.r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
     turns = fit.nl.rotation_rad + np.array(fit.nl.led_azimuth_rad)
     np.testing.assert_allclose(turns, true_turn, atol=0.03)
     np.testing.assert_allclose(fit.nl.span_rad, true_span, rtol=0.05)
     # each arc held at the spec's span (its LEDs summed once, each group only turned):
     # the same image is not reached
-    rigid = cal.ImageModel(model.warped(model.start()), names, camera, circle)
-    held = cal.ImageFitter(rigid, real, train, leak=False).fit(rigid.start(), max_evaluations=600)
+    rigid = im.ImageModel(model.warped(model.start()), names, camera, circle)
+    held = im.ImageFitter(rigid, real, train, leak=False).fit(rigid.start(), max_evaluations=600)
     assert held.loss > 5 * fit.loss
 
 
 def test_a_contact_change_with_groups_is_refused(camera):
     A = np.ones((6, 8, 1))
-    model = cal.ImageModel(A, np.array(["led0"]), camera, None, [np.zeros(2)], (0.5,))
+    model = im.ImageModel(A, np.array(["led0"]), camera, None, [np.zeros(2)], (0.5,))
     with pytest.raises(ValueError, match="LED groups is not modelled"):
         model.tap_design(A, model.start())

@@ -196,7 +196,7 @@ def test_pbr_dataset_renders_the_calibrated_unit(tmp_path, monkeypatch, spec, me
     contacts), each image the unit's camera applied to them (calibrate.profiled_image)."""
     pytest.importorskip("mitsuba")
     from pbr_tactile import plugin
-    from pbr_tactile.calibrate import profiled_image
+    from pbr_tactile.profiled import profiled_image
     from pbr_tactile.variant import choose_variant
 
     if not choose_variant().variant().startswith(("llvm_", "cuda_")):

@@ -14,7 +14,7 @@ candidate effects are the reference's own switches (``physical_catalogue``):
   the fast catalogue's image models, ``FAST_MODELS``).
 
 The image is linear in each emitter's power and the transport is grey, so each tap is
-rendered once per source (``pbr_tactile.calibrate.emitter_basis``: each LED, and its leak
+rendered once per source (``pbr_tactile.basis.emitter_basis``: each LED, and its leak
 into the glass core, per unit flux) at a low film, and
 
     linear(theta) = sum_m p_m [(1 - f) B_m + f B_m,leak] (x) r_m(spectrum, camera)
@@ -448,7 +448,7 @@ class SourceBasis:
         tag = (int(key), name, None if value is None else float(value))
         if tag in self._images:
             return self._images[tag]
-        from pbr_tactile.calibrate import emitter_basis
+        from pbr_tactile.basis import emitter_basis
 
         spec, effects, scale = self.variant(name, value)
         depth = self.ref if key == NO_CONTACT else np.asarray(self.depth[key], np.float32)
@@ -799,7 +799,7 @@ class ReferenceModel:
 
     def colour(self, params: dict) -> np.ndarray:
         """(S, 3) each source's share in each channel with ``params``."""
-        from pbr_tactile.calibrate import led_of_source
+        from pbr_tactile.basis import led_of_source
 
         power, R, fraction = self._light(params)
         if self.basis.names is None:

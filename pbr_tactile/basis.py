@@ -1,0 +1,96 @@
+"""Per-source basis images of the reference, cached: the images the calibration fits.
+
+The reference's image is linear in each source's power and its transport is grey, so one
+grey image per source (each LED, and each LED's leak into the glass core) per unit flux
+stands for every set of LED powers and colours.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from scenes.camera import Camera
+from scenes.spec import SensorSpec
+
+from .effects import Effects
+
+#: Effects the basis is rendered with besides the grid's: the leak sources exist (their
+#: power is fitted) and the coating albedo is tied (it scales every source like a power).
+BASIS_EFFECTS = {"core_light_leak": 0.5}
+
+
+def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film: tuple[int, int],
+                  photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
+                  use_cache: bool = True, depth: np.ndarray | None = None,
+                  ref_depth: np.ndarray | None = None, solids=None, no_contact_runs: int = 0) -> dict:
+    """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
+    sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,), ``response``
+    (S, 3) the film's response to each source at the effects' powers. Without ``depth``
+    the no-contact sensor; with a contact depth map (H, W) m and the no-contact
+    ``ref_depth``, that contact (the same seed as the no-contact basis: common random
+    numbers, so their difference is the contact's change with little noise). Cached on
+    disk (scenes.cache) by everything it depends on. ``solids``: the membrane's
+    ``ElastomerBuilder`` for this spec and camera, kept across renders (it refines and
+    checks the membrane once; None builds one). ``no_contact_runs``: the photon map as the
+    sensor's cached no-contact map (this many runs per pass) plus the contact's change, as
+    a dataset renders it (``pbr_tactile.render.reference``); 0 traces every photon each time."""
+    from scenes.cache import cached, make_key
+
+    from .nocontact import CACHE_VERSION
+    from .render import reference, source_response
+    from .scene import led_sources
+    from .variant import choose_variant
+
+    variant = choose_variant().variant()
+    width, height = film
+    if (depth is None) != (ref_depth is None):
+        raise ValueError("emitter_basis: a contact needs both depth and ref_depth")
+    contact = [] if depth is None else [np.asarray(depth, np.float32), np.asarray(ref_depth, np.float32)]
+    key = make_key("basis", 1, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
+                   effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
+                   *([no_contact_runs] if no_contact_runs else []))
+
+    def build():
+        est = reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
+                        seed=seed, variant=variant, passes=passes, photons=photons, per_source=True, solids=solids,
+                        no_contact_runs=no_contact_runs)
+        sources = led_sources(spec, effects)
+        return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
+                "response": source_response(sources, effects)}
+
+    return cached("pbr-calibration-basis", key, build, use_cache=use_cache)
+
+
+def led_of_source(names) -> np.ndarray:
+    """(S,) the LED index of each source name (``led<m>`` or ``led<m>_leak``)."""
+    return np.array([int(str(n)[3:].split("_")[0]) for n in names])
+
+
+
+def basis_layout(spec: SensorSpec) -> tuple[SensorSpec, list | None, tuple, np.ndarray, np.ndarray]:
+    """How the basis renders a spec's LEDs: the spec it renders (its single LEDs, then
+    one LED of each group's build at the arc's centre: a group's LEDs differ only by a
+    turn about the axis, which the rotationally symmetric membrane turns into an image
+    rotation, so one render per group stands for all of them), each unit's arc offsets
+    (``LEDGroup.offsets``; None without groups) and span (rad; () without groups), and
+    for each of ``spec.leds`` its unit (L,) and its offset along the arc (L,) as a share
+    of the span."""
+    if not spec.led_groups:
+        return spec, None, (), np.arange(len(spec.leds)), np.zeros(len(spec.leds))
+    singles = [led for led in spec.leds if led.group is None]
+    groups = list(spec.led_groups)
+    rendered = singles + [g.led_at(g.arc_centre_rad, g.name) for g in groups]
+    arcs = [np.zeros(1)] * len(singles) + [g.offsets() for g in groups]
+    spans = (0.0,) * len(singles) + tuple(g.arc_span_rad for g in groups)
+    unit, share = [], []
+    for led in spec.leds:
+        if led.group is None:
+            unit.append(singles.index(led))
+            share.append(0.0)
+        else:
+            g = [x.name for x in groups].index(led.group)
+            unit.append(len(singles) + g)
+            share.append(float(groups[g].offsets()[[x.name for x in groups[g].leds()].index(led.name)]))
+    return spec.replace(leds=tuple(rendered), led_groups=()), arcs, spans, np.array(unit), np.array(share)

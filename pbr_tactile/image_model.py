@@ -1,0 +1,415 @@
+"""The image model of a real sensor built from the reference's basis images, and its fit.
+
+The reference renders one grey basis image per source once (``pbr_tactile.basis``: each
+LED, or each LED group, and its leak into the glass core, per unit flux) and a real image
+is modelled as
+
+    I_c(p) = clip((V(p) sum_s g_sc A_s(T_m(s)^-1 p) + o_c) ** (1 / gamma), 0, sat_c)
+
+- A_s : source s's basis image, rendered with the physical effects (absorption,
+  scattering, coating albedo) of one point of a coarse grid; common random numbers (one
+  seed) across the grid, so differences between grid points are not noise;
+- T_m : the membrane's alignment for the source's LED m: a rotation about the principal
+  point by theta + phi_m (the global rotation and each LED's azimuth offset, which the
+  rotationally symmetric membrane turns into an image rotation), a scale and a shift;
+  the image circle is the lens' and does not move;
+- g_sc >= 0 : each source's gain in each channel, the product of its power, its spectrum
+  under the camera's filters and the white balance, which one image cannot separate: they
+  are fitted together, by non-negative least squares, for every value of the nonlinear
+  parameters (variable projection), and the core leak fraction is read from them;
+- V : the lens' relative illumination 1 + a1 r^2 + a2 r^4, non-increasing and positive;
+- gamma, o_c, sat_c : the camera's response, black offset and clip level. Clipped real
+  pixels are censored: a prediction above the clip level there costs nothing.
+
+The nonlinear parameters (theta, phi_m, scale, shift, a1, a2, gamma) are searched by
+Powell's method from several rotations; the physical ones on the grid. The image is cut
+into SECTORS angular sectors about the image circle's centre: even ones fit, odd ones
+judge (held-out R^2 per unsaturated channel), and the fit is bootstrapped over the
+training sectors for intervals.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage, optimize
+
+from scenes.camera import Camera
+from scenes.profile import Alignment, CameraProfile, camera_response, circle_radius, relative_illumination
+
+from .basis import led_of_source
+from .real_image import CLIP_LEVEL
+
+#: Bounds of the fit: LED azimuth offsets (rad) from the spec's, scale, shift (px at the
+#: camera's resolution), response exponent.
+AZIMUTH_BOUND_RAD = math.radians(25.0)
+SCALE_BOUNDS = (0.8, 1.25)
+SHIFT_BOUND_PX = 40.0
+GAMMA_BOUNDS = (0.5, 3.0)
+#: The lens' fall-off V = 1 + a1 r^2 + a2 r^4 is searched as V(1) = 1 + a1 + a2 in
+#: [MIN_EDGE_ILLUMINATION, 1] and the r^4 share a2 / (a1 + a2) in [0, 1]: every value
+#: searched is a lens a profile accepts (non-increasing, positive).
+MIN_EDGE_ILLUMINATION = 0.02
+#: Starting rotations of the search (the LEDs repeat every 120 deg but their colours do not).
+ROTATION_STARTS = 12
+#: A fit has converged when Powell's method says so and it either moved off its start
+#: (the loss fell by this share) or already leaves less than STUCK_SHARE of the real
+#: image's variance: a fit that leaves a large gap without moving stopped at its start.
+MIN_IMPROVEMENT = 1e-3
+STUCK_SHARE = 0.05
+
+
+@dataclass(frozen=True)
+class Nonlinear:
+    """The nonlinear parameters (see the module doc); lengths in camera pixels. ``leak``
+    is each LED's fraction of power emitted into the glass core."""
+
+    rotation_rad: float
+    led_azimuth_rad: tuple[float, ...]
+    leak: tuple[float, ...]
+    scale: float
+    shift_px: tuple[float, float]
+    vignetting: tuple[float, float]
+    gamma: float
+    #: each unit's arc span, rad, where the basis' units are LED groups (ImageModel.arcs)
+    span_rad: tuple[float, ...] = ()
+
+    def vector(self) -> np.ndarray:
+        """The searched coordinates: the scale as its log, the fall-off as V(1) and its
+        r^4 share (see MIN_EDGE_ILLUMINATION), then the spans."""
+        total = -sum(self.vignetting)
+        quartic = -self.vignetting[1] / total if total > 0 else 0.0
+        return np.r_[self.rotation_rad, self.led_azimuth_rad, self.leak, math.log(self.scale), self.shift_px,
+                     1.0 - total, quartic, self.gamma, self.span_rad]
+
+    @classmethod
+    def from_vector(cls, z: np.ndarray, leds: int, arcs: bool = False) -> Nonlinear:
+        """``leds`` units; ``arcs``: the vector ends with their spans."""
+        z = np.asarray(z, np.float64)
+        n = leds
+        total, quartic = 1.0 - float(z[4 + 2 * n]), float(z[5 + 2 * n])
+        return cls(float(z[0]), tuple(map(float, z[1:1 + n])), tuple(map(float, z[1 + n:1 + 2 * n])),
+                   float(math.exp(z[1 + 2 * n])), (float(z[2 + 2 * n]), float(z[3 + 2 * n])),
+                   (-total * (1.0 - quartic), -total * quartic), float(z[6 + 2 * n]),
+                   tuple(map(float, z[7 + 2 * n:7 + 3 * n])) if arcs else ())
+
+    def tied(self) -> Nonlinear:
+        """The same image with the LED azimuth offsets' mean moved into the rotation,
+        which is then wrapped to (-pi, pi]: one no-contact image sees only their sums,
+        and this is the tie the profile reports (see NOT_IDENTIFIABLE)."""
+        mean = float(np.mean(self.led_azimuth_rad)) if self.led_azimuth_rad else 0.0
+        rotation = math.remainder(self.rotation_rad + mean, 2 * math.pi)
+        return dataclasses.replace(self, rotation_rad=rotation,
+                                   led_azimuth_rad=tuple(a - mean for a in self.led_azimuth_rad))
+
+    @classmethod
+    def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0, span_rad: tuple = ()) -> Nonlinear:
+        """``span_rad``: the units' spans as the spec lays them out, where they are groups."""
+        return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2, tuple(span_rad))
+
+
+def _bounds(leds: int, leak: bool, arcs: list | None = None) -> list[tuple[float, float]]:
+    """The search's bounds; ``arcs`` (ImageModel.arcs): a span in [0, 2 pi] for each
+    unit of more than one LED (a single LED's is fixed)."""
+    b = AZIMUTH_BOUND_RAD
+    spans = [] if arcs is None else [(0.0, 2 * math.pi) if len(a) > 1 else (0.0, 0.0) for a in arcs]
+    return ([(-4 * math.pi, 4 * math.pi)] + [(-b, b)] * leds + [(0.0, 1.0 if leak else 0.0)] * leds
+            + [tuple(map(math.log, SCALE_BOUNDS))] + [(-SHIFT_BOUND_PX, SHIFT_BOUND_PX)] * 2
+            + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS] + spans)
+
+
+
+class ImageModel:
+    """The image model of the module doc at a film's resolution, for one basis."""
+
+    def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None,
+                 arcs: list | None = None, spans: tuple = ()):
+        """basis (h, w, S) per unit flux of sources ``names``; ``arcs`` and ``spans``
+        (``basis_layout``): each unit's LEDs along its arc as shares of its span
+        (Nonlinear.span_rad, which starts at ``spans``), its source rendered at the arc's
+        centre; None: each unit is one LED."""
+        self.A = np.asarray(basis, np.float64)
+        self.h, self.w, self.S = self.A.shape
+        self.led = led_of_source(names)
+        self.leds = int(self.led.max()) + 1
+        self.has_leak = np.array([str(n).endswith("_leak") for n in names])
+        self.camera = camera
+        r = circle_radius(circle, (self.h, self.w), (camera.height, camera.width))
+        self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
+        self.r = np.minimum(r, 1.0)
+        self.arcs = None if arcs is None else [np.asarray(a, np.float64) for a in arcs]
+        self.spans = tuple(float(v) for v in spans)
+        if self.arcs is not None and not len(self.arcs) == len(self.spans) == self.leds:
+            raise ValueError(f"arcs: {len(self.arcs)} units and {len(self.spans)} spans for a basis of {self.leds} "
+                             "LEDs")
+
+    def nonlinear(self, z: np.ndarray) -> Nonlinear:
+        """The Nonlinear of a searched vector for this model's units."""
+        return Nonlinear.from_vector(z, self.leds, self.arcs is not None)
+
+    def start(self, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
+        """A search's start: the LEDs where the spec has them."""
+        return Nonlinear.start(self.leds, rotation_rad, leak, self.spans)
+
+    def moved(self, image: np.ndarray, nl: Nonlinear, turn: float, variance: bool = False) -> np.ndarray:
+        """(h, w) ``image`` turned by ``turn`` rad (an LED's azimuth; 0 for the membrane)
+        and moved by the alignment: the point seen at p came from T^-1 p (unshift, rotate
+        back, unscale about the principal point). ``variance``: ``image`` is a variance map and
+        the result the variance of the moved image (bilinear weights w: sum w^2 sigma^2,
+        with sigma^2 taken as locally even), which interpolation lowers up to fourfold."""
+        turn = nl.rotation_rad + turn
+        coords = Alignment(0.0, nl.scale, nl.shift_px).sampling((self.h, self.w), self.camera, turn)
+        out = ndimage.map_coordinates(image, coords, order=1, mode="nearest")
+        if variance:
+            f = coords - np.floor(coords)
+            out = out * np.prod(np.square(1.0 - f) + np.square(f), axis=0)
+        return out
+
+    def turns(self, nl: Nonlinear, m: int) -> list[float]:
+        """Unit m's LEDs' azimuths, rad, from where its source was rendered: its offset,
+        plus each LED's place along its arc."""
+        if self.arcs is None:
+            return [nl.led_azimuth_rad[m]]
+        return [nl.led_azimuth_rad[m] + nl.span_rad[m] * float(o) for o in self.arcs[m]]
+
+    def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int, azimuths: bool = True) -> np.ndarray:
+        if not azimuths and self.arcs is not None:
+            raise ValueError("a contact's change with LED groups is not modelled: render it per LED")
+        out = np.zeros((self.h, self.w, self.leds))
+        for m in range(self.leds):
+            f = nl.leak[m]
+            turns = self.turns(nl, m) if azimuths else [0.0]
+            for k in np.nonzero(self.led == m)[0]:
+                share = (f if self.has_leak[k] else 1.0 - f) ** power
+                if share > 0:
+                    for turn in turns:
+                        out[..., m] += share * self.moved(images[..., k], nl, turn, power == 2)
+        return out
+
+    def falloff(self, nl: Nonlinear) -> np.ndarray:
+        """(h, w) the lens' relative illumination, 0 outside the image circle."""
+        return np.where(self.inside, relative_illumination(nl.vignetting, self.r), 0.0)
+
+    def warped(self, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) each LED's image, (1 - leak) its own source plus leak its core
+        leak's, moved by the LED's alignment."""
+        return self._mixed(self.A, nl, 1)
+
+    def design(self, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) the warped LED images times the lens' fall-off (0 outside the circle)."""
+        return self.warped(nl) * self.falloff(nl)[..., None]
+
+    def design_variance(self, variance: np.ndarray, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) the variance of ``design`` given the basis' (h, w, S) variance
+        (independent sources and pixels)."""
+        return self._mixed(np.asarray(variance, np.float64), nl, 2) * np.square(self.falloff(nl))[..., None]
+
+    def prediction_variance(self, variance: np.ndarray, nl: Nonlinear, gains: np.ndarray, draws: int = 8
+                            ) -> np.ndarray:
+        """(h, w, 3) the expected squared error of the modelled image (before clipping at
+        saturation) that the basis' variance (h, w, S) causes: the linear image's noise
+        (Gaussian, through the gains) drawn ``draws`` times through the response. (The
+        response's slope is unbounded at black, so its first-order estimate overstated the
+        error of dim images two- to threefold.)"""
+        lin = self.design(nl) @ gains
+        sd = np.sqrt(self.design_variance(variance, nl) @ np.square(gains))
+        rng = np.random.default_rng(0)
+        clean = np.power(np.maximum(lin, 0.0), 1.0 / nl.gamma)
+        out = np.zeros_like(lin)
+        for _ in range(draws):
+            out += np.square(np.power(np.maximum(lin + sd * rng.standard_normal(lin.shape), 0.0), 1.0 / nl.gamma) - clean)
+        return out / draws
+
+    def tap_design(self, change: np.ndarray, nl: Nonlinear) -> np.ndarray:
+        """(h, w, L) ``design`` of a tap whose per-source change from the no-contact basis
+        is ``change`` (h, w, S), rendered in the membrane's frame: the change moves with
+        the membrane (the rotation without the LEDs' azimuths), the rest as ``design``."""
+        return (self.warped(nl) + self._mixed(change, nl, 1, azimuths=False)) * self.falloff(nl)[..., None]
+
+    def render(self, nl: Nonlinear, gains: np.ndarray, offset, saturation, change: np.ndarray | None = None) -> np.ndarray:
+        """(h, w, 3) the modelled real image (scenes.profile.camera_response); with a
+        tap's ``change`` (see tap_design), that tap's."""
+        response = CameraProfile(gamma=nl.gamma, offset=tuple(offset), saturation=tuple(saturation),
+                                 vignetting=nl.vignetting)
+        linear = self.warped(nl) if change is None else self.warped(nl) + self._mixed(change, nl, 1, azimuths=False)
+        return camera_response(linear @ gains, response, self.falloff(nl))
+
+
+def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float, weight: np.ndarray | None = None,
+                iterations: int = 4) -> tuple[np.ndarray, float]:
+    """One channel's non-negative gains (S,) and offset for pixels X (N, S), real values
+    y (N,) with ``clipped`` (N,) censored: least squares in linear units (y^gamma), the
+    censored pixels entering only where the prediction falls below the clip level."""
+    target = np.power(y, gamma)
+    level = CLIP_LEVEL**gamma
+    sw = np.ones(len(y)) if weight is None else np.sqrt(weight)
+    use = ~clipped
+    Xo = np.c_[X, np.ones(len(y))]
+    coef = np.zeros(Xo.shape[1])
+    for _ in range(iterations):
+        if use.sum() < Xo.shape[1]:
+            break
+        coef, _ = optimize.nnls(Xo[use] * sw[use, None], target[use] * sw[use])
+        below = clipped & (Xo @ coef < level)
+        new = ~clipped | below
+        if np.array_equal(new, use):
+            break
+        use = new
+    offset = min(float(coef[-1]), 1.0)
+    return coef[:-1], offset
+
+
+
+@dataclass
+class ImageFit:
+    """A fitted image model: nonlinear parameters, gains (L, 3), offset (3,), loss."""
+
+    nl: Nonlinear
+    gains: np.ndarray
+    offset: np.ndarray
+    loss: float
+    start_loss: float
+    converged: bool
+    evaluations: int
+    #: the part of ``loss`` the basis' Monte Carlo noise is expected to add (``_debiased``)
+    noise: float = 0.0
+
+
+@dataclass
+class TapView:
+    """One tap in a fit: its per-source change from the no-contact basis (h, w, S; see
+    ImageModel.tap_design) with the LEDs where the spec has them, the real tap image (h,
+    w, 3), the pixels it is fitted on (h, w) and its weight (a bootstrap's multiplicity).
+    ``slope`` and ``curve`` (h, w, S), where given, make the change depend on each LED's
+    azimuth a: change + a slope + a^2 curve (``pbr_tactile.calibrate_taps``)."""
+
+    change: np.ndarray
+    real: np.ndarray
+    pixels: np.ndarray
+    weight: float = 1.0
+    slope: np.ndarray | None = None
+    curve: np.ndarray | None = None
+
+    def at(self, nl: Nonlinear, led: np.ndarray) -> np.ndarray:
+        """(h, w, S) the change with the LEDs at ``nl``'s azimuths; ``led`` (S,) each
+        source's LED."""
+        if self.slope is None:
+            return self.change
+        a = np.asarray(nl.led_azimuth_rad, np.float64)[led]
+        return self.change + a * self.slope + a * a * self.curve
+
+
+class ImageFitter:
+    """Fits an ImageModel to a real image on a set of pixels, and to taps if given (see
+    the module doc and ``pbr_tactile.calibrate_taps``)."""
+
+    def __init__(self, model: ImageModel, real: np.ndarray, fit_pixels: np.ndarray, weight: np.ndarray | None = None,
+                 leak: bool = True, taps: list[TapView] = (), common_turn: bool = False):
+        """fit_pixels (h, w) bool; weight (h, w) per-pixel weights (a bootstrap's
+        multiplicities) or None; leak False: no light into the core (the leak fixed at 0);
+        taps: fitted together with the image, their pixels stacked with its;
+        common_turn: the LEDs' azimuths tied to one value, the ring's turn against the
+        membrane (see NOT_IDENTIFIABLE_WITH_TAPS)."""
+        self.model, self.real = model, np.asarray(real, np.float64)
+        self.leak = leak
+        self.common_turn = common_turn
+        self.pixels = fit_pixels & model.inside
+        self.clipped = self.real >= CLIP_LEVEL
+        self.weight = None if weight is None else np.asarray(weight, np.float64)[self.pixels]
+        self.taps = [t for t in taps if t.weight > 0]
+        # the stacked real pixels, censoring and weights of the image and the taps
+        views = [(self.real, self.pixels, np.ones(int(self.pixels.sum())) if weight is None else self.weight)]
+        views += [(np.asarray(t.real, np.float64), t.pixels & model.inside,
+                   np.full(int((t.pixels & model.inside).sum()), float(t.weight))) for t in self.taps]
+        self.y = np.concatenate([real_[pixels] for real_, pixels, _ in views])
+        self.y_clipped = self.y >= CLIP_LEVEL
+        self.w = np.concatenate([w for _, _, w in views])
+        # the loss of predicting each channel's mean: the real image's variance
+        self.variance = float(np.mean([np.var(self.real[..., c][self.pixels]) for c in range(3)]))
+
+    def design(self, nl: Nonlinear) -> np.ndarray:
+        """(N, L) the stacked design rows of the image's and the taps' fitted pixels."""
+        falloff = self.model.falloff(nl)[..., None]
+        warped = self.model.warped(nl)
+        rows = [(warped * falloff)[self.pixels]]
+        for t in self.taps:
+            change = self.model._mixed(t.at(nl, self.model.led), nl, 1, azimuths=False)
+            rows.append(((warped + change) * falloff)[t.pixels & self.model.inside])
+        return np.concatenate(rows)
+
+    def solve(self, nl: Nonlinear) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The best gains and offsets for ``nl`` and the weighted, censored residuals,
+        whose sum of squares is the mean squared error over pixels and channels."""
+        X = self.design(nl)
+        w = self.w
+        sw = np.sqrt(w / (3 * np.sum(w)))
+        weight = None if self.weight is None and not self.taps else w
+        gains, offset, residuals = np.zeros((self.model.leds, 3)), np.zeros(3), []
+        for c in range(3):
+            y, clipped = self.y[:, c], self.y_clipped[:, c]
+            gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight)
+            pred = np.clip(X @ gains[:, c] + offset[c], 0.0, None) ** (1.0 / nl.gamma)
+            residuals.append(sw * np.where(clipped, np.minimum(pred - y, 0.0), pred - y))
+        return gains, offset, np.concatenate(residuals)
+
+    def loss(self, z: np.ndarray) -> float:
+        """The censored mean squared error at nonlinear parameters ``z``."""
+        return float(np.sum(self.solve(self.model.nonlinear(z))[2] ** 2))
+
+    def fit(self, start: Nonlinear, max_evaluations: int = 1500) -> ImageFit:
+        """Bounded least squares over the nonlinear parameters from ``start`` (the gains
+        solved inside every evaluation: variable projection)."""
+        leds = self.model.leds
+        bounds = np.array(_bounds(leds, self.leak and self.model.has_leak.any(), self.model.arcs))
+        free = bounds[:, 1] > bounds[:, 0]
+        z0 = np.clip(start.vector(), bounds[:, 0], bounds[:, 1])
+        if self.common_turn:
+            # the first LED's azimuth is searched, the others follow it
+            z0[1:1 + leds] = np.mean(z0[1:1 + leds])
+            free[2:1 + leds] = False
+        start_loss = self.loss(z0)
+
+        def full(zf):
+            z = z0.copy()
+            z[free] = zf
+            if self.common_turn:
+                z[2:1 + leds] = z[1]
+            return z
+
+        def residuals(zf):
+            return self.solve(self.model.nonlinear(full(zf)))[2]
+
+        result = optimize.least_squares(residuals, z0[free], bounds=(bounds[free, 0], bounds[free, 1]),
+                                        diff_step=1e-3, max_nfev=max_evaluations, x_scale="jac")
+        z = full(result.x)
+        nl = self.model.nonlinear(z)
+        gains, offset, res = self.solve(nl)
+        loss = float(np.sum(res**2))
+        moved = loss < start_loss * (1 - MIN_IMPROVEMENT)
+        small = loss <= STUCK_SHARE * self.variance
+        return ImageFit(nl, gains, offset, loss, start_loss, result.status > 0 and (moved or small), int(result.nfev))
+
+    def search(self, rotations: int = ROTATION_STARTS, max_evaluations: int = 2000, keep: int = 2) -> ImageFit:
+        """Fit from ``rotations`` evenly spaced starting rotations: each start's gains
+        first (a cheap screen), then the ``keep`` best refined in full."""
+        leak = 0.3 if self.leak and self.model.has_leak.any() else 0.0
+        starts = [self.model.start(2 * math.pi * k / rotations, leak) for k in range(rotations)]
+        screened = sorted(starts, key=lambda nl: self.loss(nl.vector()))[:keep]
+        fits = [self.fit(nl, max_evaluations) for nl in screened]
+        return min(fits, key=lambda f: f.loss)
+
+
+
+def debiased(fit: ImageFit, model: ImageModel, basis: dict, pixels: list[np.ndarray]) -> ImageFit:
+    """The fit with ``noise``: the part of its loss the basis' own Monte Carlo noise
+    adds, the mean prediction variance over the fitted pixels (``pixels``: the image's,
+    then each tap's, where the no-contact basis' variance stands for the tap's). Grid
+    points are compared by loss - noise: a basis rendered with strong absorption and
+    scattering is noisier (fewer photons reach most of the membrane), and its raw loss
+    ranked a blind sensor's own point last of nine."""
+    var = model.prediction_variance(basis["variance"], fit.nl, fit.gains)
+    noise = float(np.mean(np.concatenate([var[m & model.inside] for m in pixels])))
+    return dataclasses.replace(fit, noise=noise)

@@ -1,0 +1,45 @@
+"""The reference rendered as a calibrated unit: a profile's effects, and its per-source
+images turned into the unit's image by the profile's gains, alignment and camera."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from scenes.camera import Camera
+from scenes.profile import Profile
+
+from .basis import BASIS_EFFECTS
+from .effects import Effects
+from .image_model import ImageModel, Nonlinear
+
+def profile_effects(profile: Profile, settings: list[str] | None = None) -> Effects:
+    """The reference's effects of a profile (with the leak sources the basis needs),
+    then ``settings`` (NAME=VALUE) on top."""
+    fitted = {k: v for k, v in profile.reference.get("effects", {}).items()}
+    try:
+        effects = dataclasses.replace(Effects(), **fitted)
+    except TypeError as exc:
+        raise ValueError(f"profile reference.effects: {exc}") from None
+    effects = effects.with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    return effects.with_settings(settings or [])
+
+
+def profiled_image(per_source: np.ndarray, names, profile: Profile, camera: Camera) -> np.ndarray:
+    """(h, w, S) per-source linear images (``reference(..., per_source=True)`` of
+    ``profile.sensor_spec``, whose LEDs are already turned, with ``profile_effects``) ->
+    (h, w, 3) the calibrated sensor's image in [0, 1]."""
+    ref = profile.reference
+    try:
+        gains = np.asarray(ref["led_gains"], np.float64)
+        leds = len(ref["led_leak"])
+        nl = Nonlinear(profile.alignment.rotation_rad, (0.0,) * leds, tuple(ref["led_leak"]),
+                       profile.alignment.scale, profile.alignment.shift_px, profile.camera.vignetting,
+                       profile.camera.gamma)
+    except KeyError as exc:
+        raise ValueError(f"the profile has no reference.{exc.args[0]}: it was not calibrated for the reference") from None
+    model = ImageModel(per_source, names, camera, profile.camera.image_circle)
+    if gains.shape != (model.leds, 3) or len(nl.led_azimuth_rad) != model.leds or len(nl.leak) != model.leds:
+        raise ValueError(f"the profile's reference tables are for {gains.shape[0]} LEDs, the render has {model.leds}")
+    return model.render(nl, gains, profile.camera.offset, profile.camera.saturation)
