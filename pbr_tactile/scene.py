@@ -32,6 +32,8 @@ from .spectra import CAMERA_BANDS_NM, gaussian, led_spectrum, mitsuba_spectrum
 IOR_SILICONE, IOR_GLASS, IOR_AIR = 1.41, 1.49, 1.0
 #: Radius of each LED's spherical emitter, metres.
 LED_RADIUS_M = 0.35e-3
+#: An LED under the glass wall's end emits from this far up inside the wall, metres.
+WALL_FOOT_M = 1.0e-3
 #: The direction a directional core leak (Effects.core_leak_cone_rad) emits about: up the
 #: tube's wall, towards the tip.
 LEAK_AXIS = (0.0, 0.0, 1.0)
@@ -119,13 +121,44 @@ def _film(camera: Camera, effects: Effects, width: int, height: int) -> dict:
     return film
 
 
+def led_places(spec: SensorSpec) -> list[str]:
+    """Where each LED emits from, by where the spec puts it: "elastomer" (at or outside
+    the glass: moved radially into the middle of the elastomer wall, as the published
+    simulation's LEDs ring the membrane), "tube" (in the air inside the glass tube, where
+    it is) or "wall_end" (under the glass wall's end, below the membrane's base: its
+    light enters the wall and is guided up it, so it emits from inside the wall's foot)."""
+    inner = spec.membrane.core_radius - GLASS_WALL_M
+    places = []
+    for led in spec.leds:
+        r = math.hypot(led.position[0], led.position[1])
+        places.append("elastomer" if r >= spec.membrane.core_radius else "tube" if r <= inner else "wall_end")
+    return places
+
+
 def led_centres(spec: SensorSpec) -> np.ndarray:
-    """(L, 3) metres: each LED moved radially into the middle of the elastomer wall."""
-    r_mid = spec.membrane.core_radius + 0.5 * (spec.membrane.radius - spec.membrane.core_radius)
+    """(L, 3) metres: each LED's emitter's centre (``led_places``)."""
+    m = spec.membrane
     pos = np.array([led.position for led in spec.leds], dtype=np.float64)
     radial = np.linalg.norm(pos[:, :2], axis=1, keepdims=True)
-    xy = np.where(radial > 0, pos[:, :2] / np.where(radial > 0, radial, 1) * r_mid, pos[:, :2])
-    return np.c_[xy, pos[:, 2]]
+    unit = np.where(radial > 0, pos[:, :2] / np.where(radial > 0, radial, 1), 0.0)
+    out = pos.copy()
+    for k, place in enumerate(led_places(spec)):
+        if place == "elastomer":
+            out[k, :2] = unit[k] * (m.core_radius + 0.5 * (m.radius - m.core_radius))
+        elif place == "wall_end":
+            out[k] = [*(unit[k] * (m.core_radius - 0.5 * GLASS_WALL_M)), m.base_z + WALL_FOOT_M]
+    return out
+
+
+def led_beam(spec: SensorSpec, k: int) -> tuple[tuple[float, float, float] | None, float]:
+    """LED k's emitter's (cone axis, half-angle rad): its beam about its direction,
+    refracted into the glass where it enters the wall's end (Snell: a Lambertian LED's
+    light fills the glass's critical cone); (None, 0) for a Lambertian emitter."""
+    led, place = spec.leds[k], led_places(spec)[k]
+    beam = led.beam_half_angle_rad
+    if place == "wall_end":
+        beam = math.asin(math.sin(beam if beam is not None else math.pi / 2) * IOR_AIR / IOR_GLASS)
+    return (None, 0.0) if beam is None else (tuple(map(float, led.direction)), float(beam))
 
 
 def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -> list[dict]:
@@ -143,15 +176,17 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
         (``led_powers``: a unit's LEDs of another bin).
     """
     sources = []
+    places = led_places(spec)
     for m, (led, centre, power) in enumerate(zip(spec.leds, led_centres(spec), led_powers(spec, led_power))):
+        axis, half_angle = led_beam(spec, m)
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak
         if leak < 1:
             sources.append({"name": f"led{m}", "centre": tuple(map(float, centre)), "radius": LED_RADIUS_M,
                             "spectrum": shape * power * (1 - leak), "peak_nm": peak, "fwhm_nm": fwhm,
-                            "scale": power * (1 - leak), "in_elastomer": True, "cone_axis": None,
-                            "cone_half_angle_rad": 0.0})
+                            "scale": power * (1 - leak), "in_elastomer": places[m] == "elastomer",
+                            "cone_axis": axis, "cone_half_angle_rad": half_angle})
         if leak > 0:
             r = spec.membrane.core_radius - GLASS_WALL_M / 2
             xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r

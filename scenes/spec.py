@@ -67,6 +67,7 @@ class LED:
     peak_nm: float | None = None  # emission peak wavelength (physically based renderer)
     fwhm_nm: float | None = None  # emission full width at half maximum
     group: str | None = None  # the LEDGroup it belongs to; None for a single LED
+    beam_half_angle_rad: float | None = None  # rad, its light leaves within this of ``direction``; None: Lambertian
 
 
 @dataclass(frozen=True)
@@ -89,6 +90,7 @@ class LEDGroup:
     k_s: float
     peak_nm: float | None = None
     fwhm_nm: float | None = None
+    beam_half_angle_rad: float | None = None  # rad, each LED's beam; None: Lambertian
 
     def offsets(self) -> np.ndarray:
         """(count,) each LED's azimuth from the arc's centre, as a share of the span:
@@ -101,7 +103,8 @@ class LEDGroup:
         t = self.tilt_rad
         return LED(name=name, position=(self.ring_radius * c, self.ring_radius * s, self.height),
                    direction=(math.sin(t) * c, math.sin(t) * s, math.cos(t)), colour=self.colour, k_d=self.k_d,
-                   k_s=self.k_s, peak_nm=self.peak_nm, fwhm_nm=self.fwhm_nm, group=self.name)
+                   k_s=self.k_s, peak_nm=self.peak_nm, fwhm_nm=self.fwhm_nm, group=self.name,
+                   beam_half_angle_rad=self.beam_half_angle_rad)
 
     def leds(self) -> tuple[LED, ...]:
         """The group's LEDs, named ``<name><j>``."""
@@ -263,6 +266,7 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
                         direction=tuple(float(v) for v in direction / norm), **_optics(t, where)))
         if max(abs(v) for v in leds[-1].position) > MAX_SENSOR_SIZE_M:
             raise ValueError(f"{where}.position {leds[-1].position} looks like millimetres; use metres")
+        _outside_glass(math.hypot(*leds[-1].position[:2]), leds[-1].position[2], membrane, f"{where}.position")
     groups = tuple(_led_group(t, f"{source}: led_groups[{i}]", membrane) for i, t in enumerate(groups_data))
     for group in groups:
         leds.extend(group.leds())
@@ -302,11 +306,25 @@ def _optics(t: dict, where: str) -> dict:
     if not all(0.0 <= v <= 1.0 for v in colour):
         raise ValueError(f"{where}.colour must be linear RGB in [0, 1], got {colour}")
     out = {"colour": colour, "k_d": _take(t, "k_d", float, where), "k_s": _take(t, "k_s", float, where),
-           "peak_nm": _take(t, "peak_nm", float, where, None), "fwhm_nm": _take(t, "fwhm_nm", float, where, None)}
+           "peak_nm": _take(t, "peak_nm", float, where, None), "fwhm_nm": _take(t, "fwhm_nm", float, where, None),
+           "beam_half_angle_rad": _take(t, "beam_half_angle_rad", float, where, None)}
     for key in ("peak_nm", "fwhm_nm"):
         if out[key] is not None and not 1.0 <= out[key] <= 2000.0:
             raise ValueError(f"{where}.{key} must be in nanometres (1-2000), got {out[key]}")
+    beam = out["beam_half_angle_rad"]
+    if beam is not None and not 0.0 < beam <= math.pi / 2:
+        raise ValueError(f"{where}.beam_half_angle_rad must be in (0, pi/2] rad, got {beam}")
     return out
+
+
+def _outside_glass(radius: float, height: float, membrane: MembraneSpec, where: str) -> None:
+    """Refuse an LED inside the glass wall (``radius`` from the axis and ``height`` z, m)."""
+    inner = membrane.core_radius - GLASS_WALL_M
+    if inner < radius < membrane.core_radius and height >= membrane.base_z:
+        raise ValueError(f"{where}: {radius * 1e3:.2f} mm from the axis puts the LED inside the glass wall "
+                         f"({inner * 1e3:.2f} to {membrane.core_radius * 1e3:.2f} mm from the axis, above the "
+                         f"membrane's base at z = {membrane.base_z * 1e3:.1f} mm): place it in the tube, under the "
+                         "wall (below the base) or outside it")
 
 
 def _led_group(t: dict, where: str, membrane: MembraneSpec) -> LEDGroup:
@@ -323,12 +341,7 @@ def _led_group(t: dict, where: str, membrane: MembraneSpec) -> LEDGroup:
     height = _take(t, "height", float, where)
     if max(radius, abs(height)) > MAX_SENSOR_SIZE_M:
         raise ValueError(f"{where}: ring_radius {radius} and height {height} look like millimetres; use metres")
-    inner = membrane.core_radius - GLASS_WALL_M
-    if inner < radius < membrane.core_radius and height >= membrane.base_z:
-        raise ValueError(f"{where}.ring_radius {radius * 1e3:.2f} mm puts the LEDs inside the glass wall "
-                         f"({inner * 1e3:.2f} to {membrane.core_radius * 1e3:.2f} mm from the axis, above the "
-                         f"membrane's base at z = {membrane.base_z * 1e3:.1f} mm): place them in the tube, under the "
-                         "wall (height below the base) or outside it")
+    _outside_glass(radius, height, membrane, f"{where}.ring_radius")
     tilt = _take(t, "tilt_rad", float, where, 0.0)
     if not abs(tilt) < math.pi / 2:
         raise ValueError(f"{where}.tilt_rad must be within (-pi/2, pi/2) of the axis, got {tilt}")

@@ -18,7 +18,8 @@ SPEC_2023 = "scenes/sensors/geltip_2023.toml"
 
 def _group(**change) -> dict:
     group = {"name": "red", "count": 6, "arc_centre_rad": 0.5, "arc_span_rad": 2 * math.pi / 3,
-             "ring_radius": 0.0105, "height": -0.012, "colour": [1.0, 0.0, 0.0], "k_d": 0.9, "k_s": 0.1}
+             "ring_radius": 0.0105, "height": -0.012, "colour": [1.0, 0.0, 0.0], "k_d": 0.9, "k_s": 0.1,
+             "peak_nm": 625.0, "fwhm_nm": 20.0}
     return {**group, **change}
 
 
@@ -153,3 +154,39 @@ def test_a_contact_change_with_groups_is_refused(camera):
     model = im.ImageModel(A, np.array(["led0"]), camera, None, [np.zeros(2)], (0.5,))
     with pytest.raises(ValueError, match="LED groups is not modelled"):
         model.tap_design(A, model.start())
+
+
+# -- where the reference emits from ----------------------------------------------------------
+
+def test_the_reference_emits_from_where_the_spec_puts_each_led():
+    from pbr_tactile.scene import IOR_GLASS, led_beam, led_centres, led_places, led_sources
+
+    m = default_spec().membrane
+    inner = m.core_radius - GLASS_WALL_M
+    spec = spec_from_dict({"name": "places", "led_groups": [
+        _group(name="tube", count=2, ring_radius=inner - 0.5e-3, height=-0.003, beam_half_angle_rad=0.5),
+        _group(name="foot", count=2, ring_radius=inner + 0.5e-3, height=m.base_z - 0.002),
+        _group(name="ring", count=2, ring_radius=0.012, height=0.0)]})
+    assert led_places(spec) == ["tube"] * 2 + ["wall_end"] * 2 + ["elastomer"] * 2
+    centres = led_centres(spec)
+    r = np.hypot(centres[:, 0], centres[:, 1])
+    np.testing.assert_allclose(centres[:2], [led.position for led in spec.leds[:2]])  # in the air, where it is
+    np.testing.assert_allclose(r[2:4], m.core_radius - GLASS_WALL_M / 2)  # inside the wall's foot
+    assert np.all(centres[2:4, 2] > m.base_z)
+    assert np.all((r[4:] > m.core_radius) & (r[4:] < m.radius))  # in the elastomer wall
+    # beams: the tube LED's own, the foot's a Lambertian LED's light refracted into glass
+    assert led_beam(spec, 0) == ((0.0, 0.0, 1.0), 0.5)
+    assert led_beam(spec, 2)[1] == pytest.approx(math.asin(1 / IOR_GLASS))
+    assert led_beam(spec, 4) == (None, 0.0)
+    sources = led_sources(spec)
+    assert [s["in_elastomer"] for s in sources] == [False] * 4 + [True] * 2
+    assert sources[0]["cone_half_angle_rad"] == 0.5 and sources[4]["cone_axis"] is None
+
+
+def test_a_single_led_inside_the_glass_wall_is_refused():
+    led = {"name": "in_glass", "position": [0.0085, 0.0, 0.0], "direction": [0, 0, 1], "colour": [1, 0, 0],
+           "k_d": 0.9, "k_s": 0.1}
+    with pytest.raises(ValueError, match=r"leds\[0\].position: 8.50 mm from the axis puts the LED inside the glass"):
+        spec_from_dict({"name": "bad", "leds": [led]})
+    with pytest.raises(ValueError, match="beam_half_angle_rad must be in"):
+        spec_from_dict(_data(_group(beam_half_angle_rad=2.0)))
