@@ -60,6 +60,8 @@ ROTATION_STARTS = 12
 #: image's variance: a fit that leaves a large gap without moving stopped at its start.
 MIN_IMPROVEMENT = 1e-3
 STUCK_SHARE = 0.05
+#: Arc images (an LED group's source summed along its arc) kept per model.
+ARC_CACHE = 256
 
 
 @dataclass(frozen=True)
@@ -142,6 +144,7 @@ class ImageModel:
         self.r = np.minimum(r, 1.0)
         self.arcs = None if arcs is None else [np.asarray(a, np.float64) for a in arcs]
         self.spans = tuple(float(v) for v in spans)
+        self._arcs: dict = {}  # (source, turns) -> the basis' arc image (``_arc``)
         if self.arcs is not None and not len(self.arcs) == len(self.spans) == self.leds:
             raise ValueError(f"arcs: {len(self.arcs)} units and {len(self.spans)} spans for a basis of {self.leds} "
                              "LEDs")
@@ -184,9 +187,27 @@ class ImageModel:
             turns = self.turns(nl, m) if azimuths else [0.0]
             for k in np.nonzero(self.led == m)[0]:
                 share = (f if self.has_leak[k] else 1.0 - f) ** power
-                if share > 0:
-                    for turn in turns:
-                        out[..., m] += share * self.moved(images[..., k], nl, turn, power == 2)
+                if share > 0 and self.arcs is None:
+                    out[..., m] += share * self.moved(images[..., k], nl, turns[0], power == 2)
+                elif share > 0:
+                    out[..., m] += share * self.moved(self._arc(images, k, tuple(turns)), nl, 0.0, power == 2)
+        return out
+
+    def _arc(self, images: np.ndarray, k: int, turns: tuple) -> np.ndarray:
+        """(h, w) source k's image summed over its unit's LEDs along the arc: turned by
+        each of ``turns`` about the principal point, before the alignment (which turns,
+        scales and shifts about the same point, so it commutes with the turns). Cached
+        for the basis, as a fit's finite differences move one unit's arc at a time."""
+        key = (k, turns)
+        if images is self.A and key in self._arcs:
+            return self._arcs[key]
+        still = Alignment(0.0, 1.0, (0.0, 0.0))
+        out = sum(ndimage.map_coordinates(images[..., k], still.sampling((self.h, self.w), self.camera, t), order=1,
+                                          mode="nearest") for t in turns)
+        if images is self.A:
+            if len(self._arcs) >= ARC_CACHE:
+                self._arcs.clear()
+            self._arcs[key] = out
         return out
 
     def falloff(self, nl: Nonlinear) -> np.ndarray:

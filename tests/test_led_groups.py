@@ -11,7 +11,7 @@ import pytest
 from pbr_tactile import basis as bs
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
-from scenes.spec import GLASS_WALL_M, default_spec, spec_from_dict
+from scenes.spec import GLASS_WALL_M, default_spec, load_spec, spec_from_dict
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"
 
@@ -190,3 +190,28 @@ def test_a_single_led_inside_the_glass_wall_is_refused():
         spec_from_dict({"name": "bad", "leds": [led]})
     with pytest.raises(ValueError, match="beam_half_angle_rad must be in"):
         spec_from_dict(_data(_group(beam_half_angle_rad=2.0)))
+
+
+# -- the real unit's spec ----------------------------------------------------------------------
+
+def test_the_real_units_spec_lays_out_three_arcs_of_six():
+    from pathlib import Path
+
+    spec = load_spec(Path(__file__).parents[1] / SPEC_2023)
+    assert spec.name == "geltip_2023" and [g.name for g in spec.led_groups] == ["blue", "red", "green"]
+    assert len(spec.leds) == 18 and {led.group for led in spec.leds} == {"blue", "red", "green"}
+    centres = sorted(g.arc_centre_rad for g in spec.led_groups)
+    np.testing.assert_allclose(np.diff(centres), 2 * math.pi / 3)  # the crescents' centres, 120 deg apart
+
+
+def test_a_profile_made_for_the_other_spec_is_refused(tmp_path):
+    from pathlib import Path
+
+    from scenes.profile import Alignment, CameraProfile, Profile, load_profile, write_profile
+
+    published = default_spec()
+    profile = Profile(sensor=published.name, leds=tuple(led.name for led in published.leds),
+                      alignment=Alignment(0.0, 1.0, (0.0, 0.0)), camera=CameraProfile(), fit={"converged": True})
+    path = write_profile(profile, tmp_path / "profile.toml")
+    with pytest.raises(ValueError, match="is for sensor 'geltip' with LEDs"):
+        load_profile(path, load_spec(Path(__file__).parents[1] / SPEC_2023))
