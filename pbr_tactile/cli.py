@@ -125,9 +125,10 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
         print(f"wrote {out['linear']} (linear, one channel per source: {', '.join(names)}), {out['variance'].name} "
               f"and {out['image'].name} (the calibrated camera's image, profile {args.profile})")
         return 0
-    mask = np.ones(est.mean.shape[:2], bool)
-    scale = float(np.percentile(est.mean[mask], 99.5)) or 1.0
-    write_rgb(out["image"], srgb(est.mean / scale))
+    h, w = est.mean.shape[:2]
+    circle = camera.scaled(w, h).mask  # the spec's image circle: the lens draws nothing outside it
+    scale = float(np.percentile(est.mean[circle], 99.5)) or 1.0
+    write_rgb(out["image"], srgb(est.mean / scale) * circle[..., None])
     rel = np.nanmedian(est.relative_error[est.mean > 0]) if (est.mean > 0).any() else float("nan")
     print(f"wrote {out['linear']} (linear), {out['variance'].name} and {out['image'].name} (sRGB, scaled by "
           f"1/{scale:.3g}); median relative standard error {rel:.1%} at {est.spp} spp")

@@ -351,7 +351,8 @@ class PbrDatasetRenderer:
             from .profiled import profiled_image
 
             return profiled_image(linear, self.names, self.profile, self.camera).astype(np.float32)
-        return np.clip(self.gain * linear, 0.0, 1.0).astype(np.float32)
+        # the spec's image circle: the lens draws nothing outside it (a profile states its own)
+        return (np.clip(self.gain * linear, 0.0, 1.0) * self.camera.mask[..., None]).astype(np.float32)
 
     @property
     def no_contact(self) -> np.ndarray:

@@ -222,7 +222,10 @@ def test_a_contact_reaches_a_loose_target_from_shared_deposits(monkeypatch, tmp_
     assert image.shape == linear.shape == variance.shape == (480, 640, 3)
     assert linear.dtype == variance.dtype == np.float32
     assert image.min() >= 0 and image.max() <= 1 and (variance >= 0).all()
-    np.testing.assert_allclose(image, np.clip(settings["exposure_gain"] * linear, 0, 1), atol=1e-6)
+    # the exposed linear image inside the spec's image circle, black outside it as a lens draws it
+    np.testing.assert_allclose(image, np.clip(settings["exposure_gain"] * linear, 0, 1) * camera.mask[..., None],
+                               atol=1e-6)
+    assert image[~camera.mask].max() == 0 and image[camera.mask].max() > 0
     # The no-contact frame sets the exposure; far from the dent the contact agrees with
     # it within their errors (a z-test; the two share random numbers, so their summed
     # variances overstate the difference's and |z| runs low).
