@@ -12,7 +12,10 @@ is modelled as
 - T_m : the membrane's alignment for the source's LED m: a rotation about the principal
   point by theta + phi_m (the global rotation and each LED's azimuth offset, which the
   rotationally symmetric membrane turns into an image rotation), a scale and a shift;
-  the image circle is the lens' and does not move;
+  the image circle is the lens' and does not move. Where m is an LED group, A_s is its
+  source at the arc's centre summed over the group's LEDs, each turned by its place along
+  the arc, span_m times its offset (``scenes.spec.LEDGroup.offsets``), so each group's
+  centre (phi_m) and span are fitted;
 - g_sc >= 0 : each source's gain in each channel, the product of its power, its spectrum
   under the camera's filters and the white balance, which one image cannot separate: they
   are fitted together, by non-negative least squares, for every value of the nonlinear
@@ -21,11 +24,9 @@ is modelled as
 - gamma, o_c, sat_c : the camera's response, black offset and clip level. Clipped real
   pixels are censored: a prediction above the clip level there costs nothing.
 
-The nonlinear parameters (theta, phi_m, scale, shift, a1, a2, gamma) are searched by
-Powell's method from several rotations; the physical ones on the grid. The image is cut
-into SECTORS angular sectors about the image circle's centre: even ones fit, odd ones
-judge (held-out R^2 per unsaturated channel), and the fit is bootstrapped over the
-training sectors for intervals.
+The nonlinear parameters (theta, phi_m, the leaks, scale, shift, a1, a2, gamma and the
+groups' spans) are searched by bounded least squares from several rotations
+(``ImageFitter``); the physical ones on the calibration's grid.
 """
 
 from __future__ import annotations
