@@ -151,6 +151,15 @@ class SensorSpec:
     def replace(self, **changes) -> "SensorSpec":
         return dataclasses.replace(self, **changes)
 
+    def with_led_groups(self, groups) -> "SensorSpec":
+        """This sensor with its LED groups replaced, each checked as a spec file's
+        would be, and its single LEDs kept."""
+        checked = tuple(_led_group({k: list(v) if isinstance(v, tuple) else v
+                                    for k, v in dataclasses.asdict(g).items() if v is not None},
+                                   f"{self.name}: led_groups[{i}]", self.membrane) for i, g in enumerate(groups))
+        singles = tuple(led for led in self.leds if led.group is None)
+        return self.replace(leds=singles + tuple(led for g in checked for led in g.leds()), led_groups=checked)
+
     def group_of(self, name: str) -> LEDGroup:
         """The LED group called ``name``."""
         for group in self.led_groups:

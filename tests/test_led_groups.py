@@ -215,3 +215,27 @@ def test_a_profile_made_for_the_other_spec_is_refused(tmp_path):
     path = write_profile(profile, tmp_path / "profile.toml")
     with pytest.raises(ValueError, match="is for sensor 'geltip' with LEDs"):
         load_profile(path, load_spec(Path(__file__).parents[1] / SPEC_2023))
+
+
+def test_the_light_path_study_varies_the_units_build():
+    from pathlib import Path
+
+    from pbr_tactile.scene import led_places
+    from studies.light_paths import STRUCTURES, structure
+
+    spec = load_spec(Path(__file__).parents[1] / SPEC_2023)
+    built = {name: structure(spec, name) for name in STRUCTURES}
+    assert built["spec"] is spec
+    assert built["simulation_camera"].camera.fov_y == pytest.approx(math.pi / 2) != spec.camera.fov_y
+    assert set(led_places(spec)) == {"tube"}
+    assert set(led_places(built["leds_in_elastomer"])) == {"elastomer"}
+    assert set(led_places(built["leds_under_wall"])) == {"wall_end"}
+    assert all(led.beam_half_angle_rad is None for led in built["lambertian_leds"].leds)
+    assert spec.leds[0].beam_half_angle_rad is not None
+    points = built["point_leds"]
+    assert len(points.leds) == 3 and [led.group for led in points.leds] == ["blue", "red", "green"]
+    for led, group in zip(points.leds, spec.led_groups):  # each at its arc's centre
+        assert math.atan2(led.position[1], led.position[0]) == pytest.approx(
+            math.remainder(group.arc_centre_rad, 2 * math.pi))
+    with pytest.raises(ValueError, match="has none"):
+        structure(default_spec(), "point_leds")
