@@ -239,3 +239,14 @@ def test_the_light_path_study_varies_the_units_build():
             math.remainder(group.arc_centre_rad, 2 * math.pi))
     with pytest.raises(ValueError, match="has none"):
         structure(default_spec(), "point_leds")
+
+
+def test_a_fit_with_taps_on_led_groups_is_refused_before_rendering(camera):
+    from pathlib import Path
+
+    from pbr_tactile import calibrate as cal
+
+    spec = load_spec(Path(__file__).parents[1] / SPEC_2023)
+    real = np.full((camera.height, camera.width, 3), 0.5)
+    with pytest.raises(ValueError, match="lays its LEDs out in groups.*--taps 0"):
+        cal.calibrate_background(real, spec, None, camera, taps=object())
