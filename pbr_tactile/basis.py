@@ -68,7 +68,6 @@ def led_of_source(names) -> np.ndarray:
     return np.array([int(str(n)[3:].split("_")[0]) for n in names])
 
 
-
 def basis_layout(spec: SensorSpec) -> tuple[SensorSpec, list | None, tuple, np.ndarray, np.ndarray]:
     """How the basis renders a spec's LEDs: the spec it renders (its single LEDs, then
     one LED of each group's build at the arc's centre: a group's LEDs differ only by a

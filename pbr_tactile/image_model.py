@@ -124,7 +124,6 @@ def _bounds(leds: int, leak: bool, arcs: list | None = None) -> list[tuple[float
             + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS] + spans)
 
 
-
 class ImageModel:
     """The image model of the module doc at a film's resolution, for one basis."""
 
@@ -284,7 +283,6 @@ def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float,
     return coef[:-1], offset
 
 
-
 @dataclass
 class ImageFit:
     """A fitted image model: nonlinear parameters, gains (L, 3), offset (3,), loss."""
@@ -422,7 +420,6 @@ class ImageFitter:
         screened = sorted(starts, key=lambda nl: self.loss(nl.vector()))[:keep]
         fits = [self.fit(nl, max_evaluations) for nl in screened]
         return min(fits, key=lambda f: f.loss)
-
 
 
 def debiased(fit: ImageFit, model: ImageModel, basis: dict, pixels: list[np.ndarray]) -> ImageFit:

@@ -75,10 +75,8 @@ def r2(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray) -> float:
     return float(1 - np.sum((y - p) ** 2) / total) if total > 0 else float("nan")
 
 
-
 def interval(values: np.ndarray) -> list[float]:
     return [float(np.percentile(values, 5)), float(np.percentile(values, 95))]
-
 
 
 def heldout_interval(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray, sector: np.ndarray, seed: int = 0,
