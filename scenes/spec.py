@@ -169,7 +169,7 @@ class SensorSpec:
 
 
 def _take(table: dict, key: str, kind, where: str, default=dataclasses.MISSING):
-    if key not in table:
+    if key not in table or table[key] is None and default is None:  # None: an optional key left unset
         if default is dataclasses.MISSING:
             raise ValueError(f"{where}: missing key {key!r}")
         return default
@@ -265,8 +265,15 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     if not leds_data and not groups_data:
         raise ValueError(f"{source}: needs at least one [[leds]] or [[led_groups]] table")
     leds = []
+    group_names = [t.get("name") for t in groups_data if isinstance(t, dict)]
     for i, t in enumerate(leds_data):
         where = f"{source}: leds[{i}]"
+        if t.get("group") is not None:
+            # a group's own LED, as a spec written out whole (dataclasses.asdict) lists it:
+            # the group lays it out again
+            if t["group"] not in group_names:
+                raise ValueError(f"{where}.group {t['group']!r} names no [[led_groups]] table")
+            continue
         direction = np.asarray(_vec3(t, "direction", where))
         norm = float(np.linalg.norm(direction))
         if norm < 1e-9:

@@ -250,3 +250,18 @@ def test_a_fit_with_taps_on_led_groups_is_refused_before_rendering(camera):
     real = np.full((camera.height, camera.width, 3), 0.5)
     with pytest.raises(ValueError, match="lays its LEDs out in groups.*--taps 0"):
         cal.calibrate_background(real, spec, None, camera, taps=object())
+
+
+def test_a_spec_written_out_whole_reads_back_the_same():
+    """Datasets record their sensor as dataclasses.asdict in JSON: every LED, the groups'
+    own among them, and the optional keys as null."""
+    import dataclasses
+    import json
+    from pathlib import Path
+
+    for spec in (default_spec(), load_spec(Path(__file__).parents[1] / SPEC_2023)):
+        data = json.loads(json.dumps(dataclasses.asdict(spec)))
+        assert spec_from_dict(data) == spec
+    data["leds"][0]["group"] = "violet"
+    with pytest.raises(ValueError, match="names no"):
+        spec_from_dict(data)
