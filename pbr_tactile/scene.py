@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 
 from scenes.camera import Camera
-from scenes.spec import GLASS_WALL_M, SensorSpec
+from scenes.spec import GLASS_WALL_M, LED, SensorSpec
 
 from .effects import Effects
 from .membrane import Elastomer
@@ -150,11 +150,11 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
     return out
 
 
-def led_beam(spec: SensorSpec, k: int) -> tuple[tuple[float, float, float] | None, float]:
-    """LED k's emitter's (cone axis, half-angle rad): its beam about its direction,
-    refracted into the glass where it enters the wall's end (Snell: a Lambertian LED's
-    light fills the glass's critical cone); (None, 0) for a Lambertian emitter."""
-    led, place = spec.leds[k], led_places(spec)[k]
+def led_beam(led: LED, place: str) -> tuple[tuple[float, float, float] | None, float]:
+    """An LED's emitter's (cone axis, half-angle rad), where it emits from ``place``
+    (``led_places``): its beam about its direction, refracted into the glass where it
+    enters the wall's end (Snell: a Lambertian LED's light fills the glass's critical
+    cone); (None, 0) for a Lambertian emitter."""
     beam = led.beam_half_angle_rad
     if place == "wall_end":
         beam = math.asin(math.sin(beam if beam is not None else math.pi / 2) * IOR_AIR / IOR_GLASS)
@@ -178,7 +178,7 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
     sources = []
     places = led_places(spec)
     for m, (led, centre, power) in enumerate(zip(spec.leds, led_centres(spec), led_powers(spec, led_power))):
-        axis, half_angle = led_beam(spec, m)
+        axis, half_angle = led_beam(led, places[m])
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak

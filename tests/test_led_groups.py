@@ -175,9 +175,10 @@ def test_the_reference_emits_from_where_the_spec_puts_each_led():
     assert np.all(centres[2:4, 2] > m.base_z)
     assert np.all((r[4:] > m.core_radius) & (r[4:] < m.radius))  # in the elastomer wall
     # beams: the tube LED's own, the foot's a Lambertian LED's light refracted into glass
-    assert led_beam(spec, 0) == ((0.0, 0.0, 1.0), 0.5)
-    assert led_beam(spec, 2)[1] == pytest.approx(math.asin(1 / IOR_GLASS))
-    assert led_beam(spec, 4) == (None, 0.0)
+    places = led_places(spec)
+    assert led_beam(spec.leds[0], places[0]) == ((0.0, 0.0, 1.0), 0.5)
+    assert led_beam(spec.leds[2], places[2])[1] == pytest.approx(math.asin(1 / IOR_GLASS))
+    assert led_beam(spec.leds[4], places[4]) == (None, 0.0)
     sources = led_sources(spec)
     assert [s["in_elastomer"] for s in sources] == [False] * 4 + [True] * 2
     assert sources[0]["cone_half_angle_rad"] == 0.5 and sources[4]["cone_axis"] is None
