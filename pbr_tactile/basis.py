@@ -83,13 +83,8 @@ def basis_layout(spec: SensorSpec) -> tuple[SensorSpec, list | None, tuple, np.n
     rendered = singles + [g.led_at(g.arc_centre_rad, g.name) for g in groups]
     arcs = [np.zeros(1)] * len(singles) + [g.offsets() for g in groups]
     spans = (0.0,) * len(singles) + tuple(g.arc_span_rad for g in groups)
-    unit, share = [], []
-    for led in spec.leds:
-        if led.group is None:
-            unit.append(singles.index(led))
-            share.append(0.0)
-        else:
-            g = [x.name for x in groups].index(led.group)
-            unit.append(len(singles) + g)
-            share.append(float(groups[g].offsets()[[x.name for x in groups[g].leds()].index(led.name)]))
+    place = {led.name: (i, 0.0) for i, led in enumerate(singles)}
+    for g, group in enumerate(groups):
+        place.update({led.name: (len(singles) + g, float(o)) for led, o in zip(group.leds(), group.offsets())})
+    unit, share = zip(*(place[led.name] for led in spec.leds))
     return spec.replace(leds=tuple(rendered), led_groups=()), arcs, spans, np.array(unit), np.array(share)
