@@ -37,6 +37,8 @@ NAME,...]``; writes ``DIR/<variant>/`` (the calibration outputs) and ``DIR/summa
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 from pathlib import Path
 
 #: Each variant: (grid of effects, leak on).
@@ -55,9 +57,6 @@ PUBLISHED_RING_M = (0.012, 0.0)
 def structure(spec, name: str):
     """The sensor ``spec`` with one structural change (module doc); a ValueError for a
     structure the spec cannot take (one without LED groups)."""
-    import dataclasses
-    import math
-
     from scenes.spec import GLASS_WALL_M
 
     if name == "spec":
