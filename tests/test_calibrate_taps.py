@@ -92,6 +92,7 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     assert held["mae"]["g"] < 0.2 * before["mae"]["g"]
 
 
+@pytest.mark.slow
 def test_the_common_turn_ties_the_leds_and_recovers_the_rings_turn(camera):
     """Calibration's default with taps: one turn of the LED ring against the membrane."""
     A, names, change = _synthetic(camera)

@@ -588,6 +588,7 @@ def test_a_reference_candidate_within_the_tie_margin_of_the_best_ties_with_it():
         assert model.rank(singles)[0] == first
 
 
+@pytest.mark.slow
 def test_two_hidden_colour_effects_are_ranked_first_as_a_pair_over_the_flexible_camera_model(spec, scene, stub):
     """LED peaks shifted and the camera's response off: a colour matrix with a curve
     (camera_gains, 11 parameters) mimics the two better than either alone; the pair (4

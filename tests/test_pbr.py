@@ -237,6 +237,7 @@ def _vectorised(scene: dict):
     return mi, loaded
 
 
+@pytest.mark.slow
 def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera):
     """A per-pixel z-test of the photon estimator against a high-sample volpath
     reference, each with its variance of the mean from independent passes.
@@ -331,6 +332,7 @@ def test_contact_shadow_off_lights_the_undeformed_membrane(tmp_path, mesh, spec,
         render_photons(dented, leds, effects, light_scene=coarse, **kw)
 
 
+@pytest.mark.slow
 def test_contact_and_no_contact_share_random_walks(mesh, spec, camera, ref, pressed):
     """Same seed, contact vs no contact: photons and camera rays keep their own streams
     (keyed by identity, with the undeformed membrane setting the weight window), so far
@@ -374,6 +376,7 @@ def test_sensor_effects_analytically(camera, rng):
     assert np.array_equal(noisy, add_noise(np.zeros((200, 200, 3), np.float32), 0.05, np.random.default_rng(1)))
 
 
+@pytest.mark.slow
 def test_no_contact_control_variate(tmp_path, monkeypatch, mesh, spec, camera, ref, pressed):
     """A contact's map as the cached no-contact map plus the contact's change (same
     seeds): the same image in expectation, far quieter away from the dent (there the

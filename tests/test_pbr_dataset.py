@@ -389,6 +389,7 @@ def test_reference_writes_files_named_by_a_dotted_stem(tmp_path, monkeypatch, ca
     assert np.load(tmp_path / "out" / "s_0.5_variance.npy").shape == (6, 8, 3)
 
 
+@pytest.mark.slow
 def test_a_pbr_dataset_end_to_end(tmp_path, spec, mesh, monkeypatch):
     """tactile-sim dataset --renderer pbr on two MuJoCo taps: source "pbr", the linear image
     and its variance beside each PNG, the achieved noise in each sample's line, resumable."""
