@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from scenes.camera import CONTACT_EPS_M, Camera
+from scenes.camera import CONTACT_EPS_M, Camera, lens_resample, pinhole_view
 from scenes.spec import SensorSpec
 
 from .effects import Effects
@@ -153,9 +153,11 @@ def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camer
     from scipy import ndimage
 
     width, height = width or camera.width, height or camera.height
-    circle = camera.scaled(width, height).mask
+    lens = camera.scaled(width, height)
+    circle = lens.mask
     if depth is None:
-        return circle.copy()
+        cover = lens.pinhole_cover()
+        return circle.copy() if cover is lens else pinhole_view(circle, lens, cover)
     moved = np.abs(np.asarray(depth, np.float64) - ref_depth) > CONTACT_EPS_M
     if moved.any():
         moved = ndimage.binary_dilation(moved, iterations=RIM_PX)
@@ -164,7 +166,10 @@ def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camer
     rows = np.clip(np.round((np.arange(height) + 0.5) * camera.height / height - 0.5).astype(int), 0, camera.height - 1)
     cols = np.clip(np.round((np.arange(width) + 0.5) * camera.width / width - 0.5).astype(int), 0, camera.width - 1)
     region = moved[np.ix_(rows, cols)] & circle
-    return region if region.any() else circle.copy()
+    region = region if region.any() else circle.copy()
+    lens = camera.scaled(width, height)
+    cover = lens.pinhole_cover()
+    return region if cover is lens else pinhole_view(region, lens, cover)
 
 
 def check_passes(passes: int, target_rse: float | None = None, max_passes: int = MAX_PASSES) -> None:
@@ -525,14 +530,21 @@ def reference(
 
 
 def sensor_effects(est: Estimate, camera: Camera, effects: Effects, seed: int = 0) -> Estimate:
-    """Lens distortion, vignetting and sensor noise on the estimate (pbr_tactile.sensor).
+    """The camera's lens, then lens distortion, vignetting and sensor noise on the
+    estimate (pbr_tactile.sensor).
 
+    Mitsuba renders the lens' pinhole cover (``Camera.pinhole_cover``; the camera itself
+    where it is a centred pinhole), which ``lens_resample`` reads into the lens' pixels.
     The variance stays that of the Monte Carlo estimate, carried through distortion and
     vignetting (a gain g scales it by g^2); sensor noise is part of the image, not of the
     estimator's error.
     """
     from .sensor import add_noise, distort, vignetting
 
+    lens = camera.scaled(est.mean.shape[1], est.mean.shape[0])
+    cover = lens.pinhole_cover()
+    if cover is not lens:
+        est = replace(est, mean=lens_resample(est.mean, lens, cover), variance=lens_resample(est.variance, lens, cover))
     k1, k2 = effects.lens_distortion
     mean = vignetting(distort(est.mean, camera, k1, k2), camera, effects.vignetting)
     variance = distort(est.variance, camera, k1, k2)

@@ -227,7 +227,10 @@ def geltip_scene(
     """
     width = width or camera.width
     height = height or camera.height
-    fov_y = math.degrees(2 * math.atan((camera.height / 2) / camera.f))
+    # Mitsuba's camera is a centred pinhole: it renders the lens' cover, which
+    # pbr_tactile.render.sensor_effects reads into the lens' pixels
+    cover = camera.scaled(width, height).pinhole_cover()
+    fov_y = math.degrees(2 * math.atan((cover.height / 2) / cover.f))
     medium = _medium(effects)
     scene: dict = {"type": "scene"}
     if medium is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -20,7 +21,11 @@ CONTACT_EPS_M = 1e-6
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole camera at the origin, looking along +z (x right, y down), planar z-depth.
+    """Central camera at the origin, looking along +z (x right, y down), planar z-depth.
+
+    A ray at angle theta from the axis lands ``f * lens_radius(theta, k1, k2,
+    projection)`` pixels from the principal point (cx, cy) (see PROJECTIONS); with no
+    distortion and the pinhole projection this is the pinhole u = f x / z + cx.
 
     Pixel (u, v) has its centre at integer coordinates; the principal point of the
     published GelTip camera is ((W - 1) / 2, (H - 1) / 2) = (319.5, 239.5). The image
@@ -36,21 +41,31 @@ class Camera:
     mask_radius_px: float  # px, radius of the sensor's image circle
     mask_cx: float | None = None  # px, centre of the image circle; None: cx
     mask_cy: float | None = None  # px; None: cy
+    k1: float = 0.0  # radial distortion (see lens_radius)
+    k2: float = 0.0
+    projection: str = "pinhole"
 
     @classmethod
     def from_spec(cls, spec: CameraSpec | SensorSpec) -> "Camera":
+        """The spec's camera: its focal length puts the ray at fov_y / 2 from the axis at
+        half the frame's height from the principal point."""
         if isinstance(spec, SensorSpec):
             spec = spec.camera
-        f = (spec.height / 2.0) / math.tan(spec.fov_y / 2.0)
+        k1, k2 = spec.distortion
+        f = (spec.height / 2.0) / float(lens_radius(spec.fov_y / 2.0, k1, k2, spec.projection))
+        cx, cy = spec.principal_point_px or ((spec.width - 1) / 2.0, (spec.height - 1) / 2.0)
         return cls(
             width=spec.width,
             height=spec.height,
             f=f,
-            cx=(spec.width - 1) / 2.0,
-            cy=(spec.height - 1) / 2.0,
+            cx=cx,
+            cy=cy,
             mask_radius_px=spec.mask_radius_px,
             mask_cx=spec.mask_center_px[0] if spec.mask_center_px else None,
             mask_cy=spec.mask_center_px[1] if spec.mask_center_px else None,
+            k1=k1,
+            k2=k2,
+            projection=spec.projection,
         )
 
     @property
@@ -58,18 +73,44 @@ class Camera:
         """(H, W)."""
         return (self.height, self.width)
 
+    @property
+    def is_pinhole(self) -> bool:
+        """A distortion-free pinhole (what Mitsuba's and MuJoCo's cameras are)."""
+        return self.projection == "pinhole" and self.k1 == 0 and self.k2 == 0
+
     def scaled(self, width: int, height: int) -> "Camera":
-        """The same camera at another resolution (same field of view)."""
+        """The same camera at another resolution (same field of view and lens)."""
         s = height / self.height
         scale = (lambda m: None if m is None else (m + 0.5) * s - 0.5)  # pixel centres
-        return Camera(width, height, self.f * s, (width - 1) / 2.0, (height - 1) / 2.0, self.mask_radius_px * s,
-                      scale(self.mask_cx), scale(self.mask_cy))
+        return dataclasses.replace(self, width=width, height=height, f=self.f * s, cx=scale(self.cx),
+                                   cy=scale(self.cy), mask_radius_px=self.mask_radius_px * s,
+                                   mask_cx=scale(self.mask_cx), mask_cy=scale(self.mask_cy))
+
+    def slopes(self, u: np.ndarray | None = None, v: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(x / z, y / z) of the rays seen at pixels (u, v) (default: every pixel, (H, W)
+        each); NaN where no ray lands (past a barrel's fold)."""
+        if u is None:
+            v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        xd, yd = (np.asarray(u, np.float64) - self.cx) / self.f, (np.asarray(v, np.float64) - self.cy) / self.f
+        if self.is_pinhole:
+            return xd, yd
+        stretch = undistortion_stretch(np.hypot(xd, yd), self.k1, self.k2, self.projection)
+        return xd * stretch, yd * stretch
 
     @cached_property
     def rays(self) -> np.ndarray:
-        """(H, W, 3) float64: per-pixel ray directions with z = 1, so P = depth * ray."""
-        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        rays = np.stack([(u - self.cx) / self.f, (v - self.cy) / self.f, np.ones_like(u)], axis=-1)
+        """(H, W, 3) float64: per-pixel ray directions with z = 1, so P = depth * ray.
+        Pixels that no ray reaches (past a strong barrel's fold, outside the image circle)
+        look along the last ray that lands, so that every pixel stays finite."""
+        x, y = self.slopes()
+        lost = ~np.isfinite(x)
+        if lost.any():
+            v, u = np.nonzero(lost)
+            xd, yd = (u - self.cx) / self.f, (v - self.cy) / self.f
+            r = np.hypot(xd, yd)
+            top = math.tan(float(lens_table(self.k1, self.k2, self.projection, float(r.max()))[1][-1]))
+            x[lost], y[lost] = xd / r * top, yd / r * top
+        rays = np.stack([x, y, np.ones_like(x)], axis=-1)
         rays.setflags(write=False)
         return rays
 
@@ -79,6 +120,24 @@ class Camera:
         rays = np.ascontiguousarray(self.rays.transpose(2, 0, 1), dtype=np.float32)
         rays.setflags(write=False)
         return rays
+
+    def pinhole_cover(self, margin_px: float = 2.0) -> "Camera":
+        """A distortion-free pinhole of this camera's size, principal point at the frame's
+        centre, whose view holds the ray of every pixel of this camera's image circle
+        (within ``margin_px`` of the frame): what Mitsuba and MuJoCo render before
+        ``lens_resample`` turns it into this camera's image. Itself for a centred pinhole;
+        otherwise its focal length is the largest that covers, at most this camera's."""
+        centre = ((self.width - 1) / 2.0, (self.height - 1) / 2.0)
+        if self.is_pinhole and (self.cx, self.cy) == centre:
+            return self
+        x, y = self.slopes()
+        seen = self.mask & np.isfinite(x)
+        if not seen.any():
+            raise ValueError("no ray lands inside the camera's image circle: check its lens and circle")
+        x, y = x[seen], y[seen]
+        half_w, half_h = centre[0] - margin_px, centre[1] - margin_px
+        f = min(self.f, half_w / max(float(np.abs(x).max()), 1e-12), half_h / max(float(np.abs(y).max()), 1e-12))
+        return Camera(self.width, self.height, f, centre[0], centre[1], self.mask_radius_px, self.mask_cx, self.mask_cy)
 
     @cached_property
     def mask(self) -> np.ndarray:
@@ -116,52 +175,124 @@ def check_depth(depth, camera: Camera, name: str = "depth") -> np.ndarray:
 
 
 def project(points: np.ndarray, camera: Camera) -> np.ndarray:
-    """Project camera-frame points to pixel coordinates.
+    """Project camera-frame points to pixel coordinates through the camera's lens.
 
-    points : (..., 3) metres, z > 0.  Returns (..., 2) float (u, v) in px:
-    u = f x / z + c_x, v = f y / z + c_y.
+    points : (..., 3) metres, z > 0.  Returns (..., 2) float (u, v) in px; for a
+    distortion-free pinhole u = f x / z + c_x, v = f y / z + c_y.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.shape[-1] != 3:
         raise ValueError(f"points must be (..., 3), got {points.shape}")
-    z = points[..., 2]
-    return np.stack([camera.f * points[..., 0] / z + camera.cx, camera.f * points[..., 1] / z + camera.cy], axis=-1)
+    x, y = points[..., 0] / points[..., 2], points[..., 1] / points[..., 2]
+    if not camera.is_pinhole:
+        r = np.hypot(x, y)
+        r_d = lens_radius(np.arctan(r), camera.k1, camera.k2, camera.projection)
+        stretch = np.divide(r_d, r, out=np.ones_like(r), where=r > 0)
+        x, y = x * stretch, y * stretch
+    return np.stack([camera.f * x + camera.cx, camera.f * y + camera.cy], axis=-1)
 
 
-#: Samples of the table that inverts the radial lens polynomial (``undistorted_radius``).
-LENS_TABLE_SAMPLES = 8192
+#: Samples of the table that inverts a lens' radial mapping (``lens_angle``).
+LENS_TABLE_SAMPLES = 16384
+#: The lens' projections: where a ray at angle theta from the axis lands, r_d / f =
+#: b (1 + k1 b^2 + k2 b^4) with b = tan(theta) (a pinhole with Brown-Conrady distortion,
+#: OpenCV's convention) or b = theta (an equidistant fisheye with Kannala-Brandt's
+#: polynomial, OpenCV's fisheye model): the one convention of both renderers, the depth
+#: camera, the calibration and the diagnosis's catalogue.
+PROJECTIONS = ("pinhole", "fisheye")
 
 
-def undistorted_radius(r_d: np.ndarray, k1: float, k2: float) -> np.ndarray:
-    """Where a radially distorted point came from: the lens's one convention.
+def lens_radius(theta: np.ndarray, k1: float = 0.0, k2: float = 0.0, projection: str = "pinhole") -> np.ndarray:
+    """r_d / f: where a ray at ``theta`` rad from the optical axis lands, in focal lengths
+    from the principal point (see PROJECTIONS)."""
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    theta = np.asarray(theta, np.float64)
+    b = np.tan(theta) if projection == "pinhole" else theta
+    return b * (1.0 + k1 * b**2 + k2 * b**4)
 
-    A Brown-Conrady lens moves the pinhole point at normalised radius r_u (its distance to
-    the principal point over f) to r_d = r_u (1 + k1 r_u^2 + k2 r_u^4): k1 > 0 is a
-    pincushion, k1 < 0 a barrel (OpenCV's convention). This inverts it on the branch that
-    rises from 0, by a table of the polynomial; radii beyond that branch's fold (a strong
-    barrel reaches no further) are NaN: no ray lands there.
+
+def lens_table(k1: float = 0.0, k2: float = 0.0, projection: str = "pinhole", r_max: float = 1.0
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(r_d, theta): ``lens_radius`` tabled on the branch that rises from the axis, to
+    its fold (a strong barrel reaches no further), to 90 degrees, or (a pinhole, whose
+    radius runs to infinity) well past ``r_max`` focal lengths."""
+    top = math.pi / 2 * (1 - 1e-9)
+    if projection == "pinhole":
+        top = math.atan(8.0 * max(r_max, 1.0))
+    theta = np.linspace(0.0, top, LENS_TABLE_SAMPLES)
+    table = lens_radius(theta, k1, k2, projection)
+    rising = np.diff(table) > 0
+    end = len(theta) if rising.all() else int(np.argmin(rising)) + 1
+    return table[:end], theta[:end]
+
+
+def lens_angle(r_d: np.ndarray, k1: float = 0.0, k2: float = 0.0, projection: str = "pinhole") -> np.ndarray:
+    """The inverse of ``lens_radius`` on the branch that rises from the axis
+    (``lens_table``): the angle (rad) of the ray seen at r_d focal lengths from the
+    principal point; NaN beyond that branch, where no ray lands."""
+    r_d = np.asarray(r_d, np.float64)
+    if projection == "pinhole" and k1 == 0 and k2 == 0:
+        return np.arctan(r_d)
+    table, theta = lens_table(k1, k2, projection, float(np.nanmax(r_d, initial=0.0)))
+    return np.interp(r_d, table, theta, right=np.nan)
+
+
+def undistorted_radius(r_d: np.ndarray, k1: float, k2: float, projection: str = "pinhole") -> np.ndarray:
+    """Where a radially distorted point came from: the pinhole radius r_u = tan(theta)
+    (focal lengths) of the ray seen at r_d (``lens_angle``); k1 > 0 is a pincushion, k1 < 0
+    a barrel. NaN where no ray lands.
 
     r_d : array of radii >= 0, focal lengths.  Returns r_u, same shape.
     """
     r_d = np.asarray(r_d, dtype=np.float64)
-    if k1 == 0 and k2 == 0:
+    if projection == "pinhole" and k1 == 0 and k2 == 0:
         return r_d.copy()
-    # The table reaches past the largest radius asked: r_u < r_d where the lens only
-    # stretches; a barrel's r_u can be larger, so the table goes a few times further.
-    top = 4.0 * max(float(np.nanmax(r_d, initial=0.0)), 1.0)
-    r_u = np.linspace(0.0, top, LENS_TABLE_SAMPLES)
-    table = r_u * (1.0 + k1 * r_u**2 + k2 * r_u**4)
-    rising = np.diff(table) > 0
-    end = len(r_u) if rising.all() else int(np.argmin(rising)) + 1
-    return np.interp(r_d, table[:end], r_u[:end], right=np.nan)
+    return np.tan(lens_angle(r_d, k1, k2, projection))
 
 
-def undistortion_stretch(r_d: np.ndarray, k1: float, k2: float) -> np.ndarray:
+def undistortion_stretch(r_d: np.ndarray, k1: float, k2: float, projection: str = "pinhole") -> np.ndarray:
     """r_u / r_d (``undistorted_radius``): what a distorted pixel's offset from the
-    principal point is multiplied by to reach its undistorted position; 1 at the centre,
-    NaN past a barrel's fold."""
+    principal point is multiplied by to reach its undistorted position; at the centre its
+    limit, NaN past a barrel's fold."""
     r_d = np.asarray(r_d, dtype=np.float64)
-    return np.divide(undistorted_radius(r_d, k1, k2), r_d, out=np.ones_like(r_d), where=r_d > 0)
+    return np.divide(undistorted_radius(r_d, k1, k2, projection), r_d, out=np.ones_like(r_d), where=r_d > 0)
+
+
+def lens_resample(image: np.ndarray, lens: "Camera", pinhole: "Camera", order: int = 1,
+                  mode: str = "nearest", cval: float = 0.0) -> np.ndarray:
+    """The image ``lens`` sees, read from an image (H', W', ...) that the distortion-free
+    pinhole camera ``pinhole`` (``Camera.pinhole_cover``) took from the same centre along
+    the same axis: each of the lens' pixels is read where its ray lands in the pinhole's
+    image (scipy.ndimage.map_coordinates, bilinear by default). Pixels whose ray the
+    pinhole does not see take ``mode``'s fill."""
+    from scipy import ndimage
+
+    image = np.asarray(image)
+    if image.shape[:2] != pinhole.shape:
+        raise ValueError(f"image must be the pinhole camera's {pinhole.shape}, got {image.shape[:2]}")
+    x, y = lens.slopes()
+    coords = np.stack([pinhole.cy + pinhole.f * y, pinhole.cx + pinhole.f * x])
+    if image.ndim == 2:
+        return ndimage.map_coordinates(image, coords, order=order, mode=mode, cval=cval).astype(image.dtype)
+    flat = image.reshape(image.shape[:2] + (-1,))
+    out = np.stack([ndimage.map_coordinates(flat[..., c], coords, order=order, mode=mode, cval=cval)
+                    for c in range(flat.shape[-1])], axis=-1)
+    return out.reshape(lens.shape + image.shape[2:]).astype(image.dtype)
+
+
+def pinhole_view(image: np.ndarray, lens: "Camera", pinhole: "Camera", order: int = 0) -> np.ndarray:
+    """The inverse of ``lens_resample``: an image (H, W) in ``lens``'s pixels read at
+    each of ``pinhole``'s pixels, where its ray lands through the lens (nearest by
+    default); 0 where it lands outside the lens' frame."""
+    from scipy import ndimage
+
+    image = np.asarray(image)
+    if image.shape != lens.shape:
+        raise ValueError(f"image must be the lens camera's {lens.shape}, got {image.shape}")
+    uv = project(pinhole.rays, lens)
+    coords = np.stack([np.nan_to_num(uv[..., 1], nan=-1e9), np.nan_to_num(uv[..., 0], nan=-1e9)])
+    return ndimage.map_coordinates(image, coords, order=order, mode="constant", cval=0).astype(image.dtype)
 
 
 def back_project(depth: np.ndarray, camera: Camera, channels_first: bool = False) -> np.ndarray:

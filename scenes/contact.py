@@ -27,7 +27,10 @@ def surface_point(mesh: trimesh.Trimesh, camera: Camera, pixel: tuple[float, flo
     u, v = (float(p) for p in pixel)
     if not (0 <= u <= camera.width - 1 and 0 <= v <= camera.height - 1):
         raise ValueError(f"pixel must lie in the {camera.width}x{camera.height} image, got {pixel}")
-    d = np.array([(u - camera.cx) / camera.f, (v - camera.cy) / camera.f, 1.0])
+    x, y = camera.slopes(np.array(u), np.array(v))
+    if not np.isfinite(x):
+        raise ValueError(f"no ray of the camera's lens lands at pixel {pixel}")
+    d = np.array([float(x), float(y), 1.0])
     d /= np.linalg.norm(d)
     tri, _, loc = mesh.ray.intersects_id(np.zeros((1, 3)), d[None], multiple_hits=False, return_locations=True)
     if len(tri) == 0:

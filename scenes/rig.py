@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from .camera import Camera, lens_resample
 from .geometry import membrane_mesh
 from .kinematics import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD, SENSOR_TO_WORLD_AT_ROLL0, RigLayout, tap_pose
 from .protocol import Tap
@@ -122,7 +123,9 @@ def rig_scene(
         )
     mesh_xml = "\n    ".join(mesh_xml)
     geom_xml = "\n              ".join(geom_xml)
-    fovy_deg = math.degrees(cam.fov_y)
+    # MuJoCo's camera is a centred pinhole: it renders the lens' cover (RigModel.depth)
+    cover = Camera.from_spec(spec).pinhole_cover()
+    fovy_deg = math.degrees(2 * math.atan((cover.height / 2) / cover.f))
     xml = f"""<mujoco model="geltip_tapping_rig">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="0.002"/>
@@ -205,6 +208,8 @@ class Rig:
 
         self.mujoco = import_mujoco()
         self.spec = spec
+        self._lens = Camera.from_spec(spec)
+        self._cover = self._lens.pinhole_cover()
         self.layout = layout
         self.scene = scene
         self.model = self.mujoco.MjModel.from_xml_string(scene.xml, assets=scene.assets)
@@ -298,7 +303,10 @@ class Rig:
         renderer.enable_depth_rendering()
         self._effects(renderer, False)  # shadows and reflections only cost time in depth
         renderer.update_scene(self.data, camera="geltip_depth", scene_option=option)
-        return np.asarray(renderer.render(), dtype=np.float32)
+        depth = np.asarray(renderer.render(), dtype=np.float32)
+        # the pinhole's z-depth read where each of the lens' rays lands: z is the same
+        # point's, whichever camera saw it
+        return depth if self._cover is self._lens else lens_resample(depth, self._lens, self._cover)
 
     def _effects(self, renderer, on: bool) -> None:
         flags = self.mujoco.mjtRndFlag

@@ -19,6 +19,10 @@ MAX_SENSOR_SIZE_M = 1.0
 #: Thickness of the glass tube's wall under the membrane, m: the tube's inner radius is
 #: ``membrane.core_radius`` less this.
 GLASS_WALL_M = 2.0e-3
+#: The camera's vertical field of view, rad, and each radial distortion coefficient's
+#: magnitude: the range a spec (and a calibration) may state.
+FOV_Y_BOUNDS = (math.radians(10.0), math.radians(170.0))
+DISTORTION_BOUND = 1.0
 
 
 @dataclass(frozen=True)
@@ -45,13 +49,18 @@ class MembraneSpec:
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """Pinhole camera at the origin looking along +z, planar z-depth."""
+    """Central camera at the origin looking along +z, planar z-depth: a lens of the
+    given projection and radial distortion (``scenes.camera.lens_radius``) whose ray at
+    fov_y / 2 from the axis lands half the frame's height from the principal point."""
 
     width: int = 640  # px
     height: int = 480  # px
     fov_y: float = math.pi / 2  # rad
     mask_radius_px: float = 240.0  # px
     mask_center_px: tuple[float, float] | None = None  # px (u, v); None: the principal point
+    principal_point_px: tuple[float, float] | None = None  # px (u, v); None: the frame's centre
+    distortion: tuple[float, float] = (0.0, 0.0)  # (k1, k2), see scenes.camera.lens_radius
+    projection: str = "pinhole"  # "pinhole" or "fisheye" (scenes.camera.PROJECTIONS)
 
 
 @dataclass(frozen=True)
@@ -245,18 +254,7 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     if shape == "mesh" and not membrane.mesh_path:
         raise ValueError(f"{source}: membrane.shape = 'mesh' needs membrane.mesh_path")
 
-    c = data.get("camera", {})
-    camera = CameraSpec(
-        width=_take(c, "width", int, f"{source}: camera", 640),
-        height=_take(c, "height", int, f"{source}: camera", 480),
-        fov_y=_take(c, "fov_y", float, f"{source}: camera", math.pi / 2),
-        mask_radius_px=_take(c, "mask_radius_px", float, f"{source}: camera", 240.0),
-        mask_center_px=_vec2(c, "mask_center_px", f"{source}: camera") if "mask_center_px" in c else None,
-    )
-    if camera.width < 2 or camera.height < 2:
-        raise ValueError(f"{source}: camera must be at least 2x2 px, got {camera.width}x{camera.height}")
-    if not 0 < camera.fov_y < math.pi:
-        raise ValueError(f"{source}: camera.fov_y must be in (0, pi) rad, got {camera.fov_y}")
+    camera = _camera(data.get("camera", {}), f"{source}: camera", membrane)
 
     leds_data = data.get("leds", [])
     groups_data = data.get("led_groups", [])
@@ -314,6 +312,55 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         elastic=elastic,
         led_groups=groups,
     )
+
+
+def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
+    """The [camera] table, checked: its size, field of view, lens, principal point and
+    image circle, and that the lens sees the tube."""
+    camera = CameraSpec(
+        width=_take(c, "width", int, where, 640),
+        height=_take(c, "height", int, where, 480),
+        fov_y=_take(c, "fov_y", float, where, math.pi / 2),
+        mask_radius_px=_take(c, "mask_radius_px", float, where, 240.0),
+        mask_center_px=_vec2(c, "mask_center_px", where) if c.get("mask_center_px") is not None else None,
+        principal_point_px=(_vec2(c, "principal_point_px", where) if c.get("principal_point_px") is not None
+                            else None),
+        distortion=_vec2(c, "distortion", where) if c.get("distortion") is not None else (0.0, 0.0),
+        projection=_take(c, "projection", str, where, "pinhole"),
+    )
+    if camera.width < 2 or camera.height < 2:
+        raise ValueError(f"{where} must be at least 2x2 px, got {camera.width}x{camera.height}")
+    lo, hi = FOV_Y_BOUNDS
+    if not lo <= camera.fov_y <= hi:
+        raise ValueError(f"{where}.fov_y must be in [{lo:.4f}, {hi:.4f}] rad (10 to 170 deg), got {camera.fov_y}")
+    from .camera import PROJECTIONS, Camera, lens_table, project
+
+    if camera.projection not in PROJECTIONS:
+        raise ValueError(f"{where}.projection must be one of {PROJECTIONS}, got {camera.projection!r}")
+    if max(map(abs, camera.distortion)) > DISTORTION_BOUND:
+        raise ValueError(f"{where}.distortion (k1, k2) must each lie in [-{DISTORTION_BOUND}, {DISTORTION_BOUND}], "
+                         f"got {list(camera.distortion)}")
+    if camera.mask_radius_px <= 0:
+        raise ValueError(f"{where}.mask_radius_px must be > 0 px, got {camera.mask_radius_px}")
+    _, theta = lens_table(*camera.distortion, camera.projection, 1.0)
+    if theta[-1] < camera.fov_y / 2:
+        raise ValueError(f"{where}.distortion {list(camera.distortion)} folds the {camera.projection} lens back at "
+                         f"{math.degrees(theta[-1]):.1f} deg from the axis, inside its field of view "
+                         f"({math.degrees(camera.fov_y) / 2:.1f} deg each side): no lens images that")
+    for key, value in (("principal_point_px", camera.principal_point_px), ("mask_center_px", camera.mask_center_px)):
+        if value is not None and not (0 <= value[0] <= camera.width - 1 and 0 <= value[1] <= camera.height - 1):
+            raise ValueError(f"{where}.{key} {list(value)} must lie in the {camera.width}x{camera.height} frame")
+    lens = Camera.from_spec(camera)
+    if not np.isfinite(lens.slopes()[0][lens.mask]).all():
+        raise ValueError(f"{where}: the lens (distortion {list(camera.distortion)}) folds inside the image circle: "
+                         "part of the circle would see no ray")
+    if membrane.shape == "capsule":
+        u, v = project(np.array([0.0, 0.0, membrane.tip_z]), lens)
+        if not lens.mask[min(max(int(round(v)), 0), lens.height - 1), min(max(int(round(u)), 0), lens.width - 1)] \
+                or not (0 <= u <= lens.width - 1 and 0 <= v <= lens.height - 1):
+            raise ValueError(f"{where}: the camera puts the tube's tip at pixel ({u:.1f}, {v:.1f}), outside its image "
+                             f"circle (radius {camera.mask_radius_px} px): check the principal point and image circle")
+    return camera
 
 
 def _optics(t: dict, where: str) -> dict:

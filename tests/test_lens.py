@@ -1,0 +1,206 @@
+"""The camera's lens in the spec: projection, distortion and principal point, honoured by
+the ray-cast depth (both renderers' geometry), the MuJoCo depth camera and the
+reference's film, and refused where it cannot image the tube."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from scenes.camera import (Camera, lens_angle, lens_radius, lens_resample, pinhole_view, project,
+                           reference_depth)
+from scenes.spec import DEFAULT_SPEC_PATH, spec_from_dict
+
+#: MuJoCo's lens capture against the ray-cast D_ref, metres RMS (tests/test_rig.py's bound).
+NO_CONTACT_RMS_BOUND_M = 0.1e-3
+
+
+def _cosine(camera):
+    """(H, W) the cosine of each pixel's ray's angle off the axis: smooth, analytic."""
+    x, y = camera.slopes()
+    return 1.0 / np.sqrt(1.0 + x * x + y * y)
+
+
+def _lens(spec, **camera):
+    return spec.replace(camera=dataclasses.replace(spec.camera, **camera))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from(["pinhole", "fisheye"]), st.floats(-0.15, 0.3), st.floats(-0.02, 0.05),
+       st.floats(math.radians(40), math.radians(150)), st.floats(-30, 30), st.floats(-30, 30))
+def test_each_pixels_ray_projects_back_to_it(projection, k1, k2, fov, du, dv):
+    if projection == "pinhole":
+        fov = min(fov, math.radians(120))
+    theta = lens_angle(np.array([0.0]), k1, k2, projection)
+    assert theta[0] == 0.0
+    camera = Camera(160, 120, 1.0, 79.5 + du, 59.5 + dv, 60.0, 80.0, 60.0, k1, k2, projection)
+    reach = float(lens_radius(fov / 2, k1, k2, projection))
+    if not reach > 0 or not np.isfinite(lens_angle(np.array([reach]), k1, k2, projection))[0]:
+        return  # a lens that folds inside this field of view: the spec refuses it (below)
+    camera = dataclasses.replace(camera, f=60.0 / reach)
+    x, y = camera.slopes()
+    seen = np.isfinite(x) & camera.mask
+    uv = project(camera.rays, camera)
+    v, u = np.mgrid[0:120, 0:160]
+    assert np.allclose(uv[..., 0][seen], u[seen], atol=1e-3) and np.allclose(uv[..., 1][seen], v[seen], atol=1e-3)
+
+
+def test_the_field_of_view_and_the_equidistant_fisheye(spec):
+    for projection, fov in (("pinhole", math.radians(90)), ("fisheye", math.radians(135)),
+                            ("fisheye", math.radians(170))):
+        camera = Camera.from_spec(_lens(spec, projection=projection, fov_y=fov).camera)
+        # the ray seen half the frame's height above the principal point is fov / 2 off the axis
+        x, y = camera.slopes(np.array(camera.cx), np.array(camera.cy - camera.height / 2))
+        assert math.atan(math.hypot(float(x), float(y))) == pytest.approx(fov / 2, abs=1e-6)
+    # an equidistant fisheye: angle proportional to the distance from the principal point
+    camera = Camera.from_spec(_lens(spec, projection="fisheye", fov_y=math.radians(135)).camera)
+    r = np.linspace(0, 230, 24)
+    x, y = camera.slopes(camera.cx + r, np.full_like(r, camera.cy))
+    assert np.allclose(np.arctan(np.hypot(x, y)), r / camera.f, atol=1e-6)
+    # a barrel sees further out than its pinhole at the same focal length, a pincushion less
+    barrel = dataclasses.replace(camera, projection="pinhole", k1=-0.1)
+    pincushion = dataclasses.replace(barrel, k1=0.1)
+    plain = dataclasses.replace(barrel, k1=0.0)
+    u = np.array(camera.cx + 200.0)
+    v = np.array(camera.cy)
+    assert barrel.slopes(u, v)[0] > plain.slopes(u, v)[0] > pincushion.slopes(u, v)[0]
+
+
+def test_a_principal_point_off_the_frames_centre_moves_the_tube(spec):
+    plain = Camera.from_spec(spec)
+    moved = Camera.from_spec(_lens(spec, principal_point_px=(300.0, 250.0)).camera)
+    tip = np.array([0.0, 0.0, spec.membrane.tip_z])
+    assert project(tip, plain) == pytest.approx([319.5, 239.5])
+    assert project(tip, moved) == pytest.approx([300.0, 250.0])
+    # the scaled camera keeps it, at pixel centres
+    assert (moved.scaled(160, 120).cx, moved.scaled(160, 120).cy) == pytest.approx((74.625, 62.125))
+
+
+def test_the_pinhole_cover_holds_every_ray_of_the_image_circle(spec):
+    lens = Camera.from_spec(_lens(spec, projection="fisheye", fov_y=math.radians(135),
+                                  principal_point_px=(310.0, 245.0)).camera)
+    cover = lens.pinhole_cover()
+    assert cover.is_pinhole and (cover.cx, cover.cy) == (319.5, 239.5) and cover.f < lens.f
+    plain = Camera.from_spec(spec)
+    assert plain.pinhole_cover() is plain
+    # an image the cover sees, read into the lens: the cosine of the angle off the axis
+    seen = lens_resample(_cosine(cover), lens, cover)
+    assert np.abs(seen - _cosine(lens))[lens.mask].max() < 2e-4  # bilinear reading
+    # and back: a mask drawn in the lens' pixels, read at the cover's
+    back = pinhole_view(lens.mask, lens, cover)
+    assert back.any() and np.abs(np.arctan(np.hypot(*cover.slopes()))[back]).max() <= math.radians(135) / 2 * 1.3
+
+
+@pytest.mark.parametrize("camera", [dict(principal_point_px=(300.0, 250.0), distortion=(-0.08, 0.005)),
+                                    dict(projection="fisheye", fov_y=math.radians(135))])
+def test_mujoco_depth_through_the_lens_matches_the_ray_cast(spec, camera):
+    from scenes.gl import GLPlatformError, choose_gl
+
+    try:
+        choose_gl()
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
+    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+    from scenes.geometry import membrane_mesh
+    from scenes.indenters import indenter
+    from scenes.rig import Rig, rig_scene
+
+    lens_spec = _lens(spec, **camera)
+    mesh = membrane_mesh(lens_spec)
+    lens = Camera.from_spec(lens_spec)
+    ref = reference_depth(mesh, lens)[0]
+    try:
+        rig = Rig(rig_scene(lens_spec, {"sphere": indenter("sphere")}, membrane=mesh), lens_spec)
+        rig.mount("sphere")
+        rig.home()
+        depth = rig.depth()
+    except RuntimeError as exc:
+        pytest.skip(f"no headless GL context: {exc}")
+    rig.close()
+    rms = float(np.sqrt(np.mean((depth - ref)[lens.mask].astype(np.float64) ** 2)))
+    assert rms < NO_CONTACT_RMS_BOUND_M
+    # not the pinhole's depth map: the lens moved what each pixel sees
+    plain = reference_depth(mesh, Camera.from_spec(spec))[0]
+    assert float(np.sqrt(np.mean((plain - ref)[lens.mask] ** 2))) > 20 * rms
+
+
+def test_the_references_film_is_read_through_the_lens(spec):
+    from pbr_tactile.render import Estimate, sensor_effects
+    from pbr_tactile.effects import Effects
+    from pbr_tactile.scene import geltip_scene
+
+    lens_spec = _lens(spec, projection="fisheye", fov_y=math.radians(135), principal_point_px=(310.0, 245.0))
+    lens = Camera.from_spec(lens_spec).scaled(160, 120)
+    cover = lens.pinhole_cover()
+    scene = geltip_scene({k: "x.ply" for k in ("coating", "core", "base", "glass_inner", "glass_base")},
+                         lens_spec, Camera.from_spec(lens_spec), Effects(), 160, 120)
+    assert scene["sensor"]["fov"] == pytest.approx(math.degrees(2 * math.atan(60.0 / cover.f)))
+    # a film of each pixel's cosine off the axis comes out as the lens' pixels' cosines
+    film = np.repeat(_cosine(cover).astype(np.float32)[..., None], 3, axis=-1)
+    est = sensor_effects(Estimate(mean=film, variance=np.zeros_like(film), spp=1), Camera.from_spec(lens_spec),
+                         Effects())
+    assert np.abs(est.mean[..., 0] - _cosine(lens))[lens.mask].max() < 2e-3
+
+
+def _data():
+    return tomllib.loads(DEFAULT_SPEC_PATH.read_text())
+
+
+@pytest.mark.parametrize(
+    "camera, message",
+    [
+        (dict(fov_y=math.radians(5)), r"camera.fov_y must be in \[0.1745, 2.9671\]"),
+        (dict(fov_y=math.radians(175), projection="fisheye"), r"fov_y must be in"),
+        (dict(distortion=[1.5, 0.0]), r"distortion \(k1, k2\) must each lie in \[-1.0, 1.0\]"),
+        (dict(distortion=[0.0]), "distortion must be a list of 2"),
+        (dict(distortion=[-0.4, 0.0], fov_y=math.radians(120)), "folds the pinhole lens back at 42.4 deg"),
+        (dict(projection="orthographic"), "projection must be one of"),
+        (dict(principal_point_px=[700.0, 240.0]), r"principal_point_px \[700.0, 240.0\] must lie in the 640x480"),
+        (dict(principal_point_px=[600.0, 240.0]), r"puts the tube's tip at pixel \(600.0, 240.0\), outside"),
+        (dict(mask_radius_px=0.0), "mask_radius_px must be > 0"),
+    ],
+)
+def test_a_lens_that_cannot_image_the_tube_is_refused(camera, message):
+    data = _data()
+    data["camera"].update(camera)
+    with pytest.raises(ValueError, match=message):
+        spec_from_dict(data, "test.toml")
+
+
+def test_a_lens_spec_round_trips(spec):
+    data = _data()
+    data["camera"].update(principal_point_px=[310.0, 245.0], distortion=[-0.05, 0.002], projection="fisheye",
+                          fov_y=math.radians(135))
+    lens_spec = spec_from_dict(data, "test.toml")
+    import json
+
+    again = spec_from_dict(json.loads(json.dumps(dataclasses.asdict(lens_spec))), "again")
+    assert again == lens_spec and again.digest() != spec.digest()
+
+
+def test_the_fast_paths_point_cloud_lies_on_the_membrane_through_the_lens(spec):
+    """The fast path shades P = D * ray (``back_project``): through a lens, each pixel's
+    point must be the membrane point its ray meets, and project back to that pixel."""
+    from scenes.camera import back_project
+    from scenes.geometry import membrane_mesh
+
+    lens_spec = _lens(spec, projection="fisheye", fov_y=math.radians(135), distortion=(-0.05, 0.0))
+    mesh = membrane_mesh(lens_spec)
+    lens = Camera.from_spec(lens_spec).scaled(160, 120)
+    depth, valid = reference_depth(mesh, lens)
+    P = back_project(depth.astype(np.float64), lens)
+    inside = valid & lens.mask
+    r = np.hypot(P[..., 0], P[..., 1])[inside]
+    z = P[..., 2][inside]
+    m = lens_spec.membrane
+    top = m.base_z + m.cylinder_length  # the dome's centre
+    off = np.where(z <= top, r, np.hypot(r, z - top)) - m.radius
+    assert np.abs(off).max() < 0.05e-3  # the capsule's mesh is faceted at 0.5 mm edges
+    v, u = np.nonzero(inside)
+    assert np.allclose(project(P[inside], lens), np.c_[u, v], atol=1e-6)
