@@ -129,8 +129,8 @@ def led_places(spec: SensorSpec) -> list[str]:
     light enters the wall and is guided up it, so it emits from inside the wall's foot)."""
     inner = spec.membrane.core_radius - GLASS_WALL_M
     places = []
-    for led in spec.leds:
-        r = math.hypot(led.position[0], led.position[1])
+    for position in _tube_frame(spec, [led.position for led in spec.leds]):
+        r = math.hypot(position[0], position[1])
         places.append("elastomer" if r >= spec.membrane.core_radius else "tube" if r <= inner else "wall_end")
     return places
 
@@ -138,7 +138,7 @@ def led_places(spec: SensorSpec) -> list[str]:
 def led_centres(spec: SensorSpec) -> np.ndarray:
     """(L, 3) metres: each LED's emitter's centre (``led_places``)."""
     m = spec.membrane
-    pos = np.array([led.position for led in spec.leds], dtype=np.float64)
+    pos = _tube_frame(spec, [led.position for led in spec.leds])
     radial = np.linalg.norm(pos[:, :2], axis=1, keepdims=True)
     unit = np.where(radial > 0, pos[:, :2] / np.where(radial > 0, radial, 1), 0.0)
     out = pos.copy()
@@ -147,7 +147,20 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
             out[k, :2] = unit[k] * (m.core_radius + 0.5 * (m.radius - m.core_radius))
         elif place == "wall_end":
             out[k] = [*(unit[k] * (m.core_radius - 0.5 * GLASS_WALL_M)), m.base_z + WALL_FOOT_M]
-    return out
+    return _camera_frame(spec, out)
+
+
+def _tube_frame(spec: SensorSpec, points) -> np.ndarray:
+    """(N, 3) camera-frame points in the tube's frame (``CameraSpec.tube_to_camera``),
+    where the glass and membrane have their nominal radii about the z axis."""
+    inverse = np.linalg.inv(spec.camera.tube_to_camera())
+    return np.asarray(points, np.float64).reshape(-1, 3) @ inverse[:3, :3].T + inverse[:3, 3]
+
+
+def _camera_frame(spec: SensorSpec, points) -> np.ndarray:
+    """(N, 3) tube-frame points in the camera frame."""
+    pose = spec.camera.tube_to_camera()
+    return np.asarray(points, np.float64).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
 
 
 def led_beam(led: LED, place: str) -> tuple[tuple[float, float, float] | None, float]:
@@ -177,6 +190,8 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
     """
     sources = []
     places = led_places(spec)
+    # up the tube's axis, in the camera frame
+    up = tuple(map(float, spec.camera.tube_to_camera()[:3, :3] @ np.asarray(LEAK_AXIS, np.float64)))
     for m, (led, centre, power) in enumerate(zip(spec.leds, led_centres(spec), led_powers(spec, led_power))):
         axis, half_angle = led_beam(led, places[m])
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
@@ -189,11 +204,13 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
                             "cone_axis": axis, "cone_half_angle_rad": half_angle})
         if leak > 0:
             r = spec.membrane.core_radius - GLASS_WALL_M / 2
-            xy = centre[:2] / max(np.linalg.norm(centre[:2]), 1e-12) * r
-            sources.append({"name": f"led{m}_leak", "centre": (float(xy[0]), float(xy[1]), float(centre[2])),
+            tube = _tube_frame(spec, centre)[0]
+            tube[:2] *= r / max(np.linalg.norm(tube[:2]), 1e-12)
+            inside = _camera_frame(spec, tube)[0]
+            sources.append({"name": f"led{m}_leak", "centre": tuple(map(float, inside)),
                             "radius": LED_RADIUS_M, "spectrum": shape * power * leak, "peak_nm": peak,
                             "fwhm_nm": fwhm, "scale": power * leak, "in_elastomer": False,
-                            "cone_axis": LEAK_AXIS if effects.core_leak_cone_rad > 0 else None,
+                            "cone_axis": up if effects.core_leak_cone_rad > 0 else None,
                             "cone_half_angle_rad": float(effects.core_leak_cone_rad)})
     return sources
 

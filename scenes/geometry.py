@@ -186,9 +186,14 @@ def load_mesh(path: str | Path, units: str = "m") -> trimesh.Trimesh:
 
 
 def membrane_mesh(spec: SensorSpec) -> trimesh.Trimesh:
-    """The membrane of a sensor spec: generated, or loaded from ``mesh_path``."""
+    """The membrane of a sensor spec in the camera frame: generated (and seated as the
+    camera spec says, ``CameraSpec.tube_to_camera``), or loaded from ``mesh_path``."""
     if spec.membrane.shape == "capsule":
-        return capsule_mesh(spec.membrane)
+        mesh = capsule_mesh(spec.membrane)
+        pose = spec.camera.tube_to_camera()
+        if not np.array_equal(pose, np.eye(4)):
+            mesh.apply_transform(pose)
+        return mesh
     return load_mesh(spec.membrane.mesh_path)
 
 

@@ -103,6 +103,10 @@ def rig_scene(
     core = min(m.core_radius, radius * 0.95)
     glass_top = float(hi[2]) - (m.radius - m.core_radius)
     glass_half = max((glass_top - core - base_z) / 2, 1e-3)
+    # the glass sits in the tube, seated against the camera as the spec says
+    pose = cam.tube_to_camera()
+    glass_pos = pose[:3, :3] @ [0.0, 0.0, base_z + glass_half] + pose[:3, 3]
+    glass_quat = trimesh.transformations.quaternion_from_matrix(pose)
     to_world = np.eye(4)
     to_world[:3, :3] = SENSOR_TO_WORLD_AT_ROLL0
     sensor_quat = trimesh.transformations.quaternion_from_matrix(to_world)  # (w, x, y, z), as MuJoCo
@@ -161,7 +165,7 @@ def rig_scene(
       <camera name="geltip_depth" pos="0 0 0" xyaxes="1 0 0 0 -1 0" fovy="{fovy_deg:.9g}"/>
       <geom name="membrane_view" type="mesh" mesh="membrane_view" group="{GROUP_MEMBRANE_VIEW}" rgba="0.9 0.9 0.9 1" mass="0"/>
       <geom name="membrane" type="mesh" mesh="membrane" group="{GROUP_MEMBRANE}" rgba="0.75 0.75 0.78 1" mass="0"/>
-      <geom name="glass_core" type="capsule" size="{core:.9g} {glass_half:.9g}" pos="0 0 {base_z + glass_half:.9g}" group="{GROUP_BODY}" rgba="0.7 0.85 1 0.35" mass="0"/>
+      <geom name="glass_core" type="capsule" size="{core:.9g} {glass_half:.9g}" pos="{_f(glass_pos)}" quat="{_f(glass_quat)}" group="{GROUP_BODY}" rgba="0.7 0.85 1 0.35" mass="0"/>
       <geom name="sensor_body" type="cylinder" size="{radius + 0.002:.9g} 0.015" pos="0 0 {base_z - 0.015:.9g}" group="{GROUP_BODY}" rgba="0.1 0.1 0.1 1" mass="0"/>
     </body>
     <body name="gantry_x">

@@ -23,6 +23,9 @@ GLASS_WALL_M = 2.0e-3
 #: magnitude: the range a spec (and a calibration) may state.
 FOV_Y_BOUNDS = (math.radians(10.0), math.radians(170.0))
 DISTORTION_BOUND = 1.0
+#: The camera's tilt off the tube's axis, rad, at most about either axis: beyond it the
+#: lens would sit in the tube's wall rather than look along it.
+TILT_BOUND_RAD = math.radians(15.0)
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,23 @@ class CameraSpec:
     principal_point_px: tuple[float, float] | None = None  # px (u, v); None: the frame's centre
     distortion: tuple[float, float] = (0.0, 0.0)  # (k1, k2), see scenes.camera.lens_radius
     projection: str = "pinhole"  # "pinhole" or "fisheye" (scenes.camera.PROJECTIONS)
+    #: The camera's seat against the tube: its optical centre's offset (x, y) from the
+    #: tube's axis, m, and its optical axis' tilt from the tube's axis, rad, turned about
+    #: x then y. The seat along the axis is ``membrane.base_z``. The LEDs sit on the
+    #: camera's crown and stay in the camera frame; the tube (membrane, glass) moves.
+    offset_m: tuple[float, float] = (0.0, 0.0)
+    tilt_rad: tuple[float, float] = (0.0, 0.0)
+
+    def tube_to_camera(self) -> np.ndarray:
+        """(4, 4) the rigid map from the tube's frame (its axis along z, the camera's seat
+        at the origin) into the camera frame: p_camera = R^T (p_tube - (x, y, 0))."""
+        ax, ay = self.tilt_rad
+        cx, sx, cy, sy = math.cos(ax), math.sin(ax), math.cos(ay), math.sin(ay)
+        rotation = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]]) @ np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+        out = np.eye(4)
+        out[:3, :3] = rotation.T
+        out[:3, 3] = -rotation.T @ np.array([self.offset_m[0], self.offset_m[1], 0.0])
+        return out
 
 
 @dataclass(frozen=True)
@@ -327,6 +347,8 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
                             else None),
         distortion=_vec2(c, "distortion", where) if c.get("distortion") is not None else (0.0, 0.0),
         projection=_take(c, "projection", str, where, "pinhole"),
+        offset_m=_vec2(c, "offset_m", where) if c.get("offset_m") is not None else (0.0, 0.0),
+        tilt_rad=_vec2(c, "tilt_rad", where) if c.get("tilt_rad") is not None else (0.0, 0.0),
     )
     if camera.width < 2 or camera.height < 2:
         raise ValueError(f"{where} must be at least 2x2 px, got {camera.width}x{camera.height}")
@@ -340,6 +362,13 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     if max(map(abs, camera.distortion)) > DISTORTION_BOUND:
         raise ValueError(f"{where}.distortion (k1, k2) must each lie in [-{DISTORTION_BOUND}, {DISTORTION_BOUND}], "
                          f"got {list(camera.distortion)}")
+    bore = membrane.core_radius - GLASS_WALL_M
+    if math.hypot(*camera.offset_m) >= bore:
+        raise ValueError(f"{where}.offset_m {list(camera.offset_m)} puts the camera {math.hypot(*camera.offset_m):.4g} m "
+                         f"off the tube's axis, outside its bore (radius {bore:.4g} m; metres, not millimetres?)")
+    if max(map(abs, camera.tilt_rad)) > TILT_BOUND_RAD:
+        raise ValueError(f"{where}.tilt_rad {list(camera.tilt_rad)} must each lie in [-{TILT_BOUND_RAD:.4f}, "
+                         f"{TILT_BOUND_RAD:.4f}] rad (15 deg)")
     if camera.mask_radius_px <= 0:
         raise ValueError(f"{where}.mask_radius_px must be > 0 px, got {camera.mask_radius_px}")
     _, theta = lens_table(*camera.distortion, camera.projection, 1.0)
@@ -355,7 +384,7 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
         raise ValueError(f"{where}: the lens (distortion {list(camera.distortion)}) folds inside the image circle: "
                          "part of the circle would see no ray")
     if membrane.shape == "capsule":
-        u, v = project(np.array([0.0, 0.0, membrane.tip_z]), lens)
+        u, v = project((camera.tube_to_camera() @ [0.0, 0.0, membrane.tip_z, 1.0])[:3], lens)
         if not lens.mask[min(max(int(round(v)), 0), lens.height - 1), min(max(int(round(u)), 0), lens.width - 1)] \
                 or not (0 <= u <= lens.width - 1 and 0 <= v <= lens.height - 1):
             raise ValueError(f"{where}: the camera puts the tube's tip at pixel ({u:.1f}, {v:.1f}), outside its image "

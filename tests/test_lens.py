@@ -98,7 +98,8 @@ def test_the_pinhole_cover_holds_every_ray_of_the_image_circle(spec):
 
 
 @pytest.mark.parametrize("camera", [dict(principal_point_px=(300.0, 250.0), distortion=(-0.08, 0.005)),
-                                    dict(projection="fisheye", fov_y=math.radians(135))])
+                                    dict(projection="fisheye", fov_y=math.radians(135)),
+                                    dict(offset_m=(0.001, -0.0005), tilt_rad=(0.03, -0.02))])
 def test_mujoco_depth_through_the_lens_matches_the_ray_cast(spec, camera):
     from scenes.gl import GLPlatformError, choose_gl
 
@@ -125,8 +126,8 @@ def test_mujoco_depth_through_the_lens_matches_the_ray_cast(spec, camera):
     rig.close()
     rms = float(np.sqrt(np.mean((depth - ref)[lens.mask].astype(np.float64) ** 2)))
     assert rms < NO_CONTACT_RMS_BOUND_M
-    # not the pinhole's depth map: the lens moved what each pixel sees
-    plain = reference_depth(mesh, Camera.from_spec(spec))[0]
+    # not the plain camera's depth map: the lens, or the seat, moved what each pixel sees
+    plain = reference_depth(membrane_mesh(spec), Camera.from_spec(spec))[0]
     assert float(np.sqrt(np.mean((plain - ref)[lens.mask] ** 2))) > 20 * rms
 
 
@@ -164,6 +165,9 @@ def _data():
         (dict(principal_point_px=[700.0, 240.0]), r"principal_point_px \[700.0, 240.0\] must lie in the 640x480"),
         (dict(principal_point_px=[600.0, 240.0]), r"puts the tube's tip at pixel \(600.0, 240.0\), outside"),
         (dict(mask_radius_px=0.0), "mask_radius_px must be > 0"),
+        (dict(offset_m=[0.007, 0.001]), r"outside its bore \(radius 0.007 m"),
+        (dict(offset_m=[3.0, 0.0]), "not millimetres"),
+        (dict(tilt_rad=[0.0, 0.3]), r"tilt_rad \[0.0, 0.3\] must each lie in \[-0.2618, 0.2618\]"),
     ],
 )
 def test_a_lens_that_cannot_image_the_tube_is_refused(camera, message):
@@ -204,3 +208,35 @@ def test_the_fast_paths_point_cloud_lies_on_the_membrane_through_the_lens(spec):
     assert np.abs(off).max() < 0.05e-3  # the capsule's mesh is faceted at 0.5 mm edges
     v, u = np.nonzero(inside)
     assert np.allclose(project(P[inside], lens), np.c_[u, v], atol=1e-6)
+
+
+def test_the_tube_is_seated_against_the_camera_as_the_spec_says(spec):
+    """The camera's offset and tilt move the tube (membrane, glass) in the camera frame;
+    the LEDs stay on the camera's crown, and the reference places them against the tube."""
+    from pbr_tactile.scene import led_centres, led_places
+    from scenes.geometry import membrane_mesh
+    from scenes.spec import LED
+
+    tilt = (0.02, -0.03)
+    seated = _lens(spec, offset_m=(0.001, -0.0005), tilt_rad=tilt)
+    mesh, plain = membrane_mesh(seated), membrane_mesh(spec)
+    # the apex: the tube's axis point at tip_z, seen from the offset, tilted camera
+    ax, ay = tilt
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    apex = (rx @ ry).T @ (np.array([0.0, 0.0, spec.membrane.tip_z]) - [0.001, -0.0005, 0.0])
+    top = np.asarray(plain.vertices)[np.argmax(np.asarray(plain.vertices)[:, 2])]
+    moved = np.asarray(mesh.vertices)[np.argmax(np.asarray(plain.vertices)[:, 2])]
+    assert np.allclose(top, [0, 0, spec.membrane.tip_z], atol=1e-9) and np.allclose(moved, apex, atol=1e-9)
+    assert mesh.is_watertight == plain.is_watertight and len(mesh.faces) == len(plain.faces)
+    # an LED 6.5 mm either side of the camera, offset 1 mm along x: 5.5 mm and 7.5 mm from
+    # the tube's axis, in the bore (7 mm) and under the glass wall
+    led = dict(direction=(0.0, 0.0, 1.0), colour=(1.0, 0.0, 0.0), k_d=1.0, k_s=0.0)
+    two = seated.replace(camera=dataclasses.replace(seated.camera, offset_m=(0.001, 0.0), tilt_rad=(0.0, 0.0)),
+                         leds=(LED("a", position=(-0.0065, 0.0, -0.003), **led),
+                               LED("b", position=(0.0065, 0.0, -0.003), **led)))
+    assert led_places(two) == ["tube", "wall_end"]
+    centres = led_centres(two)
+    assert centres[0] == pytest.approx([-0.0065, 0.0, -0.003])
+    # under the wall: at mid-wall (8 mm from the tube's axis), 7 mm from the camera's
+    assert centres[1][0] == pytest.approx(0.008 - 0.001)
