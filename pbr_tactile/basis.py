@@ -19,6 +19,16 @@ from .effects import Effects
 #: Effects the basis is rendered with besides the grid's: the leak sources exist (their
 #: power is fitted) and the coating albedo is tied (it scales every source like a power).
 BASIS_EFFECTS = {"core_light_leak": 0.5}
+#: A no-contact basis is rendered this much wider than the spec's camera (its focal
+#: length over this), so that a fitted lens that sees wider than the spec's (an image
+#: scale down to 1 / BASIS_WIDER, a barrel) still reads rendered pixels.
+BASIS_WIDER = 1.3
+
+
+def basis_camera(camera: Camera) -> Camera:
+    """The camera a no-contact basis is rendered with: ``camera``'s lens, its focal
+    length over BASIS_WIDER."""
+    return dataclasses.replace(camera, f=camera.f / BASIS_WIDER)
 
 
 def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film: tuple[int, int],
@@ -48,9 +58,10 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     if (depth is None) != (ref_depth is None):
         raise ValueError("emitter_basis: a contact needs both depth and ref_depth")
     contact = [] if depth is None else [np.asarray(depth, np.float32), np.asarray(ref_depth, np.float32)]
+    own = camera == Camera.from_spec(spec)
     key = make_key("basis", 1, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
                    effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
-                   *([no_contact_runs] if no_contact_runs else []))
+                   *([no_contact_runs] if no_contact_runs else []), *([] if own else [dataclasses.asdict(camera)]))
 
     def build():
         est = reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,

@@ -19,13 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenes.camera import Camera
+from scenes.camera import Camera, lens_angle
 from scenes.images import block_mean
 from scenes.profile import Alignment, CameraProfile, Profile
 from scenes.spec import SensorSpec
 
 from . import calibrate_taps as ct
-from .basis import BASIS_EFFECTS, basis_layout, emitter_basis
+from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis
 from .effects import Effects
 from .fast_background import fit_fast_background
 from .image_model import ImageFit, ImageFitter, ImageModel, TapView, debiased
@@ -113,13 +113,16 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                          "rendered per LED, which is not built yet: calibrate from the no-contact image alone "
                          "(--taps 0)")
     rendered, arcs, spans, unit, share_of_span = basis_layout(spec)
+    # without taps the basis sees wider than the spec's camera, so the fitted lens may;
+    # a tap's change is rendered with the spec's camera, and so is its basis
+    wide = basis_camera(camera) if taps is None else camera
     points = _grid_points(grid)
     base = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
     fits = []
     for i, point in enumerate(points):
         effects = dataclasses.replace(base, **point)
-        basis = emitter_basis(rendered, mesh, camera, effects, film, photons, spp, passes, seed, use_cache)
-        model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans)
+        basis = emitter_basis(rendered, mesh, wide, effects, film, photons, spp, passes, seed, use_cache)
+        model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans, rendered=wide, lens=True)
         train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
         fit = ImageFitter(model, r, train, leak=leak).search()
         fits.append((debiased(fit, model, basis, [train]), point, basis, model))
@@ -145,9 +148,9 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     default = {name: getattr(Effects(), name) for name in grid}
     same = [b for _, p, b, _ in fits if p == default]
     default_basis = same[0] if same else emitter_basis(
-        rendered, mesh, camera, dataclasses.replace(base, **default), film, photons, spp, passes, seed, use_cache)
+        rendered, mesh, wide, dataclasses.replace(base, **default), film, photons, spp, passes, seed, use_cache)
     before = _uncalibrated(rendered, ImageModel(default_basis["mean"], default_basis["names"], camera, circle, arcs,
-                                                spans), r, train)
+                                                spans, rendered=wide), r, train)
     judged = {ch: test & ~clipped[..., c] for c, ch in enumerate("rgb")}
     heldout = {ch: r2(after[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
     heldout_before = {ch: r2(before[..., c], r[..., c], judged[ch]) for c, ch in enumerate("rgb")}
@@ -164,7 +167,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                         for u, o in zip(unit, share_of_span))
     profile = Profile(
         sensor=spec.name, leds=tuple(led.name for led in spec.leds),
-        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px, led_azimuth),
+        alignment=Alignment(nl.rotation_rad, nl.scale, nl.shift_px, led_azimuth, distortion=(nl.k1, camera.k2)),
         camera=CameraProfile(gamma=nl.gamma, offset=tuple(np.clip(fit.offset, 0.0, 1.0)),
                              saturation=tuple(CLIP_LEVEL if saturated[ch] else 1.0 for ch in "rgb"),
                              vignetting=nl.vignetting, image_circle=circle),
@@ -174,7 +177,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                    "spp": spp, "passes": passes, "seed": seed},
         phong={"ambient": 1.0, "background": fast_table},
         fit={"data": data, "converged": fit.converged, "heldout_r2": heldout,
-             "phong_heldout_r2": fast_path["heldout_r2"]})
+             "phong_heldout_r2": fast_path["heldout_r2"], "camera": fitted_camera(nl, camera)})
     report = {
         "converged": fit.converged, "loss": fit.loss, "start_loss": fit.start_loss, "evaluations": fit.evaluations,
         "heldout_r2": heldout, "heldout_r2_interval": r2_interval, "heldout_r2_before": heldout_before, "heldout_mae": mae,
@@ -183,6 +186,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "noise": f.noise, "converged": f.converged} for f, p, _, _ in fits],
         "best_effects": point, "parameters": _parameters(fit, tie=taps is None, spec=spec), "intervals": intervals,
+        "camera": fitted_camera(nl, camera), "on_bound": on_bound(fit.nl, model, leak),
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,
         "taps": tap_report,
     }
@@ -216,6 +220,37 @@ NOT_IDENTIFIABLE_WITH_TAPS = [
 ]
 
 
+def fitted_camera(nl, camera: Camera) -> dict:
+    """The real camera the fit found, as a spec's [camera] table states it (scenes.spec):
+    vertical field of view, principal point, lens (its image circle is the report's)."""
+    lens = nl.alignment(0.0, camera.k2).lens(camera)
+    fov = 2 * float(lens_angle(np.array((lens.height / 2) / lens.f), lens.k1, lens.k2, lens.projection))
+    return {"fov_y": fov, "fov_y_deg": math.degrees(fov), "principal_point_px": [lens.cx, lens.cy],
+            "distortion": [lens.k1, lens.k2], "projection": lens.projection}
+
+
+#: Nonlinear parameters whose bounds are physical limits, not the search's: a leak
+#: fraction in [0, 1], a lens that cannot brighten its edge (V(1) <= 1) or whose fall-off
+#: has no negative term, an arc no wider than the ring.
+PHYSICAL_LIMITS = ("leak", "edge_illumination", "quartic_share", "span_rad")
+
+
+def on_bound(nl, model: ImageModel, leak: bool, tolerance: float = 1e-3) -> dict[str, list[str]]:
+    """The searched nonlinear parameters that ended within ``tolerance`` of their range's
+    width of a bound: ``search`` (a range the fit chose, which the issue asks be widened
+    or explained) and ``physical`` (PHYSICAL_LIMITS: e.g. no leak at all)."""
+    z = nl.vector()
+    names = (["rotation_rad"] + [f"led_azimuth_rad[{i}]" for i in range(model.leds)]
+             + [f"leak[{i}]" for i in range(model.leds)] + ["log_scale", "shift_u", "shift_v", "edge_illumination",
+                                                              "quartic_share", "gamma"]
+             + [f"span_rad[{i}]" for i in range(len(nl.span_rad))] + ["k1"])
+    out = {"search": [], "physical": []}
+    for name, value, (lo, hi) in zip(names, z, model.bounds(leak and model.has_leak.any())):
+        if hi > lo and name != "rotation_rad" and min(value - lo, hi - value) <= tolerance * (hi - lo):
+            out["physical" if name.split("[")[0] in PHYSICAL_LIMITS else "search"].append(name)
+    return out
+
+
 def _parameters(fit: ImageFit, tie: bool = True, spec: SensorSpec | None = None) -> dict:
     """The fitted values as plain data, per unit (an LED, or an LED group); ``tie``: the
     rotation and azimuths tied (only one image: see NOT_IDENTIFIABLE), else the rotation
@@ -225,7 +260,7 @@ def _parameters(fit: ImageFit, tie: bool = True, spec: SensorSpec | None = None)
                                                                                             2 * math.pi))
     out = {"rotation_rad": nl.rotation_rad, "led_azimuth_rad": list(nl.led_azimuth_rad), "led_leak": list(nl.leak),
            "scale": nl.scale, "shift_px": list(nl.shift_px), "vignetting": list(nl.vignetting), "gamma": nl.gamma,
-           "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist()}
+           "led_gains": fit.gains.tolist(), "offset": fit.offset.tolist(), "k1": nl.k1}
     if nl.span_rad:
         out["arc_span_rad"] = list(nl.span_rad)
     if spec is not None and spec.led_groups:

@@ -49,6 +49,8 @@ from .real_image import CLIP_LEVEL
 AZIMUTH_BOUND_RAD = math.radians(25.0)
 SCALE_BOUNDS = (0.8, 1.25)
 SHIFT_BOUND_PX = 40.0
+#: The real lens' k1 (scenes.camera.lens_radius), where the fit searches it.
+K1_BOUNDS = (-0.5, 0.5)
 GAMMA_BOUNDS = (0.5, 3.0)
 #: The lens' fall-off V = 1 + a1 r^2 + a2 r^4 is searched as V(1) = 1 + a1 + a2 in
 #: [MIN_EDGE_ILLUMINATION, 1] and the r^4 share a2 / (a1 + a2) in [0, 1]: every value
@@ -79,6 +81,9 @@ class Nonlinear:
     gamma: float
     #: each unit's arc span, rad, where the basis' units are LED groups (ImageModel.arcs)
     span_rad: tuple[float, ...] = ()
+    #: the real lens' first radial distortion coefficient (scenes.camera.lens_radius; its
+    #: k2 is the spec's)
+    k1: float = 0.0
 
     def vector(self) -> np.ndarray:
         """The searched coordinates: the scale as its log, the fall-off as V(1) and its
@@ -86,7 +91,7 @@ class Nonlinear:
         total = -sum(self.vignetting)
         quartic = -self.vignetting[1] / total if total > 0 else 0.0
         return np.r_[self.rotation_rad, self.led_azimuth_rad, self.leak, math.log(self.scale), self.shift_px,
-                     1.0 - total, quartic, self.gamma, self.span_rad]
+                     1.0 - total, quartic, self.gamma, self.span_rad, self.k1]
 
     @classmethod
     def from_vector(cls, z: np.ndarray, leds: int, arcs: bool = False) -> Nonlinear:
@@ -97,7 +102,7 @@ class Nonlinear:
         return cls(float(z[0]), tuple(map(float, z[1:1 + n])), tuple(map(float, z[1 + n:1 + 2 * n])),
                    float(math.exp(z[1 + 2 * n])), (float(z[2 + 2 * n]), float(z[3 + 2 * n])),
                    (-total * (1.0 - quartic), -total * quartic), float(z[6 + 2 * n]),
-                   tuple(map(float, z[7 + 2 * n:7 + 3 * n])) if arcs else ())
+                   tuple(map(float, z[7 + 2 * n:7 + 3 * n])) if arcs else (), float(z[-1]))
 
     def tied(self) -> Nonlinear:
         """The same image with the LED azimuth offsets' mean moved into the rotation,
@@ -109,36 +114,51 @@ class Nonlinear:
                                    led_azimuth_rad=tuple(a - mean for a in self.led_azimuth_rad))
 
     @classmethod
-    def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0, span_rad: tuple = ()) -> Nonlinear:
-        """``span_rad``: the units' spans as the spec lays them out, where they are groups."""
-        return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2, tuple(span_rad))
+    def start(cls, leds: int, rotation_rad: float = 0.0, leak: float = 0.0, span_rad: tuple = (),
+              k1: float = 0.0) -> Nonlinear:
+        """``span_rad``: the units' spans as the spec lays them out, where they are groups;
+        ``k1``: the spec's lens'."""
+        return cls(rotation_rad, (0.0,) * leds, (leak,) * leds, 1.0, (0.0, 0.0), (0.0, 0.0), 2.2, tuple(span_rad),
+                   k1)
+
+    def alignment(self, turn: float = 0.0, k2: float = 0.0) -> Alignment:
+        """The membrane's alignment against the spec's camera (scenes.profile), turned by
+        ``turn`` rad more (an LED's azimuth), its lens' k2 given."""
+        return Alignment(self.rotation_rad + turn, self.scale, self.shift_px, distortion=(self.k1, k2))
 
 
-def _bounds(leds: int, leak: bool, arcs: list | None = None) -> list[tuple[float, float]]:
+def _bounds(leds: int, leak: bool, arcs: list | None = None, k1: float | None = None) -> list[tuple[float, float]]:
     """The search's bounds; ``arcs`` (ImageModel.arcs): a span in [0, 2 pi] for each
-    unit of more than one LED (a single LED's is fixed)."""
+    unit of more than one LED (a single LED's is fixed); ``k1``: the lens' k1 held
+    there, None: searched in K1_BOUNDS."""
     b = AZIMUTH_BOUND_RAD
     spans = [] if arcs is None else [(0.0, 2 * math.pi) if len(a) > 1 else (0.0, 0.0) for a in arcs]
     return ([(-4 * math.pi, 4 * math.pi)] + [(-b, b)] * leds + [(0.0, 1.0 if leak else 0.0)] * leds
             + [tuple(map(math.log, SCALE_BOUNDS))] + [(-SHIFT_BOUND_PX, SHIFT_BOUND_PX)] * 2
-            + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS] + spans)
+            + [(MIN_EDGE_ILLUMINATION, 1.0), (0.0, 1.0)] + [GAMMA_BOUNDS] + spans
+            + [K1_BOUNDS if k1 is None else (k1, k1)])
 
 
 class ImageModel:
     """The image model of the module doc at a film's resolution, for one basis."""
 
     def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None,
-                 arcs: list | None = None, spans: tuple = ()):
-        """basis (h, w, S) per unit flux of sources ``names``; ``arcs`` and ``spans``
-        (``basis_layout``): each unit's LEDs along its arc as shares of its span
-        (Nonlinear.span_rad, which starts at ``spans``), its source rendered at the arc's
-        centre; None: each unit is one LED."""
+                 arcs: list | None = None, spans: tuple = (), rendered: Camera | None = None, lens: bool = False):
+        """basis (h, w, S) per unit flux of sources ``names``, taken with the camera
+        ``rendered`` (default: ``camera``, the spec's; ``basis_camera`` sees wider, so the
+        fitted lens may too); ``arcs`` and ``spans`` (``basis_layout``): each unit's LEDs
+        along its arc as shares of its span (Nonlinear.span_rad, which starts at
+        ``spans``), its source rendered at the arc's centre; None: each unit is one LED.
+        ``lens``: the lens' k1 is fitted (else held at the spec's)."""
         self.A = np.asarray(basis, np.float64)
         self.h, self.w, self.S = self.A.shape
         self.led = led_of_source(names)
         self.leds = int(self.led.max()) + 1
         self.has_leak = np.array([str(n).endswith("_leak") for n in names])
         self.camera = camera
+        self.rendered = camera if rendered is None else rendered
+        self._lens_rays: tuple = (None, None)  # (the real lens, its rays at the film): ``moved``
+        self.lens = lens
         r = circle_radius(circle, (self.h, self.w), (camera.height, camera.width))
         self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
         self.r = np.minimum(r, 1.0)
@@ -154,8 +174,12 @@ class ImageModel:
         return Nonlinear.from_vector(z, self.leds, self.arcs is not None)
 
     def start(self, rotation_rad: float = 0.0, leak: float = 0.0) -> Nonlinear:
-        """A search's start: the LEDs where the spec has them."""
-        return Nonlinear.start(self.leds, rotation_rad, leak, self.spans)
+        """A search's start: the LEDs where the spec has them, its lens."""
+        return Nonlinear.start(self.leds, rotation_rad, leak, self.spans, self.camera.k1)
+
+    def bounds(self, leak: bool) -> list[tuple[float, float]]:
+        """The search's bounds (``_bounds``) for this model's units and lens."""
+        return _bounds(self.leds, leak, self.arcs, None if self.lens else self.camera.k1)
 
     def moved(self, image: np.ndarray, nl: Nonlinear, turn: float, variance: bool = False) -> np.ndarray:
         """(h, w) ``image`` turned by ``turn`` rad (an LED's azimuth; 0 for the membrane)
@@ -163,8 +187,12 @@ class ImageModel:
         back, unscale about the principal point). ``variance``: ``image`` is a variance map and
         the result the variance of the moved image (bilinear weights w: sum w^2 sigma^2,
         with sigma^2 taken as locally even), which interpolation lowers up to fourfold."""
-        turn = nl.rotation_rad + turn
-        coords = Alignment(0.0, nl.scale, nl.shift_px).sampling((self.h, self.w), self.camera, turn)
+        alignment = nl.alignment(turn, self.camera.k2)
+        # the real lens' rays are the same for every source of one evaluation: kept
+        lens = alignment.lens(self.camera)
+        if self._lens_rays[0] != lens:
+            self._lens_rays = (lens, lens.scaled(self.w, self.h).slopes())
+        coords = alignment.sampling((self.h, self.w), self.camera, rendered=self.rendered, slopes=self._lens_rays[1])
         out = ndimage.map_coordinates(image, coords, order=1, mode="nearest")
         if variance:
             f = coords - np.floor(coords)
@@ -201,8 +229,8 @@ class ImageModel:
         key = (k, turns)
         if images is self.A and key in self._arcs:
             return self._arcs[key]
-        still = Alignment(0.0, 1.0, (0.0, 0.0))
-        out = sum(ndimage.map_coordinates(images[..., k], still.sampling((self.h, self.w), self.camera, t), order=1,
+        still = Alignment()
+        out = sum(ndimage.map_coordinates(images[..., k], still.sampling((self.h, self.w), self.rendered, t), order=1,
                                           mode="nearest") for t in turns)
         if images is self.A:
             if len(self._arcs) >= ARC_CACHE:
@@ -383,7 +411,7 @@ class ImageFitter:
         """Bounded least squares over the nonlinear parameters from ``start`` (the gains
         solved inside every evaluation: variable projection)."""
         leds = self.model.leds
-        bounds = np.array(_bounds(leds, self.leak and self.model.has_leak.any(), self.model.arcs))
+        bounds = np.array(self.model.bounds(self.leak and self.model.has_leak.any()))
         free = bounds[:, 1] > bounds[:, 0]
         z0 = np.clip(start.vector(), bounds[:, 0], bounds[:, 1])
         if self.common_turn:

@@ -34,9 +34,10 @@ def profiled_image(per_source: np.ndarray, names, profile: Profile, camera: Came
     try:
         gains = np.asarray(ref["led_gains"], np.float64)
         leds = len(ref["led_leak"])
+        k1 = camera.k1 if profile.alignment.distortion is None else profile.alignment.distortion[0]
         nl = Nonlinear(profile.alignment.rotation_rad, (0.0,) * leds, tuple(ref["led_leak"]),
                        profile.alignment.scale, profile.alignment.shift_px, profile.camera.vignetting,
-                       profile.camera.gamma)
+                       profile.camera.gamma, k1=float(k1))
     except KeyError as exc:
         raise ValueError(f"the profile has no reference.{exc.args[0]}: it was not calibrated for the reference") from None
     model = ImageModel(per_source, names, camera, profile.camera.image_circle)

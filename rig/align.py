@@ -386,9 +386,9 @@ def _numbers(value, n: int | None, key: str) -> list[float]:
 
 
 def _plain(value):
-    """Tuples -> lists, recursively (JSON-ready)."""
+    """Tuples -> lists, recursively (JSON-ready); unset (None) entries left out."""
     if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
+        return {k: _plain(v) for k, v in value.items() if v is not None}
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     return value

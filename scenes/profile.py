@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .spec import SensorSpec, read_toml
+from .camera import Camera, project
+from .spec import DISTORTION_BOUND, SensorSpec, read_toml
 
 #: Bump when the meaning of a table changes; older profiles are refused.
 PROFILE_VERSION = 2
@@ -85,13 +85,17 @@ def relative_illumination(vignetting: tuple[float, float], r: np.ndarray) -> np.
 
 @dataclass(frozen=True)
 class Alignment:
-    """The membrane image against the spec's camera (see the module doc)."""
+    """The membrane image against the spec's camera (see the module doc): the real
+    camera is the spec's with its focal length times ``scale``, its principal point moved
+    by ``shift_px`` and, where given, its lens' ``distortion`` (k1, k2; None: the spec's),
+    the membrane turned by ``rotation_rad`` about the optical axis."""
 
     rotation_rad: float = 0.0
     scale: float = 1.0
     shift_px: tuple[float, float] = (0.0, 0.0)
     #: Each LED's turn about the sensor's axis (rad), in the spec's LED order; () none.
     led_azimuth_rad: tuple[float, ...] = ()
+    distortion: tuple[float, float] | None = None
 
     def __post_init__(self):
         if not (math.isfinite(self.rotation_rad) and SCALE_RANGE[0] <= self.scale <= SCALE_RANGE[1]):
@@ -99,27 +103,39 @@ class Alignment:
                              f"{self.rotation_rad} and {self.scale}")
         _vector(self.shift_px, 2, "alignment.shift_px")
         _vector(self.led_azimuth_rad, len(self.led_azimuth_rad), "alignment.led_azimuth_rad", lo=-math.pi, hi=math.pi)
+        if self.distortion is not None:
+            _vector(self.distortion, 2, "alignment.distortion", lo=-DISTORTION_BOUND, hi=DISTORTION_BOUND)
 
-    def sampling(self, shape: tuple[int, int], camera: Camera, rotation_rad: float | None = None) -> np.ndarray:
+    def lens(self, camera: Camera) -> Camera:
+        """The real camera this alignment says ``camera`` (the spec's) is."""
+        k1, k2 = (camera.k1, camera.k2) if self.distortion is None else self.distortion
+        return dataclasses.replace(camera, f=camera.f * self.scale, cx=camera.cx + self.shift_px[0],
+                                   cy=camera.cy + self.shift_px[1], k1=float(k1), k2=float(k2))
+
+    def sampling(self, shape: tuple[int, int], camera: Camera, rotation_rad: float | None = None,
+                 rendered: Camera | None = None, slopes: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(2, h, w) where each pixel of an aligned image at ``shape`` samples the spec's
-        image (rows, columns; for scipy.ndimage.map_coordinates): the inverse of the
-        rotation (``rotation_rad``, default this alignment's), scale and shift about the
-        principal point of ``camera`` (the spec's, at its full resolution)."""
+        image (rows, columns; for scipy.ndimage.map_coordinates): its ray through the real
+        camera (``lens`` of ``camera``, the spec's at its full resolution), turned back by
+        the rotation (``rotation_rad``, default this alignment's) about the optical axis,
+        projected through ``rendered`` (the camera the image was taken with; default
+        ``camera``). NaN-free: a pixel no ray reaches samples far outside. ``slopes``:
+        the real camera's rays at ``shape`` (``Camera.slopes``), where already known."""
         h, w = shape
-        s = h / camera.height
-        cx, cy = (camera.cx + 0.5) * s - 0.5, (camera.cy + 0.5) * s - 0.5
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-        x, y = u - cx - self.shift_px[0] * s, v - cy - self.shift_px[1] * s
+        x, y = self.lens(camera).scaled(w, h).slopes() if slopes is None else slopes
         a = self.rotation_rad if rotation_rad is None else rotation_rad
         c, sn = math.cos(a), math.sin(a)
-        return np.stack([(-sn * x + c * y) / self.scale + cy, (c * x + sn * y) / self.scale + cx])
+        turned = np.stack([c * x + sn * y, -sn * x + c * y, np.ones_like(x)], axis=-1)
+        uv = project(turned, (rendered or camera).scaled(w, h))
+        return np.nan_to_num(np.stack([uv[..., 1], uv[..., 0]]), nan=-1e6)
 
     def moved(self, u: np.ndarray, v: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         """Where points (u, v) of the spec's image (``camera``'s pixels) appear in the
         aligned image: the forward map that ``sampling`` inverts."""
+        x, y = camera.slopes(np.asarray(u, np.float64), np.asarray(v, np.float64))
         c, s = math.cos(self.rotation_rad), math.sin(self.rotation_rad)
-        x, y = (np.asarray(u, np.float64) - camera.cx) * self.scale, (np.asarray(v, np.float64) - camera.cy) * self.scale
-        return c * x - s * y + camera.cx + self.shift_px[0], s * x + c * y + camera.cy + self.shift_px[1]
+        uv = project(np.stack([c * x - s * y, s * x + c * y, np.ones_like(x)], axis=-1), self.lens(camera))
+        return uv[..., 0], uv[..., 1]
 
 
 @dataclass(frozen=True)
@@ -251,7 +267,7 @@ def profile_from_dict(data: dict, where: str = "profile") -> Profile:
             if key in camera:
                 camera[key] = tuple(camera[key])
         alignment = dict(data.get("alignment", {}))
-        for key in ("shift_px", "led_azimuth_rad"):
+        for key in ("shift_px", "led_azimuth_rad", "distortion"):
             if key in alignment:
                 alignment[key] = tuple(alignment[key])
         return Profile(sensor=str(sensor["name"]), leds=tuple(sensor["leds"]), alignment=Alignment(**alignment),

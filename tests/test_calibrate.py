@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import dataclasses
 import math
 
 import numpy as np
@@ -178,6 +179,54 @@ def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
     np.testing.assert_allclose(np.roll(fit.nl.leak, shift), truth.leak, atol=0.08)
 
 
+def test_the_alignments_lens_is_the_cameras_lens(spec):
+    """Another mechanism: an image of the membrane rendered by a camera with a barrel lens,
+    a wider field and a moved principal point (``lens_resample`` of a pinhole's view) is
+    the spec's pinhole image moved by the Alignment that says so."""
+    from scenes.camera import Camera, lens_resample
+    from scenes.profile import Alignment, align_image
+
+    pinhole = Camera.from_spec(spec).scaled(160, 120)
+    alignment = Alignment(0.0, 0.9, (6.0, -4.0), distortion=(-0.06, 0.0))
+    real = alignment.lens(Camera.from_spec(spec)).scaled(160, 120)
+    # a smooth pattern on the pinhole's view, wide enough to hold the lens' rays
+    wide = dataclasses.replace(pinhole, f=pinhole.f / 1.5)
+    x, y = wide.slopes()
+    pattern = (x**3 - 3 * x * y**2) * np.exp(-(x**2 + y**2)) + 0.2 * x
+    seen = lens_resample(pattern, real, wide)
+    moved = alignment.sampling((120, 160), Camera.from_spec(spec), rendered=Camera.from_spec(spec).scaled(160, 120))
+    assert moved.shape == (2, 120, 160)
+    via = align_image(lens_resample(pattern, pinhole, wide), alignment, Camera.from_spec(spec))
+    inside = real.mask & (moved[0] > 1) & (moved[0] < 118) & (moved[1] > 1) & (moved[1] < 158)
+    assert inside.sum() > 8000
+    assert np.abs(via - seen)[inside].max() < 0.02
+    # and the forward map inverts the sampling
+    v, u = np.nonzero(inside)
+    uo, vo = alignment.moved(moved[1][v, u] * 4 + 1.5, moved[0][v, u] * 4 + 1.5, Camera.from_spec(spec))
+    assert np.abs((uo + 0.5) / 4 - 0.5 - u).max() < 1e-6 and np.abs((vo + 0.5) / 4 - 0.5 - v).max() < 1e-6
+
+
+def test_fit_recovers_a_lens_that_sees_wider_than_the_basis(camera):
+    """The real lens a barrel (k1 < 0) of a shorter focal length than the spec's: fitted
+    from a basis rendered wider (``basis_camera``), its k1 and scale come back."""
+    from pbr_tactile.basis import basis_camera
+
+    wide = basis_camera(camera)
+    A, names = _synthetic_basis(45, 60, camera=camera)
+    model = im.ImageModel(A, names, camera, (321.0, 241.0, 236.0), rendered=wide, lens=True)
+    # it sees 1.18 focal lengths out at the circle's edge, which the basis holds (1.3)
+    truth = im.Nonlinear(rotation_rad=0.4, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=0.92,
+                          shift_px=(4.0, -3.0), vignetting=(-0.3, 0.0), gamma=1.6, k1=-0.06)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.5
+    real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, 1.0))
+    train = model.inside
+    fit = im.ImageFitter(model, real, train).fit(model.start(0.4, 0.3))
+    assert fit.converged
+    assert abs(fit.nl.k1 - truth.k1) < 0.005 and abs(fit.nl.scale - truth.scale) < 0.005
+    held = im.ImageModel(A, names, camera, (321.0, 241.0, 236.0), rendered=wide)
+    assert held.bounds(True)[-1] == (0.0, 0.0)  # without ``lens`` the spec's k1 is kept
+
+
 def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, spec, monkeypatch):
     """The sensor's own point, rendered noisily, against a clean point that is slightly
     wrong: the raw loss prefers the clean one, the loss less the basis' predicted noise
@@ -193,7 +242,10 @@ def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, sp
                     "response": np.ones((len(names), 3))},
              50.0: {"mean": wrong, "variance": np.zeros_like(A), "names": names, "response": np.ones((len(names), 3))}}
     monkeypatch.setattr(cal, "emitter_basis", lambda spec_, mesh, camera_, effects, *a, **k: bases[effects.scattering_per_m])
-    model = im.ImageModel(A, names, camera, None)
+    # the calibration renders its no-contact basis wider than the camera (basis_camera)
+    from pbr_tactile.basis import basis_camera
+
+    model = im.ImageModel(A, names, camera, None, rendered=basis_camera(camera))
     truth = im.Nonlinear(rotation_rad=0.7, led_azimuth_rad=(0.0, 0.0, 0.0), leak=(0.3, 0.5, 0.2), scale=1.0,
                           shift_px=(0.0, 0.0), vignetting=(-0.3, 0.0), gamma=1.8)
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.15  # nothing clipped
