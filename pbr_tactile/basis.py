@@ -49,6 +49,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
+    from .photons import CAMERA_PASS_VERSION
     from .render import reference, source_response
     from .scene import led_sources
     from .variant import choose_variant
@@ -59,7 +60,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
         raise ValueError("emitter_basis: a contact needs both depth and ref_depth")
     contact = [] if depth is None else [np.asarray(depth, np.float32), np.asarray(ref_depth, np.float32)]
     own = camera == Camera.from_spec(spec)
-    key = make_key("basis", 1, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
+    key = make_key("basis", 1, CACHE_VERSION, CAMERA_PASS_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
                    effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
                    *([no_contact_runs] if no_contact_runs else []), *([] if own else [dataclasses.asdict(camera)]))
 

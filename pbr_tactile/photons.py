@@ -68,8 +68,9 @@ class Source:
     With a ``cone_axis`` (unit (3,)) the source is directional instead: its photons leave
     the sphere's point on that axis, uniformly in solid angle within ``cone_half_angle_rad``
     of it (constant radiant intensity inside the cone, none outside), carrying the same
-    total flux. Seen directly by the camera it is dark (the camera pass does not model its
-    radiance; the core leak it stands for sits in the glass wall, outside the camera's view).
+    total flux. Seen by the camera (directly, or in the glass' reflection) its sphere has
+    the radiance that gives that intensity, I / (pi r^2) towards directions inside the cone
+    and none outside (``seen_radiance``).
     """
 
     centre: tuple[float, float, float]
@@ -94,6 +95,15 @@ class Source:
     @property
     def directional(self) -> bool:
         return self.cone_axis is not None
+
+    def seen_radiance(self) -> float:
+        """The radiance per unit flux of its sphere where the camera sees it: a Lambertian
+        sphere's 1 / (pi A); a directional source's I / (pi r^2) = 1 / (Omega pi r^2) towards
+        the cone's solid angle Omega, none outside it (``_camera_hit``)."""
+        if not self.directional:
+            return 1.0 / (math.pi * 4 * math.pi * self.radius**2)
+        omega = 2 * math.pi * (1 - math.cos(self.cone_half_angle_rad))
+        return 1.0 / (omega * math.pi * self.radius**2)
 
     def key(self) -> tuple:
         """What the light pass depends on, for cache keys."""
@@ -492,6 +502,11 @@ def irradiance(flux: np.ndarray, vertex_area: np.ndarray, kernel) -> np.ndarray:
     return (kernel @ flux.T).T / (kernel @ vertex_area)
 
 
+#: Bump when the camera pass changes what a pixel sees (2: beam LEDs seen inside their
+#: cone): every cache of rendered images (bases, dataset frames, studies) keys on it.
+CAMERA_PASS_VERSION = 2
+
+
 def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
                 coating_albedo: float, spp: int, seed: int = 0, batch: int = 1 << 21,
                 scatter_split: int = SCATTER_SPLIT) -> np.ndarray:
@@ -523,8 +538,9 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     interfaces = _interfaces(mi, scene)
     E = [mi.Float(m) for m in maps]
     emitters = [mi.ShapePtr(_shape(scene, src.name)) for src in sources]
-    # A directional source's radiance is not modelled where the camera sees it (see Source).
-    inv_area = [0.0 if src.directional else 1.0 / (math.pi * 4 * math.pi * src.radius**2) for src in sources]
+    # each source's radiance where seen, and the cone it shines into (Source.seen_radiance)
+    inv_area = [(src.seen_radiance(), None if not src.directional else
+                 (mi.Vector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]
     sensor = scene.sensors()[0]
     width, height = (int(v) for v in sensor.film().crop_size())
     side = math.isqrt(spp) if math.isqrt(spp) ** 2 == spp else 1
@@ -549,7 +565,8 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         # First hit: both Fresnel branches, as two lanes per camera sample.
         pi = scene.ray_intersect_preliminary(ray, False)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
-        T = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, si.is_valid(), mi.Float(1.0), coating_albedo)
+        T = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, si.is_valid(), mi.Float(1.0), coating_albedo,
+                        direction=ray.d)
         dielectric, eta = _dielectric(mi, dr, si, si.is_valid(), interfaces)
         F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
         enters = (si.shape == c.core)
@@ -590,16 +607,23 @@ def _concat(mi, dr, a, b):
     return dr.select(first, dr.gather(type(a), a, index, first), dr.gather(type(a), b, index - n, ~first))
 
 
-def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, count_leds=True):
+def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, count_leds=True,
+                direction=None):
     """Radiance per unit flux of each source, seen at a hit: the coating's (rho/pi) e_m
-    interpolated on the hit face, or an LED's 1 / (pi A_m) where ``count_leds``."""
+    interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``inv_area``
+    holds it and, for a directional source, its cone's axis and cosine) where
+    ``count_leds``, a directional one's only where ``direction`` (the ray's) leaves it
+    inside its cone."""
     hit_coating = surface & (si.shape == c.coating)
     corners, bary = _corners(mi, c.faces, pi, hit_coating)
     out = []
-    for e, emitter, inv in zip(E, emitters, inv_area):
+    for e, emitter, (inv, cone) in zip(E, emitters, inv_area):
         irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
         t = dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
-        out.append(t + dr.select(surface & count_leds & (si.shape == emitter), beta * inv, 0.0))
+        lit = surface & count_leds & (si.shape == emitter)
+        if cone is not None:
+            lit = lit & (dr.dot(-direction, cone[0]) >= cone[1])
+        out.append(t + dr.select(lit, beta * inv, 0.0))
     return out
 
 
@@ -610,13 +634,15 @@ def _led_nee(mi, dr, scene, leds, emitters, inv_area, point, beta, sampler, acti
     exp(-sigma_t t). Light reaching the point through an interface is not included (the
     walk itself finds it). Returns radiance per unit flux per source."""
     out = []
-    for src, emitter, inv in zip(leds, emitters, inv_area):
+    for src, emitter, (inv, cone) in zip(leds, emitters, inv_area):
         to_led = mi.Point3f(*src.centre) - point
         dist = dr.norm(to_led)
         cos_max = dr.safe_sqrt(1 - dr.square(src.radius / dr.maximum(dist, src.radius * (1 + 1e-6))))
         d = mi.Frame3f(to_led / dist).to_world(mi.warp.square_to_uniform_cone(sampler.next_2d(active), cos_max))
         si = scene.ray_intersect(mi.Ray3f(point, d), mi.RayFlags.Minimal, False, active)
         seen = active & si.is_valid() & (si.shape == emitter)
+        if cone is not None:  # a directional source lights only the points inside its cone
+            seen = seen & (dr.dot(-d, cone[0]) >= cone[1])
         weight = beta * inv / (4 * math.pi) * 2 * math.pi * (1 - cos_max) * dr.exp(-sigma_t * si.t)
         out.append(dr.select(seen, weight, 0.0))
     return out
@@ -649,7 +675,7 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, samp
             travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
             beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
         surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, ~after)
+        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, ~after, ray.d)
         T = [t + dt for t, dt in zip(T, seen)]
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
         wo, transmitted, _, eta_ti = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))

@@ -42,6 +42,7 @@ from scenes.spec import SensorSpec
 from .effects import Effects
 from .membrane import shared_builder
 from .nocontact import CACHE_VERSION
+from .photons import CAMERA_PASS_VERSION
 from .render import (
     MIN_PASSES,
     Control,
@@ -214,8 +215,8 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
                   and not (k == "led_power" and v is None)}  # the LEDs' own powers: the keys frames had before
     frame_opts["effects"] = effects.to_dict()  # the frame has every pass; the unit's spec is in the key
     frame_opts["per_source"] = profile is not None
-    key = make_key(FRAME_VERSION, CACHE_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
-                   np.asarray(mesh.faces), frame_opts)
+    key = make_key(FRAME_VERSION, CACHE_VERSION, CAMERA_PASS_VERSION, variant, dataclasses.asdict(spec),
+                   np.asarray(mesh.vertices), np.asarray(mesh.faces), frame_opts)
     width, height = opts["film"]
 
     def build():

@@ -147,3 +147,39 @@ def test_the_guided_leak_lights_the_tip_more_than_the_lambertian_one(mesh, spec,
         assert np.isfinite(flux).all() and (flux >= 0).all() and flux.sum() > 0
         share[cone] = float(flux[:, z > junction].sum() / flux.sum())
     assert share[0.33] > 2 * share[0.0]
+
+
+def test_a_directional_leds_radiance_is_seen_only_inside_its_cone():
+    """A beam LED is a sphere of radiance I / (pi r^2) towards its cone and dark outside it:
+    as wide as the sphere, the Lambertian sphere's radiance."""
+    base = dict(centre=(0.0, 0.0, 0.0), radius=1e-3, peak_nm=None, fwhm_nm=None, scale=1.0, in_elastomer=False,
+                name="s")
+    lambertian = Source(**base).seen_radiance()
+    assert lambertian == pytest.approx(1.0 / (math.pi * 4 * math.pi * 1e-6))
+    assert Source(**base, cone_axis=(0.0, 0.0, 1.0), cone_half_angle_rad=math.pi).seen_radiance() == \
+        pytest.approx(lambertian)
+    narrow = Source(**base, cone_axis=(0.0, 0.0, 1.0), cone_half_angle_rad=0.3).seen_radiance()
+    assert narrow == pytest.approx(lambertian * 4 * math.pi / (2 * math.pi * (1 - math.cos(0.3))))
+
+
+def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh):
+    """Rendered: an LED in the tube 5 mm in front of the camera, its 30 deg beam aimed at the
+    lens or away from it. Facing it, the LED outshines the membrane in the pixel it sits
+    in; turned away, that pixel is the membrane's (the camera pass used to leave every
+    beam LED dark, so a real unit's LEDs never showed in the glass' reflections)."""
+    _vectorised()
+    from pbr_tactile.render import reference
+    from scenes.camera import Camera
+    from scenes.spec import LED
+
+    camera = Camera.from_spec(spec)
+    pixel = {}
+    for name, direction in (("facing", (0.0, 0.0, -1.0)), ("away", (0.0, 0.0, 1.0))):
+        one = spec.replace(leds=(LED("led", position=(0.0, 0.0, 0.005), direction=direction, colour=(1.0, 1.0, 1.0),
+                                     k_d=1.0, k_s=0.0, peak_nm=620.0, fwhm_nm=20.0,
+                                     beam_half_angle_rad=math.radians(30)),), led_groups=())
+        est = reference(None, None, mesh, one, camera, Effects(), spp=16, passes=2, width=15, height=11,
+                        photons=1 << 14, seed=3)
+        pixel[name] = float(est.mean[5, 7].sum())
+        assert np.isfinite(est.mean).all()
+    assert pixel["facing"] > 10 * pixel["away"] > 0
