@@ -47,9 +47,10 @@ def bench_pbr(spec: SensorSpec, width: int = 320, height: int = 240, photons: in
     results = {}
     flat = elastomer(mesh, spec, camera)
     with tempfile.TemporaryDirectory(prefix="tactile-bench-") as folder:
-        scene = geltip_scene(write_meshes(solid, folder), spec, camera, effects, width, height, spp=4, seed=seed)
+        wall = spec.membrane.glass_wall
+        scene = geltip_scene(write_meshes(solid, folder, wall), spec, camera, effects, width, height, spp=4, seed=seed)
         # As pbr_tactile.render.reference does: the undeformed membrane sets the window.
-        pilot_scene = geltip_scene(write_meshes(flat, f"{folder}/undeformed"), spec, camera, effects, width,
+        pilot_scene = geltip_scene(write_meshes(flat, f"{folder}/undeformed", wall), spec, camera, effects, width,
                                    height, spp=4, seed=seed)
 
         def run(runs: int):

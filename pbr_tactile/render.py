@@ -502,7 +502,7 @@ def reference(
     build = solids if solids is not None else shared_builder(membrane, spec, camera)
     solid = build(depth, ref_depth)
     with tempfile.TemporaryDirectory(prefix="tactile-pbr-") as folder:
-        meshes = write_meshes(solid, folder)
+        meshes = write_meshes(solid, folder, spec.membrane.glass_wall)
         scene = geltip_scene(meshes, spec, camera, effects, width, height, spp=spp, seed=seed, led_power=led_power)
         if estimator == "photons":
             light_scene = flat_scene = None
@@ -511,7 +511,7 @@ def reference(
                 # contact (common random numbers with the no-contact frame) and, with
                 # contact_shadow off, is what the light sees: no shadow, no guiding by
                 # the dent; only the camera sees it.
-                flat = write_meshes(build(), f"{folder}/undeformed")
+                flat = write_meshes(build(), f"{folder}/undeformed", spec.membrane.glass_wall)
                 flat_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed,
                                           led_power=led_power)
                 if not effects.contact_shadow:

@@ -22,14 +22,14 @@ import numpy as np
 import trimesh
 
 from scenes.camera import Camera
-from scenes.spec import GLASS_WALL_M, LED, SensorSpec
+from scenes.spec import GLASS_IOR, GLASS_WALL_M, LED, SensorSpec
 
 from .effects import Effects
 from .membrane import Elastomer
 from .spectra import CAMERA_BANDS_NM, gaussian, led_spectrum, mitsuba_spectrum
 
 #: Refractive indices (dimensionless): silicone elastomer, glass core, air.
-IOR_SILICONE, IOR_GLASS, IOR_AIR = 1.41, 1.49, 1.0
+IOR_SILICONE, IOR_AIR = 1.41, 1.0
 #: Radius of each LED's spherical emitter, metres.
 LED_RADIUS_M = 0.35e-3
 #: An LED under the glass wall's end emits from this far up inside the wall, metres.
@@ -127,7 +127,7 @@ def led_places(spec: SensorSpec) -> list[str]:
     simulation's LEDs ring the membrane), "tube" (in the air inside the glass tube, where
     it is) or "wall_end" (under the glass wall's end, below the membrane's base: its
     light enters the wall and is guided up it, so it emits from inside the wall's foot)."""
-    inner = spec.membrane.core_radius - GLASS_WALL_M
+    inner = spec.membrane.core_radius - spec.membrane.glass_wall
     places = []
     for position in _tube_frame(spec, [led.position for led in spec.leds]):
         r = math.hypot(position[0], position[1])
@@ -146,7 +146,7 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
         if place == "elastomer":
             out[k, :2] = unit[k] * (m.core_radius + 0.5 * (m.radius - m.core_radius))
         elif place == "wall_end":
-            out[k] = [*(unit[k] * (m.core_radius - 0.5 * GLASS_WALL_M)), m.base_z + WALL_FOOT_M]
+            out[k] = [*(unit[k] * (m.core_radius - 0.5 * m.glass_wall)), m.base_z + WALL_FOOT_M]
     return _camera_frame(spec, out)
 
 
@@ -163,14 +163,15 @@ def _camera_frame(spec: SensorSpec, points) -> np.ndarray:
     return np.asarray(points, np.float64).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
 
 
-def led_beam(led: LED, place: str) -> tuple[tuple[float, float, float] | None, float]:
+def led_beam(led: LED, place: str, glass_ior: float = GLASS_IOR) -> tuple[tuple[float, float, float] | None, float]:
     """An LED's emitter's (cone axis, half-angle rad), where it emits from ``place``
-    (``led_places``): its beam about its direction, refracted into the glass where it
-    enters the wall's end (Snell: a Lambertian LED's light fills the glass's critical
+    (``led_places``): its beam about its direction, refracted into the glass (of
+    ``glass_ior``) where it enters the wall's end (Snell: a Lambertian LED's light fills
+    the glass's critical
     cone); (None, 0) for a Lambertian emitter."""
     beam = led.beam_half_angle_rad
     if place == "wall_end":
-        beam = math.asin(math.sin(beam if beam is not None else math.pi / 2) * IOR_AIR / IOR_GLASS)
+        beam = math.asin(math.sin(beam if beam is not None else math.pi / 2) * IOR_AIR / glass_ior)
     return (None, 0.0) if beam is None else (tuple(map(float, led.direction)), float(beam))
 
 
@@ -193,7 +194,7 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
     # up the tube's axis, in the camera frame
     up = tuple(map(float, spec.camera.tube_to_camera()[:3, :3] @ np.asarray(LEAK_AXIS, np.float64)))
     for m, (led, centre, power) in enumerate(zip(spec.leds, led_centres(spec), led_powers(spec, led_power))):
-        axis, half_angle = led_beam(led, places[m])
+        axis, half_angle = led_beam(led, places[m], spec.membrane.glass_ior)
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak
@@ -203,7 +204,7 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
                             "scale": power * (1 - leak), "in_elastomer": places[m] == "elastomer",
                             "cone_axis": axis, "cone_half_angle_rad": half_angle})
         if leak > 0:
-            r = spec.membrane.core_radius - GLASS_WALL_M / 2
+            r = spec.membrane.core_radius - spec.membrane.glass_wall / 2
             tube = _tube_frame(spec, centre)[0]
             tube[:2] *= r / max(np.linalg.norm(tube[:2]), 1e-12)
             inside = _camera_frame(spec, tube)[0]
@@ -267,13 +268,13 @@ def geltip_scene(
     scene["coating"] = {"type": "ply", "filename": meshes["coating"], "bsdf": _coating(effects), **inside}
     scene["core"] = {
         "type": "ply", "filename": meshes["core"],
-        "bsdf": {"type": "dielectric", "int_ior": IOR_SILICONE, "ext_ior": IOR_GLASS}, **inside,
+        "bsdf": {"type": "dielectric", "int_ior": IOR_SILICONE, "ext_ior": spec.membrane.glass_ior}, **inside,
     }
     black = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
     scene["base"] = {"type": "ply", "filename": meshes["base"], "bsdf": black, **inside}
     scene["glass_inner"] = {
         "type": "ply", "filename": meshes["glass_inner"],
-        "bsdf": {"type": "dielectric", "int_ior": IOR_GLASS, "ext_ior": IOR_AIR},
+        "bsdf": {"type": "dielectric", "int_ior": spec.membrane.glass_ior, "ext_ior": IOR_AIR},
     }
     scene["glass_base"] = {"type": "ply", "filename": meshes["glass_base"], "bsdf": black}
     for k, src in enumerate(led_sources(spec, effects, led_power)):

@@ -16,9 +16,13 @@ DEFAULT_SPEC_PATH = Path(__file__).with_name("geltip.toml")
 
 #: Largest plausible sensor dimension in metres; anything larger is a unit mistake.
 MAX_SENSOR_SIZE_M = 1.0
-#: Thickness of the glass tube's wall under the membrane, m: the tube's inner radius is
-#: ``membrane.core_radius`` less this.
+#: Thickness of the glass tube's wall under the membrane, m (``membrane.glass_wall``'s
+#: default): the tube's inner radius is ``membrane.core_radius`` less this.
 GLASS_WALL_M = 2.0e-3
+#: The glass' refractive index (``membrane.glass_ior``'s default): borosilicate.
+GLASS_IOR = 1.49
+#: Refractive indices a spec may state for the glass.
+GLASS_IOR_BOUNDS = (1.3, 2.0)
 #: The camera's vertical field of view, rad, and each radial distortion coefficient's
 #: magnitude: the range a spec (and a calibration) may state.
 FOV_Y_BOUNDS = (math.radians(10.0), math.radians(170.0))
@@ -43,6 +47,8 @@ class MembraneSpec:
     core_radius: float = 0.009  # m
     mesh_edge: float = 0.0005  # m
     mesh_path: str | None = None
+    glass_wall: float = GLASS_WALL_M  # m, the glass tube's wall under the membrane
+    glass_ior: float = GLASS_IOR  # -, its refractive index
 
     @property
     def tip_z(self) -> float:
@@ -258,8 +264,10 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         ),
         mesh_edge=_positive(_take(m, "mesh_edge", float, f"{source}: membrane", 0.0005), "membrane.mesh_edge"),
         mesh_path=m.get("mesh_path"),
+        glass_wall=_positive(_take(m, "glass_wall", float, f"{source}: membrane", GLASS_WALL_M), "membrane.glass_wall"),
+        glass_ior=_take(m, "glass_ior", float, f"{source}: membrane", GLASS_IOR),
     )
-    for name in ("radius", "cylinder_length", "core_radius", "mesh_edge"):
+    for name in ("radius", "cylinder_length", "core_radius", "mesh_edge", "glass_wall"):
         value = getattr(membrane, name)
         if abs(value) > MAX_SENSOR_SIZE_M:
             raise ValueError(
@@ -271,6 +279,12 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         raise ValueError(
             f"{source}: membrane.core_radius ({membrane.core_radius}) must be < radius ({membrane.radius})"
         )
+    if membrane.glass_wall >= membrane.core_radius:
+        raise ValueError(f"{source}: membrane.glass_wall ({membrane.glass_wall} m) must be thinner than the tube's "
+                         f"outer radius core_radius ({membrane.core_radius} m)")
+    if not GLASS_IOR_BOUNDS[0] <= membrane.glass_ior <= GLASS_IOR_BOUNDS[1]:
+        raise ValueError(f"{source}: membrane.glass_ior must be a glass' refractive index in "
+                         f"[{GLASS_IOR_BOUNDS[0]}, {GLASS_IOR_BOUNDS[1]}], got {membrane.glass_ior}")
     if shape == "mesh" and not membrane.mesh_path:
         raise ValueError(f"{source}: membrane.shape = 'mesh' needs membrane.mesh_path")
 
@@ -362,7 +376,7 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     if max(map(abs, camera.distortion)) > DISTORTION_BOUND:
         raise ValueError(f"{where}.distortion (k1, k2) must each lie in [-{DISTORTION_BOUND}, {DISTORTION_BOUND}], "
                          f"got {list(camera.distortion)}")
-    bore = membrane.core_radius - GLASS_WALL_M
+    bore = membrane.core_radius - membrane.glass_wall
     if math.hypot(*camera.offset_m) >= bore:
         raise ValueError(f"{where}.offset_m {list(camera.offset_m)} puts the camera {math.hypot(*camera.offset_m):.4g} m "
                          f"off the tube's axis, outside its bore (radius {bore:.4g} m; metres, not millimetres?)")
@@ -411,7 +425,7 @@ def _optics(t: dict, where: str) -> dict:
 
 def _outside_glass(radius: float, height: float, membrane: MembraneSpec, where: str) -> None:
     """Refuse an LED inside the glass wall (``radius`` from the axis and ``height`` z, m)."""
-    inner = membrane.core_radius - GLASS_WALL_M
+    inner = membrane.core_radius - membrane.glass_wall
     if inner < radius < membrane.core_radius and height >= membrane.base_z:
         raise ValueError(f"{where}: {radius * 1e3:.2f} mm from the axis puts the LED inside the glass wall "
                          f"({inner * 1e3:.2f} to {membrane.core_radius * 1e3:.2f} mm from the axis, above the "

@@ -57,8 +57,6 @@ PUBLISHED_RING_M = (0.012, 0.0)
 def structure(spec, name: str):
     """The sensor ``spec`` with one structural change (module doc); a ValueError for a
     structure the spec cannot take (one without LED groups)."""
-    from scenes.spec import GLASS_WALL_M
-
     if name == "spec":
         return spec
     if name == "simulation_camera":
@@ -68,7 +66,7 @@ def structure(spec, name: str):
     m = spec.membrane
     change = {
         "leds_in_elastomer": dict(ring_radius=PUBLISHED_RING_M[0], height=PUBLISHED_RING_M[1]),
-        "leds_under_wall": dict(ring_radius=m.core_radius - GLASS_WALL_M / 2, height=m.base_z - 1e-3),
+        "leds_under_wall": dict(ring_radius=m.core_radius - m.glass_wall / 2, height=m.base_z - 1e-3),
         "lambertian_leds": dict(beam_half_angle_rad=None),
         "point_leds": dict(count=1),
     }

@@ -11,7 +11,7 @@ import pytest
 from pbr_tactile import basis as bs
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
-from scenes.spec import GLASS_WALL_M, default_spec, load_spec, spec_from_dict
+from scenes.spec import GLASS_IOR, GLASS_WALL_M, default_spec, load_spec, spec_from_dict
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"
 
@@ -159,7 +159,7 @@ def test_a_contact_change_with_groups_is_refused(camera):
 # -- where the reference emits from ----------------------------------------------------------
 
 def test_the_reference_emits_from_where_the_spec_puts_each_led():
-    from pbr_tactile.scene import IOR_GLASS, led_beam, led_centres, led_places, led_sources
+    from pbr_tactile.scene import led_beam, led_centres, led_places, led_sources
 
     m = default_spec().membrane
     inner = m.core_radius - GLASS_WALL_M
@@ -177,7 +177,7 @@ def test_the_reference_emits_from_where_the_spec_puts_each_led():
     # beams: the tube LED's own, the foot's a Lambertian LED's light refracted into glass
     places = led_places(spec)
     assert led_beam(spec.leds[0], places[0]) == ((0.0, 0.0, 1.0), 0.5)
-    assert led_beam(spec.leds[2], places[2])[1] == pytest.approx(math.asin(1 / IOR_GLASS))
+    assert led_beam(spec.leds[2], places[2])[1] == pytest.approx(math.asin(1 / GLASS_IOR))
     assert led_beam(spec.leds[4], places[4]) == (None, 0.0)
     sources = led_sources(spec)
     assert [s["in_elastomer"] for s in sources] == [False] * 4 + [True] * 2

@@ -14,7 +14,8 @@ import pytest
 
 from pbr_tactile.effects import RANGES, Effects
 from pbr_tactile.photons import Source, sources_from
-from pbr_tactile.scene import IOR_GLASS, IOR_SILICONE, LEAK_AXIS, led_sources
+from pbr_tactile.scene import IOR_SILICONE, LEAK_AXIS, led_sources
+from scenes.spec import GLASS_IOR
 
 
 def test_the_directional_leak_is_off_by_default_and_bounded():
@@ -70,9 +71,9 @@ def test_the_documented_guiding_angle():
     (the weaker of its two) within asin(n_s / n_g) of the normal: ~19 deg = 0.33 rad of
     the axis, as the Effects doc says; and light coupled in through the tube's flat end
     from air travels within asin(1 / n_g) ~ 42 deg of the axis."""
-    guided = math.pi / 2 - math.asin(IOR_SILICONE / IOR_GLASS)
+    guided = math.pi / 2 - math.asin(IOR_SILICONE / GLASS_IOR)
     assert guided == pytest.approx(0.33, abs=0.005)
-    assert math.asin(1.0 / IOR_GLASS) == pytest.approx(math.radians(42.2), abs=0.005)
+    assert math.asin(1.0 / GLASS_IOR) == pytest.approx(math.radians(42.2), abs=0.005)
 
 
 def test_the_volpath_scene_refuses_the_directional_leak(mesh, spec, camera):
@@ -183,3 +184,43 @@ def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh):
         pixel[name] = float(est.mean[5, 7].sum())
         assert np.isfinite(est.mean).all()
     assert pixel["facing"] > 10 * pixel["away"] > 0
+
+
+def test_the_glass_wall_and_its_index_are_the_specs(spec):
+    """The tube's wall thickness and refractive index come from the spec: the reference's
+    interfaces, the wall's foot where an LED under it emits, and the refraction into it."""
+    import dataclasses
+
+    from pbr_tactile.scene import geltip_scene, led_beam, led_centres, led_places
+    from scenes.camera import Camera
+    from scenes.spec import LED
+
+    thin = spec.replace(membrane=dataclasses.replace(spec.membrane, glass_wall=1e-3, glass_ior=1.52))
+    led = dict(direction=(0.0, 0.0, 1.0), colour=(1.0, 0.0, 0.0), k_d=1.0, k_s=0.0)
+    # 7.5 mm from the axis: under a 2 mm wall (7 to 9 mm), in the bore of a 1 mm one (8 to 9 mm)
+    for sensor, place in ((spec, "wall_end"), (thin, "tube")):
+        one = sensor.replace(leds=(LED("a", position=(0.0075, 0.0, -0.011), **led),), led_groups=())
+        assert led_places(one) == [place]
+    under = thin.replace(leds=(LED("a", position=(0.0085, 0.0, -0.011), **led),), led_groups=())
+    assert led_places(under) == ["wall_end"] and led_centres(under)[0][0] == pytest.approx(0.0085)
+    assert led_beam(under.leds[0], "wall_end", 1.52)[1] == pytest.approx(math.asin(1 / 1.52))
+    scene = geltip_scene({k: "x.ply" for k in ("coating", "core", "base", "glass_inner", "glass_base")}, thin,
+                         Camera.from_spec(thin), Effects(), 8, 6)
+    assert scene["glass_inner"]["bsdf"]["int_ior"] == 1.52 and scene["core"]["bsdf"]["ext_ior"] == 1.52
+
+
+@pytest.mark.parametrize("edit, message", [
+    (dict(glass_wall=0.009), r"glass_wall \(0.009 m\) must be thinner than the tube's outer radius"),
+    (dict(glass_wall=2.0), "looks like millimetres"),
+    (dict(glass_wall=-1e-3), "glass_wall must be > 0"),
+    (dict(glass_ior=1.0), r"glass_ior must be a glass' refractive index in \[1.3, 2.0\]"),
+])
+def test_a_glass_that_cannot_be_is_refused(edit, message):
+    import tomllib
+
+    from scenes.spec import DEFAULT_SPEC_PATH, spec_from_dict
+
+    data = tomllib.loads(DEFAULT_SPEC_PATH.read_text())
+    data["membrane"].update(edit)
+    with pytest.raises(ValueError, match=message):
+        spec_from_dict(data, "test.toml")
