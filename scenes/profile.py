@@ -7,9 +7,11 @@ another: each renderer applies the tables it knows.
 Tables (all lengths in the camera's pixels at its full resolution, angles in radians):
 
 - ``sensor``: the spec's name and LED names; a profile is refused for another sensor.
-- ``alignment``: ``rotation_rad`` (about the principal point, the membrane and LEDs turn
-  while the image circle, which belongs to the lens, stays), ``scale`` and ``shift_px``
-  (u, v) of the membrane image against the spec's camera (``align_image``), and
+- ``alignment``: the real camera against the spec's (``align_image``): ``scale`` times
+  its focal length, ``shift_px`` (u, v) its principal point moved, ``distortion`` (k1, k2)
+  its lens' own (absent: the spec's; ``scenes.camera.lens_radius``), ``rotation_rad`` the
+  membrane and LEDs turned about the optical axis (the image circle, which belongs to
+  the lens, stays), and
   ``led_azimuth_rad``, each LED's turn about the sensor's axis from the spec's position
   (``Profile.sensor_spec`` moves the LEDs, so contacts stay where they are).
 - ``camera``: the real camera's response, applied to a linear render L (per channel c)::
