@@ -222,11 +222,14 @@ NOT_IDENTIFIABLE_WITH_TAPS = [
 
 def fitted_camera(nl, camera: Camera) -> dict:
     """The real camera the fit found, as a spec's [camera] table states it (scenes.spec):
-    vertical field of view, principal point, lens (its image circle is the report's)."""
+    vertical field of view (None where the lens folds before the frame's edge),
+    principal point, lens (its image circle is the report's)."""
     lens = nl.alignment(0.0, camera.k2).lens(camera)
     fov = 2 * float(lens_angle(np.array((lens.height / 2) / lens.f), lens.k1, lens.k2, lens.projection))
-    return {"fov_y": fov, "fov_y_deg": math.degrees(fov), "principal_point_px": [lens.cx, lens.cy],
-            "distortion": [lens.k1, lens.k2], "projection": lens.projection}
+    if not math.isfinite(fov):  # a barrel that folds before the frame's edge: no field of view to state
+        fov = None
+    return {"fov_y": fov, "fov_y_deg": None if fov is None else math.degrees(fov),
+            "principal_point_px": [lens.cx, lens.cy], "distortion": [lens.k1, lens.k2], "projection": lens.projection}
 
 
 #: Nonlinear parameters whose bounds are physical limits, not the search's: a leak

@@ -227,6 +227,26 @@ def test_fit_recovers_a_lens_that_sees_wider_than_the_basis(camera):
     assert held.bounds(True)[-1] == (0.0, 0.0)  # without ``lens`` the spec's k1 is kept
 
 
+def test_the_fitted_camera_reads_as_a_spec_states_it(spec, camera):
+    """The report's camera: the spec's at the start; a focal length scaled by s is the
+    field of view 2 atan(tan(fov / 2) / s), the shift moves the principal point."""
+    model = im.ImageModel(*_synthetic_basis(camera=camera), camera, None, lens=True)
+    nl = model.start()
+    out = cal.fitted_camera(nl, camera)
+    assert out["fov_y"] == pytest.approx(spec.camera.fov_y) and out["principal_point_px"] == [319.5, 239.5]
+    moved = dataclasses.replace(nl, scale=0.8, shift_px=(3.0, -5.0), k1=0.0)
+    out = cal.fitted_camera(moved, camera)
+    assert out["fov_y"] == pytest.approx(2 * math.atan(math.tan(spec.camera.fov_y / 2) / 0.8))
+    assert out["principal_point_px"] == [322.5, 234.5] and out["projection"] == "pinhole"
+    # a barrel sees further out at the frame's edge than its pinhole
+    assert cal.fitted_camera(dataclasses.replace(moved, k1=-0.05), camera)["fov_y"] > out["fov_y"]
+    assert cal.fitted_camera(dataclasses.replace(moved, k1=-0.1), camera)["fov_y"] is None  # folds at 1.22 f
+    # the scale on its search bound is named; no leak is a physical limit, not a search bound
+    low = dataclasses.replace(nl, scale=im.SCALE_BOUNDS[0], leak=(0.0, 0.3, 0.3))
+    bound = cal.on_bound(low, model, leak=True)
+    assert bound["search"] == ["log_scale"] and "leak[0]" in bound["physical"]
+
+
 def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, spec, monkeypatch):
     """The sensor's own point, rendered noisily, against a clean point that is slightly
     wrong: the raw loss prefers the clean one, the loss less the basis' predicted noise
