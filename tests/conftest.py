@@ -29,6 +29,16 @@ def reference_dir() -> Path:
 
 
 @pytest.fixture(scope="session")
+def mujoco_gl():
+    """MuJoCo on a headless GL platform, or skip saying which is missing."""
+    try:
+        choose_gl()  # before mujoco is imported: it reads MUJOCO_GL once
+    except GLPlatformError as exc:
+        pytest.skip(str(exc))
+    return pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+
+
+@pytest.fixture(scope="session")
 def spec():
     return default_spec()
 

@@ -100,14 +100,7 @@ def test_the_pinhole_cover_holds_every_ray_of_the_image_circle(spec):
 @pytest.mark.parametrize("camera", [dict(principal_point_px=(300.0, 250.0), distortion=(-0.08, 0.005)),
                                     dict(projection="fisheye", fov_y=math.radians(135)),
                                     dict(offset_m=(0.001, -0.0005), tilt_rad=(0.03, -0.02))])
-def test_mujoco_depth_through_the_lens_matches_the_ray_cast(spec, camera):
-    from scenes.gl import GLPlatformError, choose_gl
-
-    try:
-        choose_gl()
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+def test_mujoco_depth_through_the_lens_matches_the_ray_cast(spec, camera, mujoco_gl):
     from scenes.geometry import membrane_mesh
     from scenes.indenters import indenter
     from scenes.rig import Rig, rig_scene

@@ -7,8 +7,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes.gl import GLPlatformError, choose_gl
-
 #: The test's refined edge, metres: twice the reference's 0.25 mm, so the sample builds in
 #: about 15 s. `tactile-sim bench solids` checks every tap at the reference's own edge.
 TEST_EDGE_M = 0.5e-3
@@ -17,12 +15,7 @@ TEST_SAMPLE = 48
 
 
 @pytest.fixture(scope="module")
-def base(spec, mesh):
-    try:
-        choose_gl()
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+def base(spec, mesh, mujoco_gl):
     from scenes.indenters import INDENTERS
     from scenes.protocol import base_protocol
 

@@ -18,12 +18,7 @@ DEPTH_TOLERANCE_M = 0.05e-3
 
 
 @pytest.fixture(scope="module")
-def rig_factory(spec, mesh):
-    try:
-        choose_gl()  # before mujoco is imported: it reads MUJOCO_GL once
-    except GLPlatformError as exc:
-        pytest.skip(str(exc))
-    pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+def rig_factory(spec, mesh, mujoco_gl):
     from scenes.indenters import indenter
     from scenes.rig import Rig, rig_scene
 
