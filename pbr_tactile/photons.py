@@ -503,8 +503,8 @@ def irradiance(flux: np.ndarray, vertex_area: np.ndarray, kernel) -> np.ndarray:
 
 
 #: Bump when the camera pass changes what a pixel sees (2: beam LEDs seen inside their
-#: cone): every cache of rendered images (bases, dataset frames, studies) keys on it.
-CAMERA_PASS_VERSION = 2
+#: cone; 3: only on a ray's first segment): every cache of rendered images (bases, dataset frames, studies) keys on it.
+CAMERA_PASS_VERSION = 3
 
 
 def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
@@ -608,12 +608,15 @@ def _concat(mi, dr, a, b):
 
 
 def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, count_leds=True,
-                direction=None):
+                direction=None, first=True):
     """Radiance per unit flux of each source, seen at a hit: the coating's (rho/pi) e_m
     interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``inv_area``
     holds it and, for a directional source, its cone's axis and cosine) where
     ``count_leds``, a directional one's only where ``direction`` (the ray's) leaves it
-    inside its cone."""
+    inside its cone, and only on a ray's ``first`` segment past the camera's first hit
+    (seen directly, or through or in the first interface): its sphere is small and bright,
+    and its views after further sampled interfaces, rare, were most of every pixel's
+    variance (bright single pixels all over the image), so they are left out."""
     hit_coating = surface & (si.shape == c.coating)
     corners, bary = _corners(mi, c.faces, pi, hit_coating)
     out = []
@@ -622,7 +625,7 @@ def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating
         t = dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
         lit = surface & count_leds & (si.shape == emitter)
         if cone is not None:
-            lit = lit & (dr.dot(-direction, cone[0]) >= cone[1])
+            lit = lit & first & (dr.dot(-direction, cone[0]) >= cone[1])
         out.append(t + dr.select(lit, beta * inv, 0.0))
     return out
 
@@ -675,7 +678,8 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, samp
             travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
             beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
         surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, ~after, ray.d)
+        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, ~after, ray.d,
+                           depth == 0)
         T = [t + dt for t, dt in zip(T, seen)]
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
         wo, transmitted, _, eta_ti = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
