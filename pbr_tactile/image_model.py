@@ -9,10 +9,13 @@ is modelled as
 - A_s : source s's basis image, rendered with the physical effects (absorption,
   scattering, coating albedo) of one point of a coarse grid; common random numbers (one
   seed) across the grid, so differences between grid points are not noise;
-- T_m : the membrane's alignment for the source's LED m: a rotation about the principal
-  point by theta + phi_m (the global rotation and each LED's azimuth offset, which the
-  rotationally symmetric membrane turns into an image rotation), a scale and a shift;
-  the image circle is the lens' and does not move. Where m is an LED group, A_s is its
+- T_m : the membrane's alignment for the source's LED m: a rotation about the optical
+  axis by theta + phi_m (the global rotation and each LED's azimuth offset, which the
+  rotationally symmetric membrane turns into an image rotation), and the real camera
+  against the one the basis was rendered with (``scenes.profile.Alignment``): the spec's
+  focal length times a scale, its principal point shifted, the lens' own k1 (each pixel
+  reads the basis where its ray lands; a no-contact basis is rendered wider than the
+  spec's camera, ``basis.basis_camera``); the image circle is the lens' and does not move. Where m is an LED group, A_s is its
   source at the arc's centre summed over the group's LEDs, each turned by its place along
   the arc, span_m times its offset (``scenes.spec.LEDGroup.offsets``), so each group's
   centre (phi_m) and span are fitted;
@@ -24,8 +27,8 @@ is modelled as
 - gamma, o_c, sat_c : the camera's response, black offset and clip level. Clipped real
   pixels are censored: a prediction above the clip level there costs nothing.
 
-The nonlinear parameters (theta, phi_m, the leaks, scale, shift, a1, a2, gamma and the
-groups' spans) are searched by bounded least squares from several rotations
+The nonlinear parameters (theta, phi_m, the leaks, scale, shift, a1, a2, gamma, the
+groups' spans and k1) are searched by bounded least squares from several rotations
 (``ImageFitter``); the physical ones on the calibration's grid.
 """
 
