@@ -383,6 +383,9 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     if max(map(abs, camera.tilt_rad)) > TILT_BOUND_RAD:
         raise ValueError(f"{where}.tilt_rad {list(camera.tilt_rad)} must each lie in [-{TILT_BOUND_RAD:.4f}, "
                          f"{TILT_BOUND_RAD:.4f}] rad (15 deg)")
+    if membrane.shape == "mesh" and (any(camera.offset_m) or any(camera.tilt_rad)):
+        raise ValueError(f"{where}.offset_m and tilt_rad seat a generated membrane; a membrane.mesh_path mesh is "
+                         "already in the camera frame: move the mesh instead")
     if camera.mask_radius_px <= 0:
         raise ValueError(f"{where}.mask_radius_px must be > 0 px, got {camera.mask_radius_px}")
     _, theta = lens_table(*camera.distortion, camera.projection, 1.0)

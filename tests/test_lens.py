@@ -160,11 +160,14 @@ def _data():
         (dict(mask_radius_px=0.0), "mask_radius_px must be > 0"),
         (dict(offset_m=[0.007, 0.001]), r"outside its bore \(radius 0.007 m"),
         (dict(offset_m=[3.0, 0.0]), "not millimetres"),
+        (dict(offset_m=[0.001, 0.0], _mesh=True), "a membrane.mesh_path mesh is already in the camera frame"),
         (dict(tilt_rad=[0.0, 0.3]), r"tilt_rad \[0.0, 0.3\] must each lie in \[-0.2618, 0.2618\]"),
     ],
 )
 def test_a_lens_that_cannot_image_the_tube_is_refused(camera, message):
-    data = _data()
+    data, camera = _data(), dict(camera)
+    if camera.pop("_mesh", False):
+        data["membrane"].update(shape="mesh", mesh_path="membrane.stl")
     data["camera"].update(camera)
     with pytest.raises(ValueError, match=message):
         spec_from_dict(data, "test.toml")
