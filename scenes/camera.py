@@ -265,14 +265,16 @@ def lens_resample(image: np.ndarray, lens: "Camera", pinhole: "Camera", order: i
     pinhole camera ``pinhole`` (``Camera.pinhole_cover``) took from the same centre along
     the same axis: each of the lens' pixels is read where its ray lands in the pinhole's
     image (scipy.ndimage.map_coordinates, bilinear by default). Pixels whose ray the
-    pinhole does not see take ``mode``'s fill."""
+    pinhole does not see take ``mode``'s fill; pixels no ray of the lens reaches (past a
+    barrel's fold, outside the image circle) read along its last ray (``Camera.rays``), so
+    the result stays finite."""
     from scipy import ndimage
 
     image = np.asarray(image)
     if image.shape[:2] != pinhole.shape:
         raise ValueError(f"image must be the pinhole camera's {pinhole.shape}, got {image.shape[:2]}")
-    x, y = lens.slopes()
-    coords = np.stack([pinhole.cy + pinhole.f * y, pinhole.cx + pinhole.f * x])
+    rays = lens.rays
+    coords = np.stack([pinhole.cy + pinhole.f * rays[..., 1], pinhole.cx + pinhole.f * rays[..., 0]])
     if image.ndim == 2:
         return ndimage.map_coordinates(image, coords, order=order, mode=mode, cval=cval).astype(image.dtype)
     flat = image.reshape(image.shape[:2] + (-1,))

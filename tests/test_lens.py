@@ -92,6 +92,11 @@ def test_the_pinhole_cover_holds_every_ray_of_the_image_circle(spec):
     # an image the cover sees, read into the lens: the cosine of the angle off the axis
     seen = lens_resample(_cosine(cover), lens, cover)
     assert np.abs(seen - _cosine(lens))[lens.mask].max() < 2e-4  # bilinear reading
+    # a barrel that folds outside its image circle, inside the frame: the frame's corners
+    # see no ray, and still read finite values (a depth map must be finite everywhere)
+    barrel = Camera(640, 480, 343.0, 319.5, 239.5, 240.0, 320.0, 240.0, k1=-0.3)
+    assert np.isnan(barrel.slopes()[0]).any() and np.isfinite(barrel.slopes()[0][barrel.mask]).all()
+    assert np.isfinite(lens_resample(np.ones(barrel.shape), barrel, barrel.pinhole_cover())).all()
     # and back: a mask drawn in the lens' pixels, read at the cover's
     back = pinhole_view(lens.mask, lens, cover)
     assert back.any() and np.abs(np.arctan(np.hypot(*cover.slopes()))[back]).max() <= math.radians(135) / 2 * 1.3
