@@ -154,10 +154,14 @@ def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camer
 
     width, height = width or camera.width, height or camera.height
     lens = camera.scaled(width, height)
+    cover = lens.pinhole_cover()  # what the film is (sensor_effects)
+
+    def on_film(mask):
+        return mask if cover is lens else pinhole_view(mask, lens, cover)
+
     circle = lens.mask
     if depth is None:
-        cover = lens.pinhole_cover()
-        return circle.copy() if cover is lens else pinhole_view(circle, lens, cover)
+        return on_film(circle.copy())
     moved = np.abs(np.asarray(depth, np.float64) - ref_depth) > CONTACT_EPS_M
     if moved.any():
         moved = ndimage.binary_dilation(moved, iterations=RIM_PX)
@@ -166,10 +170,7 @@ def contact_region(depth: np.ndarray | None, ref_depth: np.ndarray | None, camer
     rows = np.clip(np.round((np.arange(height) + 0.5) * camera.height / height - 0.5).astype(int), 0, camera.height - 1)
     cols = np.clip(np.round((np.arange(width) + 0.5) * camera.width / width - 0.5).astype(int), 0, camera.width - 1)
     region = moved[np.ix_(rows, cols)] & circle
-    region = region if region.any() else circle.copy()
-    lens = camera.scaled(width, height)
-    cover = lens.pinhole_cover()
-    return region if cover is lens else pinhole_view(region, lens, cover)
+    return on_film(region if region.any() else circle.copy())
 
 
 def check_passes(passes: int, target_rse: float | None = None, max_passes: int = MAX_PASSES) -> None:

@@ -153,14 +153,12 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
 def _tube_frame(spec: SensorSpec, points) -> np.ndarray:
     """(N, 3) camera-frame points in the tube's frame (``CameraSpec.tube_to_camera``),
     where the glass and membrane have their nominal radii about the z axis."""
-    inverse = np.linalg.inv(spec.camera.tube_to_camera())
-    return np.asarray(points, np.float64).reshape(-1, 3) @ inverse[:3, :3].T + inverse[:3, 3]
+    return trimesh.transform_points(np.reshape(points, (-1, 3)), np.linalg.inv(spec.camera.tube_to_camera()))
 
 
 def _camera_frame(spec: SensorSpec, points) -> np.ndarray:
     """(N, 3) tube-frame points in the camera frame."""
-    pose = spec.camera.tube_to_camera()
-    return np.asarray(points, np.float64).reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+    return trimesh.transform_points(np.reshape(points, (-1, 3)), spec.camera.tube_to_camera())
 
 
 def led_beam(led: LED, place: str, glass_ior: float = GLASS_IOR) -> tuple[tuple[float, float, float] | None, float]:

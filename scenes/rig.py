@@ -105,7 +105,7 @@ def rig_scene(
     glass_half = max((glass_top - core - base_z) / 2, 1e-3)
     # the glass sits in the tube, seated against the camera as the spec says
     pose = cam.tube_to_camera()
-    glass_pos = pose[:3, :3] @ [0.0, 0.0, base_z + glass_half] + pose[:3, 3]
+    glass_pos = trimesh.transform_points([[0.0, 0.0, base_z + glass_half]], pose)[0]
     glass_quat = trimesh.transformations.quaternion_from_matrix(pose)
     to_world = np.eye(4)
     to_world[:3, :3] = SENSOR_TO_WORLD_AT_ROLL0
