@@ -539,7 +539,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     E = [mi.Float(m) for m in maps]
     emitters = [mi.ShapePtr(_shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance)
-    inv_area = [(src.seen_radiance(), None if not src.directional else
+    led_radiance = [(src.seen_radiance(), None if not src.directional else
                  (mi.Vector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]
     sensor = scene.sensors()[0]
     width, height = (int(v) for v in sensor.film().crop_size())
@@ -565,7 +565,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         # First hit: both Fresnel branches, as two lanes per camera sample.
         pi = scene.ray_intersect_preliminary(ray, False)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
-        T = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, si.is_valid(), mi.Float(1.0), coating_albedo,
+        T = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, si.is_valid(), mi.Float(1.0), coating_albedo,
                         direction=ray.d)
         dielectric, eta = _dielectric(mi, dr, si, si.is_valid(), interfaces)
         F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
@@ -580,7 +580,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         lanes = mi.Ray3f(both(o_t, o_r), both(refracted, reflected))
         beta = both(dr.select(dielectric, (1 - F) * dr.square(eta_ti), 0.0), dr.select(dielectric, F, 0.0))
         in_el = both(dielectric & enters, dr.zeros(mi.Bool, n))
-        walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, inv_area, interfaces,
+        walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, led_radiance, interfaces,
                                  sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
                                  coating_albedo=coating_albedo)
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
@@ -589,7 +589,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         dr.eval(T, T2, scattered)
         per_lane = np.stack([np.asarray(t, dtype=np.float64) for t in T2], axis=-1)  # (2n, S)
         if scatter_split > 1:
-            nee = functools.partial(_led_nee, mi, dr, scene, sources, emitters, inv_area, sigma_t=sigma_t)
+            nee = functools.partial(_led_nee, mi, dr, scene, sources, emitters, led_radiance, sigma_t=sigma_t)
             per_lane += _split_scatter(mi, dr, walk, nee, scattered, scatter_split, _seed(seed, 1 << 20, done), 2 * n)
         per_sample = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1) + per_lane.reshape(2, n, -1).sum(0)
         total += per_sample.reshape(width * height, count, -1).sum(axis=1)
@@ -607,10 +607,10 @@ def _concat(mi, dr, a, b):
     return dr.select(first, dr.gather(type(a), a, index, first), dr.gather(type(a), b, index - n, ~first))
 
 
-def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, count_leds=True,
+def _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, coating_albedo, count_leds=True,
                 direction=None, first=True):
     """Radiance per unit flux of each source, seen at a hit: the coating's (rho/pi) e_m
-    interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``inv_area``
+    interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``led_radiance``
     holds it and, for a directional source, its cone's axis and cosine) where
     ``count_leds``, a directional one's only where ``direction`` (the ray's) leaves it
     inside its cone, and only on a ray's ``first`` segment past the camera's first hit
@@ -620,7 +620,7 @@ def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating
     hit_coating = surface & (si.shape == c.coating)
     corners, bary = _corners(mi, c.faces, pi, hit_coating)
     out = []
-    for e, emitter, (inv, cone) in zip(E, emitters, inv_area):
+    for e, emitter, (inv, cone) in zip(E, emitters, led_radiance):
         irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
         t = dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
         lit = surface & count_leds & (si.shape == emitter)
@@ -630,14 +630,14 @@ def _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating
     return out
 
 
-def _led_nee(mi, dr, scene, leds, emitters, inv_area, point, beta, sampler, active, sigma_t: float):
+def _led_nee(mi, dr, scene, leds, emitters, led_radiance, point, beta, sampler, active, sigma_t: float):
     """Next-event estimate of each LED's light scattered towards the camera at points in
     the elastomer (isotropic phase 1/(4 pi)): a direction sampled uniformly in the cone
     the LED sphere subtends, kept if the sphere is the first thing it hits, attenuated by
     exp(-sigma_t t). Light reaching the point through an interface is not included (the
     walk itself finds it). Returns radiance per unit flux per source."""
     out = []
-    for src, emitter, (inv, cone) in zip(leds, emitters, inv_area):
+    for src, emitter, (inv, cone) in zip(leds, emitters, led_radiance):
         to_led = mi.Point3f(*src.centre) - point
         dist = dr.norm(to_led)
         cos_max = dr.safe_sqrt(1 - dr.square(src.radius / dr.maximum(dist, src.radius * (1 + 1e-6))))
@@ -651,7 +651,7 @@ def _led_nee(mi, dr, scene, leds, emitters, inv_area, point, beta, sampler, acti
     return out
 
 
-def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, sampler, ray, beta, in_el,
+def _camera_walk(mi, dr, scene, c, E, leds, emitters, led_radiance, interfaces, sampler, ray, beta, in_el,
                  sigma_s: float, sigma_a: float, coating_albedo: float, stop_at_scatter: bool = False,
                  after_scatter=None):
     """Follow camera rays (one symbolic loop) until they end on the coating, an LED or
@@ -678,7 +678,7 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, samp
             travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
             beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
         surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, inv_area, pi, si, surface, beta, coating_albedo, ~after, ray.d,
+        seen = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, coating_albedo, ~after, ray.d,
                            depth == 0)
         T = [t + dt for t, dt in zip(T, seen)]
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
@@ -699,7 +699,7 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, inv_area, interfaces, samp
                 dr.scatter(stopped[key], value, lane_index, stop)
             keep = scatter & ~stop
         if sigma_s > 0:
-            direct = _led_nee(mi, dr, scene, leds, emitters, inv_area, scatter_pos, beta, sampler, keep, sigma_t)
+            direct = _led_nee(mi, dr, scene, leds, emitters, led_radiance, scatter_pos, beta, sampler, keep, sigma_t)
             T = [t + dt for t, dt in zip(T, direct)]
         after = keep
         active = (keep | dielectric) & (beta > 0) & (depth < CAMERA_MAX_DEPTH)
