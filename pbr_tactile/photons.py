@@ -131,6 +131,33 @@ def _start_direction(mi, dr, normal, cone_cos, u):
     return frame.to_world(dr.select(cone_cos > 1.5, mi.warp.square_to_cosine_hemisphere(u), cone))
 
 
+def _owned(cls, values):
+    """A Dr.Jit array of type ``cls`` holding ``values`` (a NumPy array), copied to a
+    64-byte-aligned buffer first. Dr.Jit's LLVM backend maps a NumPy buffer as it lies
+    and specialises every kernel that reads it on whether its address is aligned to a
+    vector (``jit_var_mem_map``), so arrays that NumPy happened to place differently
+    compiled the same kernel anew: measured, every split generation of the photon pass
+    missed the kernel cache, 0.2-0.4 s each, a third of a small render's time."""
+    a = np.ascontiguousarray(values)
+    buffer = np.empty(a.nbytes + 64, np.uint8)
+    start = -buffer.ctypes.data % 64
+    aligned = buffer[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    aligned[...] = a
+    return cls(aligned)
+
+
+def _pointer(mi, shape):
+    """``shape`` as an opaque ShapePtr: a kernel parameter, not a literal. A literal
+    pointer is the shape's index in Mitsuba's registry, which differs from one loaded
+    scene to the next, and each new index compiled every kernel that compares against
+    it anew (measured: 0.2-0.8 s a kernel, a few per render)."""
+    import drjit as dr
+
+    pointer = mi.ShapePtr(shape)
+    dr.make_opaque(pointer)
+    return pointer
+
+
 def _splitmix(*parts: np.ndarray) -> np.ndarray:
     """A 64-bit hash (SplitMix64 steps) of integer arrays, element-wise."""
     with np.errstate(over="ignore"):
@@ -168,8 +195,8 @@ class _Rng:
         n = len(identity)
         # PCG32 adds arange(n) to both words; take it back so only the identity counts.
         offset = dr.arange(mi.UInt64, n)
-        state = mi.UInt64(_splitmix(identity, np.uint64(1)))
-        sequence = mi.UInt64(_splitmix(identity, np.uint64(2)))
+        state = _owned(mi.UInt64, _splitmix(identity, np.uint64(1)))
+        sequence = _owned(mi.UInt64, _splitmix(identity, np.uint64(2)))
         self.pcg = mi.PCG32(n, state - offset, sequence - offset)
 
     def next_1d(self, active=True):
@@ -207,7 +234,7 @@ def _coating(mi, scene) -> _Coating:
     mesh = trimesh.Trimesh(positions, tri, process=False)
     vertex_area = np.zeros(len(positions))
     np.add.at(vertex_area, tri.ravel(), np.repeat(mesh.area_faces / 3, 3))
-    return _Coating(mi.UInt32(tri.ravel()), vertex_area, mi.ShapePtr(coating), mi.ShapePtr(_shape(scene, "core")))
+    return _Coating(_owned(mi.UInt32, tri.ravel()), vertex_area, _pointer(mi, coating), _pointer(mi, _shape(scene, "core")))
 
 
 def _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t: float):
@@ -228,12 +255,14 @@ def _corners(mi, faces, pi, active):
 
 
 def _interfaces(mi, scene) -> list[tuple[object, float]]:
-    """The smooth dielectric interfaces: (ShapePtr, eta = interior IOR / exterior IOR)."""
+    """The smooth dielectric interfaces: (ShapePtr, eta = interior IOR / exterior IOR),
+    by shape id: the scene lists its shapes in an order that varies from one load to the
+    next, and each order made the kernels that test them differ (their etas are literals)."""
     out = []
-    for shape in scene.shapes():
+    for shape in sorted(scene.shapes(), key=lambda s: s.id()):
         bsdf = shape.bsdf()
         if mi.has_flag(bsdf.flags(), mi.BSDFFlags.DeltaTransmission):
-            out.append((mi.ShapePtr(shape), float(mi.traverse(bsdf)["eta"])))
+            out.append((_pointer(mi, shape), float(mi.traverse(bsdf)["eta"])))
     return out
 
 
@@ -368,7 +397,7 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     n_src = len(sources)
     interfaces = _interfaces(mi, scene)
     acc = dr.zeros(mi.Float, n_src * n_vertices)
-    target = None if window is None else mi.Float(np.asarray(window, dtype=np.float64).ravel())
+    target = None if window is None else _owned(mi.Float, np.asarray(window, dtype=np.float64).ravel())
 
     # Generation 0: points on the LED spheres, cosine about their normals.
     lane = dr.arange(mi.UInt32, n_src * photons)
@@ -387,7 +416,7 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     cones = [math.cos(src.cone_half_angle_rad) if src.directional else _LAMBERTIAN for src in sources]
     start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
              "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
-             "depth": mi.UInt32(0), "id": mi.UInt64(identity), "cone": dr.gather(mi.Float, mi.Float(cones), s)}
+             "depth": mi.UInt32(0), "id": _owned(mi.UInt64, identity), "cone": dr.gather(mi.Float, mi.Float(cones), s)}
     for generation in range(MAX_GENERATIONS):
         if generation > 0:
             sampler = _Rng(mi, identity)
@@ -409,10 +438,10 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         nrm = np.c_[rep["nx"], rep["ny"], rep["nz"]]
         p = p + nrm * SPAWN_OFFSET_M
         # Split photons restart on the coating, inside the elastomer.
-        start = {"p": mi.Point3f(*[mi.Float(p[:, k]) for k in range(3)]),
-                 "n": mi.Vector3f(*[mi.Float(nrm[:, k]) for k in range(3)]), "w": mi.Float(rep["w"]),
-                 "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": mi.UInt32(rep["s"]),
-                 "depth": mi.UInt32(rep["depth"]), "id": mi.UInt64(identity),
+        start = {"p": mi.Point3f(*[_owned(mi.Float, p[:, k]) for k in range(3)]),
+                 "n": mi.Vector3f(*[_owned(mi.Float, nrm[:, k]) for k in range(3)]), "w": _owned(mi.Float, rep["w"]),
+                 "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": _owned(mi.UInt32, rep["s"]),
+                 "depth": _owned(mi.UInt32, rep["depth"]), "id": _owned(mi.UInt64, identity),
                  "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"]))}
     return np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
 
@@ -536,8 +565,8 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
 
     c = _coating(mi, scene)
     interfaces = _interfaces(mi, scene)
-    E = [mi.Float(m) for m in maps]
-    emitters = [mi.ShapePtr(_shape(scene, src.name)) for src in sources]
+    E = [_owned(mi.Float, m) for m in maps]
+    emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance)
     led_radiance = [(src.seen_radiance(), None if not src.directional else
                  (mi.Vector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]
@@ -734,8 +763,8 @@ def _split_scatter(mi, dr, walk, nee, stopped: dict, k: int, seed: int, n_lanes:
     u = (mi.Point2f(mi.Float(cell % side), mi.Float(cell // side)) + sampler.next_2d()) / side
     d = mi.warp.square_to_uniform_sphere(u)
     o = np.repeat(origin, k, axis=0)
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]), d)
-    weight = mi.Float(np.repeat(beta / k, k))
+    ray = mi.Ray3f(mi.Point3f(*[_owned(mi.Float, o[:, j]) for j in range(3)]), d)
+    weight = _owned(mi.Float, np.repeat(beta / k, k))
     T, _ = walk(sampler, ray, weight, dr.full(mi.Bool, True, m), after_scatter=dr.full(mi.Bool, True, m))
     # The LEDs' direct light at each event, one estimate per direction's stratum sample.
     direct = nee(ray.o, weight, sampler, dr.full(mi.Bool, True, m))

@@ -268,6 +268,43 @@ def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, ca
     assert photons.mean[lit].sum() == pytest.approx(volpath.mean[lit].sum(), rel=0.06)
 
 
+#: Fewest operations of a photon or camera pass kernel (measured: 424 to 2441; the scene
+#: loader's, 4 to 231).
+TRACING_OPS = 300
+
+
+def test_a_second_render_compiles_no_kernel(tmp_path, monkeypatch, mesh, spec, camera):
+    """Another seed, a freshly loaded scene and arrays NumPy placed elsewhere launch only
+    kernels an earlier render compiled: no shape pointer, seed or buffer alignment may be
+    baked into a kernel (each such kernel compiled anew, 0.2-0.8 s, in every render)."""
+    _needs_vectorised_variant()
+    import drjit as dr
+
+    from pbr_tactile.render import reference
+
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    kw = {"spp": 4, "width": 20, "height": 15, "passes": 2, "photons": 1 << 12}
+
+    def kernels(seed, pad):
+        ballast = np.empty(pad, np.uint8)  # moves NumPy's later allocations
+        dr.kernel_history()  # clears it
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            reference(None, None, mesh, spec, camera, Effects(), seed=seed, **kw)
+            # the tracing kernels: those of hundreds of operations and more (loading a
+            # scene launches a few small kernels of Mitsuba's own, with sizes baked in)
+            return {k["hash"] for k in dr.kernel_history()
+                    if k["type"] == dr.KernelType.JIT and k["operation_count"] >= TRACING_OPS}
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+            del ballast
+
+    kernels(1, 8)
+    second = kernels(2, 40)
+    third = kernels(3, 72)
+    assert third and third <= second, f"{len(third - second)} of {len(third)} kernels were new"
+
+
 def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camera):
     """Splitting and roulette by a weight window move photons around but not flux: the
     total deposited flux per LED, and the flux at the dim tip, agree with plain tracing."""
