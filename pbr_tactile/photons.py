@@ -569,7 +569,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance)
     led_radiance = [(src.seen_radiance(), None if not src.directional else
-                 (mi.Vector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]
+                     (mi.Vector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]
     sensor = scene.sensors()[0]
     width, height = (int(v) for v in sensor.film().crop_size())
     side = math.isqrt(spp) if math.isqrt(spp) ** 2 == spp else 1
@@ -649,13 +649,13 @@ def _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, coa
     hit_coating = surface & (si.shape == c.coating)
     corners, bary = _corners(mi, c.faces, pi, hit_coating)
     out = []
-    for e, emitter, (inv, cone) in zip(E, emitters, led_radiance):
+    for e, emitter, (radiance, cone) in zip(E, emitters, led_radiance):
         irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
         t = dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
         lit = surface & count_leds & (si.shape == emitter)
         if cone is not None:
             lit = lit & first & (dr.dot(-direction, cone[0]) >= cone[1])
-        out.append(t + dr.select(lit, beta * inv, 0.0))
+        out.append(t + dr.select(lit, beta * radiance, 0.0))
     return out
 
 
@@ -666,7 +666,7 @@ def _led_nee(mi, dr, scene, leds, emitters, led_radiance, point, beta, sampler, 
     exp(-sigma_t t). Light reaching the point through an interface is not included (the
     walk itself finds it). Returns radiance per unit flux per source."""
     out = []
-    for src, emitter, (inv, cone) in zip(leds, emitters, led_radiance):
+    for src, emitter, (radiance, cone) in zip(leds, emitters, led_radiance):
         to_led = mi.Point3f(*src.centre) - point
         dist = dr.norm(to_led)
         cos_max = dr.safe_sqrt(1 - dr.square(src.radius / dr.maximum(dist, src.radius * (1 + 1e-6))))
@@ -675,7 +675,7 @@ def _led_nee(mi, dr, scene, leds, emitters, led_radiance, point, beta, sampler, 
         seen = active & si.is_valid() & (si.shape == emitter)
         if cone is not None:  # a directional source lights only the points inside its cone
             seen = seen & (dr.dot(-d, cone[0]) >= cone[1])
-        weight = beta * inv / (4 * math.pi) * 2 * math.pi * (1 - cos_max) * dr.exp(-sigma_t * si.t)
+        weight = beta * radiance / (4 * math.pi) * 2 * math.pi * (1 - cos_max) * dr.exp(-sigma_t * si.t)
         out.append(dr.select(seen, weight, 0.0))
     return out
 
