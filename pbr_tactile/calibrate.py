@@ -108,10 +108,6 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     s = height / camera.height
     centre = (camera.cx, camera.cy) if circle is None else circle[:2]
     sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
-    if taps is not None and spec.led_groups:
-        raise ValueError(f"sensor {spec.name!r} lays its LEDs out in groups, and a fit with taps needs each tap "
-                         "rendered per LED, which is not built yet: calibrate from the no-contact image alone "
-                         "(--taps 0)")
     rendered, arcs, spans, unit, share_of_span = basis_layout(spec)
     # without taps the basis sees wider than the spec's camera, so the fitted lens may;
     # a tap's change is rendered with the spec's camera, and so is its basis

@@ -19,7 +19,10 @@ phi_m(s). The tap's image is modelled as (``ImageModel.tap_design``)
     I_t(p) = clip((V(p) sum_s g_sc [A_s(T_m(s)^-1 p) + C_ts(phi_m(s); T^-1 p)] + o_c) ** (1 / gamma), 0, sat_c)
 
 the change moving with the membrane (T: rotation theta, no LED azimuth: the azimuth is
-in the render), the rest as the no-contact image. The LEDs' azimuths are fitted as one
+in the render), the rest as the no-contact image. With LED groups a tap is rendered with
+every LED where it sits, each group spread over the span the no-contact image fitted, and
+its change summed per group (``tap_spec``): the dent breaks the symmetry that lets the
+no-contact basis render one LED per group. The LEDs' azimuths are fitted as one
 turn of the LED ring against the membrane (``calibrate.NOT_IDENTIFIABLE_WITH_TAPS``): that
 turn shades every contact, while each LED's own azimuth about the ring was not recovered
 from the reference's images.
@@ -48,7 +51,7 @@ from scenes.camera import Camera
 from scenes.captures import RealTaps, contact_region
 from scenes.images import block_mean
 
-from .basis import emitter_basis
+from .basis import basis_layout, emitter_basis, led_of_source
 from .effects import Effects
 from .image_model import ImageFit, ImageFitter, ImageModel, Nonlinear, TapView, debiased
 from .real_image import film_factor
@@ -60,33 +63,72 @@ AZIMUTH_STEP_RAD = 0.15
 SCAN_STEP_RAD = math.radians(2.0)
 
 
+def tap_spec(spec, spans: tuple = ()) -> tuple:
+    """How a tap of ``spec`` is rendered: (the spec, photons per LED as a share of the
+    basis', each LED's unit). A contact breaks the membrane's symmetry, so a group's LEDs
+    cannot be one render turned along the arc as in the no-contact basis
+    (``basis.basis_layout``): the tap is rendered with every LED where it sits, each group
+    spread over ``spans`` (rad, per unit: the no-contact fit's, where the joint fit starts;
+    () the spec's), and each LED's photons are the basis' times units / LEDs, so that a
+    unit's change has about the noise of the basis' own source."""
+    rendered, _, _, unit, _ = basis_layout(spec)
+    if not spec.led_groups:
+        return spec, 1.0, unit
+    if spans:
+        first = len(rendered.leds) - len(spec.led_groups)
+        spec = spec.with_led_groups([dataclasses.replace(g, arc_span_rad=float(spans[first + i]))
+                                     for i, g in enumerate(spec.led_groups)])
+    return spec, len(rendered.leds) / len(spec.leds), unit
+
+
+def per_unit(basis: dict, unit: np.ndarray, names) -> np.ndarray:
+    """(h, w, U) a per-LED render's sources (``led<m>``, ``led<m>_leak``) summed into the
+    units whose sources are ``names``: LED m's into unit ``unit[m]``'s of the same kind."""
+    index = {str(n): k for k, n in enumerate(names)}
+    out = np.zeros((*basis["mean"].shape[:2], len(names)))
+    for k, name in enumerate(basis["names"]):
+        m = led_of_source([name])[0]
+        target = f"led{unit[m]}" + ("_leak" if str(name).endswith("_leak") else "")
+        if target not in index:
+            raise ValueError(f"tap_changes: the tap's source {name} has no unit among the basis' "
+                             f"{[str(n) for n in names]}")
+        out[..., index[target]] += basis["mean"][..., k]
+    return out
+
+
 def tap_changes(spec, mesh, camera, effects, film, taps: RealTaps, no_contact: dict, photons: int, spp: int,
                 passes: int, seed: int, use_cache: bool = True, progress=None, azimuths: bool = True,
-                known: dict | None = None) -> dict:
+                known: dict | None = None, spans: tuple = ()) -> dict:
     """Each tap's per-source change from the no-contact basis, as a function of the LEDs'
     azimuths (module doc): ``change``, ``slope``, ``curve`` (T, h, w, S). ``no_contact``:
     ``emitter_basis`` of the same spec, effects, film and seed. ``azimuths`` False: the
     change with the LEDs where the spec has them only (``slope`` and ``curve`` None).
-    ``known``: changes already rendered with the LEDs there, by tap index (each (h, w, S))."""
+    ``known``: changes already rendered with the LEDs there, by tap index (each (h, w, S)).
+    With LED groups each tap and its no-contact counterpart are rendered per LED
+    (``tap_spec``, groups spread over ``spans``) and summed into the basis' units."""
     from scenes.profile import turn_leds
 
+    spec, share, unit = tap_spec(spec, spans)
+    grouped = bool(spec.led_groups)
+    photons = max(1, int(round(photons * share)))
     leds, known = len(spec.leds), known or {}
     turns = (-AZIMUTH_STEP_RAD, 0.0, AZIMUTH_STEP_RAD) if azimuths else (0.0,)
     at = {}
     for a in turns:
-        unit = turn_leds(spec, (a,) * leds)
-        base = no_contact if a == 0 else emitter_basis(unit, mesh, camera, effects, film, photons, spp, passes, seed,
-                                                       use_cache)
+        turned = turn_leds(spec, (a,) * leds)
+        base = no_contact if a == 0 and not grouped else emitter_basis(turned, mesh, camera, effects, film, photons,
+                                                                       spp, passes, seed, use_cache)
         out = []
         for t, depth in enumerate(taps.depths):
             if a == 0 and t in known:
                 out.append(known[t])
                 continue
-            basis = emitter_basis(unit, mesh, camera, effects, film, photons, spp, passes, seed, use_cache,
+            basis = emitter_basis(turned, mesh, camera, effects, film, photons, spp, passes, seed, use_cache,
                                   depth=depth, ref_depth=taps.ref_depth)
             if list(basis["names"]) != list(base["names"]):
                 raise ValueError("tap_changes: the tap's sources differ from the no-contact basis'")
-            out.append(basis["mean"] - base["mean"])
+            change = {"mean": basis["mean"] - base["mean"], "names": basis["names"]}
+            out.append(per_unit(change, unit, no_contact["names"]) if grouped else change["mean"])
             if progress is not None:
                 progress(len(at) * len(taps.depths) + len(out), len(turns) * len(taps.depths))
         at[a] = np.stack(out)
@@ -162,7 +204,7 @@ def rank_with_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.nd
     subset = captures.RealTaps(taps.images[fitted], taps.depths[fitted], taps.ref_depth,
                                [taps.ids[i] for i in fitted])
     changes = tap_changes(spec, mesh, camera, effects, film, subset, basis, photons, spp, passes, seed, use_cache,
-                             azimuths=False)
+                          azimuths=False, spans=fit.nl.span_rad)
     views = [v for v in film_views(subset, changes, r, model.inside, film) if v.pixels.sum() >= captures.MIN_REGION]
     joint = fit_with_taps(model, r, train, views, fit, leak) if views else None
     if joint is not None:
@@ -178,7 +220,7 @@ def fit_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray,
     """The fit with taps (``pbr_tactile.calibrate_taps``): (fit, fitted taps' views, the
     report's ``taps`` section). ``known``: zero-azimuth changes already rendered."""
     changes = tap_changes(spec, mesh, camera, effects, film, taps, basis, photons, spp, passes, seed, use_cache,
-                             known=known)
+                          known=known, spans=fit.nl.span_rad)
     views = film_views(taps, changes, r, model.inside, film)
     seen = [int(v.pixels.sum()) >= captures.MIN_REGION for v in views]
     fitted = captures.split(len(views))

@@ -210,15 +210,18 @@ class ImageModel:
         return [nl.led_azimuth_rad[m] + nl.span_rad[m] * float(o) for o in self.arcs[m]]
 
     def _mixed(self, images: np.ndarray, nl: Nonlinear, power: int, azimuths: bool = True) -> np.ndarray:
-        if not azimuths and self.arcs is not None:
-            raise ValueError("a contact's change with LED groups is not modelled: render it per LED")
+        """(h, w, L) each unit's image of per-source ``images`` (h, w, S): its source and
+        leak mixed by the leak share (raised to ``power``: 2 for variances) and moved by
+        the alignment; with ``azimuths`` turned by each LED's azimuth and, for a group,
+        summed along its arc; without, moved with the membrane only (a tap's change,
+        rendered with every LED where it sits: ``calibrate_taps.tap_spec``)."""
         out = np.zeros((self.h, self.w, self.leds))
         for m in range(self.leds):
             f = nl.leak[m]
             turns = self.turns(nl, m) if azimuths else [0.0]
             for k in np.nonzero(self.led == m)[0]:
                 share = (f if self.has_leak[k] else 1.0 - f) ** power
-                if share > 0 and self.arcs is None:
+                if share > 0 and (self.arcs is None or not azimuths):
                     out[..., m] += share * self.moved(images[..., k], nl, turns[0], power == 2)
                 elif share > 0:
                     out[..., m] += share * self.moved(self._arc(images, k, tuple(turns)), nl, 0.0, power == 2)
