@@ -30,7 +30,7 @@ Coating gloss needs the volumetric path tracer (the photon estimator needs a dif
 coating), whose per-source basis this study does not render: it is reported as untested.
 
 Run: ``python -m studies.light_paths --out DIR [--width 160 --spec TOML --structures
-NAME,...]``; writes ``DIR/<variant>/`` (the calibration outputs) and ``DIR/summary.json``,
+NAME,... --grid NAME=V1,V2,...]``; writes ``DIR/<variant>/`` (the calibration outputs) and ``DIR/summary.json``,
 ``DIR/summary.md``.
 """
 
@@ -78,11 +78,21 @@ def structure(spec, name: str):
 STRUCTURES = ("spec", "simulation_camera", "leds_in_elastomer", "leds_under_wall", "lambertian_leds", "point_leds")
 
 
+def variant_grid(name: str, grid: dict | None = None) -> dict:
+    """The effects grid a variant searches: its own (``VARIANTS``), or ``grid`` with the
+    variant's switched-off effects (a single 0) kept off."""
+    own = VARIANTS[name][0]
+    if grid is None:
+        return own
+    return {**grid, **{k: v for k, v in own.items() if tuple(v) == (0.0,)}}
+
+
 def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32, bootstrap: int = 8,
         variants: list[str] | None = None, reference: str | Path | None = None, spec_path: str | Path | None = None,
-        structures: list[str] | None = None) -> dict:
+        structures: list[str] | None = None, grid: dict | None = None) -> dict:
     """Calibrate each variant (``variants``, default all), or with ``structures`` each of
-    those builds of the ``spec_path`` sensor with every mechanism on; the summary."""
+    those builds of the ``spec_path`` sensor with every mechanism on; the summary.
+    ``grid``: the effects searched instead of each variant's (``variant_grid``)."""
     from pbr_tactile.calibrate import calibrate_background
     from pbr_tactile.calibrate_cli import write_outputs
     from scenes.camera import Camera
@@ -97,8 +107,9 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
     real = read_rgb(folder / "real" / "bkg.png")
     out = Path(out)
     rows = {}
-    runs = ([(name, base, *VARIANTS[name]) for name in variants or list(VARIANTS)] if structures is None else
-            [(name, structure(base, name), *VARIANTS["full"]) for name in structures])
+    runs = ([(name, base, variant_grid(name, grid), VARIANTS[name][1]) for name in variants or list(VARIANTS)]
+            if structures is None else
+            [(name, structure(base, name), variant_grid("full", grid), VARIANTS["full"][1]) for name in structures])
     for name, spec, grid, leak in runs:
         camera = Camera.from_spec(spec)
         mesh = membrane_mesh(spec)
@@ -136,6 +147,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reference", help="the published data folder (default: scenes.reference_data)")
     parser.add_argument("--spec", help="the sensor spec TOML (default: the published simulation's)")
     parser.add_argument("--structures", help=f"comma-separated builds of the sensor instead: {', '.join(STRUCTURES)}")
+    parser.add_argument("--grid", action="append", metavar="NAME=V1,V2,...",
+                        help="effects searched instead of each variant's grid (repeatable); a variant's switched-off "
+                             "effect stays off")
     args = parser.parse_args(argv)
     variants = args.variants.split(",") if args.variants else None
     for name in variants or []:
@@ -147,8 +161,16 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"unknown structure {name!r}; one of {', '.join(STRUCTURES)}")
     if structures and variants:
         parser.error("--structures calibrates every mechanism on; it takes no --variants")
+    grid = None
+    if args.grid:
+        from scenes.commands import name_values
+
+        try:
+            grid = name_values(args.grid, "--grid", "NAME=V1,V2,... (an effect and its values)")
+        except ValueError as exc:
+            parser.error(str(exc))
     summary = run(args.out, args.width, args.photons, args.spp, args.bootstrap, variants, args.reference, args.spec,
-                  structures)
+                  structures, grid)
     print((Path(args.out) / "summary.md").read_text())
     return 0 if summary else 1
 
