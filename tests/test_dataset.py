@@ -173,6 +173,7 @@ def test_scene_commands(tmp_path, headless_gl):
     assert 'name="geltip_depth"' in xml and 'name="indenter_pacman"' in xml
 
 
+@pytest.mark.slow
 def test_bench_dataset_writes_json(tmp_path, headless_gl):
     from scenes.cli import main
 

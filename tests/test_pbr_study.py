@@ -37,6 +37,7 @@ def quick(vectorised_mitsuba, tmp_path_factory):
     return out, study.run(out, study.QUICK, study.QUICK_CONTACTS, reference_dir=None)
 
 
+@pytest.mark.slow
 def test_quick_run_writes_a_complete_table_with_bracketing_intervals(quick):
     out, results = quick
     assert set(results["table"]) == set(METHODS)
@@ -67,6 +68,7 @@ def test_quick_run_writes_a_complete_table_with_bracketing_intervals(quick):
     assert json.loads((out / study.JSON_NAME).read_text())["best"] == results["best"]
 
 
+@pytest.mark.slow
 def test_references_are_cached_atomically_and_read_back(quick, spec, mesh, camera):
     from scenes.camera import reference_depth
 
