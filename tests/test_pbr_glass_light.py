@@ -186,6 +186,29 @@ def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh):
     assert pixel["facing"] > 10 * pixel["away"] > 0
 
 
+def test_a_beam_led_whose_axis_holds_a_negative_zero_renders_as_the_positive_one(spec, mesh):
+    """A turned LED's axis can carry -0.0 (scenes.profile.turn_leds). Dr.Jit 1.5 broadcast a
+    literal vector holding -0.0 in place when it was multiplied by a wider array, so the
+    camera pass' cone axis, kept across the first hit and the walk (twice as wide), broke
+    the render ("operands have incompatible sizes"). Same seed: the image of +0.0."""
+    _vectorised()
+    from pbr_tactile.render import reference
+    from pbr_tactile.scene import led_sources
+    from scenes.camera import Camera
+    from scenes.spec import LED
+
+    camera = Camera.from_spec(spec)
+    images = []
+    for x in (-0.0, 0.0):
+        one = spec.replace(leds=(LED("led", position=(0.004, 0.0, -0.002), direction=(x, 0.0, 1.0),
+                                     colour=(1.0, 1.0, 1.0), k_d=1.0, k_s=0.0, peak_nm=620.0, fwhm_nm=20.0,
+                                     beam_half_angle_rad=math.radians(30)),), led_groups=())
+        assert math.copysign(1.0, led_sources(one)[0]["cone_axis"][0]) == math.copysign(1.0, x)
+        images.append(reference(None, None, mesh, one, camera, Effects(), spp=4, passes=2, width=15, height=11,
+                                photons=1 << 12, seed=3).mean)
+    np.testing.assert_allclose(images[0], images[1], rtol=1e-5, atol=1e-9)  # (the sign changes roundings)
+
+
 def test_the_glass_wall_and_its_index_are_the_specs(spec):
     """The tube's wall thickness and refractive index come from the spec: the reference's
     interfaces, the wall's foot where an LED under it emits, and the refraction into it."""
