@@ -30,8 +30,8 @@ Coating gloss needs the volumetric path tracer (the photon estimator needs a dif
 coating), whose per-source basis this study does not render: it is reported as untested.
 
 Run: ``python -m studies.light_paths --out DIR [--width 160 --spec TOML --structures
-NAME,... --grid NAME=V1,V2,...]``; writes ``DIR/<variant>/`` (the calibration outputs) and ``DIR/summary.json``,
-``DIR/summary.md``.
+NAME,... --grid NAME=V1,V2,... --bootstrap B]``; writes ``DIR/<variant>/`` (the
+calibration outputs) and ``DIR/summary.json``, ``DIR/summary.md``.
 """
 
 from __future__ import annotations
