@@ -568,8 +568,8 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     E = [_owned(mi.Float, m) for m in maps]
     emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance).
-    # The axis is a scalar vector, copied into each expression: Dr.Jit 1.5 broadcast a
-    # literal Vector3f holding -0.0 (a turned LED's axis can) in place when it met a wider
+    # The axis is a scalar vector, copied into each expression: Dr.Jit 1.5 can broadcast a
+    # literal Vector3f holding -0.0 (a turned LED's axis can) in place when it meets a wider
     # array, so one kept across the first hit and the walk broke the second.
     led_radiance = [(src.seen_radiance(), None if not src.directional else
                      (mi.ScalarVector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]

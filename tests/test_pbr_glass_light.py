@@ -187,8 +187,9 @@ def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh):
 
 
 def test_a_beam_led_whose_axis_holds_a_negative_zero_renders_as_the_positive_one(spec, mesh):
-    """A turned LED's axis can carry -0.0 (scenes.profile.turn_leds). Dr.Jit 1.5 broadcast a
-    literal vector holding -0.0 in place when it was multiplied by a wider array, so the
+    """A turned LED's axis can carry -0.0 (scenes.profile.turn_leds). Dr.Jit 1.5 can
+    broadcast a literal vector holding -0.0 in place when it is multiplied by a wider array
+    (not every such vector is: the shipped 2023 spec's axes hold -0.0 and render), so the
     camera pass' cone axis, kept across the first hit and the walk (twice as wide), broke
     the render ("operands have incompatible sizes"). Same seed: the image of +0.0."""
     _vectorised()
