@@ -10,6 +10,8 @@ rendered and what shared input the worker received.
 from __future__ import annotations
 
 import os
+import time
+from pathlib import Path
 
 import numpy as np
 
@@ -40,10 +42,29 @@ def node_id() -> str | None:
     return ray.get_runtime_context().get_node_id() if ray.is_initialized() else None
 
 
+#: How long a sample waits at the ``meet`` barrier for the other nodes, seconds.
+MEET_TIMEOUT_S = 60.0
+
+
+def meet(folder: str, nodes: int, timeout: float = MEET_TIMEOUT_S) -> None:
+    """Wait until samples have started on ``nodes`` distinct Ray nodes (each leaves its
+    node's id in ``folder``), or ``timeout`` s: a busy node then holds its one CPU, so the
+    scheduler must send the queued taps to the others. Without it, quick fake taps all
+    finished on the first node while the second node's worker was still starting."""
+    folder = Path(folder)
+    (folder / f"node-{node_id()}").touch()
+    end = time.monotonic() + timeout
+    while len(list(folder.glob("node-*"))) < nodes and not (folder / "gave-up").exists():
+        if time.monotonic() > end:  # once: later samples do not wait again
+            (folder / "gave-up").touch()
+        time.sleep(0.05)
+
+
 class FakeRenderer:
-    def __init__(self, ref_depth: np.ndarray, shared: np.ndarray):
+    def __init__(self, ref_depth: np.ndarray, shared: np.ndarray, meet: dict | None = None):
         self.ref_depth = np.asarray(ref_depth, np.float32)
         self.shared_sum = float(np.sum(shared, dtype=np.float64))
+        self.meet = meet
 
     @property
     def no_contact(self) -> np.ndarray:
@@ -54,6 +75,8 @@ class FakeRenderer:
         return np.clip(0.5 + GAIN_PER_M * dent, 0.0, 1.0)[..., None].repeat(3, axis=2)
 
     def render_sample(self, depth: np.ndarray) -> dict:
+        if self.meet:
+            meet(self.meet["folder"], self.meet["nodes"])
         image = self.render(depth)
         return {
             "image": image,
@@ -65,4 +88,4 @@ class FakeRenderer:
 def make_renderer(spec, mesh, camera, ref_depth, options: dict, shared=None) -> FakeRenderer:
     if shared is None:
         raise ValueError("the fake renderer defines shared(), so it must be given shared=")
-    return FakeRenderer(ref_depth, shared)
+    return FakeRenderer(ref_depth, shared, options.get("meet"))

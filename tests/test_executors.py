@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import os
 import pickle
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -227,7 +229,12 @@ def test_two_nodes_share_nothing_but_the_object_store(tmp_path, spec, mesh, clus
     try:
         with pytest.raises(ValueError, match="already connected to a Ray cluster"):
             generate(root, spec, _protocol(spec, mesh), FAKE, {}, executor="ray", address=cluster.address)
-        summary = generate(root, spec, _protocol(spec, mesh, taps=8), FAKE, {}, executor="ray", progress=False)
+        # each tap waits until taps run on both nodes, so neither can take them all (the
+        # folder lies outside tmp_path, which no task argument may name: checked below)
+        meet = {"folder": tempfile.mkdtemp(prefix="meet-"), "nodes": 2}
+        summary = generate(root, spec, _protocol(spec, mesh, taps=8), FAKE, {"meet": meet}, executor="ray",
+                           progress=False)
+        shutil.rmtree(meet["folder"])
         assert ray.is_initialized()
     finally:
         ray.shutdown()
