@@ -86,8 +86,7 @@ def per_unit(basis: dict, unit: np.ndarray, names) -> np.ndarray:
     units whose sources are ``names``: LED m's into unit ``unit[m]``'s of the same kind."""
     index = {str(n): k for k, n in enumerate(names)}
     out = np.zeros((*basis["mean"].shape[:2], len(names)))
-    for k, name in enumerate(basis["names"]):
-        m = led_of_source([name])[0]
+    for k, (name, m) in enumerate(zip(basis["names"], led_of_source(basis["names"]))):
         target = f"led{unit[m]}" + ("_leak" if str(name).endswith("_leak") else "")
         if target not in index:
             raise ValueError(f"tap_changes: the tap's source {name} has no unit among the basis' "
