@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import pickle
-import shutil
 import signal
 import subprocess
 import sys
@@ -231,10 +230,9 @@ def test_two_nodes_share_nothing_but_the_object_store(tmp_path, spec, mesh, clus
             generate(root, spec, _protocol(spec, mesh), FAKE, {}, executor="ray", address=cluster.address)
         # each tap waits until taps run on both nodes, so neither can take them all (the
         # folder lies outside tmp_path, which no task argument may name: checked below)
-        meet = {"folder": tempfile.mkdtemp(prefix="meet-"), "nodes": 2}
-        summary = generate(root, spec, _protocol(spec, mesh, taps=8), FAKE, {"meet": meet}, executor="ray",
-                           progress=False)
-        shutil.rmtree(meet["folder"])
+        with tempfile.TemporaryDirectory(prefix="meet-") as folder:
+            meet = {"meet": {"folder": folder, "nodes": 2}}
+            summary = generate(root, spec, _protocol(spec, mesh, taps=8), FAKE, meet, executor="ray", progress=False)
         assert ray.is_initialized()
     finally:
         ray.shutdown()
