@@ -2,17 +2,20 @@
 
 Each case draws a virtual sensor: the reference's physical effects from the calibration
 grid's values (the basis is rendered on that grid, so recovery measures the search, not
-interpolation between grid points), and the camera and alignment parameters from the
-stated ranges below. Its no-contact image is rendered with its LEDs truly turned by
-their azimuths (``Profile.sensor_spec``) and then moved by its rotation, scale and shift,
-with another seed than the calibration's basis (so its Monte Carlo noise is its own), at
-the camera's size, and calibrated from without its values.
+interpolation between grid points), and the camera, lens, alignment and LED parameters
+from the stated ranges below (each LED group's centre and span, each single LED's
+azimuth, the lens' k1). Its no-contact image is rendered with every LED where it truly
+is (``virtual_build``: a group's LEDs along its drawn arc, summed into the group's unit)
+and then moved by its rotation, scale, shift and lens, with another seed than the
+calibration's basis (so its Monte Carlo noise is its own), as wide as the calibration's
+basis sees (``basis.basis_camera``), and calibrated from without its values.
 
 Scoring, per identifiable parameter:
 - positive quantities (gamma, scale, the lens' illumination at the circle's edge V(1),
-  each LED's leak fraction where it is at least LEAK_MIN, each LED's gains relative to
-  the brightest gain, the grid's effects): |fit - true| / true;
-- zero-centred ones (rotation, shift): |fit - true| / the half-width of their range.
+  each unit's leak fraction where it is at least LEAK_MIN, each unit's gains relative to
+  the brightest gain, each group's arc span, the grid's effects): |fit - true| / true;
+- zero-centred ones (rotation, shift, and the lens' k1 as the share by which it moves
+  the image circle's edge): |fit - true| / the half-width of their range.
 With gains free per LED, LEDs whose images differ only by a turn can swap: the rotation
 is known modulo 2 pi / L and the LEDs' parameters up to that renaming, so scoring first
 finds the renaming (the one that best matches the rotation).
@@ -40,12 +43,15 @@ import time
 
 import numpy as np
 
+from scenes.camera import Camera, project
 from scenes.profile import turn_leds
 
-from .basis import BASIS_EFFECTS, emitter_basis
+from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis
 from .calibrate import GRID, calibrate_background
+from .calibrate_taps import per_unit, tap_spec
 from .effects import Effects
 from .image_model import ImageModel, Nonlinear
+from .scene import led_sources
 
 #: Ranges the hidden values are drawn from (uniform).
 RANGES = {
@@ -57,6 +63,13 @@ RANGES = {
     "edge_illumination": (0.35, 1.0),
     "gamma": (1.6, 2.6),
     "gain": (0.2, 1.0),
+    # the real lens' k1 against the spec's, as the share by which it moves the image
+    # circle's edge (k1 e^2, e the edge's radius in focal lengths); no unit-to-unit spread
+    # of the lens is published (estimate: as wide as the scale's)
+    "lens_edge_shift": (-0.1, 0.1),
+    # each LED group's arc span as a share of the spec's (estimate: the crown's slots are
+    # hand-fitted, 3 to 6 LEDs per colour)
+    "span_share": (0.8, 1.2),
 }
 #: Leak fractions below this are scored as absent, not relatively.
 LEAK_MIN = 0.1
@@ -64,20 +77,73 @@ LEAK_MIN = 0.1
 SEED_OFFSET = 1000
 
 
-def draw(rng: np.random.Generator, leds: int, grid: dict) -> tuple[Nonlinear, np.ndarray, dict]:
-    """Hidden nonlinear parameters, gains (L, 3) and grid effects of one virtual sensor."""
+def draw(rng: np.random.Generator, units: int, grid: dict, spans: tuple = (), edge: float = 1.0,
+         k1: float = 0.0) -> tuple[Nonlinear, np.ndarray, dict]:
+    """Hidden nonlinear parameters, gains (U, 3) and grid effects of one virtual sensor of
+    ``units`` units (``basis.basis_layout``): each group's span drawn about ``spans`` (the
+    spec's, 0 for a single LED; () without groups), the lens' k1 about the spec's ``k1``
+    from its shift of the image circle's edge, ``edge`` focal lengths out."""
     u = lambda name, n=None: rng.uniform(*RANGES[name], n)  # noqa: E731
-    edge = u("edge_illumination")
-    nl = Nonlinear(float(u("rotation_rad")), tuple(u("led_azimuth_rad", leds)), tuple(u("leak", leds)),
-                   float(u("scale")), tuple(u("shift_px", 2)), (float(edge - 1.0), 0.0), float(u("gamma")))
-    gains = u("gain", (leds, 3))
+    edge_light = u("edge_illumination")
+    nl = Nonlinear(float(u("rotation_rad")), tuple(u("led_azimuth_rad", units)), tuple(u("leak", units)),
+                   float(u("scale")), tuple(u("shift_px", 2)), (float(edge_light - 1.0), 0.0), float(u("gamma")))
+    gains = u("gain", (units, 3))
     effects = {name: float(rng.choice(values)) for name, values in grid.items()}
+    share = u("span_share", len(spans))
+    nl = dataclasses.replace(nl, span_rad=tuple(float(s * f) for s, f in zip(spans, share)),
+                             k1=float(k1 + u("lens_edge_shift") / edge**2))
     return nl, gains, effects
 
 
-def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: int, taps: bool = False
-            ) -> dict[str, float]:
-    """Relative error per scored parameter (module doc)."""
+def virtual_build(spec, nl: Nonlinear) -> tuple:
+    """The virtual sensor's LEDs where they truly are, and how they are rendered: each
+    single LED turned by its unit's azimuth, each group's centre turned by its unit's and
+    its LEDs spread over its unit's span; (that spec, photons per LED as a share of the
+    basis', each LED's unit: ``calibrate_taps.tap_spec``)."""
+    _, _, spans, unit, _ = basis_layout(spec)
+    first = len(spans) - len(spec.led_groups)
+    if spec.led_groups:
+        spec = spec.with_led_groups([dataclasses.replace(g, arc_centre_rad=g.arc_centre_rad + nl.led_azimuth_rad[first + i],
+                                                         arc_span_rad=nl.span_rad[first + i])
+                                     for i, g in enumerate(spec.led_groups)])
+        unit = basis_layout(spec)[3]
+    spec = turn_leds(spec, [nl.led_azimuth_rad[m] if led.group is None else 0.0 for led, m in zip(spec.leds, unit)])
+    return tap_spec(spec)
+
+
+def virtual_render(build: tuple, names, mesh, camera, effects: Effects, film, photons: int, spp: int, seed: int,
+                   use_cache: bool, depth=None, ref_depth=None) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, variance) (h, w, S) of a virtual sensor (``virtual_build``) per unit source
+    ``names`` (a group's LEDs summed into its unit), without contact or with ``depth``."""
+    spec, share, unit = build
+    basis = emitter_basis(spec, mesh, camera, effects, film, max(1, int(round(photons * share))), spp, 2, seed,
+                          use_cache, depth=depth, ref_depth=ref_depth)
+    if not spec.led_groups:
+        return basis["mean"], basis["variance"]
+    return per_unit(basis, unit, names), per_unit(basis, unit, names, "variance")
+
+
+def lens_error_px(camera: Camera, nl: Nonlinear, scale: float, k1: float, step: int = 8) -> float:
+    """RMS over the image circle (every ``step``-th camera pixel) of how far a lens of
+    ``scale`` and ``k1`` puts each ray from where the lens of ``nl`` does, camera pixels,
+    both at ``nl``'s principal point: how well the lens' mapping is known."""
+    true = nl.alignment(0.0, camera.k2).lens(camera)
+    fitted = dataclasses.replace(nl, scale=scale, k1=k1).alignment(0.0, camera.k2).lens(camera)
+    v, u = np.mgrid[0:camera.height:step, 0:camera.width:step].astype(np.float64)
+    mx = camera.cx if camera.mask_cx is None else camera.mask_cx
+    my = camera.cy if camera.mask_cy is None else camera.mask_cy
+    inside = np.hypot(u - mx, v - my) <= camera.mask_radius_px
+    x, y = true.slopes(u[inside], v[inside])
+    uv = project(np.stack([x, y, np.ones_like(x)], axis=-1), fitted)
+    d2 = (uv[..., 0] - u[inside]) ** 2 + (uv[..., 1] - v[inside]) ** 2
+    return float(np.sqrt(np.nanmean(d2)))
+
+
+def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: int, camera: Camera,
+            taps: bool = False) -> tuple[dict[str, float], dict[str, float]]:
+    """(scored, reported) relative errors (module doc): those of what the data identify,
+    and those of the parts of a combination, reported and not scored; ``leds``: the fit's
+    units."""
     turn = 2 * math.pi / leds
     # without taps the fit reports the tied rotation, with taps the membrane's own
     d = fit["rotation_rad"] - (nl.rotation_rad if taps else nl.tied().rotation_rad)
@@ -85,11 +151,14 @@ def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: in
     rot_err = abs(math.remainder(d - k * turn, 2 * math.pi))
     perm = [(j + k) % leds for j in range(leds)]  # fitted LED j sits where true LED j + k does
     half = lambda name: (RANGES[name][1] - RANGES[name][0]) / 2  # noqa: E731
+    edge = camera.mask_radius_px / camera.f
     out = {"rotation_rad": rot_err / half("rotation_rad"),
            "gamma": abs(fit["gamma"] - nl.gamma) / nl.gamma,
-           "scale": abs(fit["scale"] - nl.scale) / nl.scale,
            "shift_px": float(np.max(np.abs(np.subtract(fit["shift_px"], nl.shift_px)))) / half("shift_px"),
-           "edge_illumination": abs(sum(fit["vignetting"]) - sum(nl.vignetting)) / (1 + sum(nl.vignetting))}
+           "edge_illumination": abs(sum(fit["vignetting"]) - sum(nl.vignetting)) / (1 + sum(nl.vignetting)),
+           "lens_mapping_px": lens_error_px(camera, nl, fit["scale"], fit["k1"]) / half("shift_px")}
+    reported = {"scale": abs(fit["scale"] - nl.scale) / nl.scale,
+                "lens_edge_shift": abs(fit["k1"] - nl.k1) * edge**2 / half("lens_edge_shift")}
     fitted_gains = np.asarray(fit["led_gains"])
     rel_fit = fitted_gains / fitted_gains.max()
     rel_true = gains / gains.max()
@@ -98,12 +167,14 @@ def _errors(fit: dict, nl: Nonlinear, gains: np.ndarray, effects: dict, leds: in
         out[f"led{true}_leak"] = abs(leak_fit - leak_true) / max(leak_true, LEAK_MIN)
         for c, ch in enumerate("rgb"):
             out[f"led{true}_gain_{ch}"] = abs(rel_fit[j, c] - rel_true[true, c]) / rel_true[true, c]
+        if nl.span_rad and nl.span_rad[true] > 0:
+            out[f"led{true}_span"] = abs(fit["arc_span_rad"][j] - nl.span_rad[true]) / nl.span_rad[true]
     if taps:
         # the LEDs' common turn against the membrane (each LED's own is not identifiable)
         out["led_turn"] = abs(np.mean(fit["led_azimuth_rad"]) - np.mean(nl.led_azimuth_rad)) / half("led_azimuth_rad")
     for name, value in effects.items():
         out[name] = abs(fit["effects"][name] - value) / value if value else abs(fit["effects"][name])
-    return out
+    return out, reported
 
 
 def protocol_taps(spec, mesh, count: int) -> tuple[list, np.ndarray, np.ndarray]:
@@ -129,24 +200,25 @@ def protocol_taps(spec, mesh, count: int) -> tuple[list, np.ndarray, np.ndarray]
     return taps, np.stack(depths).astype(np.float32), np.asarray(ref_depth, np.float32)
 
 
-def virtual_taps(unit, mesh, camera, effects: Effects, still: Nonlinear, gains: np.ndarray, depths, ref_depth, film,
-                 photons: int, spp: int, seed: int, use_cache: bool, ids) -> tuple:
-    """A virtual sensor's taps at the camera's size: (RealTaps, their noise level). ``unit``:
-    the spec with the sensor's LEDs turned (``scenes.profile.turn_leds``); ``still``: its parameters with
-    zero azimuths (the turn is in the render), whose alignment then moves the image. The
-    noise level is the mean Monte Carlo standard error of the taps' images inside the
-    image circle, carried through the response."""
+def virtual_taps(build: tuple, names, mesh, camera, effects: Effects, still: Nonlinear, gains: np.ndarray, depths,
+                 ref_depth, film, photons: int, spp: int, seed: int, use_cache: bool, ids) -> tuple:
+    """A virtual sensor's taps at the camera's size: (RealTaps, their noise level).
+    ``build``: the sensor's LEDs where they are (``virtual_build``), per unit source
+    ``names``; ``still``: its parameters with zero azimuths and no arcs (the LEDs' places
+    are in the render), whose alignment then moves the image. The noise level is the mean
+    Monte Carlo standard error of the taps' images inside the image circle, carried
+    through the response."""
     from scenes.captures import RealTaps
 
     k = camera.height // film[1]
     images, noise = [], []
     for depth in depths:
-        basis = emitter_basis(unit, mesh, camera, effects, film, photons, spp, 2, seed, use_cache, depth=depth,
-                              ref_depth=ref_depth)
-        model = ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
+        mean, variance = virtual_render(build, names, mesh, camera, effects, film, photons, spp, seed, use_cache,
+                                        depth=depth, ref_depth=ref_depth)
+        model = ImageModel(mean, names, camera, (camera.cx, camera.cy, camera.mask_radius_px))
         image = model.render(still, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
         images.append(np.repeat(np.repeat(image, k, axis=0), k, axis=1))
-        noise.append(_noise(model, basis["variance"], still, gains))
+        noise.append(_noise(model, variance, still, gains))
     return RealTaps(np.stack(images), depths, ref_depth, list(ids)), float(np.mean(noise))
 
 
@@ -173,37 +245,44 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
     grid = GRID if grid is None else grid
     rng = np.random.default_rng(seed)
     per_case: list[dict] = []
-    leds = len(spec.leds)
+    rendered, _, spans, _, _ = basis_layout(spec)
+    units = len(rendered.leds)
+    names = [src["name"] for src in led_sources(rendered, Effects().with_settings(
+        [f"{k}={v}" for k, v in BASIS_EFFECTS.items()]))]
     if taps:
         protocol, depths, ref_depth = protocol_taps(spec, mesh, taps)
         ids = [f"{t.object}_{i}" for i, t in enumerate(protocol)]
     for case in range(cases):
-        nl, gains, effects = draw(rng, leds, grid)
+        nl, gains, effects = draw(rng, units, grid, spans, camera.mask_radius_px / camera.f, camera.k1)
         fx = Effects().with_settings([f"{k}={v}" for k, v in {**BASIS_EFFECTS, **effects}.items()])
-        # the virtual sensor's own render: its LEDs truly turned, at the film's size, with its
-        # own seed (its own noise; its taps share it, as one sensor's captures share the scene)
-        unit = turn_leds(spec, nl.led_azimuth_rad)
-        still = dataclasses.replace(nl, led_azimuth_rad=(0.0,) * leds)
+        # the virtual sensor's own render: its LEDs where they truly are, at the film's size,
+        # with its own seed (its own noise; its taps share it, as one sensor's captures
+        # share the scene); seen as wide as the calibration's basis, so that its lens may
+        # see wider than the spec's (with taps the spec's camera, as the calibration's)
+        build = virtual_build(spec, nl)
+        still = dataclasses.replace(nl, led_azimuth_rad=(0.0,) * units, span_rad=())
         case_seed = seed + SEED_OFFSET + case
-        hidden = emitter_basis(unit, mesh, camera, fx, film, photons, spp, 2, case_seed, use_cache=not cold)
+        seen = camera if taps else basis_camera(camera)
+        mean, variance = virtual_render(build, names, mesh, seen, fx, film, photons, spp, case_seed, not cold)
         circle = (camera.cx, camera.cy, camera.mask_radius_px)
-        model = ImageModel(hidden["mean"], hidden["names"], camera, circle)
+        model = ImageModel(mean, names, camera, circle, rendered=seen)
         design = model.design(still)
         gains_scaled = gains / np.percentile(design[model.inside].sum(axis=1), 95)
         image = model.render(still, gains_scaled, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
         k = camera.height // film[1]
         real = np.repeat(np.repeat(image, k, axis=0), k, axis=1)
         real_taps, tap_noise = (None, None) if not taps else virtual_taps(
-            unit, mesh, camera, fx, still, gains_scaled, depths, ref_depth, film, photons, spp, case_seed, not cold, ids)
+            build, names, mesh, camera, fx, still, gains_scaled, depths, ref_depth, film, photons, spp, case_seed,
+            not cold, ids)
         t0 = time.perf_counter()
         cal = calibrate_background(real, spec, mesh, camera, film=film, grid=grid, photons=photons, spp=spp, seed=seed,
                                    bootstrap=0, use_cache=not cold, taps=real_taps, fast_path_fit=fast_path_fit)
         seconds = time.perf_counter() - t0
         fit = {**cal.report["parameters"], "effects": cal.report["best_effects"]}
-        noise = _noise(model, hidden["variance"], still, gains_scaled)
+        noise = _noise(model, variance, still, gains_scaled)
         mae = float(np.mean([cal.report["heldout_mae"][ch] for ch in "rgb" if not cal.report["saturated"][ch]]))
-        record = {"errors": _errors(fit, nl, gains_scaled, effects, leds, taps=bool(taps)),
-                  "mae_over_noise": mae / noise if noise > 0 else float("nan"),
+        scored, reported = _errors(fit, nl, gains_scaled, effects, units, camera, taps=bool(taps))
+        record = {"errors": scored, "reported": reported, "noise": noise, "mae_over_noise": mae / noise if noise > 0 else float("nan"),
                   "heldout_r2": cal.report["heldout_r2"], "seconds": seconds,
                   "hidden": {**dataclasses.asdict(nl), "gains": gains_scaled.tolist(), "effects": effects},
                   "fit": fit}
@@ -229,6 +308,10 @@ def _summary(per_case: list[dict], seed: int, taps: int, grid: dict) -> dict:
         for name, err in record["errors"].items():
             per_parameter.setdefault(name, []).append(float(err))
     errors = np.concatenate([np.asarray(v) for v in per_parameter.values()])
+    reported: dict[str, list[float]] = {}
+    for record in per_case:
+        for name, err in record.get("reported", {}).items():
+            reported.setdefault(name, []).append(float(err))
     tap_scores = [r["taps"] for r in per_case if "taps" in r]
     return {
         "cases": len(per_case),
@@ -237,7 +320,10 @@ def _summary(per_case: list[dict], seed: int, taps: int, grid: dict) -> dict:
         "share_within_10pct": float(np.mean(errors <= 0.10)),
         "per_parameter": {name: {"median": float(np.median(v)), "max": float(np.max(v))}
                           for name, v in per_parameter.items()},
+        "reported_not_scored": {name: {"median": float(np.median(v)), "max": float(np.max(v))}
+                                for name, v in reported.items()},
         "heldout_mae_over_noise": float(np.median([r["mae_over_noise"] for r in per_case])),
+        "noise": [r["noise"] for r in per_case],
         "heldout_r2": [r["heldout_r2"] for r in per_case],
         "taps": taps,
         "heldout_taps": tap_scores,

@@ -81,17 +81,19 @@ def tap_spec(spec, spans: tuple = ()) -> tuple:
     return spec, len(rendered.leds) / len(spec.leds), unit
 
 
-def per_unit(basis: dict, unit: np.ndarray, names) -> np.ndarray:
+def per_unit(basis: dict, unit: np.ndarray, names, key: str = "mean") -> np.ndarray:
     """(h, w, U) a per-LED render's sources (``led<m>``, ``led<m>_leak``) summed into the
-    units whose sources are ``names``: LED m's into unit ``unit[m]``'s of the same kind."""
+    units whose sources are ``names``: LED m's into unit ``unit[m]``'s of the same kind.
+    ``key``: the render's "mean", or its "variance" (summed as if the sources' noise were
+    independent)."""
     index = {str(n): k for k, n in enumerate(names)}
-    out = np.zeros((*basis["mean"].shape[:2], len(names)))
+    out = np.zeros((*basis[key].shape[:2], len(names)))
     for k, (name, m) in enumerate(zip(basis["names"], led_of_source(basis["names"]))):
         target = f"led{unit[m]}" + ("_leak" if str(name).endswith("_leak") else "")
         if target not in index:
             raise ValueError(f"tap_changes: the tap's source {name} has no unit among the basis' "
                              f"{[str(n) for n in names]}")
-        out[..., index[target]] += basis["mean"][..., k]
+        out[..., index[target]] += basis[key][..., k]
     return out
 
 

@@ -292,25 +292,6 @@ def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
 # (the end-to-end run, with Mitsuba and a capture dataset's taps, is in test_calibrate_taps.py)
 
 
-# -- the blind benchmark's scoring ------------------------------------------------------------
-
-def test_benchmark_scoring_forgives_only_the_led_renaming():
-    from pbr_tactile.calibrate_bench import _errors
-
-    truth = im.Nonlinear(0.3, (0.01, -0.02, 0.03), (0.2, 0.4, 0.0), 1.02, (3.0, -2.0), (-0.3, 0.0), 2.0)
-    gains = np.array([[0.9, 0.2, 0.3], [0.1, 0.8, 0.2], [0.3, 0.3, 0.7]])
-    effects = {"absorption_per_m": 20.0}
-    k = 1  # the fit turned by one LED spacing: its LED j is the true LED j + 1
-    perm = [(j + k) % 3 for j in range(3)]
-    fit = {"rotation_rad": truth.tied().rotation_rad + 2 * math.pi / 3, "gamma": 2.0, "scale": 1.02, "shift_px": [3.0, -2.0],
-           "vignetting": [-0.3, 0.0], "led_leak": [truth.leak[p] for p in perm],
-           "led_gains": gains[perm] * 5.0, "effects": effects}
-    errors = _errors(fit, truth, gains, effects, 3)
-    assert max(errors.values()) < 1e-9
-    fit["led_gains"] = gains * 5.0  # not renamed: the gains no longer match
-    assert max(_errors(fit, truth, gains, effects, 3).values()) > 0.5
-
-
 def test_calibrate_command_refuses_bad_input(tmp_path, capsys):
     from scenes.cli import main
     from scenes.images import write_rgb

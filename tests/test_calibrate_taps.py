@@ -244,8 +244,8 @@ def test_calibrate_a_real_dataset_with_taps_end_to_end(tmp_path, spec, camera):
     model = im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px))
     gains = np.full((3, 3), 0.5 / np.percentile(basis["mean"], 90))
     background = np.repeat(np.repeat(model.render(truth, gains, (0, 0, 0), (1, 1, 1)), 8, axis=0), 8, axis=1)
-    real, _ = virtual_taps(unit, mesh, camera, effects, truth, gains, depths, ref_depth, film, photons, spp, 7, True,
-                           ["a", "b"])
+    real, _ = virtual_taps(ct.tap_spec(unit), basis["names"], mesh, camera, effects, truth, gains, depths, ref_depth,
+                           film, photons, spp, 7, True, ["a", "b"])
 
     protocol = base_protocol(spec, mesh, ["sphere"])
     index = [protocol.taps.index(t) for t in taps]
