@@ -11,7 +11,8 @@ import pytest
 
 from pbr_tactile import calibrate_bench as cb
 from pbr_tactile import image_model as im
-from pbr_tactile.basis import basis_layout
+from pbr_tactile.basis import BASIS_EFFECTS, basis_layout
+from pbr_tactile.effects import Effects
 from scenes.camera import Camera
 from scenes.spec import default_spec, load_spec
 
@@ -156,3 +157,25 @@ def test_a_group_sensor_drawn_led_by_led_is_recovered_through_the_whole_benchmar
     assert errors["lens_mapping_px"] * 15.0 < 4.0 and errors["rotation_rad"] < 0.05, errors
     assert result["median_relative_error"] < 0.05
 
+
+def test_the_search_descends_from_every_start_before_it_keeps_the_best():
+    """A blind sensor's image whose starts' own losses rank a wrong basin first: kept by
+    them (screen=0), the search stopped short of the truth; a few steps from every start
+    first, it reaches it. The image is the model's own (no noise), so the truth's loss is 0."""
+    spec = default_spec()
+    camera = Camera.from_spec(spec)
+    effects = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    basis = _formula_basis(spec, None, camera, effects, (40, 30))
+    model = im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px),
+                          lens=True)
+    truth = im.Nonlinear(0.229, (-0.141, 0.066, -0.145), (0.455, 0.308, 0.557), 0.913, (10.24, -13.0), (-0.426, 0.0),
+                         2.03, k1=0.093)
+    gains = np.array([[0.65, 0.41, 0.39], [0.91, 0.38, 0.3], [0.43, 0.67, 0.64]])
+    gains = gains / np.percentile(model.design(truth)[model.inside].sum(axis=1), 95)
+    real = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    fitter = im.ImageFitter(model, real, model.inside)
+    kept_by_start = fitter.search(screen=0)
+    fit = fitter.search()
+    assert kept_by_start.loss > 1e-7
+    assert fit.loss < 1e-10 and fit.converged
+    assert abs(fit.nl.gamma - truth.gamma) < 1e-3 and abs(fit.nl.scale - truth.scale) < 1e-3
