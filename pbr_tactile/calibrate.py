@@ -202,12 +202,15 @@ NOT_IDENTIFIABLE = [
     "tied by giving the azimuth offsets zero mean, so where contacts appear (the membrane's turn) needs taps",
     "the lens' fall-off (vignetting) and the medium's radial transport (absorption, scattering) both shape the "
     "radial profile; the grid's effects are judged with the fall-off fitted for each",
+    "the lens' focal length (alignment.scale) and its k1 trade against each other: an image fixes where the rays "
+    "land across the image circle, not each of the two (on a blind sensor's formula images the fit put k1 half "
+    "its range off with every ray within 3 px); the calibration benchmark scores the lens by where its rays land",
 ]
 
 
 #: What one no-contact image and taps cannot separate.
 NOT_IDENTIFIABLE_WITH_TAPS = [
-    NOT_IDENTIFIABLE[0], NOT_IDENTIFIABLE[2],
+    NOT_IDENTIFIABLE[0], NOT_IDENTIFIABLE[2], NOT_IDENTIFIABLE[3],
     "each LED's own azimuth about the ring: each LED lights the membrane nearly all round, so on the reference's "
     "images (scattering 50 per m) turning one LED by 0.15 rad changed the no-contact fit's loss by at most 6 %, "
     "with its minimum away from the truth, and fitted one by one with 10 taps they were no closer than zero "
