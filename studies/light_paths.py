@@ -26,6 +26,12 @@ mechanism on (``full``):
 - ``lambertian_leds``: no beam: each LED Lambertian;
 - ``point_leds``: one LED per group at its arc's centre, as the published simulation.
 
+One geometric check goes with them: the real image's lit sectors share a sharp circular
+edge (``real_edge``), and the one circle a capsule's membrane has about the axis is its
+dome's junction; each build's row gives where its camera, and the lens its calibration
+fitted, see that junction (``junction_rho``, refraction through the glass and the
+elastomer included).
+
 Coating gloss needs the volumetric path tracer (the photon estimator needs a diffuse
 coating), whose per-source basis this study does not render: it is reported as untested.
 
@@ -87,6 +93,75 @@ def variant_grid(name: str, grid: dict | None = None) -> dict:
     return {**grid, **{k: v for k, v in own.items() if tuple(v) == (0.0,)}}
 
 
+#: The real image's radial edges are looked for between these shares of the circle's
+#: radius (the tip's bright spot and the rim's fall are not membrane structure).
+EDGE_BAND = (0.1, 0.9)
+
+
+def radial_edges(image, circle: tuple[float, float, float], sectors: int = 24, samples: int = 100):
+    """Per angular sector of the image circle (``circle`` (cx, cy, radius) px), the radius
+    (as a share of the circle's) where the summed channels rise most steeply outwards, and
+    that rise over one tenth of the radius; two (sectors,) arrays. Sector k spans
+    [k, k + 1) 2 pi / sectors from +u towards +v."""
+    import numpy as np
+    from scipy import ndimage
+
+    image = np.asarray(image, np.float64)
+    grey = image.sum(axis=2) if image.ndim == 3 else image
+    cx, cy, radius = circle
+    rho = (np.arange(samples) + 0.5) / samples
+    per = 8
+    angle = (np.arange(sectors * per) + 0.5) / (sectors * per) * 2 * math.pi
+    u = cx + radius * rho[None, :] * np.cos(angle)[:, None]
+    v = cy + radius * rho[None, :] * np.sin(angle)[:, None]
+    polar = ndimage.map_coordinates(grey, [v, u], order=1, mode="nearest").reshape(sectors, per, samples).mean(axis=1)
+    slope = np.gradient(ndimage.gaussian_filter1d(polar, 1.5, axis=1), axis=1) * samples / 10
+    band = (rho >= EDGE_BAND[0]) & (rho <= EDGE_BAND[1])
+    at = np.argmax(np.where(band, slope, -np.inf), axis=1)
+    return rho[at], slope[np.arange(sectors), at]
+
+
+def junction_rho(spec, lens=None) -> float:
+    """Where the spec's camera sees the painted surface's ring at the dome's junction, as a
+    share of the image circle's radius: the ray from the camera refracted into the glass
+    and the elastomer (Snell, in the plane through the axis), through the spec's lens, or
+    ``lens`` (a Camera: a calibration's, ``Alignment.lens``). Only for a capsule, whose
+    junction is a ring about the camera's axis."""
+    import numpy as np
+    from scipy import optimize
+
+    from pbr_tactile.scene import IOR_AIR, IOR_SILICONE
+    from scenes.camera import Camera, lens_radius
+
+    m = spec.membrane
+    if m.shape != "capsule":
+        raise ValueError(f"junction_rho: sensor {spec.name!r} is a {m.shape!r}, not a capsule")
+    z_junction = m.base_z + m.cylinder_length
+    inner, glass, paint = m.core_radius - m.glass_wall, m.core_radius, m.radius
+
+    def height(theta):  # where the ray at theta off the axis meets the painted surface
+        c = math.cos(theta)
+        t_glass = math.asin(IOR_AIR * c / m.glass_ior)
+        t_elastomer = math.asin(IOR_AIR * c / IOR_SILICONE)
+        return inner / math.tan(theta) + (glass - inner) * math.tan(t_glass) + (paint - glass) * math.tan(t_elastomer)
+
+    theta = optimize.brentq(lambda t: height(t) - z_junction, 1e-4, math.pi / 2 - 1e-4)
+    camera = Camera.from_spec(spec) if lens is None else lens
+    r = camera.f * float(lens_radius(np.array(theta), camera.k1, camera.k2, camera.projection))
+    return r / camera.mask_radius_px
+
+
+def real_edge(image, circle: tuple[float, float, float]) -> dict:
+    """The real image's circular edge (``radial_edges``): its radius's median and range
+    over the sectors whose rise is at least half the steepest (where light shows it)."""
+    import numpy as np
+
+    rho, rise = radial_edges(image, circle)
+    lit = rise >= 0.5 * rise.max()
+    return {"rho_median": float(np.median(rho[lit])), "rho_range": [float(rho[lit].min()), float(rho[lit].max())],
+            "sectors": int(lit.sum()), "of": int(len(rho))}
+
+
 def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32, bootstrap: int = 8,
         variants: list[str] | None = None, reference: str | Path | None = None, spec_path: str | Path | None = None,
         structures: list[str] | None = None, grid: dict | None = None) -> dict:
@@ -95,7 +170,9 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
     ``grid``: the effects searched instead of each variant's (``variant_grid``)."""
     from pbr_tactile.calibrate import calibrate_background
     from pbr_tactile.calibrate_cli import write_outputs
+    from pbr_tactile.real_image import image_circle
     from scenes.camera import Camera
+    from scenes.profile import Alignment
     from scenes.dataset import atomic_write_json
     from scenes.geometry import membrane_mesh
     from scenes.images import read_rgb
@@ -117,23 +194,39 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
                                    spp=spp, bootstrap=bootstrap, leak=leak)
         write_outputs(cal, out / name, f"real/bkg.png, variant {name}")
         rep = cal.report
-        rows[name] = {"heldout_r2": rep["heldout_r2"], "heldout_r2_interval": rep["heldout_r2_interval"],
+        par = rep["parameters"]
+        fitted = Alignment(0.0, par["scale"], (0.0, 0.0), distortion=(par["k1"], camera.k2)).lens(camera)
+        rows[name] = {"junction_rho": junction_rho(spec) if spec.membrane.shape == "capsule" else None,
+                      "fitted_junction_rho": junction_rho(spec, fitted) if spec.membrane.shape == "capsule" else None,
+                      "heldout_r2": rep["heldout_r2"], "heldout_r2_interval": rep["heldout_r2_interval"],
                       "best_effects": rep["best_effects"], "converged": rep["converged"],
                       "led_leak": rep["parameters"]["led_leak"], "led_leak_interval": rep["intervals"].get("led_leak"),
                       "saturated": rep["saturated"], "fov_y_rad": spec.camera.fov_y,
                       "scale": rep["parameters"]["scale"], "gamma": rep["parameters"]["gamma"]}
-    summary = {"sensor": base.name, "variants": rows, "untested": UNTESTED}
+    circle = image_circle(real)
+    edge = real_edge(real, circle) if circle is not None else None
+    summary = {"sensor": base.name, "variants": rows, "untested": UNTESTED, "real_edge": edge}
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "summary.json", summary)
-    lines = ["| variant | R² red [90 % CI] | R² green [90 % CI] | best effects | LED leak | converged |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| variant | R² red [90 % CI] | R² green [90 % CI] | best effects | LED leak | converged | junction's "
+             "ρ: spec, fitted lens |", "|---|---|---|---|---|---|---|"]
     for name, row in rows.items():
         r2, ci = row["heldout_r2"], row["heldout_r2_interval"]
         leak = ", ".join(f"{x:.2f}" for x in row["led_leak"])
         lines.append(f"| {name} | {r2['r']:.3f} [{ci['r'][0]:.3f}, {ci['r'][1]:.3f}] | {r2['g']:.3f} "
-                     f"[{ci['g'][0]:.3f}, {ci['g'][1]:.3f}] | {row['best_effects']} | {leak} | {row['converged']} |")
+                     f"[{ci['g'][0]:.3f}, {ci['g'][1]:.3f}] | {row['best_effects']} | {leak} | {row['converged']} | "
+                     f"{_rho(row['junction_rho'])}, {_rho(row['fitted_junction_rho'])} |")
+    if edge is not None:
+        lines += ["", f"The real image's circular edge (`real_edge`): ρ {edge['rho_median']:.3f} (median; "
+                  f"{edge['rho_range'][0]:.3f} to {edge['rho_range'][1]:.3f} over {edge['sectors']} of {edge['of']} "
+                  "sectors). The dome's junction, where each build's camera and its fitted lens see it, is in the "
+                  "table's last column."]
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     return summary
+
+
+def _rho(value) -> str:
+    return "-" if value is None else f"{value:.3f}"
 
 
 def main(argv: list[str] | None = None) -> int:
