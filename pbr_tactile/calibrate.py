@@ -28,7 +28,7 @@ from . import calibrate_taps as ct
 from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis
 from .effects import Effects
 from .fast_background import fit_fast_background
-from .image_model import ImageFit, ImageFitter, ImageModel, TapView, debiased
+from .image_model import ImageFit, ImageFitter, ImageModel, TapView, debiased, tied_errors
 from .real_image import (
     CIRCLE_THRESHOLD,
     CLIP_LEVEL,
@@ -75,7 +75,7 @@ def _grid_points(grid: dict) -> list[dict]:
 def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, film: tuple[int, int] = (160, 120),
                          grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
                          seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
-                         progress=None, taps=None, fast_path_fit=None) -> Calibration:
+                         progress=None, taps=None, fast_path_fit=None, image_variance=None) -> Calibration:
     """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1], and to
     its sensor's taps if given.
 
@@ -88,8 +88,10 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     callable (spec, mesh, camera, profile, taps, real) -> (the profile's ``phong`` table,
     the report's ``fast_path.taps`` section) that fits the fast path's LED constants to
     them (the phong renderer plugin's ``calibrate``: this package imports no other
-    renderer); None leaves them out. Raises ValueError for a bad image; a fit that did
-    not converge is reported (``report["converged"]`` False).
+    renderer); None leaves them out. ``image_variance``: (h, w, 3) the real image's noise
+    variance at the film (without taps, the report's ``standard_errors`` then count it with
+    the basis' own Monte Carlo noise; None: the basis' alone). Raises ValueError for a bad
+    image; a fit that did not converge is reported (``report["converged"]`` False).
     """
     grid = GRID if grid is None else grid
     for name in grid:
@@ -153,6 +155,11 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     mae = {ch: float(np.abs(after[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
     mae_before = {ch: float(np.abs(before[..., c] - r[..., c])[judged[ch]].mean()) for c, ch in enumerate("rgb")}
     intervals = _bootstrap(fit, model, r, sector, bootstrap, seed, leak, fitted_views) if bootstrap else {}
+    standard_errors = None
+    if taps is None:
+        noise = model.prediction_variance(basis["variance"], fit.nl, fit.gains)
+        noise = noise if image_variance is None else noise + np.asarray(image_variance, np.float64)
+        standard_errors = tied_errors(fit.nl, ImageFitter(model, r, train, leak=leak).covariance(fit.nl, noise))
     r2_interval = {ch: heldout_interval(after[..., c], r[..., c], judged[ch], sector, seed) for c, ch in enumerate("rgb")}
     fast_table, fast_path = fit_fast_background(r, circle, camera, train, test, clipped, judged, sector, seed)
     nl = fit.nl.tied() if taps is None else dataclasses.replace(
@@ -182,6 +189,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "noise": f.noise, "converged": f.converged} for f, p, _, _ in fits],
         "best_effects": point, "parameters": _parameters(fit, tie=taps is None, spec=spec), "intervals": intervals,
+        "standard_errors": standard_errors,
         "camera": fitted_camera(nl, camera), "on_bound": on_bound(fit.nl, model, leak),
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,
         "taps": tap_report,
@@ -241,13 +249,8 @@ def on_bound(nl, model: ImageModel, leak: bool, tolerance: float = 1e-3) -> dict
     """The searched nonlinear parameters that ended within ``tolerance`` of their range's
     width of a bound: ``search`` (a range the fit chose, which the issue asks be widened
     or explained) and ``physical`` (PHYSICAL_LIMITS: e.g. no leak at all)."""
-    z = nl.vector()
-    names = (["rotation_rad"] + [f"led_azimuth_rad[{i}]" for i in range(model.leds)]
-             + [f"leak[{i}]" for i in range(model.leds)] + ["log_scale", "shift_u", "shift_v", "edge_illumination",
-                                                              "quartic_share", "gamma"]
-             + [f"span_rad[{i}]" for i in range(len(nl.span_rad))] + ["k1"])
     out = {"search": [], "physical": []}
-    for name, value, (lo, hi) in zip(names, z, model.bounds(leak and model.has_leak.any())):
+    for name, value, (lo, hi) in zip(nl.names(), nl.vector(), model.bounds(leak and model.has_leak.any())):
         if hi > lo and name != "rotation_rad" and min(value - lo, hi - value) <= tolerance * (hi - lo):
             out["physical" if name.split("[")[0] in PHYSICAL_LIMITS else "search"].append(name)
     return out

@@ -102,6 +102,13 @@ class Nonlinear:
         return np.r_[self.rotation_rad, self.led_azimuth_rad, self.leak, math.log(self.scale), self.shift_px,
                      1.0 - total, quartic, self.gamma, self.span_rad, self.k1]
 
+    def names(self) -> list[str]:
+        """The searched coordinates' names, in ``vector``'s order."""
+        n = len(self.led_azimuth_rad)
+        return (["rotation_rad"] + [f"led_azimuth_rad[{i}]" for i in range(n)] + [f"leak[{i}]" for i in range(n)]
+                + ["log_scale", "shift_u", "shift_v", "edge_illumination", "quartic_share", "gamma"]
+                + [f"span_rad[{i}]" for i in range(len(self.span_rad))] + ["k1"])
+
     @classmethod
     def from_vector(cls, z: np.ndarray, leds: int, arcs: bool = False) -> Nonlinear:
         """``leds`` units; ``arcs``: the vector ends with their spans."""
@@ -454,6 +461,33 @@ class ImageFitter:
         small = loss <= STUCK_SHARE * self.variance
         return ImageFit(nl, gains, offset, loss, start_loss, result.status > 0 and (moved or small), int(result.nfev))
 
+    def covariance(self, nl: Nonlinear, variance: np.ndarray, step: float = 1e-3) -> np.ndarray:
+        """(P, P) the searched coordinates' covariance (``Nonlinear.vector``'s order; 0 for
+        those the search holds) at ``nl`` that noise of per-pixel ``variance`` (h, w, 3) in
+        the fitted image causes, to first order: the sandwich (J'J)^+ J'SJ (J'J)^+ of the
+        residuals' Jacobian J (central differences, the gains solved at each: variable
+        projection) with S the residuals' variances. The pseudo-inverse leaves out what
+        the image does not see (the rotation against the LEDs' mean azimuth): only
+        combinations it sees (``tied_errors``) are meaningful there. Without taps only."""
+        if self.taps:
+            raise ValueError("covariance: a fit with taps is not covered")
+        bounds = np.array(self.model.bounds(self.leak and self.model.has_leak.any()))
+        free = np.nonzero(bounds[:, 1] > bounds[:, 0])[0]
+        z = nl.vector()
+        columns = []
+        for i in free:
+            h = step * max(1.0, abs(z[i]))
+            up, down = z.copy(), z.copy()
+            up[i], down[i] = z[i] + h, z[i] - h
+            columns.append((self.solve(self.model.nonlinear(up))[2] - self.solve(self.model.nonlinear(down))[2]) / (2 * h))
+        J = np.stack(columns, axis=1)
+        share = self.w / (3 * np.sum(self.w))  # each residual is sqrt(share) times an error (``solve``)
+        S = np.concatenate([share * np.asarray(variance, np.float64)[..., c][self.pixels] for c in range(3)])
+        inverse = np.linalg.pinv(J.T @ J)
+        out = np.zeros((len(z), len(z)))
+        out[np.ix_(free, free)] = inverse @ (J.T * S) @ J @ inverse
+        return out
+
     def search(self, rotations: int = ROTATION_STARTS, max_evaluations: int = 2000, keep: int = 2,
                screen: int = SCREEN_EVALUATIONS) -> ImageFit:
         """Fit from ``rotations`` evenly spaced starting rotations: each start ``screen``
@@ -468,6 +502,21 @@ class ImageFitter:
             screened = [(f.nl, f.start_loss) for f in ahead]
         fits = [self.fit(nl, max_evaluations, start_loss) for nl, start_loss in screened]
         return min(fits, key=lambda f: f.loss)
+
+
+def tied_errors(nl: Nonlinear, cov: np.ndarray) -> dict[str, float]:
+    """Standard errors (``ImageFitter.covariance``) of what one image sees: the tied
+    rotation (the rotation plus the LEDs' mean azimuth, ``Nonlinear.tied``) and every
+    other searched coordinate but the azimuths; 0-variance (held) ones left out."""
+    names = nl.names()
+    n = len(nl.led_azimuth_rad)
+    tie = np.zeros(len(names))
+    tie[0], tie[1:1 + n] = 1.0, 1.0 / n
+    out = {"rotation_rad": float(np.sqrt(max(tie @ cov @ tie, 0.0)))}
+    for i, name in enumerate(names):
+        if i > n and cov[i, i] > 0:
+            out[name] = float(np.sqrt(cov[i, i]))
+    return out
 
 
 def debiased(fit: ImageFit, model: ImageModel, basis: dict, pixels: list[np.ndarray]) -> ImageFit:

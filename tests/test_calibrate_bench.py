@@ -156,6 +156,8 @@ def test_a_group_sensor_drawn_led_by_led_is_recovered_through_the_whole_benchmar
     # the lens' mapping to within half a film pixel (8 camera pixels at 80 x 60)
     assert errors["lens_mapping_px"] * 15.0 < 4.0 and errors["rotation_rad"] < 0.05, errors
     assert result["median_relative_error"] < 0.05
+    # its Monte Carlo error is stated per parameter (the formulas' noise is tiny)
+    assert case["mc_error"]["gamma"] < 0.01 and not case["beyond_tolerance"]
 
 
 def test_the_search_descends_from_every_start_before_it_keeps_the_best():
@@ -179,3 +181,33 @@ def test_the_search_descends_from_every_start_before_it_keeps_the_best():
     assert kept_by_start.loss > 1e-7
     assert fit.loss < 1e-10 and fit.converged
     assert abs(fit.nl.gamma - truth.gamma) < 1e-3 and abs(fit.nl.scale - truth.scale) < 1e-3
+
+
+def test_the_fits_covariance_predicts_how_refits_scatter_under_noise():
+    """Noise of a known variance on the model's own image, drawn again and again: the
+    spread of the refitted shift and tied rotation matches the standard errors the
+    covariance predicts, and no refitted value spreads much wider than predicted (the
+    response exponent spread 0.6 of its prediction over 40 draws: its direction is flat,
+    where the first-order covariance is conservative and refits stop early)."""
+    spec = default_spec()
+    camera = Camera.from_spec(spec)
+    effects = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    basis = _formula_basis(spec, None, camera, effects, (40, 30))
+    model = im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px),
+                          lens=True)
+    truth = im.Nonlinear(0.3, (0.0, 0.0, 0.0), (0.3, 0.4, 0.2), 1.0, (2.0, -3.0), (-0.4, 0.0), 2.0, k1=0.02)
+    gains = np.array([[0.65, 0.41, 0.39], [0.91, 0.38, 0.3], [0.43, 0.67, 0.64]])
+    gains = gains / np.percentile(model.design(truth)[model.inside].sum(axis=1), 95)
+    clean = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    sigma = 0.01
+    variance = np.full(clean.shape, sigma**2)
+    predicted = im.tied_errors(truth, im.ImageFitter(model, clean, model.inside).covariance(truth, variance))
+    rng = np.random.default_rng(1)
+    fits = [im.ImageFitter(model, clean + rng.normal(0.0, sigma, clean.shape), model.inside).fit(truth, 300).nl
+            for _ in range(12)]
+    for name, values in (("shift_u", [f.shift_px[0] for f in fits]),
+                         ("rotation_rad", [f.tied().rotation_rad for f in fits])):
+        ratio = np.std(values, ddof=1) / predicted[name]
+        assert 0.7 < ratio < 1.5, (name, ratio)
+    assert np.std([f.gamma for f in fits], ddof=1) < 1.5 * predicted["gamma"]
+    assert "led_azimuth_rad[0]" not in predicted and predicted["gamma"] > 0
