@@ -134,6 +134,17 @@ def _formula_basis(spec, mesh, camera, effects, film, *args, depth=None, **kwarg
         spec, effects)]), "response": np.ones((mean.shape[-1], 3))}
 
 
+def _formula_model(film=(40, 30)) -> im.ImageModel:
+    """The image model of the default sensor's formula basis (``_formula_basis``), its lens fitted."""
+    spec = default_spec()
+    camera = Camera.from_spec(spec)
+    effects = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    basis = _formula_basis(spec, None, camera, effects, film)
+    return im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px),
+                         lens=True)
+
+
+@pytest.mark.slow
 def test_a_group_sensor_drawn_led_by_led_is_recovered_through_the_whole_benchmark(monkeypatch):
     """The benchmark's loop end to end on the real unit's spec, with the render replaced by
     formulas that depend on where each LED sits: the virtual sensor drawn with all 18 LEDs
@@ -164,12 +175,7 @@ def test_the_search_descends_from_every_start_before_it_keeps_the_best():
     """A blind sensor's image whose starts' own losses rank a wrong basin first: kept by
     them (screen=0), the search stopped short of the truth; a few steps from every start
     first, it reaches it. The image is the model's own (no noise), so the truth's loss is 0."""
-    spec = default_spec()
-    camera = Camera.from_spec(spec)
-    effects = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
-    basis = _formula_basis(spec, None, camera, effects, (40, 30))
-    model = im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px),
-                          lens=True)
+    model = _formula_model()
     truth = im.Nonlinear(0.229, (-0.141, 0.066, -0.145), (0.455, 0.308, 0.557), 0.913, (10.24, -13.0), (-0.426, 0.0),
                          2.03, k1=0.093)
     gains = np.array([[0.65, 0.41, 0.39], [0.91, 0.38, 0.3], [0.43, 0.67, 0.64]])
@@ -189,12 +195,7 @@ def test_the_fits_covariance_predicts_how_refits_scatter_under_noise():
     covariance predicts, and no refitted value spreads much wider than predicted (the
     response exponent spread 0.6 of its prediction over 40 draws: its direction is flat,
     where the first-order covariance is conservative and refits stop early)."""
-    spec = default_spec()
-    camera = Camera.from_spec(spec)
-    effects = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
-    basis = _formula_basis(spec, None, camera, effects, (40, 30))
-    model = im.ImageModel(basis["mean"], basis["names"], camera, (camera.cx, camera.cy, camera.mask_radius_px),
-                          lens=True)
+    model = _formula_model()
     truth = im.Nonlinear(0.3, (0.0, 0.0, 0.0), (0.3, 0.4, 0.2), 1.0, (2.0, -3.0), (-0.4, 0.0), 2.0, k1=0.02)
     gains = np.array([[0.65, 0.41, 0.39], [0.91, 0.38, 0.3], [0.43, 0.67, 0.64]])
     gains = gains / np.percentile(model.design(truth)[model.inside].sum(axis=1), 95)

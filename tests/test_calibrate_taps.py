@@ -115,6 +115,7 @@ def test_the_common_turn_ties_the_leds_and_recovers_the_rings_turn(camera):
     assert fit.nl.led_azimuth_rad[0] == pytest.approx(0.1, abs=0.01)
 
 
+@pytest.mark.slow
 def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
     """Two grid points whose no-contact images are the same but whose contacts shade
     differently: the no-contact fit cannot rank them, the taps choose the true one."""
