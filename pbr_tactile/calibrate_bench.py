@@ -115,9 +115,9 @@ def virtual_build(spec, nl: Nonlinear) -> tuple:
     _, _, spans, unit, _ = basis_layout(spec)
     first = len(spans) - len(spec.led_groups)
     if spec.led_groups:
-        spec = spec.with_led_groups([dataclasses.replace(g, arc_centre_rad=g.arc_centre_rad + nl.led_azimuth_rad[first + i],
-                                                         arc_span_rad=nl.span_rad[first + i])
-                                     for i, g in enumerate(spec.led_groups)])
+        spec = spec.with_led_groups([
+            dataclasses.replace(g, arc_centre_rad=g.arc_centre_rad + nl.led_azimuth_rad[first + i],
+                                arc_span_rad=nl.span_rad[first + i]) for i, g in enumerate(spec.led_groups)])
         unit = basis_layout(spec)[3]
     spec = turn_leds(spec, [nl.led_azimuth_rad[m] if led.group is None else 0.0 for led, m in zip(spec.leds, unit)])
     return tap_spec(spec)
@@ -318,7 +318,8 @@ def benchmark(spec, mesh, camera, cases: int = 6, seed: int = 0, film: tuple[int
         scored, reported = _errors(fit, nl, gains_scaled, effects, units, camera, taps=bool(taps))
         mc = mc_errors(cal.report["standard_errors"], nl, units)
         record = {"errors": scored, "reported": reported, "noise": noise, "mc_error": mc,
-                  "beyond_tolerance": sorted(name for name, e in mc.items() if e > TOLERANCE), "mae_over_noise": mae / noise if noise > 0 else float("nan"),
+                  "beyond_tolerance": sorted(name for name, e in mc.items() if e > TOLERANCE),
+                  "mae_over_noise": mae / noise if noise > 0 else float("nan"),
                   "heldout_r2": cal.report["heldout_r2"], "seconds": seconds,
                   "hidden": {**dataclasses.asdict(nl), "gains": gains_scaled.tolist(), "effects": effects},
                   "fit": fit}

@@ -479,7 +479,8 @@ class ImageFitter:
             h = step * max(1.0, abs(z[i]))
             up, down = z.copy(), z.copy()
             up[i], down[i] = z[i] + h, z[i] - h
-            columns.append((self.solve(self.model.nonlinear(up))[2] - self.solve(self.model.nonlinear(down))[2]) / (2 * h))
+            rise = self.solve(self.model.nonlinear(up))[2] - self.solve(self.model.nonlinear(down))[2]
+            columns.append(rise / (2 * h))
         J = np.stack(columns, axis=1)
         share = self.w / (3 * np.sum(self.w))  # each residual is sqrt(share) times an error (``solve``)
         S = np.concatenate([share * np.asarray(variance, np.float64)[..., c][self.pixels] for c in range(3)])
