@@ -62,10 +62,11 @@ MIN_EDGE_ILLUMINATION = 0.02
 #: Starting rotations of the search (the LEDs repeat every 120 deg but their colours do not).
 ROTATION_STARTS = 12
 #: Function evaluations (least-squares steps; the Jacobian's finite differences are not
-#: counted) every start takes before the best are refined: the losses at the starts themselves barely differ (each
-#: LED lights the membrane nearly all round), and ranked by them the search kept two
-#: wrong basins of a blind sensor's image and stopped at 1.6e-4 where its truth gives
-#: 0 (its own basis, no noise); after 6 steps the true basin ranked first.
+#: counted) every start takes before the best are refined: the losses at the starts
+#: themselves barely differ (each LED lights the membrane nearly all round), and ranked
+#: by them the search kept two wrong basins of a blind sensor's image and stopped at
+#: 1.6e-4 where its truth gives 0 (its own basis, no noise); after 6 steps the true basin
+#: ranked first.
 SCREEN_EVALUATIONS = 6
 #: A fit has converged when Powell's method says so and it either moved off its start
 #: (the loss fell by this share) or already leaves less than STUCK_SHARE of the real
