@@ -105,16 +105,17 @@ def radial_edges(image, circle: tuple[float, float, float], sectors: int = 24, s
     [k, k + 1) 2 pi / sectors from +u towards +v."""
     import numpy as np
     from scipy import ndimage
+    from skimage.transform import warp_polar
 
     image = np.asarray(image, np.float64)
     grey = image.sum(axis=2) if image.ndim == 3 else image
-    cx, cy, radius = circle
-    rho = (np.arange(samples) + 0.5) / samples
-    per = 8
-    angle = (np.arange(sectors * per) + 0.5) / (sectors * per) * 2 * math.pi
-    u = cx + radius * rho[None, :] * np.cos(angle)[:, None]
-    v = cy + radius * rho[None, :] * np.sin(angle)[:, None]
-    polar = ndimage.map_coordinates(grey, [v, u], order=1, mode="nearest").reshape(sectors, per, samples).mean(axis=1)
+    if len(circle) != 3 or not all(math.isfinite(float(c)) for c in circle) or not circle[2] > 0:
+        raise ValueError(f"radial_edges: circle must be (cx, cy, radius) px with radius > 0, got {circle!r}")
+    cx, cy, radius = (float(c) for c in circle)
+    per = 8  # angles averaged per sector
+    rho = np.arange(samples) / samples  # warp_polar's radii, as shares of the circle's
+    polar = warp_polar(grey, center=(cy, cx), radius=radius, output_shape=(sectors * per, samples), order=1,
+                       mode="edge").reshape(sectors, per, samples).mean(axis=1)
     slope = np.gradient(ndimage.gaussian_filter1d(polar, 1.5, axis=1), axis=1) * samples / 10
     band = (rho >= EDGE_BAND[0]) & (rho <= EDGE_BAND[1])
     at = np.argmax(np.where(band, slope, -np.inf), axis=1)

@@ -71,3 +71,10 @@ def test_the_junction_needs_a_capsule():
     meshed = spec.replace(membrane=dataclasses.replace(spec.membrane, shape="mesh"))
     with pytest.raises(ValueError, match="not a capsule"):
         lp.junction_rho(meshed)
+
+
+def test_a_malformed_circle_is_refused_naming_it():
+    image = np.zeros((60, 80, 3))
+    for circle in ((40.0, 30.0), (40.0, 30.0, 0.0), (40.0, float("nan"), 20.0)):
+        with pytest.raises(ValueError, match="circle must be"):
+            lp.radial_edges(image, circle)
