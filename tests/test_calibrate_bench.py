@@ -212,3 +212,12 @@ def test_the_fits_covariance_predicts_how_refits_scatter_under_noise():
         assert 0.7 < ratio < 1.5, (name, ratio)
     assert np.std([f.gamma for f in fits], ddof=1) < 1.5 * predicted["gamma"]
     assert "led_azimuth_rad[0]" not in predicted and predicted["gamma"] > 0
+
+
+def test_the_covariance_refuses_a_fit_with_taps():
+    model = _formula_model()
+    image = np.zeros((model.h, model.w, 3))
+    view = im.TapView(np.zeros((model.h, model.w, model.S)), image, model.inside)
+    fitter = im.ImageFitter(model, image, model.inside, taps=[view])
+    with pytest.raises(ValueError, match="with taps is not covered"):
+        fitter.covariance(im.Nonlinear.start(3), np.ones(image.shape))
