@@ -67,7 +67,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     from tqdm import tqdm
 
     from scenes.camera import Camera, check_depth, reference_depth
-    from scenes.geometry import membrane_mesh
+    from scenes.body import checked_membrane
     from scenes.images import srgb, write_rgb
     from scenes.spec import load_spec
 
@@ -90,7 +90,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     else:
         effects = Effects().with_settings(args.effect or [])
     camera = Camera.from_spec(spec)
-    mesh = membrane_mesh(spec)
+    mesh = checked_membrane(spec)
 
     def npy(path, what):
         try:
@@ -172,7 +172,7 @@ def cmd_bench_solids(args) -> int:
     import json
 
     from scenes.dataset import atomic_write_json
-    from scenes.geometry import membrane_mesh
+    from scenes.body import checked_membrane
     from scenes.indenters import INDENTERS
     from scenes.protocol import base_protocol, extended_protocol
     from scenes.spec import load_spec
@@ -180,7 +180,7 @@ def cmd_bench_solids(args) -> int:
     from .protocol_check import check_protocol
 
     spec = load_spec(args.spec)
-    mesh = membrane_mesh(spec)
+    mesh = checked_membrane(spec)
     if args.protocol == "base":
         protocol = base_protocol(spec, mesh, INDENTERS)
     else:

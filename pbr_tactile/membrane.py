@@ -15,18 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
-from scipy import spatial
 
 from scenes.camera import Camera
 from scenes.elastic import LAYER_EDGE_M, MembraneLayer
+from scenes.geometry import crossing_faces
 from scenes.spec import SensorSpec
 
 #: A face whose normal turns by more than this has folded over (turned its back on where
 #: it faced), radians.
 MAX_FACE_TURN_RAD = np.radians(90.0)
-#: Slack of the crossing test, as a fraction of an edge and in barycentric terms: faces
-#: that only touch count as crossing, rounding error on a shared corner does not.
-CROSSING_TOL = 1e-9
 #: Dented solids an ElastomerBuilder keeps, the most recently used: the diagnosis renders
 #: each tap again at every grid point of its re-rendered candidates, and deforming and
 #: checking a contact (the crossing test) took 1.9 s of a 20 s render.
@@ -41,7 +38,7 @@ class Elastomer:
     inner : the interface with the glass core; normals point out of the elastomer (into
         the glass).
     base : the ring that closes the bottom; normals point down, out of the elastomer.
-    thickness : membrane thickness, metres.
+    thickness : the membrane's least thickness, metres (``scenes.body``).
     """
 
     outer: trimesh.Trimesh
@@ -69,11 +66,12 @@ class ElastomerBuilder:
 
     def __init__(self, membrane: trimesh.Trimesh, spec: SensorSpec, camera: Camera, edge: float = LAYER_EDGE_M):
         self.layer = MembraneLayer(membrane, spec, camera, edge)
-        thickness = spec.membrane.radius - spec.membrane.core_radius
+        thickness = self.layer.thickness  # under each vertex, from the sensor's body (scenes.body)
         outer = self.layer.mesh
-        inner = trimesh.Trimesh(self.layer.vertices - thickness * self.layer.normals, outer.faces, process=False)
+        inner = trimesh.Trimesh(self.layer.vertices - thickness[:, None] * self.layer.normals, outer.faces,
+                                process=False)
         inner.invert()  # normals into the glass: out of the elastomer
-        self.undeformed = Elastomer(outer, inner, _base_ring(outer, inner), thickness)
+        self.undeformed = Elastomer(outer, inner, _base_ring(outer, inner), float(thickness.min()))
         check_closed(self.undeformed)
         self._solids: OrderedDict = OrderedDict()  # the last KEPT_SOLIDS dented solids, by contact
 
@@ -200,84 +198,3 @@ def check_crossings(solid: Elastomer, changed: np.ndarray | None = None) -> None
             f"the elastomer intersects itself at {len(crossed)} faces: the deformed membrane passes through "
             "itself or through the glass core"
         )
-
-
-def crossing_faces(mesh: trimesh.Trimesh, faces: np.ndarray | None = None) -> np.ndarray:
-    """Faces of a welded mesh that another face crosses (where the mesh intersects itself).
-
-    Two faces that share no vertex intersect when an edge of one passes through the other;
-    every pair of triangles meeting at an angle has such an edge. Faces lying in one plane
-    are not tested.
-
-    Parameters
-    ----------
-    faces : (K,) int, faces that moved: only pairs with one of them are tested (the
-        edges of these faces against every face near them, and the edges of the faces
-        near them against these), as two faces that did not move cannot have come to
-        cross. None tests all pairs.
-
-    Returns
-    -------
-    (C,) int, sorted indices of the faces that an edge crosses.
-    """
-    tri = np.asarray(mesh.triangles)
-    lo, hi = tri.min(axis=1), tri.max(axis=1)
-    _, ok = trimesh.triangles.normals(tri)
-    planar = np.flatnonzero(ok)  # a zero-area face has no plane to be crossed
-    if faces is None:
-        return _crossed(mesh, planar, planar)
-    faces = np.asarray(faces, dtype=np.int64)
-    if len(faces) == 0:
-        return faces
-    box_lo, box_hi = lo[faces].min(axis=0), hi[faces].max(axis=0)
-    near = planar[((lo[planar] <= box_hi) & (hi[planar] >= box_lo)).all(axis=1)]
-    moved = np.intersect1d(faces, planar)
-    return np.union1d(_crossed(mesh, moved, near), _crossed(mesh, near, moved))
-
-
-def _near_pairs(mid: np.ndarray, half: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Broad phase: (edge, face) index pairs close enough to cross.
-
-    An edge (midpoint ``mid``, half-length ``half``) can only meet a triangle whose
-    centroid lies within half + the triangle's circumradius about its centroid. Faces
-    much larger than the median are searched apart, with their own radius, so that a few
-    large ones (the base ring) do not widen every search.
-    """
-    centre = tri.mean(axis=1)
-    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
-    large = radius > 2 * np.median(radius)
-    edge_tree = spatial.cKDTree(mid)
-    edges, faces = [], []
-    for group in (np.flatnonzero(~large), np.flatnonzero(large)):
-        if len(group) == 0:
-            continue
-        reach = float(half.max() + radius[group].max())
-        pairs = edge_tree.sparse_distance_matrix(spatial.cKDTree(centre[group]), reach, output_type="ndarray")
-        edges.append(pairs["i"].astype(np.int64))
-        faces.append(group[pairs["j"]])
-    return np.concatenate(edges), np.concatenate(faces)
-
-
-def _crossed(mesh: trimesh.Trimesh, edge_faces: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """The faces among ``faces`` that an edge of ``edge_faces`` passes through."""
-    if len(edge_faces) == 0 or len(faces) == 0:
-        return np.zeros(0, np.int64)
-    F = np.asarray(mesh.faces)
-    tri = np.asarray(mesh.triangles)[faces]
-    normals = trimesh.triangles.normals(tri)[0]
-    edges = np.unique(np.sort(F[edge_faces][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
-    a, b = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
-    edge, face = _near_pairs((a + b) / 2, np.linalg.norm(b - a, axis=1) / 2, tri)
-    boxes = ((np.minimum(a, b)[edge] <= tri.max(axis=1)[face]) & (np.maximum(a, b)[edge] >= tri.min(axis=1)[face]))
-    edge, face = edge[boxes.all(axis=1)], face[boxes.all(axis=1)]
-    apart = ~(F[faces][face][:, :, None] == edges[edge][:, None, :]).any(axis=(1, 2))
-    edge, face = edge[apart], face[apart]
-    length = np.linalg.norm(b - a, axis=1)
-    hit, valid, t = trimesh.intersections.planes_lines(
-        tri[face, 0], normals[face], a[edge], ((b - a) / length[:, None])[edge], return_distance=True
-    )
-    edge, face = edge[valid], face[valid]
-    along = (t >= -CROSSING_TOL * length[edge]) & (t <= (1 + CROSSING_TOL) * length[edge])
-    bary = trimesh.triangles.points_to_barycentric(tri[face], hit)
-    inside = (bary >= -CROSSING_TOL).all(axis=1)
-    return np.unique(faces[face[along & inside]])

@@ -127,26 +127,67 @@ def led_places(spec: SensorSpec) -> list[str]:
     simulation's LEDs ring the membrane), "tube" (in the air inside the glass tube, where
     it is) or "wall_end" (under the glass wall's end, below the membrane's base: its
     light enters the wall and is guided up it, so it emits from inside the wall's foot)."""
-    inner = spec.membrane.core_radius - spec.membrane.glass_wall
+    core, _, _ = tube_radii(spec)
+    inner = core - spec.membrane.glass_wall
     places = []
     for position in _tube_frame(spec, [led.position for led in spec.leds]):
         r = math.hypot(position[0], position[1])
-        places.append("elastomer" if r >= spec.membrane.core_radius else "tube" if r <= inner else "wall_end")
+        places.append("elastomer" if r >= core else "tube" if r <= inner else "wall_end")
     return places
+
+
+def tube_radii(spec: SensorSpec) -> tuple[float, float, float]:
+    """The glass core's and the membrane's radius at the base, and the base's z, in the
+    tube's frame, metres: a capsule's ``core_radius``, ``radius`` and ``base_z``; another
+    shape's mean radii of its body's base loops (``scenes.body``)."""
+    m = spec.membrane
+    if m.shape == "capsule":
+        return m.core_radius, m.radius, m.base_z
+    from scenes.body import sensor_body
+
+    body = sensor_body(spec)
+    loop = _tube_frame(spec, np.asarray(body.membrane.vertices)[body.base_loop])
+    centre = loop[:, :2].mean(axis=0)
+    outer = float(np.linalg.norm(loop[:, :2] - centre, axis=1).mean())
+    return body.core_base_radius, outer, float(loop[:, 2].mean())
 
 
 def led_centres(spec: SensorSpec) -> np.ndarray:
     """(L, 3) metres: each LED's emitter's centre (``led_places``)."""
     m = spec.membrane
+    places = led_places(spec)
+    if m.shape != "capsule" and "elastomer" in places:
+        # In the middle of the elastomer wall under the LED: its nearest membrane point
+        # moved inwards by half the thickness there (scenes.body).
+        from scenes.body import closest_faces, sensor_body
+
+        body = sensor_body(spec)
+        at = np.array([led.position for led in spec.leds], dtype=np.float64)
+        face, closest = closest_faces(body.membrane, at)
+        normals = trimesh.unitize(np.asarray(body.membrane.face_normals)[face])
+        middle = closest - 0.5 * body.thickness_at(closest)[:, None] * normals
+        out = _led_centres_tube(spec)
+        for k, place in enumerate(places):
+            if place == "elastomer":
+                out[k] = middle[k]
+        return out
+    return _led_centres_tube(spec)
+
+
+def _led_centres_tube(spec: SensorSpec) -> np.ndarray:
+    """(L, 3) metres: each LED's emitter's centre, placed about the tube's axis
+    (``led_places``; ``tube_radii``)."""
+    m = spec.membrane
+    core, outer, base_z = tube_radii(spec)
     pos = _tube_frame(spec, [led.position for led in spec.leds])
     radial = np.linalg.norm(pos[:, :2], axis=1, keepdims=True)
     unit = np.where(radial > 0, pos[:, :2] / np.where(radial > 0, radial, 1), 0.0)
     out = pos.copy()
     for k, place in enumerate(led_places(spec)):
         if place == "elastomer":
-            out[k, :2] = unit[k] * (m.core_radius + 0.5 * (m.radius - m.core_radius))
+            out[k, :2] = unit[k] * 0.5 * (core + outer)
         elif place == "wall_end":
-            out[k] = [*(unit[k] * (m.core_radius - 0.5 * m.glass_wall)), m.base_z + WALL_FOOT_M]
+            out[k] = [*(unit[k] * (core - 0.5 * m.glass_wall)), base_z + WALL_FOOT_M]
     return _camera_frame(spec, out)
 
 
@@ -202,7 +243,7 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
                             "scale": power * (1 - leak), "in_elastomer": places[m] == "elastomer",
                             "cone_axis": axis, "cone_half_angle_rad": half_angle})
         if leak > 0:
-            r = spec.membrane.core_radius - spec.membrane.glass_wall / 2
+            r = tube_radii(spec)[0] - spec.membrane.glass_wall / 2
             tube = _tube_frame(spec, centre)[0]
             tube[:2] *= r / max(np.linalg.norm(tube[:2]), 1e-12)
             inside = _camera_frame(spec, tube)[0]

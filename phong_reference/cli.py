@@ -10,7 +10,8 @@ import numpy as np
 from tqdm import tqdm
 
 from scenes.camera import Camera, check_depth
-from scenes.geometry import load_mesh, membrane_mesh
+from scenes.body import checked_membrane
+from scenes.geometry import load_mesh
 from scenes.images import write_rgb
 from scenes.reference_data import reference_dir
 from scenes.spec import load_spec
@@ -20,7 +21,7 @@ from .bake import METHODS, bake_all
 
 def _sensor(args):
     spec = load_spec(args.spec)
-    mesh = load_mesh(args.mesh, units=args.units) if getattr(args, "mesh", None) else membrane_mesh(spec)
+    mesh = load_mesh(args.mesh, units=args.units) if getattr(args, "mesh", None) else checked_membrane(spec)
     return spec, mesh, Camera.from_spec(spec)
 
 

@@ -35,9 +35,9 @@ def _protocol(args, spec):
     from dataclasses import replace
 
     from scenes.commands import _objects, make_protocol
-    from scenes.geometry import membrane_mesh
+    from scenes.body import checked_membrane
 
-    protocol = make_protocol(args.protocol, spec, membrane_mesh(spec), _objects(args.objects), seed=args.seed)
+    protocol = make_protocol(args.protocol, spec, checked_membrane(spec), _objects(args.objects), seed=args.seed)
     if args.limit:
         protocol = replace(protocol, taps=protocol.taps[: args.limit])
     return protocol
@@ -69,9 +69,9 @@ def _sim_background(spec, background):
     alone draws no membrane), at the capture's size."""
     from scenes.camera import Camera, reference_depth
     from scenes.generate import make_renderer, renderer_plugin
-    from scenes.geometry import membrane_mesh
+    from scenes.body import checked_membrane
 
-    mesh, camera = membrane_mesh(spec), Camera.from_spec(spec)
+    mesh, camera = checked_membrane(spec), Camera.from_spec(spec)
     plugin = renderer_plugin("phong")
     options = {"background": "solid"}
     plugin.prepare(spec, mesh, camera, options)

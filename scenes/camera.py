@@ -404,3 +404,46 @@ def reference_depth(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, 
     depth = samples.scatter(z.astype(np.float32), fill=float(z.max()))
     valid = samples.scatter(np.ones(len(z), bool), fill=False)
     return depth, valid
+
+
+#: A mesh vertex is hidden when the ray from the optical centre towards it meets the mesh
+#: this much nearer (a share of its distance, and metres) than the vertex itself.
+HIDDEN_SHARE, HIDDEN_M = 1e-4, 1e-6
+
+
+def unseen(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Which vertices of a mesh (camera frame, metres) the camera does not see, and why
+    (straight rays from the optical centre, as every renderer's depth map).
+
+    Returns
+    -------
+    out_of_view : (V,) bool, behind the camera or outside its image circle.
+    hidden : (V,) bool, in view but behind another part of the mesh.
+    """
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    out = V[:, 2] <= 0
+    ahead = np.flatnonzero(~out)
+    uv = project(V[ahead], camera)
+    u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+    frame = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    in_circle = np.zeros(len(ahead), bool)
+    in_circle[frame] = camera.mask[v[frame], u[frame]]
+    out[ahead[~in_circle]] = True
+    look = ahead[in_circle]
+    distance = np.linalg.norm(V[look], axis=1)
+    dirs = V[look] / distance[:, None]
+    _, ray, loc = mesh.ray.intersects_id(np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True)
+    first = np.full(len(look), np.inf)
+    first[ray] = np.einsum("ij,ij->i", np.asarray(loc), dirs[ray])
+    hidden = np.zeros(len(V), bool)
+    hidden[look[first < distance * (1 - HIDDEN_SHARE) - HIDDEN_M]] = True
+    return out, hidden
+
+
+def view_angle(camera: Camera) -> float:
+    """The widest cone about the optical axis the camera sees whole, rad: the least angle
+    from the axis of a ray through a pixel outside the image circle or on the frame's edge."""
+    edge = ~camera.mask
+    edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
+    rays = camera.rays[edge]
+    return float(np.arctan2(np.hypot(rays[:, 0], rays[:, 1]), rays[:, 2]).min())

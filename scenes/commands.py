@@ -37,12 +37,12 @@ def make_protocol(name: str, spec, mesh, objects, seed: int = 0):
 
 
 def _rig(args, tap_index: int | None = 0):
-    from .geometry import membrane_mesh
+    from .body import checked_membrane
     from .indenters import indenter
     from .rig import Rig, rig_scene
 
     spec = load_spec(args.spec)
-    mesh = membrane_mesh(spec)
+    mesh = checked_membrane(spec)
     name = args.object
     rig = Rig(rig_scene(spec, {name: indenter(name)}, membrane=mesh), spec)
     if tap_index is not None:
@@ -53,13 +53,13 @@ def _rig(args, tap_index: int | None = 0):
 
 def cmd_scene(args) -> int:
     if args.action == "export":
-        from .geometry import membrane_mesh
+        from .body import checked_membrane
         from .indenters import indenter
         from .rig import rig_scene
 
         spec = load_spec(args.spec)
         objects = _objects(args.object)
-        scene = rig_scene(spec, {name: indenter(name) for name in objects}, membrane=membrane_mesh(spec))
+        scene = rig_scene(spec, {name: indenter(name) for name in objects}, membrane=checked_membrane(spec))
         path = scene.export(args.output)
         print(f"wrote {path}; open it with: python -m mujoco.viewer --mjcf {path}")
         return 0
@@ -117,12 +117,12 @@ REPLAY_TAKES = {"spec": "--spec", "protocol": "--protocol", "objects": "--object
 
 def cmd_dataset(args) -> int:
     from .generate import generate
-    from .geometry import membrane_mesh
+    from .body import checked_membrane
 
     if args.replay is not None:
         return cmd_replay(args)
     spec = load_spec(args.spec)
-    protocol = make_protocol(args.protocol or "base", spec, membrane_mesh(spec), _objects(args.objects or "all"),
+    protocol = make_protocol(args.protocol or "base", spec, checked_membrane(spec), _objects(args.objects or "all"),
                              seed=args.seed or 0)
     if args.limit:
         from dataclasses import replace
@@ -242,11 +242,11 @@ def bench_dataset(spec, workers: int = 2, objects=None, frames: int = 48, execut
     from .camera import Camera
     from .executors import make_executor
     from .generate import Job, TapRunner, generate
-    from .geometry import membrane_mesh
+    from .body import checked_membrane
     from .indenters import INDENTERS
 
     make_executor(executor, workers, address)  # bad input fails before the first run
-    mesh = membrane_mesh(spec)
+    mesh = checked_membrane(spec)
     protocol = make_protocol("base", spec, mesh, tuple(objects or INDENTERS))
     options = {"field": "plane", "background": "none"}
     with tempfile.TemporaryDirectory() as tmp:
@@ -327,10 +327,10 @@ def bench_dataset_slice(spec, renderer: str, options: dict, workers: int = 1, ex
     from .dataset import read_samples
     from .executors import make_executor
     from .generate import generate, renderer_plugin
-    from .geometry import membrane_mesh
+    from .body import checked_membrane
 
     make_executor(executor, workers, address)  # bad input fails before any work
-    mesh = membrane_mesh(spec)
+    mesh = checked_membrane(spec)
     camera = Camera.from_spec(spec)
     protocol = make_protocol("base", spec, mesh, SLICE_OBJECTS)
     taps = tuple(t for t in protocol.taps if (t.row, t.position) in SLICE_TAPS)

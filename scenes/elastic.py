@@ -92,10 +92,16 @@ def check_model(model: str, name: str = "elastic model") -> str:
     return model
 
 
-def layer_length(spec: SensorSpec) -> float:
-    """The layer's decay length l = h sqrt((1 - nu) / 6), metres (Vlasov)."""
-    thickness = spec.membrane.radius - spec.membrane.core_radius
-    return float(thickness * math.sqrt((1.0 - spec.elastic.poisson_ratio) / 6.0))
+def layer_length(spec: SensorSpec, thickness=None):
+    """The layer's decay length l = h sqrt((1 - nu) / 6), metres (Vlasov), for the
+    elastomer's thickness h: ``thickness`` (a float or an array, metres), or the spec's
+    stated one (``MembraneSpec.elastomer_thickness``)."""
+    h = spec.membrane.elastomer_thickness if thickness is None else thickness
+    if h is None:
+        raise ValueError(f"sensor {spec.name!r} states no single thickness (its core is a mesh): pass the "
+                         "thickness under each point (scenes.body.sensor_body(spec).thickness_at)")
+    return np.asarray(h, dtype=np.float64) * math.sqrt((1.0 - spec.elastic.poisson_ratio) / 6.0) \
+        if np.ndim(h) else float(h * math.sqrt((1.0 - spec.elastic.poisson_ratio) / 6.0))
 
 
 def refine(mesh: trimesh.Trimesh, edge: float = LAYER_EDGE_M) -> trimesh.Trimesh:
@@ -227,17 +233,36 @@ class MembraneLayer:
     ----------
     mesh : the undeformed outer membrane surface, camera frame, metres; refined to
         ``edge`` (None: used as it is, e.g. already refined).
-    spec : the sensor, for the membrane's thickness and the layer's Poisson ratio.
+    spec : the sensor, for the layer's Poisson ratio and, by default, the thickness.
     camera : the camera the contact depth maps are taken with.
+    thickness : the elastomer's thickness, metres: a float, or (V,) under each vertex of
+        ``mesh``; None: the spec's stated thickness, or where it states none (its core is
+        a mesh, or derived), its body's under each vertex (``scenes.body``).
+
+    Attributes ``thickness`` and ``length`` hold (V,) values under each vertex of the
+    refined mesh.
     """
 
-    def __init__(self, mesh: trimesh.Trimesh, spec: SensorSpec, camera: Camera, edge: float | None = LAYER_EDGE_M):
+    def __init__(self, mesh: trimesh.Trimesh, spec: SensorSpec, camera: Camera, edge: float | None = LAYER_EDGE_M,
+                 thickness=None):
         self.mesh = refine(mesh, edge) if edge is not None else mesh
         self.camera = camera
-        self.thickness = float(spec.membrane.radius - spec.membrane.core_radius)
-        self.length = layer_length(spec)
         self.vertices = np.asarray(self.mesh.vertices, dtype=np.float64)
         self.normals = np.asarray(self.mesh.vertex_normals, dtype=np.float64)
+        if thickness is None and spec.membrane.shape == "capsule":
+            thickness = spec.membrane.elastomer_thickness
+        if thickness is None:
+            from .body import sensor_body
+
+            thickness = sensor_body(spec).thickness_at(self.vertices)
+        elif np.ndim(thickness) and self.mesh is not mesh:
+            from .body import interpolate
+
+            thickness = interpolate(mesh, np.asarray(thickness, dtype=np.float64), self.vertices)
+        self.thickness = np.broadcast_to(np.asarray(thickness, dtype=np.float64), (len(self.vertices),)).copy()
+        if self.thickness.shape != (len(self.vertices),) or not (self.thickness > MIN_GAP_M).all():
+            raise ValueError(f"thickness must be > {MIN_GAP_M} m under every vertex, got {self.thickness.min()!r}")
+        self.length = layer_length(spec, self.thickness)
 
     @cached_property
     def stiffness(self) -> sparse.csr_matrix:
@@ -254,7 +279,7 @@ class MembraneLayer:
     def core_depth(self) -> tuple[np.ndarray, np.ndarray]:
         """Planar z-depth of the glass core's surface (H, W) float64, metres, and where the
         camera sees it (H, W) bool: a contact nearer than it is inside the glass."""
-        core = trimesh.Trimesh(self.vertices - self.thickness * self.normals, self.mesh.faces, process=False)
+        core = trimesh.Trimesh(self.vertices - self.thickness[:, None] * self.normals, self.mesh.faces, process=False)
         depth, seen = reference_depth(core, self.camera)
         return depth.astype(np.float64), seen
 
@@ -274,10 +299,10 @@ class MembraneLayer:
                 f"depth map pushes the indenter through the glass core at {int(inside.sum())} pixels (up to "
                 f"{deepest * 1e3:.2f} mm past it along the camera ray, beyond a "
                 f"{PENETRATION_TOLERANCE_M * 1e3:.2f} mm tolerance): deeper than the "
-                f"{self.thickness * 1e3:.2f} mm membrane"
+                f"{self.thickness.max() * 1e3:.2f} mm membrane"
             )
         delta = penetration(self.vertices, self.normals, depth, ref_depth, self.camera,
-                            max_reach=self.thickness + PENETRATION_TOLERANCE_M)
+                            max_reach=float(self.thickness.max()) + PENETRATION_TOLERANCE_M)
         w = np.zeros(len(delta))
         touching = np.flatnonzero(delta > 0)
         if len(touching):
@@ -285,11 +310,11 @@ class MembraneLayer:
             obstacle = np.minimum(delta, cap)
             # Solve near the contact only; beyond, w is below exp(-SUPPORT_LENGTHS).
             near, _ = spatial.cKDTree(self.vertices[touching]).query(
-                self.vertices, distance_upper_bound=SUPPORT_LENGTHS * self.length)
+                self.vertices, distance_upper_bound=SUPPORT_LENGTHS * float(self.length.max()))
             patch = np.flatnonzero(np.isfinite(near))
             K = self.stiffness[patch][:, patch]
             local = np.where(obstacle[patch] > 0, obstacle[patch], -np.inf)
-            w[patch] = np.clip(solve_layer(K, local), 0.0, cap)
+            w[patch] = np.clip(solve_layer(K, local), 0.0, cap[patch])
         vertices = self.vertices - w[:, None] * self.normals
         return LayerDeformation(vertices, w, delta)
 

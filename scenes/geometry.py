@@ -7,11 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy import spatial
 
 from .spec import MAX_SENSOR_SIZE_M, MembraneSpec, SensorSpec
 
 #: A mesh whose largest extent exceeds this (in the file's units) is not in metres.
 MM_SUSPICION_EXTENT = MAX_SENSOR_SIZE_M
+#: Slack of the crossing test, as a fraction of an edge and in barycentric terms: faces
+#: that only touch count as crossing, rounding error on a shared corner does not.
+CROSSING_TOL = 1e-9
 
 
 def capsule_profile(radius: float, cylinder_length: float, base_z: float) -> np.ndarray:
@@ -186,15 +190,65 @@ def load_mesh(path: str | Path, units: str = "m") -> trimesh.Trimesh:
 
 
 def membrane_mesh(spec: SensorSpec) -> trimesh.Trimesh:
-    """The membrane of a sensor spec in the camera frame: generated (and seated as the
-    camera spec says, ``CameraSpec.tube_to_camera``), or loaded from ``mesh_path``."""
-    if spec.membrane.shape == "capsule":
-        mesh = capsule_mesh(spec.membrane)
-        pose = spec.camera.tube_to_camera()
-        if not np.array_equal(pose, np.eye(4)):
-            mesh.apply_transform(pose)
-        return mesh
-    return load_mesh(spec.membrane.mesh_path)
+    """The membrane of a sensor spec in the camera frame, metres: generated (a capsule or
+    a ``scenes.shapes`` family, seated as the camera spec says,
+    ``CameraSpec.tube_to_camera``), or read from ``mesh_path`` and placed by
+    ``mesh_transform``; checked by :func:`check_membrane`."""
+    m = spec.membrane
+    if m.shape == "mesh":
+        mesh = load_mesh(m.mesh_path, units=m.mesh_units)
+        if m.mesh_transform is not None:
+            mesh.apply_transform(np.reshape(m.mesh_transform, (4, 4)))
+        return check_membrane(mesh, f"membrane {m.mesh_path}")
+    if m.shape == "capsule":
+        mesh = capsule_mesh(m)
+    else:
+        from .shapes import shape_mesh
+
+        mesh = shape_mesh(m.shape, dict(m.params), m.base_z, m.mesh_edge)
+    pose = spec.camera.tube_to_camera()
+    if not np.array_equal(pose, np.eye(4)):
+        mesh.apply_transform(pose)
+    return mesh
+
+
+def base_loop(mesh: trimesh.Trimesh, name: str = "membrane") -> np.ndarray:
+    """(K,) int, the vertices of a membrane's one open boundary (its base), in order;
+    ValueError naming ``name`` when it has none or several (holes)."""
+    loops = [np.asarray(e.points) for e in mesh.outline().entities] if len(mesh.faces) else []
+    if len(loops) != 1:
+        raise ValueError(f"{name}: a membrane must be open at its base alone, with one boundary loop, got "
+                         f"{len(loops)}" + (" (it has holes: the other loops)" if len(loops) > 1 else
+                                           " (a closed surface has no base to seat on the glass)"))
+    loop = loops[0]
+    return loop[:-1] if loop[0] == loop[-1] else loop
+
+
+def check_membrane(mesh: trimesh.Trimesh, name: str = "membrane") -> trimesh.Trimesh:
+    """Refuse a membrane that is not one oriented, manifold sheet open at its base alone
+    with outward normals: ValueError naming ``name`` and what is wrong. Returns the mesh."""
+    validate_mesh(mesh, name)
+    edges = np.sort(np.asarray(mesh.edges), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    if counts.max() > 2:
+        raise ValueError(f"{name}: non-manifold, {int((counts > 2).sum())} edges are shared by 3 faces or more")
+    if not mesh.is_winding_consistent:
+        raise ValueError(f"{name}: its faces' normals are inconsistent (neighbouring faces wound opposite ways)")
+    loop = base_loop(mesh, name)
+    # Close the base with a fan to the loop's centre: the closed surface's volume is
+    # positive when the normals point out.
+    V = np.vstack([mesh.vertices, np.asarray(mesh.vertices)[loop].mean(axis=0)])
+    k = len(V) - 1
+    cap = np.c_[loop, np.roll(loop, -1), np.full(len(loop), k)]
+    closed = trimesh.Trimesh(V, np.vstack([mesh.faces, cap]), process=False)
+    if not closed.is_winding_consistent:  # the loop ran the other way round the base
+        closed = trimesh.Trimesh(V, np.vstack([mesh.faces, cap[:, ::-1]]), process=False)
+    volume = closed.volume
+    if not np.isfinite(volume) or abs(volume) < 1e-12 * float(np.ptp(mesh.vertices, axis=0).max()) ** 3:
+        raise ValueError(f"{name}: its base loop does not close it into a solid")
+    if volume < 0:
+        raise ValueError(f"{name}: its normals point inwards; flip its faces (trimesh: mesh.invert())")
+    return mesh
 
 
 def mesh_digest(mesh: trimesh.Trimesh) -> str:
@@ -205,3 +259,84 @@ def mesh_digest(mesh: trimesh.Trimesh) -> str:
     h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
     return h.hexdigest()[:16]
+
+
+def crossing_faces(mesh: trimesh.Trimesh, faces: np.ndarray | None = None) -> np.ndarray:
+    """Faces of a welded mesh that another face crosses (where the mesh intersects itself).
+
+    Two faces that share no vertex intersect when an edge of one passes through the other;
+    every pair of triangles meeting at an angle has such an edge. Faces lying in one plane
+    are not tested.
+
+    Parameters
+    ----------
+    faces : (K,) int, faces that moved: only pairs with one of them are tested (the
+        edges of these faces against every face near them, and the edges of the faces
+        near them against these), as two faces that did not move cannot have come to
+        cross. None tests all pairs.
+
+    Returns
+    -------
+    (C,) int, sorted indices of the faces that an edge crosses.
+    """
+    tri = np.asarray(mesh.triangles)
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    _, ok = trimesh.triangles.normals(tri)
+    planar = np.flatnonzero(ok)  # a zero-area face has no plane to be crossed
+    if faces is None:
+        return _crossed(mesh, planar, planar)
+    faces = np.asarray(faces, dtype=np.int64)
+    if len(faces) == 0:
+        return faces
+    box_lo, box_hi = lo[faces].min(axis=0), hi[faces].max(axis=0)
+    near = planar[((lo[planar] <= box_hi) & (hi[planar] >= box_lo)).all(axis=1)]
+    moved = np.intersect1d(faces, planar)
+    return np.union1d(_crossed(mesh, moved, near), _crossed(mesh, near, moved))
+
+
+def _near_pairs(mid: np.ndarray, half: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Broad phase: (edge, face) index pairs close enough to cross.
+
+    An edge (midpoint ``mid``, half-length ``half``) can only meet a triangle whose
+    centroid lies within half + the triangle's circumradius about its centroid. Faces
+    much larger than the median are searched apart, with their own radius, so that a few
+    large ones (the base ring) do not widen every search.
+    """
+    centre = tri.mean(axis=1)
+    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+    large = radius > 2 * np.median(radius)
+    edge_tree = spatial.cKDTree(mid)
+    edges, faces = [], []
+    for group in (np.flatnonzero(~large), np.flatnonzero(large)):
+        if len(group) == 0:
+            continue
+        reach = float(half.max() + radius[group].max())
+        pairs = edge_tree.sparse_distance_matrix(spatial.cKDTree(centre[group]), reach, output_type="ndarray")
+        edges.append(pairs["i"].astype(np.int64))
+        faces.append(group[pairs["j"]])
+    return np.concatenate(edges), np.concatenate(faces)
+
+
+def _crossed(mesh: trimesh.Trimesh, edge_faces: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The faces among ``faces`` that an edge of ``edge_faces`` passes through."""
+    if len(edge_faces) == 0 or len(faces) == 0:
+        return np.zeros(0, np.int64)
+    F = np.asarray(mesh.faces)
+    tri = np.asarray(mesh.triangles)[faces]
+    normals = trimesh.triangles.normals(tri)[0]
+    edges = np.unique(np.sort(F[edge_faces][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    a, b = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
+    edge, face = _near_pairs((a + b) / 2, np.linalg.norm(b - a, axis=1) / 2, tri)
+    boxes = ((np.minimum(a, b)[edge] <= tri.max(axis=1)[face]) & (np.maximum(a, b)[edge] >= tri.min(axis=1)[face]))
+    edge, face = edge[boxes.all(axis=1)], face[boxes.all(axis=1)]
+    apart = ~(F[faces][face][:, :, None] == edges[edge][:, None, :]).any(axis=(1, 2))
+    edge, face = edge[apart], face[apart]
+    length = np.linalg.norm(b - a, axis=1)
+    hit, valid, t = trimesh.intersections.planes_lines(
+        tri[face, 0], normals[face], a[edge], ((b - a) / length[:, None])[edge], return_distance=True
+    )
+    edge, face = edge[valid], face[valid]
+    along = (t >= -CROSSING_TOL * length[edge]) & (t <= (1 + CROSSING_TOL) * length[edge])
+    bary = trimesh.triangles.points_to_barycentric(tri[face], hit)
+    inside = (bary >= -CROSSING_TOL).all(axis=1)
+    return np.unique(faces[face[along & inside]])

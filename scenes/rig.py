@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .camera import Camera, lens_resample
+from .body import sensor_body
+from .camera import Camera, lens_resample, unseen
 from .geometry import membrane_mesh
 from .kinematics import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD, SENSOR_TO_WORLD_AT_ROLL0, RigLayout, tap_pose
 from .protocol import Tap
@@ -75,6 +76,18 @@ def _safe_name(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
 
 
+def _check_clip(membrane: trimesh.Trimesh, camera: Camera, name: str) -> None:
+    """Refuse a membrane whose part in the camera's view lies outside the depth camera's
+    clip planes (ZNEAR_M, ZFAR_M): the depth map would lose it."""
+    out, hidden = unseen(membrane, camera)
+    seen = ~(out | hidden)
+    z = np.asarray(membrane.vertices)[seen, 2]
+    if len(z) and (z.min() <= ZNEAR_M or z.max() >= ZFAR_M):
+        raise ValueError(f"sensor {name!r}: the membrane in view spans z {z.min() * 1e3:.2f} to {z.max() * 1e3:.1f} mm "
+                         f"from the camera, outside the depth camera's clip planes ({ZNEAR_M * 1e3:g} to "
+                         f"{ZFAR_M * 1e3:g} mm)")
+
+
 def rig_scene(
     spec: SensorSpec,
     indenters: dict[str, trimesh.Trimesh],
@@ -93,27 +106,21 @@ def rig_scene(
     if not indenters:
         raise ValueError("indenters must name at least one indenter mesh")
     membrane = membrane_mesh(spec) if membrane is None else membrane
+    body = sensor_body(spec, membrane)  # the glass core under the membrane, checked
+    _check_clip(membrane, Camera.from_spec(spec), spec.name)
     inward = membrane.copy()
     inward.invert()
-    m = spec.membrane
     cam = spec.camera
     lo, hi = membrane.bounds
     base_z = float(lo[2])
     radius = float(np.max(np.linalg.norm(membrane.vertices[:, :2], axis=1)))
-    core = min(m.core_radius, radius * 0.95)
-    glass_top = float(hi[2]) - (m.radius - m.core_radius)
-    glass_half = max((glass_top - core - base_z) / 2, 1e-3)
-    # the glass sits in the tube, seated against the camera as the spec says
-    pose = cam.tube_to_camera()
-    glass_pos = trimesh.transform_points([[0.0, 0.0, base_z + glass_half]], pose)[0]
-    glass_quat = trimesh.transformations.quaternion_from_matrix(pose)
     to_world = np.eye(4)
     to_world[:3, :3] = SENSOR_TO_WORLD_AT_ROLL0
     sensor_quat = trimesh.transformations.quaternion_from_matrix(to_world)  # (w, x, y, z), as MuJoCo
     names = {name: _safe_name(name) for name in indenters}
     if len(set(names.values())) != len(names):
         raise ValueError(f"indenter names must stay distinct as file names, got {sorted(indenters)}")
-    assets = {"membrane.stl": _stl(membrane), "membrane_view.stl": _stl(inward)}
+    assets = {"membrane.stl": _stl(membrane), "membrane_view.stl": _stl(inward), "glass_core.stl": _stl(body.core)}
     mesh_xml, geom_xml = [], []
     for i, (name, mesh) in enumerate(indenters.items()):
         safe = names[name]
@@ -148,6 +155,7 @@ def rig_scene(
     <material name="bed" texture="grid" texrepeat="8 8"/>
     <mesh name="membrane" file="membrane.stl" inertia="shell"/>
     <mesh name="membrane_view" file="membrane_view.stl" inertia="shell"/>
+    <mesh name="glass_core" file="glass_core.stl" inertia="shell"/>
     {mesh_xml}
   </asset>
   <worldbody>
@@ -165,7 +173,7 @@ def rig_scene(
       <camera name="geltip_depth" pos="0 0 0" xyaxes="1 0 0 0 -1 0" fovy="{fovy_deg:.9g}"/>
       <geom name="membrane_view" type="mesh" mesh="membrane_view" group="{GROUP_MEMBRANE_VIEW}" rgba="0.9 0.9 0.9 1" mass="0"/>
       <geom name="membrane" type="mesh" mesh="membrane" group="{GROUP_MEMBRANE}" rgba="0.75 0.75 0.78 1" mass="0"/>
-      <geom name="glass_core" type="capsule" size="{core:.9g} {glass_half:.9g}" pos="{_f(glass_pos)}" quat="{_f(glass_quat)}" group="{GROUP_BODY}" rgba="0.7 0.85 1 0.35" mass="0"/>
+      <geom name="glass_core" type="mesh" mesh="glass_core" group="{GROUP_BODY}" rgba="0.7 0.85 1 0.35" mass="0"/>
       <geom name="sensor_body" type="cylinder" size="{radius + 0.002:.9g} 0.015" pos="0 0 {base_z - 0.015:.9g}" group="{GROUP_BODY}" rgba="0.1 0.1 0.1 1" mass="0"/>
     </body>
     <body name="gantry_x">

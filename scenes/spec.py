@@ -30,14 +30,30 @@ DISTORTION_BOUND = 1.0
 #: The camera's tilt off the tube's axis, rad, at most about either axis: beyond it the
 #: lens would sit in the tube's wall rather than look along it.
 TILT_BOUND_RAD = math.radians(15.0)
+#: The elastomer's thickness a spec may state by default, metres (``membrane.thickness_bounds``):
+#: under 0.5 mm a 2 mm tap would press on the glass, over 10 mm it is no membrane.
+THICKNESS_BOUNDS_M = (0.5e-3, 10.0e-3)
+#: Membrane shapes: a capsule built from its numbers, a shape family (``scenes.shapes``)
+#: built from ``membrane.params``, or a mesh file.
+SHAPES = ("capsule", "thumb", "paw", "mesh")
 
 
 @dataclass(frozen=True)
 class MembraneSpec:
-    """Outer membrane surface.
+    """Outer membrane surface and the glass core under it (``scenes.body``).
 
-    shape : "capsule" (cylinder + hemispherical tip, built from the numbers below) or
-        "mesh" (loaded from ``mesh_path``, in metres, in the camera frame).
+    shape : "capsule" (cylinder + hemispherical tip, built from ``radius``,
+        ``cylinder_length`` and ``core_radius``), a shape family of ``scenes.shapes``
+        ("thumb", "paw": built from ``params``, seated like the capsule by the camera's
+        ``offset_m`` and ``tilt_rad``), or "mesh" (read from ``mesh_path`` in
+        ``mesh_units``, placed in the camera frame by ``mesh_transform``).
+    thickness : the elastomer's thickness, metres, where the core is derived by offsetting
+        the membrane inwards (every shape but a capsule, unless ``core_mesh_path`` gives
+        the core); a capsule's is ``radius - core_radius``.
+    core_mesh_path : the glass core's outer surface as a mesh file (``mesh`` only), in the
+        membrane's units and frame.
+    thickness_bounds : (min, max) metres the elastomer's thickness must stay within
+        everywhere.
     """
 
     shape: str = "capsule"
@@ -49,6 +65,18 @@ class MembraneSpec:
     mesh_path: str | None = None
     glass_wall: float = GLASS_WALL_M  # m, the glass tube's wall under the membrane
     glass_ior: float = GLASS_IOR  # -, its refractive index
+    params: tuple[tuple[str, float], ...] = ()  # a shape family's parameters (scenes.shapes), SI units
+    thickness: float | None = None  # m, the elastomer's thickness over a derived core
+    core_mesh_path: str | None = None  # the core's mesh file (shape "mesh")
+    mesh_units: str = "m"  # "m" or "mm", of mesh_path and core_mesh_path
+    mesh_transform: tuple[float, ...] | None = None  # 16 numbers, row-major 4x4 rigid map: file -> camera frame
+    thickness_bounds: tuple[float, float] = THICKNESS_BOUNDS_M  # m, (min, max)
+
+    @property
+    def elastomer_thickness(self) -> float | None:
+        """The stated thickness, metres: a capsule's ``radius - core_radius``, otherwise
+        ``thickness`` (None where a core mesh gives it, vertex by vertex)."""
+        return self.radius - self.core_radius if self.shape == "capsule" else self.thickness
 
     @property
     def tip_z(self) -> float:
@@ -250,43 +278,7 @@ def _positive(value: float, name: str) -> float:
 
 def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     """Build and validate a :class:`SensorSpec` from a TOML-shaped dict."""
-    m = data.get("membrane", {})
-    shape = _take(m, "shape", str, f"{source}: membrane", "capsule")
-    if shape not in ("capsule", "mesh"):
-        raise ValueError(f"{source}: membrane.shape must be 'capsule' or 'mesh', got {shape!r}")
-    membrane = MembraneSpec(
-        shape=shape,
-        radius=_positive(_take(m, "radius", float, f"{source}: membrane", 0.0115), "membrane.radius"),
-        cylinder_length=_take(m, "cylinder_length", float, f"{source}: membrane", 0.044),
-        base_z=_take(m, "base_z", float, f"{source}: membrane", -0.010),
-        core_radius=_positive(
-            _take(m, "core_radius", float, f"{source}: membrane", 0.009), "membrane.core_radius"
-        ),
-        mesh_edge=_positive(_take(m, "mesh_edge", float, f"{source}: membrane", 0.0005), "membrane.mesh_edge"),
-        mesh_path=m.get("mesh_path"),
-        glass_wall=_positive(_take(m, "glass_wall", float, f"{source}: membrane", GLASS_WALL_M), "membrane.glass_wall"),
-        glass_ior=_take(m, "glass_ior", float, f"{source}: membrane", GLASS_IOR),
-    )
-    for name in ("radius", "cylinder_length", "core_radius", "mesh_edge", "glass_wall"):
-        value = getattr(membrane, name)
-        if abs(value) > MAX_SENSOR_SIZE_M:
-            raise ValueError(
-                f"{source}: membrane.{name} = {value} looks like millimetres; the spec is in metres"
-            )
-    if membrane.cylinder_length < 0:
-        raise ValueError(f"{source}: membrane.cylinder_length must be >= 0, got {membrane.cylinder_length}")
-    if membrane.core_radius >= membrane.radius:
-        raise ValueError(
-            f"{source}: membrane.core_radius ({membrane.core_radius}) must be < radius ({membrane.radius})"
-        )
-    if membrane.glass_wall >= membrane.core_radius:
-        raise ValueError(f"{source}: membrane.glass_wall ({membrane.glass_wall} m) must be thinner than the tube's "
-                         f"outer radius core_radius ({membrane.core_radius} m)")
-    if not GLASS_IOR_BOUNDS[0] <= membrane.glass_ior <= GLASS_IOR_BOUNDS[1]:
-        raise ValueError(f"{source}: membrane.glass_ior must be a glass' refractive index in "
-                         f"[{GLASS_IOR_BOUNDS[0]}, {GLASS_IOR_BOUNDS[1]}], got {membrane.glass_ior}")
-    if shape == "mesh" and not membrane.mesh_path:
-        raise ValueError(f"{source}: membrane.shape = 'mesh' needs membrane.mesh_path")
+    membrane = _membrane(data.get("membrane", {}), f"{source}: membrane")
 
     camera = _camera(data.get("camera", {}), f"{source}: camera", membrane)
 
@@ -348,6 +340,119 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     )
 
 
+#: Keys that describe a capsule, refused for other shapes (their size is their own).
+CAPSULE_KEYS = ("radius", "cylinder_length", "core_radius")
+
+
+def _membrane(m: dict, where: str) -> MembraneSpec:
+    """The [membrane] table, checked: its shape and that shape's keys, the core's
+    thickness and its bounds, the glass."""
+    if not isinstance(m, dict):
+        raise ValueError(f"{where} must be a table, got {m!r}")
+    shape = _take(m, "shape", str, where, "capsule")
+    if shape not in SHAPES:
+        raise ValueError(f"{where}.shape must be one of {', '.join(SHAPES)}, got {shape!r}")
+    if shape != "capsule":
+        given = [k for k in CAPSULE_KEYS if k in m]
+        if given:
+            raise ValueError(f"{where}: {', '.join(given)} describe a capsule; a {shape!r} membrane takes its size from "
+                             + ("[membrane.params]" if shape != "mesh" else "its mesh_path") + " and its core from "
+                             "thickness" + (" or core_mesh_path" if shape == "mesh" else ""))
+    lo_hi = m.get("thickness_bounds", list(THICKNESS_BOUNDS_M))
+    bounds = _vec2({"thickness_bounds": lo_hi}, "thickness_bounds", where)
+    if not 0 < bounds[0] < bounds[1] <= MAX_SENSOR_SIZE_M:
+        raise ValueError(f"{where}.thickness_bounds must be [min, max] metres with 0 < min < max, got {list(bounds)}")
+    transform = m.get("mesh_transform")
+    if transform is not None:
+        transform = _rigid(transform, f"{where}.mesh_transform")
+    params = m.get("params", {})
+    if isinstance(params, list) and all(isinstance(p, list) and len(p) == 2 for p in params):
+        params = dict(params)  # as a spec written out whole (dataclasses.asdict) lists them
+    if not isinstance(params, dict):
+        raise ValueError(f"{where}.params must be a table of numbers ([membrane.params]), got {params!r}")
+    if shape in ("thumb", "paw"):
+        from .shapes import check_params
+
+        params = check_params(shape, params, f"{where}.params")
+    elif params:
+        raise ValueError(f"{where}.params is for a shape family (thumb, paw), not a {shape!r} membrane")
+    membrane = MembraneSpec(
+        shape=shape,
+        radius=_positive(_take(m, "radius", float, where, 0.0115), "membrane.radius"),
+        cylinder_length=_take(m, "cylinder_length", float, where, 0.044),
+        base_z=_take(m, "base_z", float, where, -0.010),
+        core_radius=_positive(_take(m, "core_radius", float, where, 0.009), "membrane.core_radius"),
+        mesh_edge=_positive(_take(m, "mesh_edge", float, where, 0.0005), "membrane.mesh_edge"),
+        mesh_path=_take(m, "mesh_path", str, where, None),
+        glass_wall=_positive(_take(m, "glass_wall", float, where, GLASS_WALL_M), "membrane.glass_wall"),
+        glass_ior=_take(m, "glass_ior", float, where, GLASS_IOR),
+        params=tuple(sorted((str(k), float(v)) for k, v in params.items())),
+        thickness=_take(m, "thickness", float, where, None),
+        core_mesh_path=_take(m, "core_mesh_path", str, where, None),
+        mesh_units=_take(m, "mesh_units", str, where, "m"),
+        mesh_transform=transform,
+        thickness_bounds=bounds,
+    )
+    for name in ("radius", "cylinder_length", "core_radius", "mesh_edge", "glass_wall"):
+        value = getattr(membrane, name)
+        if abs(value) > MAX_SENSOR_SIZE_M:
+            raise ValueError(f"{where}.{name} = {value} looks like millimetres; the spec is in metres")
+    if membrane.cylinder_length < 0:
+        raise ValueError(f"{where}.cylinder_length must be >= 0, got {membrane.cylinder_length}")
+    if membrane.core_radius >= membrane.radius:
+        raise ValueError(f"{where}.core_radius ({membrane.core_radius}) must be < radius ({membrane.radius})")
+    if shape == "capsule" and membrane.thickness is not None:
+        raise ValueError(f"{where}.thickness: a capsule's thickness is radius - core_radius; drop the key")
+    if membrane.glass_wall >= membrane.core_radius:
+        raise ValueError(f"{where}.glass_wall ({membrane.glass_wall} m) must be thinner than the tube's "
+                         f"outer radius core_radius ({membrane.core_radius} m)")
+    if not GLASS_IOR_BOUNDS[0] <= membrane.glass_ior <= GLASS_IOR_BOUNDS[1]:
+        raise ValueError(f"{where}.glass_ior must be a glass' refractive index in "
+                         f"[{GLASS_IOR_BOUNDS[0]}, {GLASS_IOR_BOUNDS[1]}], got {membrane.glass_ior}")
+    if membrane.mesh_units not in ("m", "mm"):
+        raise ValueError(f"{where}.mesh_units must be 'm' or 'mm', got {membrane.mesh_units!r}")
+    if shape == "mesh" and not membrane.mesh_path:
+        raise ValueError(f"{where}: shape = 'mesh' needs mesh_path")
+    if shape != "mesh":
+        for key in ("mesh_path", "core_mesh_path", "mesh_transform"):
+            if m.get(key) is not None:
+                raise ValueError(f"{where}.{key} is for shape = 'mesh', not a {shape!r} membrane")
+    if shape != "capsule":
+        if membrane.thickness is None and membrane.core_mesh_path is None:
+            raise ValueError(f"{where}: a {shape!r} membrane needs its elastomer's thickness (thickness, metres)"
+                             + (" or its core's mesh (core_mesh_path)" if shape == "mesh" else ""))
+        if membrane.thickness is not None and membrane.core_mesh_path is not None:
+            raise ValueError(f"{where}: give thickness or core_mesh_path, not both")
+    thickness = membrane.elastomer_thickness
+    if thickness is not None and not bounds[0] <= thickness <= bounds[1]:
+        what = "radius - core_radius" if shape == "capsule" else "thickness"
+        raise ValueError(f"{where}: the elastomer's thickness ({what}) is {thickness * 1e3:.3g} mm, outside "
+                         f"thickness_bounds [{bounds[0] * 1e3:.3g}, {bounds[1] * 1e3:.3g}] mm")
+    return membrane
+
+
+def _rigid(value, where: str) -> tuple[float, ...]:
+    """A 4x4 rigid transform given as 4 rows of 4 numbers, checked: a rotation (orthonormal,
+    determinant +1), a translation in metres, last row 0 0 0 1. Returns its 16 numbers."""
+    try:
+        matrix = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        matrix = None
+    if matrix is not None and matrix.shape == (16,):  # as a spec written out whole lists it
+        matrix = matrix.reshape(4, 4)
+    if matrix is None or matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise ValueError(f"{where} must be 4 rows of 4 finite numbers (a row-major 4x4 transform), got {value!r}")
+    rotation = matrix[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
+        raise ValueError(f"{where} must be rigid: its upper-left 3x3 must be a rotation (orthonormal, det +1); "
+                         "scale a mesh with mesh_units")
+    if not np.allclose(matrix[3], [0, 0, 0, 1]):
+        raise ValueError(f"{where}'s last row must be [0, 0, 0, 1], got {matrix[3].tolist()}")
+    if np.abs(matrix[:3, 3]).max() > MAX_SENSOR_SIZE_M:
+        raise ValueError(f"{where}'s translation {matrix[:3, 3].tolist()} looks like millimetres; use metres")
+    return tuple(float(v) for v in matrix.ravel())
+
+
 def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     """The [camera] table, checked: its size, field of view, lens, principal point and
     image circle, and that the lens sees the tube."""
@@ -376,7 +481,7 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     if max(map(abs, camera.distortion)) > DISTORTION_BOUND:
         raise ValueError(f"{where}.distortion (k1, k2) must each lie in [-{DISTORTION_BOUND}, {DISTORTION_BOUND}], "
                          f"got {list(camera.distortion)}")
-    bore = membrane.core_radius - membrane.glass_wall
+    bore = membrane.core_radius - membrane.glass_wall if membrane.shape == "capsule" else math.inf  # else scenes.body
     if math.hypot(*camera.offset_m) >= bore:
         raise ValueError(f"{where}.offset_m {list(camera.offset_m)} puts the camera {math.hypot(*camera.offset_m):.4g} m "
                          f"off the tube's axis, outside its bore (radius {bore:.4g} m; metres, not millimetres?)")
@@ -385,7 +490,7 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
                          f"{TILT_BOUND_RAD:.4f}] rad (15 deg)")
     if membrane.shape == "mesh" and (any(camera.offset_m) or any(camera.tilt_rad)):
         raise ValueError(f"{where}.offset_m and tilt_rad seat a generated membrane; a membrane.mesh_path mesh is "
-                         "already in the camera frame: move the mesh instead")
+                         "already in the camera frame, or placed there by membrane.mesh_transform")
     if camera.mask_radius_px <= 0:
         raise ValueError(f"{where}.mask_radius_px must be > 0 px, got {camera.mask_radius_px}")
     _, theta = lens_table(*camera.distortion, camera.projection, 1.0)
@@ -427,7 +532,10 @@ def _optics(t: dict, where: str) -> dict:
 
 
 def _outside_glass(radius: float, height: float, membrane: MembraneSpec, where: str) -> None:
-    """Refuse an LED inside the glass wall (``radius`` from the axis and ``height`` z, m)."""
+    """Refuse an LED inside the glass wall (``radius`` from the axis and ``height`` z, m) of
+    a capsule; other shapes' glass is checked with their core (``scenes.body``)."""
+    if membrane.shape != "capsule":
+        return
     inner = membrane.core_radius - membrane.glass_wall
     if inner < radius < membrane.core_radius and height >= membrane.base_z:
         raise ValueError(f"{where}: {radius * 1e3:.2f} mm from the axis puts the LED inside the glass wall "
@@ -476,9 +584,10 @@ def load_spec(path: str | Path | None = None) -> SensorSpec:
     path = Path(path) if path is not None else DEFAULT_SPEC_PATH
     data = read_toml(path, "sensor spec")
     spec = spec_from_dict(data, source=str(path))
-    if spec.membrane.mesh_path and not Path(spec.membrane.mesh_path).is_absolute():
-        mesh_path = str((path.parent / spec.membrane.mesh_path).resolve())
-        spec = spec.replace(membrane=dataclasses.replace(spec.membrane, mesh_path=mesh_path))
+    for key in ("mesh_path", "core_mesh_path"):
+        value = getattr(spec.membrane, key)
+        if value and not Path(value).is_absolute():
+            spec = spec.replace(membrane=dataclasses.replace(spec.membrane, **{key: str((path.parent / value).resolve())}))
     return spec
 
 

@@ -83,10 +83,12 @@ def test_a_sphere_on_a_plate_matches_the_analytic_layer(plate, spec, camera):
     R, d = 0.004, 1.0e-3
     depth = np.minimum(ref, sphere_depth(np.array([0.0, 0.0, PLATE_Z_M - d + R]), R, camera))
     result = layer.deformation(depth, ref)
-    c, A = _sphere_on_plate(d, R, layer.length)
+    length = float(layer.length[0])  # a uniform layer
+    assert np.all(layer.length == length)
+    c, A = _sphere_on_plate(d, R, length)
     r = np.hypot(*plate.vertices[:, :2].T)
-    exact = np.where(r < c, d - (R - np.sqrt(R**2 - np.minimum(r, R) ** 2)), A * special.k0(np.maximum(r, 1e-9) / layer.length))
-    near = r < 5 * layer.length + c
+    exact = np.where(r < c, d - (R - np.sqrt(R**2 - np.minimum(r, R) ** 2)), A * special.k0(np.maximum(r, 1e-9) / length))
+    near = r < 5 * length + c
     assert np.abs(result.displacement[near] - exact[near]).max() < 0.02 * d
     # Displacement is along the (here +z) normal only, inwards; the membrane touches the
     # sphere on the contact disc and lies off it beyond.
@@ -108,7 +110,7 @@ def test_a_flat_punch_on_a_plate_decays_as_the_bessel_solution(plate, spec, came
     depth = np.where(np.hypot(P[..., 0], P[..., 1]) <= a, PLATE_Z_M - d, ref)
     result = layer.deformation(depth, ref)
     r = np.hypot(*plate.vertices[:, :2].T)
-    l = layer.length
+    l = float(layer.length[0])
     assert np.allclose(result.displacement[r < a - 2 * PLATE_STEP_M], d, atol=1e-9)
 
     def mean_at(radius):
