@@ -172,6 +172,37 @@ def pitch_for_normal(n_world) -> float | np.ndarray:
     return float(pitch) if pitch.ndim == 0 else pitch
 
 
+def servo_angles(normal) -> tuple[np.ndarray, np.ndarray]:
+    """The roll and pitch (rad) that aim the indenter along -normal, for any sensor-frame
+    normal (N, 3) (the inverse of :func:`normal_in_sensor`).
+
+    The roll turns the normal's part across the axis to face world up, and the pitch
+    tilts the indenter from straight down towards the tip: roll atan2(-n_x, -n_y) (to a
+    turn, from the roll's travel's start), pitch atan2(n_z, |n_xy|) in [-pi/2, pi/2]. Where that roll lies outside ROLL_TRAVEL_RAD,
+    the roll half a turn away with the pitch past pi/2 (pi - pitch) aims the same way.
+    Where neither lies within the servos' travel (ROLL_TRAVEL_RAD, PITCH_TRAVEL_RAD),
+    the angles returned are the first pair; :func:`in_travel` says which can be reached.
+    """
+    n = np.atleast_2d(np.asarray(normal, dtype=np.float64))
+    if n.shape[-1] != 3 or not np.all(np.isfinite(n)):
+        raise ValueError(f"normal must be finite (N, 3), got shape {n.shape}")
+    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    across = np.hypot(n[..., 0], n[..., 1])
+    lo = ROLL_TRAVEL_RAD[0]
+    roll = lo + np.mod(np.arctan2(-n[..., 0], -n[..., 1]) - lo, 2 * math.pi)  # a turn from the travel's start
+    pitch = np.arctan2(n[..., 2], across)
+    turned = lo + np.mod(roll + math.pi - lo, 2 * math.pi)
+    flip = ~in_travel(roll, pitch) & in_travel(turned, math.pi - pitch)
+    return np.where(flip, turned, roll), np.where(flip, math.pi - pitch, pitch)
+
+
+def in_travel(roll, pitch) -> np.ndarray:
+    """(N,) bool, whether the roll and pitch servos can turn to these angles (rad)."""
+    roll, pitch = np.asarray(roll, dtype=np.float64), np.asarray(pitch, dtype=np.float64)
+    return (roll >= ROLL_TRAVEL_RAD[0]) & (roll <= ROLL_TRAVEL_RAD[1]) \
+        & (pitch >= PITCH_TRAVEL_RAD[0]) & (pitch <= PITCH_TRAVEL_RAD[1])
+
+
 # --- The machine -----------------------------------------------------------------------
 
 

@@ -25,7 +25,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 import trimesh
 
-from .kinematics import UNIT_TOLERANCE, normal_in_sensor, pitch_for_normal, sensor_to_world
+from .kinematics import (PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD, UNIT_TOLERANCE, in_travel, normal_in_sensor,
+                         pitch_for_normal, sensor_to_world, servo_angles)
 from .meridian import meridian, point_at_angle, point_at_arc, point_behind_junction
 from .spec import SensorSpec
 
@@ -50,6 +51,19 @@ EXTENDED_CONTACTS_PER_ROW = 16
 #: sees the cylinder only from about 21.5 mm above it, so 24 mm keeps every contact in
 #: view (the last one 20 mm back from the tip junction).
 EXTENDED_BASE_MARGIN_M = 0.024
+#: Any other membrane (``spec.membrane.shape`` not "capsule"): each row's contacts are
+#: spread evenly in arc length along its meridian, from the apex to this far (metres)
+#: before the camera stops seeing it (the GelTip's EXTENDED_BASE_MARGIN_M leaves 2.5 mm
+#: past the 21.5 mm its camera does not see), and aimed along the membrane's own normal.
+SEEN_MARGIN_M = 0.0025
+#: Any other membrane: a contact's aim is its normal's; where that needs a roll outside
+#: ROLL_RANGE_RAD or a pitch below 0 (the servo horns' 0 to 180 deg at the board's boot
+#: offsets, rig.servo_protocol.HORN_RANGE_CENTIDEG) by at most this, rad, the nearest
+#: aim inside is taken (a tap tilted that far off the normal: the GelTip's extended
+#: protocol jitters its servos by 3 deg); farther, the tap is left to be refused.
+AIM_SLACK_RAD = math.radians(5.0)
+#: Base protocol on any other membrane: contacts per row, as the GelTip's 4 + 2.
+BASE_CONTACTS_PER_ROW = len(BASE_TIP_ANGLES_RAD) + len(BASE_CYLINDER_BACK_M)
 #: Extended protocol: replicas of every contact (replica 0 is unperturbed).
 EXTENDED_REPLICAS = 36
 
@@ -307,7 +321,10 @@ def base_protocol(
     For each object, three paths along the long axis with the sensor rolled by
     BASE_ROLLS_RAD; on each, tip taps at BASE_TIP_ANGLES_RAD and cylinder taps
     BASE_CYLINDER_BACK_M back from the tip junction, each perpendicular to the membrane
-    at ``depth`` metres: 18 taps per object.
+    at ``depth`` metres: 18 taps per object. On any other membrane than a capsule, each
+    path's BASE_CONTACTS_PER_ROW contacts are spread evenly in arc length from the apex
+    to SEEN_MARGIN_M before the camera stops seeing it, each aimed along the membrane's
+    normal there (:func:`_contacts_any`): 18 taps per object as well.
 
     Parameters
     ----------
@@ -321,6 +338,19 @@ def base_protocol(
     Protocol named "base", seed None, validated against the mesh.
     """
     objects = _check_objects(objects)
+    if spec.membrane.shape != "capsule":
+        point, normal, _ = _contacts_any(spec, mesh, BASE_ROLLS_RAD, BASE_CONTACTS_PER_ROW)
+        rows = np.repeat(np.arange(len(BASE_ROLLS_RAD)), BASE_CONTACTS_PER_ROW)
+        positions = np.tile(np.arange(BASE_CONTACTS_PER_ROW), len(BASE_ROLLS_RAD))
+        point, normal = point.reshape(-1, 3), normal.reshape(-1, 3)
+        roll, pitch = _aim(normal)
+        normal = normal_in_sensor(roll, pitch)
+        n = len(point)
+        per_tap = (rows, positions, np.zeros(n, int), roll, pitch, point, normal, np.full(n, float(depth)), np.zeros(n))
+        taps = [tap for o, obj in enumerate(objects) for tap in _make_taps(obj, o * n, *per_tap)]
+        protocol = Protocol(name="base", taps=tuple(taps), seed=None)
+        validate(protocol, spec, mesh)
+        return protocol
     rows, positions, rolls, points, normals = [], [], [], [], []
     for row, roll in enumerate(BASE_ROLLS_RAD):
         mer = meridian(mesh, roll)
@@ -394,21 +424,26 @@ def extended_protocol(
 
     # Nominal contacts: one meridian per row.
     n_rows, n_contacts = len(EXTENDED_ROLLS_RAD), EXTENDED_CONTACTS_PER_ROW
-    p0 = np.empty((n_rows, n_contacts, 3))
-    n0 = np.empty((n_rows, n_contacts, 3))
-    across = np.empty((n_rows, 3))
-    for row, roll in enumerate(EXTENDED_ROLLS_RAD):
-        mer = meridian(mesh, roll)
-        end = mer.length - EXTENDED_BASE_MARGIN_M
-        if end <= 0:
-            raise ValueError(
-                f"mesh: its meridian at roll {roll:g} rad is {mer.length:.4g} m long, shorter than "
-                f"EXTENDED_BASE_MARGIN_M = {EXTENDED_BASE_MARGIN_M} m"
-            )
-        p0[row], n0[row] = point_at_arc(mer, np.linspace(0.0, end, n_contacts))
-        across[row] = mer.plane_normal
-    roll0 = np.broadcast_to(np.asarray(EXTENDED_ROLLS_RAD)[:, None], (n_rows, n_contacts))
-    pitch0 = np.stack([_nominal_pitch(r, n) for r, n in zip(EXTENDED_ROLLS_RAD, n0)])
+    if spec.membrane.shape != "capsule":
+        p0, n0, across = _contacts_any(spec, mesh, EXTENDED_ROLLS_RAD, n_contacts)
+        roll0, pitch0 = (a.reshape(n_rows, n_contacts) for a in _aim(n0.reshape(-1, 3)))
+        n0 = normal_in_sensor(roll0, pitch0)
+    else:
+        p0 = np.empty((n_rows, n_contacts, 3))
+        n0 = np.empty((n_rows, n_contacts, 3))
+        across = np.empty((n_rows, 3))
+        for row, roll in enumerate(EXTENDED_ROLLS_RAD):
+            mer = meridian(mesh, roll)
+            end = mer.length - EXTENDED_BASE_MARGIN_M
+            if end <= 0:
+                raise ValueError(
+                    f"mesh: its meridian at roll {roll:g} rad is {mer.length:.4g} m long, shorter than "
+                    f"EXTENDED_BASE_MARGIN_M = {EXTENDED_BASE_MARGIN_M} m"
+                )
+            p0[row], n0[row] = point_at_arc(mer, np.linspace(0.0, end, n_contacts))
+            across[row] = mer.plane_normal
+        roll0 = np.broadcast_to(np.asarray(EXTENDED_ROLLS_RAD)[:, None], (n_rows, n_contacts))
+        pitch0 = np.stack([_nominal_pitch(r, n) for r, n in zip(EXTENDED_ROLLS_RAD, n0)])
 
     # Perturbations, (objects, rows, contacts, replicas); replica 0 unperturbed.
     shape = (len(objects), n_rows, n_contacts, replicas)
@@ -424,13 +459,19 @@ def extended_protocol(
     shift_t = rng.uniform(0.0, 2 * math.pi, shape)
     shift_r[..., 0] = 0.0
 
-    roll = _reflect(roll0[None, :, :, None] + d_roll, *ROLL_RANGE_RAD)
+    # Perturbed rolls are reflected back into ROLL_RANGE_RAD, or a nominal roll's side of it.
+    lo = np.minimum(ROLL_RANGE_RAD[0], roll0)[None, :, :, None]
+    hi = np.maximum(ROLL_RANGE_RAD[1], roll0)[None, :, :, None]
+    roll = _reflect(roll0[None, :, :, None] + d_roll, lo, hi)
     pitch = pitch0[None, :, :, None] + d_pitch
     normal = normal_in_sensor(roll, pitch)
     # Tangent plane at the nominal contact: along the meridian and across it.
-    along = np.cross(across[:, None, :], n0)  # (rows, contacts, 3), unit
+    across = np.broadcast_to(across[:, None, :], n0.shape)
+    across = across - np.einsum("rci,rci->rc", across, n0)[..., None] * n0
+    across = across / np.linalg.norm(across, axis=-1, keepdims=True)
+    along = np.cross(across, n0)  # (rows, contacts, 3), unit
     cos_t, sin_t = (shift_r * np.cos(shift_t))[..., None], (shift_r * np.sin(shift_t))[..., None]
-    target = p0[None, :, :, None] + cos_t * along[None, :, :, None, :] + sin_t * across[None, :, None, None, :]
+    target = p0[None, :, :, None] + cos_t * along[None, :, :, None, :] + sin_t * across[None, :, :, None, :]
     # The contact is where the shifted, tilted indenter axis first meets the membrane.
     point = target.copy()
     perturbed = np.broadcast_to(np.arange(replicas) > 0, shape)
@@ -458,13 +499,74 @@ def extended_protocol(
     return protocol
 
 
+def _aim(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Roll and pitch (N,) that aim along normals (N, 3), nudged by up to AIM_SLACK_RAD
+    into the rolls ROLL_RANGE_RAD and the pitches >= 0 the servo horns reach."""
+    roll, pitch = servo_angles(normal)
+    lo, hi = ROLL_RANGE_RAD
+    roll = np.where((roll < lo) & (roll >= lo - AIM_SLACK_RAD), lo, roll)
+    roll = np.where((roll > hi) & (roll <= hi + AIM_SLACK_RAD), hi, roll)
+    pitch = np.where((pitch < 0) & (pitch >= -AIM_SLACK_RAD), 0.0, pitch)
+    return roll, pitch
+
+
+def seen_arc(mer, camera) -> float:
+    """Arc length along a meridian from its apex to where the camera stops seeing it
+    (behind the camera or outside its image circle), metres."""
+    from .camera import project
+
+    z = mer.points[:, 2]
+    seen = z > 0
+    uv = np.round(project(mer.points[seen], camera)).astype(np.int64)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    ok = np.zeros(int(seen.sum()), bool)
+    ok[inside] = camera.mask[uv[inside, 1], uv[inside, 0]]
+    seen[np.flatnonzero(seen)] = ok
+    lost = np.flatnonzero(~seen)
+    return float(mer.arc[lost[0] - 1] if len(lost) and lost[0] > 0 else 0.0 if len(lost) else mer.length)
+
+
+def _contacts_any(spec: SensorSpec, mesh: trimesh.Trimesh, rolls, count: int):
+    """Contacts of rows along any membrane's meridians (SEEN_MARGIN_M, module doc).
+
+    Returns points (R, C, 3) metres on the mesh, the membrane's outward normals there
+    (R, C, 3) (interpolated vertex normals: off the meridian's plane where the membrane
+    is not a surface of revolution) and each row's plane normal (R, 3).
+    """
+    from .body import closest_faces
+    from .camera import Camera
+
+    camera = Camera.from_spec(spec)
+    points, normals, across = [], [], []
+    for roll in rolls:
+        mer = meridian(mesh, roll)
+        end = seen_arc(mer, camera) - SEEN_MARGIN_M
+        if end <= 0:
+            raise ValueError(f"mesh: the camera sees {seen_arc(mer, camera) * 1e3:.2f} mm of its meridian at roll {roll:g} "
+                             f"rad from the apex, no more than SEEN_MARGIN_M = {SEEN_MARGIN_M * 1e3:g} mm: no room for taps")
+        p, _ = point_at_arc(mer, np.linspace(0.0, end, count))
+        face, _ = closest_faces(mesh, p)
+        points.append(p)
+        normals.append(_surface_normals(mesh, p, face))
+        across.append(mer.plane_normal)
+    return np.stack(points), np.stack(normals), np.stack(across)
+
+
 # --- Validation ---------------------------------------------------------------------------
 
 
-def max_safe_depth_m(spec: SensorSpec) -> float:
-    """Deepest safe indentation, metres: the membrane's thickness (radius - core_radius),
-    past which the indenter would press on the glass core."""
-    return float(spec.membrane.radius - spec.membrane.core_radius)
+def max_safe_depth_m(spec: SensorSpec, points: np.ndarray | None = None, mesh: trimesh.Trimesh | None = None):
+    """Deepest safe indentation, metres: the elastomer's thickness, past which the
+    indenter would press on the glass core; under each of ``points`` (N, 3) on the
+    membrane, or (None) the least anywhere (``scenes.body``; a capsule's is
+    radius - core_radius everywhere)."""
+    if spec.membrane.shape == "capsule":
+        limit = float(spec.membrane.radius - spec.membrane.core_radius)
+        return limit if points is None else np.full(len(np.reshape(points, (-1, 3))), limit)
+    from .body import sensor_body
+
+    body = sensor_body(spec, mesh)
+    return body.min_thickness if points is None else body.thickness_at(points)
 
 
 def _approach_hits(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray):
@@ -517,13 +619,15 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
     Raises ValueError naming the first failing tap (index, object, row, position) and
     how many fail, when a tap:
 
-    - indents by depth <= 0 or past max_safe_depth_m(spec) (it would hit the glass core);
+    - indents by depth <= 0 or past the elastomer's thickness under it
+      (max_safe_depth_m; it would hit the glass core);
     - has a normal that is not finite and unit;
     - approaches along a ray (from outside, along -normal) that misses the membrane;
     - has a contact point farther than ON_MEMBRANE_TOLERANCE_M from the membrane;
     - has a normal pointing into the membrane, or more than MAX_APPROACH_TILT_RAD off
       its normal;
     - is approached along a ray that meets the membrane before reaching the point;
+    - needs servo angles past the servos' travel (the rig cannot reach it);
     - has servo angles (roll, pitch) that do not point the indenter along -normal.
     """
     if not isinstance(protocol, Protocol):
@@ -549,14 +653,15 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
             f"replica {t.replica}): {why(i)}{more}"
         )
 
-    limit = max_safe_depth_m(spec)
     fail(~np.isfinite(depth) | (depth <= 0), lambda i: f"depth must be > 0 m, got {depth[i]!r}")
+    finite = np.isfinite(point).all(axis=1) & np.isfinite(normal).all(axis=1)
+    limit = np.full(len(taps), np.inf)
+    limit[finite] = max_safe_depth_m(spec, point[finite], mesh)
     fail(
         depth > limit,
-        lambda i: f"depth {depth[i]:.6g} m exceeds the safe maximum {limit:.6g} m (the membrane's "
-        "thickness, radius - core_radius): the indenter would hit the glass core",
+        lambda i: f"depth {depth[i]:.6g} m exceeds the safe maximum {limit[i]:.6g} m (the membrane's "
+        "thickness under the contact): the indenter would hit the glass core",
     )
-    finite = np.isfinite(point).all(axis=1) & np.isfinite(normal).all(axis=1)
     finite &= np.isfinite(roll) & np.isfinite(pitch)
     fail(~finite, lambda i: "point, normal, sensor_roll and indenter_pitch must be finite")
     length = np.linalg.norm(normal, axis=1)
@@ -596,6 +701,11 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
         lambda i: f"the approach is {math.degrees(tilt[i]):.2f} deg off the membrane normal "
         f"(at most {math.degrees(MAX_APPROACH_TILT_RAD):.1f} deg): the indenter would slide",
     )
+    reach = in_travel(roll, pitch)
+    fail(~reach, lambda i: f"the rig cannot reach it: sensor_roll {roll[i]:.4g} rad and indenter_pitch {pitch[i]:.4g} "
+         f"rad, past the servos' travel (roll {ROLL_TRAVEL_RAD[0]:.3g} to {ROLL_TRAVEL_RAD[1]:.3g} rad, pitch "
+         f"{PITCH_TRAVEL_RAD[0]:.3g} to {PITCH_TRAVEL_RAD[1]:.3g} rad); no pair of servo angles aims the indenter along "
+         f"this normal {normal[i].round(3).tolist()}")
     realised = normal_in_sensor(roll, pitch)
     chord = np.linalg.norm(realised - normal / length[:, None], axis=1)
     err = 2.0 * np.arcsin(np.clip(0.5 * chord, 0.0, 1.0))
