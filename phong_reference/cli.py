@@ -25,8 +25,9 @@ def _sensor(args):
     return spec, mesh, Camera.from_spec(spec)
 
 
-def _add_sensor_args(p: argparse.ArgumentParser, mesh: bool = True) -> None:
-    p.add_argument("--spec", metavar="TOML", help="sensor spec (default: the embedded GelTip)")
+def _add_sensor_args(p: argparse.ArgumentParser, mesh: bool = True,
+                     spec_help: str = "sensor spec (default: the embedded GelTip)") -> None:
+    p.add_argument("--spec", metavar="TOML", help=spec_help)
     if mesh:
         p.add_argument("--mesh", metavar="PATH", help="membrane mesh (STL/OBJ/PLY) in the camera frame, any shape")
         p.add_argument("--units", choices=["m", "mm"], default="m", help="units of --mesh (default m)")
@@ -107,7 +108,44 @@ def cmd_render(args) -> int:
     return 0
 
 
+#: The contact of the demo's sheet of every sensor (``--spec all``).
+SHEET_CONTACT = "sphere_side"
+
+
 def cmd_demo(args) -> int:
+    if args.spec != "all":
+        _demo(args, *_sensor(args), Path(args.out))
+        return 0
+    from scenes.spec import DEFAULT_SPEC_PATH
+
+    from .figures import contact_sheet
+
+    if getattr(args, "mesh", None):
+        raise SystemExit("tactile-sim demo: --spec all renders the shipped sensors; drop --mesh")
+    from .sources import snap_leds
+
+    sheet = {}
+    for path in [DEFAULT_SPEC_PATH, *sorted((DEFAULT_SPEC_PATH.parent / "sensors").glob("*.toml"))]:
+        spec = load_spec(path)
+        mesh = checked_membrane(spec)
+        try:
+            snap_leds(mesh, spec.leds)
+        except ValueError as exc:  # a reference-only build: its LEDs are not at the membrane's edge
+            print(f"skipping {spec.name!r} ({path.name}): the fast path cannot light it: {exc}")
+            continue
+        images = _demo(args, spec, mesh, Camera.from_spec(spec), Path(args.out) / spec.name)
+        for (row, contact), image in images.items():
+            method, background = row.split(" / ")
+            if contact == SHEET_CONTACT and background == "solid":
+                sheet[(spec.name, method)] = image
+    contact_sheet(sheet, Path(args.out) / "contact_sheet.png")
+    print(f"wrote every sensor's demo and contact_sheet.png (one row per sensor, {SHEET_CONTACT}, solid "
+          f"background) to {args.out}")
+    return 0
+
+
+def _demo(args, spec, mesh, camera, out: Path) -> dict:
+    """One sensor's demo in ``out``; returns its contact sheet's images."""
     import trimesh
 
     from scenes.contact import press
@@ -115,8 +153,6 @@ def cmd_demo(args) -> int:
     from .figures import contact_sheet, field_figure
     from .render import Renderer
 
-    spec, mesh, camera = _sensor(args)
-    out = Path(args.out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     profile = _profile(args, spec)
@@ -134,12 +170,12 @@ def cmd_demo(args) -> int:
         np.save(out / "depth" / f"{name}.npy", depths[name])
     backgrounds = {"none": "none", "solid": "solid"}
     real = Path(args.real_background) if args.real_background else None
-    if real is None and (published := reference_dir()) is not None:
-        real = published / "real" / "bkg.png"
+    if real is None and spec.membrane.shape == "capsule" and (published := reference_dir()) is not None:
+        real = published / "real" / "bkg.png"  # the published GelTip's own
     if real is not None:
         backgrounds["real"] = str(real)
     else:
-        print("no real no-contact image found (pass --real-background PATH); skipping that background")
+        print(f"no real no-contact image of {spec.name!r} (pass --real-background PATH); skipping that background")
     sheet = {}
     if profile is not None:
         backgrounds["profile"] = "profile"
@@ -161,7 +197,7 @@ def cmd_demo(args) -> int:
     for method, lf in fields.items():
         field_figure(mesh, lf, spec.leds, camera, out / f"fields_{method}.png")
     print(f"wrote {len(sheet)} images, contact_sheet.png and field figures to {out}")
-    return 0
+    return sheet
 
 
 def cmd_bench_phong(args) -> int:
@@ -183,8 +219,10 @@ def cmd_bench_bake(args) -> int:
 
 
 def register(registry) -> None:
-    p = registry.command("demo", cmd_demo, "bake the GelTip light fields, press contacts and render every field and background")
-    _add_sensor_args(p)
+    p = registry.command("demo", cmd_demo, "bake a sensor's light fields, press contacts and render every field and "
+                         "background; --spec all: every shipped sensor, with a sheet of them all")
+    _add_sensor_args(p, spec_help="sensor spec (default: the embedded GelTip), or 'all': every shipped sensor "
+                                  "(the GelTip and scenes/sensors/*.toml)")
     p.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     p.add_argument("--real-background", metavar="PNG", help="real no-contact image (default: the published one, if found)")
     p.add_argument("--profile", metavar="PROFILE.toml",
