@@ -342,30 +342,24 @@ def base_protocol(
         point, normal, _ = _contacts_any(spec, mesh, BASE_ROLLS_RAD, BASE_CONTACTS_PER_ROW)
         rows = np.repeat(np.arange(len(BASE_ROLLS_RAD)), BASE_CONTACTS_PER_ROW)
         positions = np.tile(np.arange(BASE_CONTACTS_PER_ROW), len(BASE_ROLLS_RAD))
-        point, normal = point.reshape(-1, 3), normal.reshape(-1, 3)
-        roll, pitch = _aim(normal)
-        normal = normal_in_sensor(roll, pitch)
-        n = len(point)
-        per_tap = (rows, positions, np.zeros(n, int), roll, pitch, point, normal, np.full(n, float(depth)), np.zeros(n))
-        taps = [tap for o, obj in enumerate(objects) for tap in _make_taps(obj, o * n, *per_tap)]
-        protocol = Protocol(name="base", taps=tuple(taps), seed=None)
-        validate(protocol, spec, mesh)
-        return protocol
-    rows, positions, rolls, points, normals = [], [], [], [], []
-    for row, roll in enumerate(BASE_ROLLS_RAD):
-        mer = meridian(mesh, roll)
-        tip_p, tip_n = point_at_angle(mer, BASE_TIP_ANGLES_RAD)
-        cyl_p, cyl_n = point_behind_junction(mer, BASE_CYLINDER_BACK_M)
-        p, n = np.vstack([tip_p, cyl_p]), np.vstack([tip_n, cyl_n])
-        rows.append(np.full(len(p), row))
-        positions.append(np.arange(len(p)))
-        rolls.append(np.full(len(p), roll))
-        points.append(p)
-        normals.append(n)
-    rows, positions, roll = np.concatenate(rows), np.concatenate(positions), np.concatenate(rolls)
-    point, normal = np.vstack(points), np.vstack(normals)
-    pitch = np.concatenate([_nominal_pitch(r, n) for r, n in zip(BASE_ROLLS_RAD, normals)])
-    normal = normal_in_sensor(roll, pitch)  # equal to the meridian's, to rounding
+        point = point.reshape(-1, 3)
+        roll, pitch = _aim(normal.reshape(-1, 3))
+    else:
+        rows, positions, rolls, points, normals = [], [], [], [], []
+        for row, roll in enumerate(BASE_ROLLS_RAD):
+            mer = meridian(mesh, roll)
+            tip_p, tip_n = point_at_angle(mer, BASE_TIP_ANGLES_RAD)
+            cyl_p, cyl_n = point_behind_junction(mer, BASE_CYLINDER_BACK_M)
+            p, n = np.vstack([tip_p, cyl_p]), np.vstack([tip_n, cyl_n])
+            rows.append(np.full(len(p), row))
+            positions.append(np.arange(len(p)))
+            rolls.append(np.full(len(p), roll))
+            points.append(p)
+            normals.append(n)
+        rows, positions, roll = np.concatenate(rows), np.concatenate(positions), np.concatenate(rolls)
+        point = np.vstack(points)
+        pitch = np.concatenate([_nominal_pitch(r, n) for r, n in zip(BASE_ROLLS_RAD, normals)])
+    normal = normal_in_sensor(roll, pitch)  # the membrane's normal, to rounding (or AIM_SLACK_RAD)
     n = len(point)
     per_tap = (rows, positions, np.zeros(n, int), roll, pitch, point, normal, np.full(n, float(depth)), np.zeros(n))
     taps = [tap for o, obj in enumerate(objects) for tap in _make_taps(obj, o * n, *per_tap)]
