@@ -22,7 +22,6 @@ The dataset stays consistent either way: a sample's line is written only after i
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -278,7 +277,7 @@ def prepare(root, spec, protocol, layout: RigLayout = RigLayout(), *, source_met
     camera = Camera.from_spec(spec)
     meta = {
         "source": "real",
-        "sensor": dataclasses.asdict(spec),
+        "sensor": spec.to_dict(),
         "protocol": {"name": protocol.name, "seed": protocol.seed, "taps": len(protocol.taps),
                      "objects": list(protocol.objects)},
         "image_size": [camera.width, camera.height],

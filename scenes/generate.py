@@ -22,7 +22,6 @@ imports one. A plugin is a module with
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 from importlib import import_module
@@ -309,7 +308,7 @@ def run_tasks(
     meta = {
         **meta,
         "source": meta.get("source") if meta.get("source") is not None else getattr(plugin, "SOURCE", "sim"),
-        "sensor": dataclasses.asdict(spec),
+        "sensor": spec.to_dict(),
         "renderer": settings,
         "image_size": [camera.width, camera.height],
         "depth": "planar z, metres, float32 (H, W)",

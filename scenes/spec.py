@@ -211,6 +211,16 @@ class SensorSpec:
         blob = json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
+    def to_dict(self) -> dict:
+        """Every field, as a spec file's tables (``spec_from_dict`` reads it back the same):
+        the membrane's table keeps its shape's keys alone, and keys left unset are left out."""
+        data = dataclasses.asdict(self)
+        m = data["membrane"]
+        for key in (CAPSULE_KEYS if self.membrane.shape != "capsule" else ()) + ("params",) * (not m["params"]):
+            del m[key]
+        data["membrane"] = {k: v for k, v in m.items() if v is not None}
+        return json.loads(json.dumps(data))  # tuples as lists, as TOML and JSON hold them
+
     def replace(self, **changes) -> "SensorSpec":
         return dataclasses.replace(self, **changes)
 
@@ -358,7 +368,7 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
             raise ValueError(f"{where}: {', '.join(given)} describe a capsule; a {shape!r} membrane takes its size from "
                              + ("[membrane.params]" if shape != "mesh" else "its mesh_path") + " and its core from "
                              "thickness" + (" or core_mesh_path" if shape == "mesh" else ""))
-    lo_hi = m.get("thickness_bounds", list(THICKNESS_BOUNDS_M))
+    lo_hi = list(m.get("thickness_bounds", THICKNESS_BOUNDS_M))
     bounds = _vec2({"thickness_bounds": lo_hi}, "thickness_bounds", where)
     if not 0 < bounds[0] < bounds[1] <= MAX_SENSOR_SIZE_M:
         raise ValueError(f"{where}.thickness_bounds must be [min, max] metres with 0 < min < max, got {list(bounds)}")
@@ -366,7 +376,7 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
     if transform is not None:
         transform = _rigid(transform, f"{where}.mesh_transform")
     params = m.get("params", {})
-    if isinstance(params, list) and all(isinstance(p, list) and len(p) == 2 for p in params):
+    if isinstance(params, (list, tuple)) and all(isinstance(p, (list, tuple)) and len(p) == 2 for p in params):
         params = dict(params)  # as a spec written out whole (dataclasses.asdict) lists them
     if not isinstance(params, dict):
         raise ValueError(f"{where}.params must be a table of numbers ([membrane.params]), got {params!r}")
