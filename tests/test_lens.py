@@ -172,7 +172,7 @@ def _data():
 def test_a_lens_that_cannot_image_the_tube_is_refused(camera, message):
     data, camera = _data(), dict(camera)
     if camera.pop("_mesh", False):
-        data["membrane"].update(shape="mesh", mesh_path="membrane.stl")
+        data["membrane"] = {"shape": "mesh", "mesh_path": "membrane.stl", "thickness": 0.0025}
     data["camera"].update(camera)
     with pytest.raises(ValueError, match=message):
         spec_from_dict(data, "test.toml")
