@@ -23,6 +23,16 @@ def capsule():
     return membrane_mesh(default_spec())
 
 
+@pytest.fixture(scope="module")
+def coarse():
+    """A 1 mm capsule mesh and its core 2.5 mm under it: bad cores are quicker to check."""
+    from scenes.geometry import capsule_mesh
+
+    mesh = capsule_mesh(dataclasses.replace(default_spec().membrane, mesh_edge=0.001))
+    core = trimesh.Trimesh(mesh.vertices - THICKNESS_M * mesh.vertex_normals, mesh.faces, process=False)
+    return mesh, core
+
+
 def _mesh_spec(path, **membrane) -> SensorSpec:
     data = tomllib.loads(DEFAULT_SPEC_PATH.read_text())
     data["membrane"] = {"shape": "mesh", "mesh_path": str(path), "base_z": -0.010, **membrane}
@@ -124,11 +134,12 @@ def test_a_membrane_with_inconsistent_or_inward_normals_is_refused(capsule):
         check_membrane(inward)
 
 
-def test_a_core_that_crosses_the_membrane_is_refused(capsule, tmp_path):
-    core = sensor_body(default_spec()).core.copy()
+def test_a_core_that_crosses_the_membrane_is_refused(coarse, tmp_path):
+    mesh, core = coarse
+    core = core.copy()
     core.apply_scale([1.35, 1.0, 1.0])  # pokes out through the sides
     with pytest.raises(ValueError, match="crosses the membrane"):
-        sensor_body(_mesh_spec(_write(capsule, tmp_path), core_mesh_path=_write(core, tmp_path, "core.ply")))
+        sensor_body(_mesh_spec(_write(mesh, tmp_path), core_mesh_path=_write(core, tmp_path, "core.ply")))
 
 
 @pytest.mark.parametrize("thickness, match", [(0.0, "outside thickness_bounds"), (2e-4, "outside thickness_bounds"),
@@ -138,14 +149,14 @@ def test_a_thickness_of_zero_or_below_the_minimum_is_refused(capsule, tmp_path, 
         _mesh_spec(_write(capsule, tmp_path), thickness=thickness)
 
 
-def test_a_core_thinner_than_the_minimum_somewhere_is_refused(capsule, tmp_path):
-    core = sensor_body(default_spec()).core.copy()
+def test_a_core_thinner_than_the_minimum_somewhere_is_refused(coarse, tmp_path):
+    mesh, core = coarse
     V = np.asarray(core.vertices).copy()
     near = np.linalg.norm(V - [0.0, 0.0, V[:, 2].max()], axis=1) < 3e-3
     V[near, 2] += 2.2e-3  # the core rises to 0.3 mm under the apex
     core = trimesh.Trimesh(V, core.faces, process=False)
     with pytest.raises(ValueError, match="below the minimum"):
-        sensor_body(_mesh_spec(_write(capsule, tmp_path), core_mesh_path=_write(core, tmp_path, "core.ply")))
+        sensor_body(_mesh_spec(_write(mesh, tmp_path), core_mesh_path=_write(core, tmp_path, "core.ply")))
 
 
 def test_a_derived_core_that_folds_is_refused(tmp_path):
