@@ -33,9 +33,6 @@ TILT_BOUND_RAD = math.radians(15.0)
 #: The elastomer's thickness a spec may state by default, metres (``membrane.thickness_bounds``):
 #: under 0.5 mm a 2 mm tap would press on the glass, over 10 mm it is no membrane.
 THICKNESS_BOUNDS_M = (0.5e-3, 10.0e-3)
-#: Membrane shapes: a capsule built from its numbers, a shape family (``scenes.shapes``)
-#: built from ``membrane.params``, or a mesh file.
-SHAPES = ("capsule", "thumb", "paw", "mesh")
 
 
 @dataclass(frozen=True)
@@ -359,17 +356,19 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
     thickness and its bounds, the glass."""
     if not isinstance(m, dict):
         raise ValueError(f"{where} must be a table, got {m!r}")
+    from .shapes import FAMILIES
+
     shape = _take(m, "shape", str, where, "capsule")
-    if shape not in SHAPES:
-        raise ValueError(f"{where}.shape must be one of {', '.join(SHAPES)}, got {shape!r}")
+    if shape not in FAMILIES + ("mesh",):  # a capsule from its own keys, a family from params, or a file
+        raise ValueError(f"{where}.shape must be one of {', '.join(FAMILIES + ('mesh',))}, got {shape!r}")
     if shape != "capsule":
         given = [k for k in CAPSULE_KEYS if k in m]
         if given:
             raise ValueError(f"{where}: {', '.join(given)} describe a capsule; a {shape!r} membrane takes its size from "
                              + ("[membrane.params]" if shape != "mesh" else "its mesh_path") + " and its core from "
                              "thickness" + (" or core_mesh_path" if shape == "mesh" else ""))
-    lo_hi = list(m.get("thickness_bounds", THICKNESS_BOUNDS_M))
-    bounds = _vec2({"thickness_bounds": lo_hi}, "thickness_bounds", where)
+    lo_hi = m.get("thickness_bounds", list(THICKNESS_BOUNDS_M))
+    bounds = _vec2({"thickness_bounds": list(lo_hi) if isinstance(lo_hi, tuple) else lo_hi}, "thickness_bounds", where)
     if not 0 < bounds[0] < bounds[1] <= MAX_SENSOR_SIZE_M:
         raise ValueError(f"{where}.thickness_bounds must be [min, max] metres with 0 < min < max, got {list(bounds)}")
     transform = m.get("mesh_transform")
@@ -380,12 +379,13 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
         params = dict(params)  # as a spec written out whole (dataclasses.asdict) lists them
     if not isinstance(params, dict):
         raise ValueError(f"{where}.params must be a table of numbers ([membrane.params]), got {params!r}")
-    if shape in ("thumb", "paw"):
+    if shape not in ("capsule", "mesh"):
         from .shapes import check_params
 
         params = check_params(shape, params, f"{where}.params")
     elif params:
-        raise ValueError(f"{where}.params is for a shape family (thumb, paw), not a {shape!r} membrane")
+        raise ValueError(f"{where}.params is for a shape family ({', '.join(f for f in FAMILIES if f != 'capsule')}), "
+                         f"not a {shape!r} membrane")
     membrane = MembraneSpec(
         shape=shape,
         radius=_positive(_take(m, "radius", float, where, 0.0115), "membrane.radius"),
