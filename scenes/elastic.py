@@ -100,8 +100,8 @@ def layer_length(spec: SensorSpec, thickness=None):
     if h is None:
         raise ValueError(f"sensor {spec.name!r} states no single thickness (its core is a mesh): pass the "
                          "thickness under each point (scenes.body.sensor_body(spec).thickness_at)")
-    return np.asarray(h, dtype=np.float64) * math.sqrt((1.0 - spec.elastic.poisson_ratio) / 6.0) \
-        if np.ndim(h) else float(h * math.sqrt((1.0 - spec.elastic.poisson_ratio) / 6.0))
+    length = np.asarray(h, dtype=np.float64) * math.sqrt((1.0 - spec.elastic.poisson_ratio) / 6.0)
+    return length if length.ndim else float(length)
 
 
 def refine(mesh: trimesh.Trimesh, edge: float = LAYER_EDGE_M) -> trimesh.Trimesh:

@@ -54,6 +54,8 @@ def test_the_decay_length_is_vlasovs(spec):
     assert layer_length(spec) == pytest.approx(h / math.sqrt(12.0))  # nu = 0.5
     soft = spec.replace(elastic=Elastic(poisson_ratio=0.2))
     assert layer_length(soft) == pytest.approx(h * math.sqrt(0.8 / 6.0))
+    # Under each point of a membrane whose thickness varies (scenes.body).
+    np.testing.assert_allclose(layer_length(spec, np.array([h, h / 2])), [h, h / 2] / np.sqrt(12.0))
 
 
 def _sphere_on_plate(d: float, R: float, l: float) -> tuple[float, float]:
