@@ -57,8 +57,8 @@ EXTENDED_BASE_MARGIN_M = 0.024
 #: past the 21.5 mm its camera does not see), and aimed along the membrane's own normal.
 SEEN_MARGIN_M = 0.0025
 #: Any other membrane: a contact's aim is its normal's; where that needs a roll outside
-#: ROLL_RANGE_RAD or a pitch below 0 (the servo horns' 0 to 180 deg at the board's boot
-#: offsets, rig.servo_protocol.HORN_RANGE_CENTIDEG) by at most this, rad, the nearest
+#: ROLL_RANGE_RAD or a pitch below PITCH_RANGE_RAD (the servo horns' 0 to 180 deg at the
+#: board's boot offsets, rig.servo_protocol.HORN_RANGE_CENTIDEG) by at most this, rad, the nearest
 #: aim inside is taken (a tap tilted that far off the normal: the GelTip's extended
 #: protocol jitters its servos by 3 deg); farther, the tap is left to be refused.
 AIM_SLACK_RAD = math.radians(5.0)
@@ -81,6 +81,9 @@ SPIN_JITTER_RAD = math.radians(5.0)
 DEPTH_JITTER_M = 0.00025
 #: Range of the roll servo, rad; perturbed rolls are reflected back into it.
 ROLL_RANGE_RAD = (0.0, math.pi)
+#: Range of the pitch servo, rad, likewise: from 0 (its horn's 0 deg at the board's boot
+#: offset, rig.servo_protocol.HORN_RANGE_CENTIDEG) to the end of its travel.
+PITCH_RANGE_RAD = (0.0, PITCH_TRAVEL_RAD[1])
 
 # --- Tolerances ---------------------------------------------------------------------
 
@@ -393,7 +396,8 @@ def extended_protocol(
       POSITION_JITTER_M in the tangent plane) and re-projected onto the membrane along
       the approach;
     - the roll and pitch servos, by up to ROLL_JITTER_RAD and PITCH_JITTER_RAD, which
-      tilt the approach off the membrane normal (rolls are kept in ROLL_RANGE_RAD);
+      tilt the approach off the membrane normal (reflected back into ROLL_RANGE_RAD and
+      PITCH_RANGE_RAD, which the servo horns reach);
     - the indenter's spin, by up to SPIN_JITTER_RAD;
     - the depth, by up to DEPTH_JITTER_M.
 
@@ -457,7 +461,10 @@ def extended_protocol(
     lo = np.minimum(ROLL_RANGE_RAD[0], roll0)[None, :, :, None]
     hi = np.maximum(ROLL_RANGE_RAD[1], roll0)[None, :, :, None]
     roll = _reflect(roll0[None, :, :, None] + d_roll, lo, hi)
-    pitch = pitch0[None, :, :, None] + d_pitch
+    # Perturbed pitches likewise into the horn's reach (>= 0: PITCH_RANGE_RAD): a cylinder
+    # tap's nominal pitch is 0, and the servo board refuses a negative one.
+    pitch = _reflect(pitch0[None, :, :, None] + d_pitch, np.minimum(PITCH_RANGE_RAD[0], pitch0)[None, :, :, None],
+                     np.maximum(PITCH_RANGE_RAD[1], pitch0)[None, :, :, None])
     normal = normal_in_sensor(roll, pitch)
     # Tangent plane at the nominal contact: along the meridian and across it.
     across = np.broadcast_to(across[:, None, :], n0.shape)
@@ -500,7 +507,8 @@ def _aim(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = ROLL_RANGE_RAD
     roll = np.where((roll < lo) & (roll >= lo - AIM_SLACK_RAD), lo, roll)
     roll = np.where((roll > hi) & (roll <= hi + AIM_SLACK_RAD), hi, roll)
-    pitch = np.where((pitch < 0) & (pitch >= -AIM_SLACK_RAD), 0.0, pitch)
+    low = PITCH_RANGE_RAD[0]
+    pitch = np.where((pitch < low) & (pitch >= low - AIM_SLACK_RAD), low, pitch)
     return roll, pitch
 
 

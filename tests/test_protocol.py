@@ -311,6 +311,8 @@ def test_extended_perturbations_stay_within_their_bounds(spec, extended):
         spin.append(t.spin)
         shift.append(np.linalg.norm(np.subtract(t.point, n.point)))
         assert P.ROLL_RANGE_RAD[0] <= t.sensor_roll <= P.ROLL_RANGE_RAD[1]
+        # The servo board (horns 0-180 deg at its boot offsets) refuses a negative pitch.
+        assert P.PITCH_RANGE_RAD[0] <= t.indenter_pitch <= P.PITCH_RANGE_RAD[1]
     for values, bound in [
         (d_roll, P.ROLL_JITTER_RAD),
         (d_pitch, P.PITCH_JITTER_RAD),
