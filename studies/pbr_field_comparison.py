@@ -602,14 +602,21 @@ def noise_floor(variance: np.ndarray, scale: float, mask: np.ndarray) -> float:
 
 
 def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | None = None,
-        reference_dir: Path | None = None) -> dict:
+        reference_dir: Path | None = None, spec: SensorSpec | None = None) -> dict:
     """Render, compare and summarise; writes the JSON, Markdown and figures into ``out``.
 
     contacts : names from BASE, ANALYTIC and PUBLISHED (default: all base and analytic ones,
-        plus the published ones when ``reference_dir`` holds the data).
+        plus the published ones when ``reference_dir`` holds the data and the sensor is
+        the published capsule).
+    spec : the sensor (default: the embedded GelTip); any shape (``scenes.body``).
     """
     t_start = time.perf_counter()
-    spec = load_spec(None)
+    spec = load_spec(None) if spec is None else spec
+    if spec.membrane.shape != "capsule":
+        if contacts is not None and set(contacts) & set(PUBLISHED):
+            raise ValueError(f"the published depth maps are the GelTip's; sensor {spec.name!r} is a "
+                             f"{spec.membrane.shape!r}: drop {sorted(set(contacts) & set(PUBLISHED))}")
+        reference_dir = None
     camera = Camera.from_spec(spec)
     check_settings(settings, camera)
     if contacts is None:
@@ -704,6 +711,7 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
     }
     results = {
         "question": "which light field brings the fast Phong path closest to the physically based reference",
+        "sensor": spec.name,
         "settings": dataclasses.asdict(settings),
         "confidence": CONFIDENCE,
         "n_resamples": N_RESAMPLES,
@@ -909,6 +917,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--contacts", nargs="+", metavar="NAME",
                         help=f"any of {', '.join(list(BASE) + list(ANALYTIC) + list(PUBLISHED))} (default: all available)")
+    parser.add_argument("--spec", type=Path, help="sensor spec TOML (default: the embedded GelTip); any shape")
     parser.add_argument("--reference", type=Path,
                         help=f"the published data (default ${REFERENCE_ENV} or ../shared/data/geltip_reference)")
     args = parser.parse_args(argv)
@@ -923,7 +932,7 @@ def main(argv: list[str] | None = None) -> dict:
     if missing is not None and not args.quick:
         print(f"{missing}; analytic contacts only", file=sys.stderr)
     try:
-        results = run(args.out, settings, contacts, reference_dir)
+        results = run(args.out, settings, contacts, reference_dir, load_spec(args.spec) if args.spec else None)
     except ValueError as exc:
         parser.error(str(exc))
     print_report(results)

@@ -193,3 +193,13 @@ def test_validators_refuse_bad_input(tmp_path, camera):
         study.downsample(np.zeros((10, 10, 3)), (3, 3))
     with pytest.raises(ValueError, match="analytic contacts must be among"):
         study.analytic_contacts(None, camera, None, ("teapot",))
+
+
+def test_the_study_runs_on_any_shape_but_the_published_maps_are_the_geltips(tmp_path):
+    from pathlib import Path
+
+    from scenes.spec import load_spec
+
+    thumb = load_spec(Path(__file__).parents[1] / "scenes" / "sensors" / "thumb.toml")
+    with pytest.raises(ValueError, match="published depth maps are the GelTip's"):
+        study.run(tmp_path, study.QUICK, ("sphere_tip", "published_0"), None, thumb)
