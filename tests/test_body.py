@@ -63,17 +63,21 @@ def test_a_capsule_has_its_analytic_core_and_the_camera_sees_all_but_a_band_at_i
     assert body.seen_share == pytest.approx(0.61, abs=0.02)
 
 
-def test_a_capsule_read_as_a_mesh_gets_the_same_body(capsule, tmp_path):
-    spec = _mesh_spec(_write(capsule, tmp_path), thickness=THICKNESS_M)
+def test_a_capsule_read_as_a_mesh_gets_the_same_body(coarse, tmp_path):
+    """On the 1 mm capsule (the 0.5 mm one takes 7 s and agrees as closely)."""
+    capsule, _ = coarse
+    spec = _mesh_spec(_write(capsule, tmp_path), thickness=THICKNESS_M, mesh_edge=0.001)
     body = sensor_body(spec)
     # Derived by offsetting: the thickness is the stated one, less where the chords sag.
-    assert np.abs(body.thickness - THICKNESS_M).max() < 5e-6
-    reference = sensor_body(default_spec())
+    assert np.abs(body.thickness - THICKNESS_M).max() < 1e-5
+    parametric = default_spec()
+    parametric = parametric.replace(membrane=dataclasses.replace(parametric.membrane, mesh_edge=0.001))
+    reference = sensor_body(parametric)
     assert np.abs(np.asarray(body.core.vertices) - np.asarray(reference.core.vertices)).max() < 1e-5
-    # And from the core mesh: the thickness along each inward normal.
+    # And from the core mesh: the thickness is each vertex's distance to it.
     core = _write(reference.core, tmp_path, "core.ply")
     given = sensor_body(_mesh_spec(_write(capsule, tmp_path), core_mesh_path=core))
-    assert np.abs(given.thickness - THICKNESS_M).max() < 2e-5
+    assert np.abs(given.thickness - THICKNESS_M).max() < 1e-6
 
 
 def test_millimetres_and_a_placing_transform(capsule, tmp_path):
