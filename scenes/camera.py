@@ -411,6 +411,18 @@ def reference_depth(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, 
 HIDDEN_SHARE, HIDDEN_M = 1e-4, 1e-6
 
 
+def in_view(points: np.ndarray, camera: Camera) -> np.ndarray:
+    """(N,) bool, whether camera-frame points (N, 3) lie ahead of the camera and project
+    (to the nearest pixel) inside its image circle."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(points), bool)
+    ahead = np.flatnonzero(points[:, 2] > 0)
+    u, v = np.round(project(points[ahead], camera)).astype(np.int64).T
+    frame = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    out[ahead[frame]] = camera.mask[v[frame], u[frame]]
+    return out
+
+
 def unseen(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Which vertices of a mesh (camera frame, metres) the camera does not see, and why
     (straight rays from the optical centre, as every renderer's depth map).
@@ -421,15 +433,8 @@ def unseen(mesh: trimesh.Trimesh, camera: Camera) -> tuple[np.ndarray, np.ndarra
     hidden : (V,) bool, in view but behind another part of the mesh.
     """
     V = np.asarray(mesh.vertices, dtype=np.float64)
-    out = V[:, 2] <= 0
-    ahead = np.flatnonzero(~out)
-    uv = project(V[ahead], camera)
-    u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
-    frame = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    in_circle = np.zeros(len(ahead), bool)
-    in_circle[frame] = camera.mask[v[frame], u[frame]]
-    out[ahead[~in_circle]] = True
-    look = ahead[in_circle]
+    out = ~in_view(V, camera)
+    look = np.flatnonzero(~out)
     distance = np.linalg.norm(V[look], axis=1)
     dirs = V[look] / distance[:, None]
     _, ray, loc = mesh.ray.intersects_id(np.zeros_like(dirs), dirs, multiple_hits=False, return_locations=True)

@@ -515,17 +515,12 @@ def _aim(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def seen_arc(mer, camera) -> float:
     """Arc length along a meridian from its apex to where the camera stops seeing it
     (behind the camera or outside its image circle), metres."""
-    from .camera import project
+    from .camera import in_view
 
-    z = mer.points[:, 2]
-    seen = z > 0
-    uv = np.round(project(mer.points[seen], camera)).astype(np.int64)
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-    ok = np.zeros(int(seen.sum()), bool)
-    ok[inside] = camera.mask[uv[inside, 1], uv[inside, 0]]
-    seen[np.flatnonzero(seen)] = ok
-    lost = np.flatnonzero(~seen)
-    return float(mer.arc[lost[0] - 1] if len(lost) and lost[0] > 0 else 0.0 if len(lost) else mer.length)
+    lost = np.flatnonzero(~in_view(mer.points, camera))
+    if len(lost) == 0:
+        return mer.length
+    return float(mer.arc[lost[0] - 1]) if lost[0] > 0 else 0.0
 
 
 def _contacts_any(spec: SensorSpec, mesh: trimesh.Trimesh, rolls, count: int):
