@@ -198,9 +198,10 @@ def _given(membrane: trimesh.Trimesh, core: trimesh.Trimesh, name: str) -> np.nd
 
 def _check_thickness(thickness: np.ndarray, bounds: tuple[float, float], membrane: trimesh.Trimesh, name: str) -> None:
     lo, hi = bounds
-    for bad, what in ((thickness < lo, "below the minimum"), (thickness > hi, "above the maximum")):
+    for bad, what, worst in ((thickness < lo, "below the minimum", np.argmin), (thickness > hi, "above the maximum",
+                                                                                np.argmax)):
         if bad.any():
-            k = int(np.argmin(thickness) if thickness[bad].min() < lo else np.argmax(thickness))
+            k = int(worst(thickness))
             raise ValueError(f"{name}: the elastomer is {thickness[k] * 1e3:.3g} mm thick at "
                              f"{(np.asarray(membrane.vertices)[k] * 1e3).round(1).tolist()} mm ({int(bad.sum())} vertices "
                              f"{what}), outside thickness_bounds [{lo * 1e3:.3g}, {hi * 1e3:.3g}] mm")
