@@ -131,9 +131,9 @@ def closest_faces(mesh: trimesh.Trimesh, points: np.ndarray, k: int = NEAREST_FA
     return near[rows, best], cand[rows, best]
 
 
-def surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The exact distance (N,) from points (N, 3) to a mesh's surface, metres, and the
-    closest points (N, 3).
+def surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The exact distance (N,) from points (N, 3) to a mesh's surface, metres, the
+    closest points (N, 3) and their faces (N,).
 
     The closest point lies within the nearest vertex's distance, so only faces whose
     centroids lie within that plus the largest face's circumradius are tested: a sparse,
@@ -153,7 +153,7 @@ def surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndar
     d = np.linalg.norm(closest - points[which], axis=1)
     order = np.lexsort((d, which))
     first = order[np.searchsorted(which[order], np.arange(len(points)))]
-    return d[first] * 1e-3, closest[first] * 1e-3
+    return d[first] * 1e-3, closest[first] * 1e-3, face[first]
 
 
 def _derived(membrane: trimesh.Trimesh, thickness: float, name: str) -> np.ndarray:
@@ -188,7 +188,7 @@ def _given(membrane: trimesh.Trimesh, core: trimesh.Trimesh, name: str) -> np.nd
         raise ValueError(f"{name}: the core crosses the membrane at {len(crossed)} of its faces (about "
                          f"{where.round(1).tolist()} mm): the core must lie wholly under it")
     V, n = np.asarray(membrane.vertices), np.asarray(membrane.vertex_normals)
-    thickness, closest = surface_distance(core, V)
+    thickness, closest, _ = surface_distance(core, V)
     outside = np.einsum("ij,ij->i", closest - V, n) > 0
     if outside.any():
         raise ValueError(f"{name}: the core lies outside the membrane at {int(outside.sum())} of its {len(V)} "

@@ -599,17 +599,6 @@ def _surface_normals(mesh: trimesh.Trimesh, points: np.ndarray, face: np.ndarray
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def _distance_to_mesh(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Closest points, distances and faces, computed in millimetres.
-
-    trimesh.proximity's tolerances are absolute and misplace closest points on meshes
-    in metres (by up to ~0.3 mm on the GelTip mesh), so query a copy scaled to mm.
-    """
-    scaled = trimesh.Trimesh(np.asarray(mesh.vertices) * 1e3, mesh.faces, process=False)
-    closest, distance, face = trimesh.proximity.closest_point(scaled, np.asarray(points) * 1e3)
-    return closest * 1e-3, distance * 1e-3, face
-
-
 def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> None:
     """Check that every tap of a protocol can be carried out safely on a sensor.
 
@@ -672,7 +661,9 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
     off = gap > ON_MEMBRANE_TOLERANCE_M
     if off.any():
         # Say why: not on the membrane, an inward normal, or hidden behind another part.
-        closest, distance, near_face = _distance_to_mesh(mesh, point[off])
+        from .body import surface_distance
+
+        distance, closest, near_face = surface_distance(mesh, point[off])
         surface = _surface_normals(mesh, closest, near_face)
         dist = np.zeros(len(taps))
         dist[off] = distance

@@ -100,9 +100,11 @@ def test_surface_distance_is_exact_against_trimesh(capsule, rng):
     points = capsule.vertices[rng.choice(len(capsule.vertices), 200)] + rng.normal(0, 2e-3, (200, 3))
     scaled = trimesh.Trimesh(capsule.vertices * 1e3, capsule.faces, process=False)
     _, expected, _ = trimesh.proximity.closest_point(scaled, points * 1e3)
-    distance, closest = surface_distance(capsule, points)
+    distance, closest, face = surface_distance(capsule, points)
     np.testing.assert_allclose(distance, expected * 1e-3, atol=1e-9)
     np.testing.assert_allclose(np.linalg.norm(closest - points, axis=1), distance, atol=1e-12)
+    on_face = trimesh.triangles.points_to_barycentric(capsule.triangles[face], closest)
+    assert (on_face > -1e-6).all()  # each closest point lies on its face
 
 
 # --- bad input ------------------------------------------------------------------------
