@@ -238,3 +238,11 @@ def test_the_layer_model_and_the_safe_depth_read_the_body(capsule, tmp_path):
     apex = capsule.vertices[np.argmax(capsule.vertices[:, 2])]
     assert max_safe_depth_m(spec, apex[None])[0] == pytest.approx(1.5e-3, abs=5e-6)
     assert dataclasses.replace(spec.membrane, thickness=None).elastomer_thickness is None
+
+
+def test_interpolate_refuses_values_that_are_not_one_per_vertex(coarse):
+    from scenes.body import interpolate
+
+    mesh, _ = coarse
+    with pytest.raises(ValueError, match=r"values must be \(\d+,\), one per vertex"):
+        interpolate(mesh, np.zeros(len(mesh.vertices) - 1), mesh.vertices[:3])

@@ -70,6 +70,8 @@ def test_servo_angles_invert_the_rigs_normal(rng):
     # A normal facing +x needs the roll half a turn past its travel and cannot be reached.
     r, p = servo_angles([[1.0, 0.0, 0.0]])
     assert not in_travel(r, p).any()
+    with pytest.raises(ValueError, match=r"normal must be finite \(N, 3\)"):
+        servo_angles([[np.nan, 0.0, 1.0]])
 
 
 def test_the_base_protocol_taps_any_shape_along_its_normals_in_view(sensor):
