@@ -73,6 +73,7 @@ from typing import Callable
 import numpy as np
 import trimesh
 
+from .curvature import FLAT_RADIUS_M
 from .geometry import capsule_profile, revolve
 
 FAMILIES = ("capsule", "thumb", "paw")
@@ -190,8 +191,6 @@ _STEP_M = 1e-5
 _POLE_GAP_RAD = 0.03
 #: Relative slack of the analytic check against its constants (its own error is ~1e-6).
 _SLACK = 1e-6
-#: Diagnosis.saddle_share counts points curved both ways more than 1 / this, metres.
-_SADDLE_RADIUS_M = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -327,7 +326,7 @@ class Diagnosis:
     clearance : metres, least distance to the axis segment from base_z to tip_start_z.
     width : metres, twice the largest distance from the axis.
     saddle_share : share of the sampled points with one principal curvature of each sign
-        beyond 1 / 50 mm: the concave regions' (saddles') extent.
+        beyond 1 / ``scenes.curvature.FLAT_RADIUS_M``: the concave regions' (saddles') extent.
     """
 
     min_concave_radius: float
@@ -416,7 +415,7 @@ def diagnose(family: str, params: Mapping[str, float], grid: tuple[int, int] = _
     r = np.linalg.norm(p[:, :2], axis=1)
     above = np.maximum(p[:, 2] - form.z_c, 0.0)
     clearance = float(np.sqrt(r**2 + above**2).min())
-    saddle = float(np.mean((k[:, 0] < -1 / _SADDLE_RADIUS_M) & (k[:, 1] > 1 / _SADDLE_RADIUS_M)))
+    saddle = float(np.mean((k[:, 0] < -1 / FLAT_RADIUS_M) & (k[:, 1] > 1 / FLAT_RADIUS_M)))
     return Diagnosis(min_concave_radius=float(1 / concave) if concave > 0 else math.inf,
                      min_convex_radius=float(1 / k[:, 1].max()), star_cosine=star, clearance=clearance,
                      width=float(2 * r.max()), saddle_share=saddle)
