@@ -1,9 +1,10 @@
 """Which light field brings the fast Phong path closest to physically guided light?
 
 For each contact (eight base-protocol taps, one per paper indenter, captured on the MuJoCo
-rig at the protocol's 2 mm; four analytic indenters pressed as in ``tactile-sim demo``;
-and the six published depth maps ``sim_depth/0..5.npy`` where they stay out of the
-glass), at its real depth, this study renders the fast path
+rig at the protocol's 2 mm; on the GelTip, four analytic indenters pressed as in
+``tactile-sim demo`` and the six published depth maps ``sim_depth/0..5.npy`` where they
+stay out of the glass; on any other membrane, taps drawn per class of region instead,
+see below), at its real depth, this study renders the fast path
 (``phong_reference``) with each baked light field (linear, plane, geodesic, transport)
 and compares it with the physically based reference (``pbr_tactile.render.reference``,
 photon estimator). The metrics are MAE, SSIM and PSNR (``skimage.metrics``), with
@@ -11,6 +12,29 @@ bootstrap 95 % confidence intervals over contacts. The study names the field wit
 lowest mean contact-change MAE. It gives a paired bootstrap interval on each other
 field's difference from that field, and one on that field's difference from predicting
 no change.
+
+Sensors of any shape, and where each field fails
+------------------------------------------------
+The paper's claim is that fields which follow the membrane (plane, geodesic, transport)
+model guided light on a curved membrane better than straight lines (linear). A new shape
+tests it where the membrane bends both ways. ``--spec`` takes any sensor; on a membrane
+other than a capsule, the contacts are the eight base taps plus ``surface_taps``: the
+extended protocol's contact points, classed by the membrane's principal curvatures there
+(``scenes.curvature``: convex, cylindrical, flat, saddle, trough, concave), up to
+SURFACE_PER_CLASS per class, spread over each class by farthest-point sampling, each
+pressed by the rig along the local normal. Every contact records the class of the point
+it presses. Two tables then say where each field fails:
+
+* **by pixel** (``region_errors``): every reference pixel near a contact sees a point of
+  the undeformed membrane of some class (``pixel_regions``). Per field and class, the
+  calibrated change's |error| summed over those pixels, divided by the |reference
+  change| there, which is the error of predicting no change. Below 1 the field tracks
+  the contact on that kind of surface; at or above 1 it does no better than no change.
+  The interval resamples contacts. ``failures`` lists, per field, the classes whose whole
+  interval lies at or above 1 (fails), below 1 (tracks), or straddles it (unclear).
+* **by contact** (``contact_region_table``): the change MAE over the contacts that press
+  on each class, beside the no-change baseline's, with the paired interval of their
+  difference.
 
 How the two renderers are made comparable
 -----------------------------------------
@@ -105,8 +129,8 @@ everything else the frame depends on. That hash includes the source of
 passes: enough to exercise every step in well under a minute, but too noisy to rank the
 fields.
 
-Run ``python -m studies.pbr_field_comparison --out DIR [--width W --height H --photons N
---quick]``. It writes ``pbr_field_comparison.json``, ``summary.md``, ``metrics.png`` and
+Run ``python -m studies.pbr_field_comparison --out DIR [--spec TOML --surface N --width W
+--height H --photons N --quick]``. It writes ``pbr_field_comparison.json``, ``summary.md``, ``metrics.png`` and
 ``grid_<contact>.png``. The published contacts are used when ``$GELTIP_REFERENCE`` (or
 ``../shared/data/geltip_reference``) holds the data; without it, the run uses only the
 analytic contacts and says so.
@@ -136,8 +160,10 @@ from phong_reference.background import make_background
 from phong_reference.bake import METHODS, bake_all
 from phong_reference.render import Renderer, light_vectors
 from scenes.cache import make_key
-from scenes.camera import Camera, check_depth, reference_depth
+from scenes.camera import Camera, back_project, cast_rays, check_depth, reference_depth
 from scenes.contact import press
+from scenes.curvature import (CLASSES, CURVATURE_RADIUS_M, FLAT_RADIUS_M, classify, principal_curvatures,
+                              vertex_curvatures)
 from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes
 from scenes.elastic import MembraneLayer
 from scenes.geometry import membrane_mesh
@@ -165,6 +191,11 @@ NO_CONTACT = "no_contact"
 #: tap at 30 deg and a cylinder tap 9 mm behind the tip (scenes.protocol.base_protocol).
 BASE_TAPS = tuple((name, 0, 1 if k % 2 == 0 else 4) for k, name in enumerate(INDENTERS))
 BASE = tuple(f"base_{name}_r{row}p{position}" for name, row, position in BASE_TAPS)
+
+#: On a membrane other than the GelTip's capsule, contacts are drawn from the extended
+#: protocol's points, up to this many per class of region (``surface_taps``): five, the
+#: fewest for which the study's bootstrap intervals mean something.
+SURFACE_PER_CLASS = 5
 
 #: The reference is normalised by this percentile of its no-contact frame inside the mask.
 REFERENCE_PERCENTILE = 99.5
@@ -262,20 +293,97 @@ def published_contacts(reference_dir: Path, ref_depth: np.ndarray, names=PUBLISH
     }
 
 
-def base_contacts(spec: SensorSpec, mesh: trimesh.Trimesh, names=BASE) -> dict[str, np.ndarray]:
-    """Base-protocol taps captured on the MuJoCo rig: name -> (H, W) float32 depth, metres."""
+def base_taps(spec: SensorSpec, mesh: trimesh.Trimesh, names=BASE) -> dict:
+    """The named base-protocol taps: name -> ``scenes.protocol.Tap``."""
     from scenes.protocol import base_protocol
-    from scenes.rig import tap_depths
 
     unknown = set(names) - set(BASE)
     if unknown:
         raise ValueError(f"base contacts must be among {list(BASE)}, got {sorted(unknown)}")
-    protocol = base_protocol(spec, mesh, INDENTERS)
     wanted = {BASE_TAPS[BASE.index(n)]: n for n in names}
-    taps = [t for t in protocol.taps if (t.object, t.row, t.position) in wanted]
-    captures = tap_depths(spec, taps, mesh)
+    return {wanted[(t.object, t.row, t.position)]: t for t in base_protocol(spec, mesh, INDENTERS).taps
+            if (t.object, t.row, t.position) in wanted}
+
+
+def surface_taps(spec: SensorSpec, mesh: trimesh.Trimesh, per_class: int = SURFACE_PER_CLASS, seed: int = 0) -> dict:
+    """Taps spread over the kinds of region the membrane has: name -> ``scenes.protocol.Tap``.
+
+    The extended protocol's nominal contact points (its rows x contacts, the same for
+    every indenter) are classed by the membrane's curvature there
+    (``scenes.curvature``). From each class, up to ``per_class`` points are picked,
+    spread over it: a random first one, then each time the point farthest from those
+    picked (farthest-point sampling), so that a class made of separate patches (a paw's
+    waist and the valleys between its toes) has each patch tapped. Each point is tapped
+    by an indenter drawn in turn from a shuffled INDENTERS, with one
+    np.random.Generator seeded by ``seed`` for both draws. A point is
+    tapped perpendicular to the membrane at the protocol's depth, as the rig presses it.
+    Names read ``surface_<class>_<indenter>_r<row>p<position>``.
+    """
+    from scenes.protocol import extended_protocol
+
+    if not isinstance(per_class, int) or isinstance(per_class, bool) or per_class < 1:
+        raise ValueError(f"per_class must be an integer >= 1, got {per_class!r}")
+    protocol = extended_protocol(spec, mesh, INDENTERS, replicas=1)
+    points = {}  # one entry per distinct point (every row starts at the apex)
+    for t in protocol.taps:
+        points.setdefault(tuple(np.round(np.asarray(t.point) * 1e7).astype(int)), (t.row, t.position, t.point))
+    rows, positions, xyz = zip(*points.values())
+    classes = classify(principal_curvatures(mesh, np.array(xyz)))
+    by_key = {(t.object, t.row, t.position): t for t in protocol.taps}
+    rng = np.random.default_rng(seed)
+    objects = list(rng.permutation(INDENTERS))
+    out = {}
+    xyz = np.array(xyz)
+    for cls in CLASSES:
+        members = np.flatnonzero(classes == cls)
+        if len(members) == 0:
+            continue
+        picked = [int(rng.choice(members))]
+        while len(picked) < min(per_class, len(members)):
+            gap = np.linalg.norm(xyz[members, None] - xyz[picked][None], axis=-1).min(axis=1)
+            picked.append(int(members[np.argmax(gap)]))
+        for i in picked:
+            obj = objects[len(out) % len(objects)]
+            out[f"surface_{cls}_{obj}_r{rows[i]}p{positions[i]}"] = by_key[(obj, rows[i], positions[i])]
+    return out
+
+
+def rig_contacts(spec: SensorSpec, mesh: trimesh.Trimesh, taps: dict) -> dict[str, np.ndarray]:
+    """Taps captured on the MuJoCo rig: name -> (H, W) float32 depth, metres.
+
+    taps : name -> ``scenes.protocol.Tap``.
+    """
+    from scenes.rig import tap_depths
+
+    names = {id(t): n for n, t in taps.items()}
+    captures = tap_depths(spec, list(taps.values()), mesh)
     next(captures)  # the rig's no-contact capture; every contact uses the ray-cast D_ref
-    return {wanted[(tap.object, tap.row, tap.position)]: depth for depth, tap in captures}
+    return {names[id(tap)]: depth for depth, tap in captures}
+
+
+def contact_points(depths: dict[str, np.ndarray], ref_depth: np.ndarray, camera: Camera, taps: dict) -> dict:
+    """Where each contact presses on the undeformed membrane: name -> (3,) metres.
+
+    A tap's own contact point; for any other contact, the surface point under its
+    deepest pixel (largest D_ref - D).
+    """
+    points = {}
+    for name, depth in depths.items():
+        if name in taps:
+            points[name] = np.asarray(taps[name].point, dtype=np.float64)
+        else:
+            v, u = np.unravel_index(np.argmax(np.where(np.isfinite(depth), ref_depth - depth, -np.inf)), depth.shape)
+            points[name] = back_project(ref_depth, camera)[v, u].astype(np.float64)
+    return points
+
+
+def pixel_regions(mesh: trimesh.Trimesh, camera: Camera) -> np.ndarray:
+    """(h, w) str: the class of region (``scenes.curvature.CLASSES``) of the membrane point
+    each pixel of ``camera`` sees, from the curvatures at the mesh's vertices interpolated
+    to the hit; "" where the ray misses the membrane."""
+    samples = cast_rays(mesh, camera)
+    k = samples.interpolate(mesh, vertex_curvatures(mesh))
+    return samples.scatter(classify(k).astype(object), fill="").astype(str)
 
 
 def refusal(depth: np.ndarray, ref_depth: np.ndarray, build) -> str | None:
@@ -592,6 +700,84 @@ def summarise(per_contact: dict[str, list[dict]], seed: int, no_change: list[dic
             "no_change_minus_best": versus_baseline, "best_beats_no_change": versus_baseline["ci_low"] > 0}
 
 
+def region_errors(change_pred: np.ndarray, change_ref: np.ndarray, pixels: np.ndarray, regions: np.ndarray,
+                  seed: int, confidence: float = CONFIDENCE, n_resamples: int = N_RESAMPLES) -> dict:
+    """Where a predicted contact change goes wrong, by class of region of the membrane.
+
+    change_pred, change_ref : (K, h, w, 3), the calibrated prediction and the reference.
+    pixels : (K, h, w) bool, the pixels each contact is scored on (near it, reliable).
+    regions : (h, w) str, the class of the membrane point each pixel sees (``pixel_regions``).
+
+    For each class c and contact k, e_k sums |pred - ref| over k's pixels of class c and
+    b_k sums |ref|, the error of predicting no change there. The ratio sum(e) / sum(b) is
+    below 1 where the prediction tracks the contact and at or above 1 where it does no
+    better than no change. Its percentile-bootstrap interval resamples contacts (the
+    pairs (e_k, b_k)). Returns class -> {"ratio", "ci_low", "ci_high", "pixels",
+    "contacts"}, for the classes that at least 2 contacts reach with some signal (b > 0).
+    """
+    if change_pred.shape != change_ref.shape or change_pred.shape[:3] != pixels.shape or pixels.shape[1:] != regions.shape:
+        raise ValueError(f"change_pred, change_ref (K, h, w, 3), pixels (K, h, w) and regions (h, w) must agree, got "
+                         f"{change_pred.shape}, {change_ref.shape}, {pixels.shape}, {regions.shape}")
+    error = np.abs(change_pred - change_ref).sum(axis=-1)
+    signal = np.abs(change_ref).sum(axis=-1)
+    out = {}
+    for cls in CLASSES:
+        where = pixels & (regions == cls)[None]
+        e, b = (np.where(where, error, 0.0).sum(axis=(1, 2)), np.where(where, signal, 0.0).sum(axis=(1, 2)))
+        reached = b > 0
+        if reached.sum() < 2:
+            continue
+        e, b = e[reached], b[reached]
+        ratio = lambda e, b, axis=-1: e.sum(axis=axis) / b.sum(axis=axis)  # noqa: E731
+        if np.ptp(e / b) == 0:
+            lo = hi = float(ratio(e, b))
+        else:
+            res = stats.bootstrap((e, b), ratio, paired=True, vectorized=True, confidence_level=confidence,
+                                  n_resamples=n_resamples, method="percentile", rng=np.random.default_rng(seed))
+            lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
+        out[cls] = {"ratio": float(ratio(e, b)), "ci_low": lo, "ci_high": hi, "pixels": int(where.sum()),
+                    "contacts": int(reached.sum())}
+    return out
+
+
+def contact_region_table(per_contact: dict[str, list[dict]], no_change: list[dict], regions: list[str],
+                         seed: int) -> dict:
+    """Change MAE per field over the contacts of each class of region (that of the point
+    each contact presses), next to the no-change baseline's, with bootstrap intervals;
+    and, per field, the paired interval of (no change - field): above 0, the field beats
+    predicting no change on those contacts. Classes with fewer than 2 contacts are left out.
+
+    per_contact : field -> per-contact metrics; no_change : the baseline's; regions : the
+    class of each contact, in the same order.
+    """
+    out = {}
+    for cls in CLASSES:
+        idx = [k for k, r in enumerate(regions) if r == cls]
+        if len(idx) < 2:
+            continue
+        base = np.array([no_change[k]["change"]["mae"] for k in idx])
+        row = {"contacts": len(idx), "no_change": bootstrap_mean(base, seed)}
+        for method, rows in per_contact.items():
+            mae = np.array([rows[k]["change"]["mae"] for k in idx])
+            row[method] = {"mae": bootstrap_mean(mae, seed), "no_change_minus_field": bootstrap_mean(base - mae, seed)}
+        out[cls] = row
+    return out
+
+
+def failures(results: dict) -> dict[str, dict[str, list[str]]]:
+    """Per field, the classes of region where it fails (its pixel error ratio's interval
+    lies at or above 1: no better than predicting no change), where it tracks the
+    contact (the interval lies below 1), and where the numbers cannot tell."""
+    out = {}
+    for method, table in results["pixel_regions"]["ratio"].items():
+        out[method] = {
+            "fails": [c for c, r in table.items() if r["ci_low"] >= 1.0],
+            "tracks": [c for c, r in table.items() if r["ci_high"] < 1.0],
+            "unclear": [c for c, r in table.items() if r["ci_low"] < 1.0 <= r["ci_high"]],
+        }
+    return out
+
+
 def noise_floor(variance: np.ndarray, scale: float, mask: np.ndarray) -> float:
     """MAE a perfect estimate would score from noise of variance (h, w, 3) alone."""
     return float(HALF_NORMAL_MEAN * np.sqrt(np.clip(variance, 0, None))[mask].mean() / scale)
@@ -602,7 +788,7 @@ def noise_floor(variance: np.ndarray, scale: float, mask: np.ndarray) -> float:
 
 
 def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | None = None,
-        reference_dir: Path | None = None, spec: SensorSpec | None = None) -> dict:
+        reference_dir: Path | None = None, spec: SensorSpec | None = None, surface: int | None = None) -> dict:
     """Render, compare and summarise; writes the JSON, Markdown and figures into ``out``.
 
     contacts : names from BASE, ANALYTIC and PUBLISHED (default: all base and analytic ones,
@@ -619,24 +805,31 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
         reference_dir = None
     camera = Camera.from_spec(spec)
     check_settings(settings, camera)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh = membrane_mesh(spec)
+    if surface is None:
+        surface = 0 if spec.membrane.shape == "capsule" else SURFACE_PER_CLASS
+    taps = surface_taps(spec, mesh, surface, settings.seed) if surface else {}
     if contacts is None:
-        contacts = BASE + tuple(ANALYTIC) + (PUBLISHED if reference_dir is not None else ())
-    unknown = set(contacts) - set(BASE) - set(ANALYTIC) - set(PUBLISHED)
+        contacts = ((BASE + tuple(ANALYTIC) + (PUBLISHED if reference_dir is not None else ()))
+                    if spec.membrane.shape == "capsule" else BASE) + tuple(taps)
+    known = list(BASE) + list(ANALYTIC) + list(PUBLISHED) + list(taps)
+    unknown = set(contacts) - set(known)
     if unknown or len(set(contacts)) < 2:
-        raise ValueError(f"contacts must be >= 2 distinct names from {list(BASE) + list(ANALYTIC) + list(PUBLISHED)}, "
+        raise ValueError(f"contacts must be >= 2 distinct names from {known} (surface_* with surface >= 1), "
                          f"got {list(contacts)}")
     wanted_published = tuple(c for c in contacts if c in PUBLISHED)
     if wanted_published and reference_dir is None:
         raise ValueError(f"contacts {list(wanted_published)} need the published data (set ${REFERENCE_ENV})")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    mesh = membrane_mesh(spec)
     ref_depth = reference_depth(mesh, camera)[0]
     raw = analytic_contacts(mesh, camera, ref_depth, tuple(c for c in contacts if c in ANALYTIC))
     if wanted_published:
         raw.update(published_contacts(reference_dir, ref_depth, wanted_published))
-    if any(c in BASE for c in contacts):
-        raw.update(base_contacts(spec, mesh, tuple(c for c in contacts if c in BASE)))
+    taps = {**base_taps(spec, mesh, tuple(c for c in contacts if c in BASE)),
+            **{n: t for n, t in taps.items() if n in contacts}}
+    if taps:
+        raw.update(rig_contacts(spec, mesh, taps))
 
     from pbr_tactile.membrane import ElastomerBuilder
 
@@ -649,9 +842,14 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
             warnings.warn(f"{name}: the reference refuses it at its real depth ({why}); dropped", stacklevel=2)
             continue
         depths[name] = raw[name]
-        source = "published" if name in PUBLISHED else "base protocol" if name in BASE else "analytic"
+        source = ("published" if name in PUBLISHED else "base protocol" if name in BASE
+                  else "analytic" if name in ANALYTIC else "surface")
         info[name] = {"source": source, "max_indentation_m": float((ref_depth - depths[name]).max()),
                       "max_displacement_m": float(build.layer.deformation(depths[name], ref_depth).displacement.max())}
+    points = contact_points(depths, ref_depth, camera, taps)
+    k = principal_curvatures(mesh, np.array([points[n] for n in depths])) if depths else np.zeros((0, 2))
+    for n, kn, cls in zip(depths, k, classify(k)):
+        info[n].update(point_m=points[n].tolist(), curvatures_per_m=kn.tolist(), region=str(cls))
     names = list(depths)
     if len(names) < 2:
         raise ValueError(f"fewer than 2 contacts left to compare ({names}); dropped: {skipped}")
@@ -702,7 +900,23 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
                                   "fast_std_no_contact": frames[0][region].std(axis=0).tolist(),
                                   "change_mae_mean": float(np.mean([c["change"]["mae"] for c in briefed]))}
         calibrated[method] = (frames, gains, offsets)
-    summary = summarise(per_contact, settings.seed, no_change_metrics(ref, mask, region, near))
+    no_change = no_change_metrics(ref, mask, region, near)
+    summary = summarise(per_contact, settings.seed, no_change)
+    regions_px = pixel_regions(mesh, camera.scaled(settings.width, settings.height))
+    scored = near & region[None]
+    change_ref = ref[1:] - ref[:1]
+    pixel_table = {
+        method: region_errors(gains[:, None, None, :] * (frames[1:] - frames[:1]), change_ref, scored, regions_px,
+                              settings.seed)
+        for method, (frames, gains, _) in calibrated.items()
+    }
+    region_summary = {
+        "pixels_in_circle": {c: int(((regions_px == c) & region).sum()) for c in CLASSES
+                             if ((regions_px == c) & region).any()},
+        "ratio": pixel_table,
+        "by_contact": contact_region_table(per_contact, no_change, [info[n]["region"] for n in names],
+                                           settings.seed),
+    }
     contacts_k = range(1, len(names) + 1)
     noise = {
         "full": bootstrap_mean([noise_floor(variance[k], scale, region) for k in contacts_k], settings.seed),
@@ -723,6 +937,7 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
         "unreliable_share": float(1.0 - region.sum() / mask.sum()),
         "reference_cached": cached,
         "noise_mae": noise,
+        "pixel_regions": region_summary,
         "per_contact": {m: dict(zip(names, rows)) for m, rows in per_contact.items()},
         "calibration": calibration,
         "no_contact_calibration": no_contact_fit,
@@ -730,6 +945,7 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
         "seconds_reference": seconds_reference,
         "seconds_total": time.perf_counter() - t_start,
     }
+    results["failures"] = failures(results)
     results["conclusion"] = conclusion(results)
     atomic_write_json(out / JSON_NAME, results)
     (out / "summary.md").write_text(markdown(results))
@@ -760,6 +976,15 @@ def conclusion(results: dict) -> str:
                  "to track the reference's contact signal at these settings.")
     if n < MIN_CONTACTS_FOR_CI:
         text += f" With {n} contacts the intervals are not meaningful: this is a smoke run."
+    where = []
+    for method, f in results.get("failures", {}).items():
+        if f["fails"] or f["tracks"]:
+            parts = ([f"fails on {', '.join(f['fails'])}"] if f["fails"] else []) + (
+                [f"tracks on {', '.join(f['tracks'])}"] if f["tracks"] else [])
+            where.append(f"{method} {' and '.join(parts)}")
+    if where:
+        text += (" By region (error near the contacts over that of predicting no change, interval over contacts): "
+                 + "; ".join(where) + ".")
     return text
 
 
@@ -809,20 +1034,55 @@ def markdown(results: dict) -> str:
         f"Paired differences from {results['best']} in {results['criterion']} (other − best): "
         + ", ".join(f"{f} {_cell(d, 4)}" for f, d in results["best_minus_others"].items()) + ".",
         "",
-        "| contact | source | max indentation along the camera ray (mm) | max displacement along the normal (mm) |",
-        "|---|---|---|---|",
+        ("| contact | source | region | principal curvatures (1/m) | max indentation along the camera ray (mm) "
+         "| max displacement along the normal (mm) |"),
+        "|---|---|---|---|---|---|",
     ]
     for name, c in results["contacts"].items():
-        lines.append(f"| {name} | {c['source']} | {c['max_indentation_m'] * 1e3:.2f} | "
+        k = ", ".join(f"{v:.0f}" for v in c["curvatures_per_m"])
+        lines.append(f"| {name} | {c['source']} | {c['region']} | {k} | {c['max_indentation_m'] * 1e3:.2f} | "
                      f"{c['max_displacement_m'] * 1e3:.2f} |")
     if results["skipped"]:
         lines += ["", "Refused at their real depth: " + "; ".join(f"{k}: {v}" for k, v in results["skipped"].items())]
+    lines += region_markdown(results)
     lines += ["", "Calibrated on the no-contact frame alone instead (diagnostic; degenerate for tangent fields):",
               "", "| field | gain (R, G, B) | fast no-contact std | change MAE |", "|---|---|---|---|"]
     for method, c in results["no_contact_calibration"].items():
         lines.append(f"| {method} | {', '.join(f'{g:.3g}' for g in c['gain'])} | "
                      f"{', '.join(f'{v:.4f}' for v in c['fast_std_no_contact'])} | {c['change_mae_mean']:.4f} |")
     return "\n".join(lines) + "\n"
+
+
+def region_markdown(results: dict) -> list[str]:
+    """The tables of where each field fails, by class of region (empty when none)."""
+    regions = results.get("pixel_regions")
+    if not regions or not any(regions["ratio"].values()):
+        return []
+    classes = [c for c in CLASSES if any(c in t for t in regions["ratio"].values())]
+    lines = ["", "## Where each field fails, by class of region", "",
+             ("Classes by the principal curvatures of the undeformed membrane over a "
+              f"{CURVATURE_RADIUS_M * 1e3:g} mm ball (``scenes.curvature``: flat within 1/{FLAT_RADIUS_M * 1e3:g} mm). "
+              "Pixel ratio: the calibrated change's |error| summed over the pixels near the contacts that see that "
+              "class, over the |reference change| there (the error of predicting no change); below 1 the field "
+              "tracks the contact, at or above 1 it does no better than no change. Interval: contacts resampled."),
+             "", "| field | " + " | ".join(f"{c} ({regions['pixels_in_circle'].get(c, 0)} px in circle)"
+                                           for c in classes) + " |",
+             "|---|" + "---|" * len(classes)]
+    for method, table in regions["ratio"].items():
+        cells = [f"{table[c]['ratio']:.2f} [{table[c]['ci_low']:.2f}, {table[c]['ci_high']:.2f}] "
+                 f"({table[c]['contacts']} contacts)" if c in table else "" for c in classes]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    by_contact = regions["by_contact"]
+    if by_contact:
+        methods = list(results["table"])
+        lines += ["", ("Change MAE over the contacts that press on each class (the class at the contact point), "
+                       "and no change − field (above 0: the field beats predicting no change there):"), "",
+                  "| class | contacts | no change | " + " | ".join(methods) + " |",
+                  "|---|---|---|" + "---|" * len(methods)]
+        for cls, row in by_contact.items():
+            cells = [f"{_cell(row[m]['mae'], 4)}; {_cell(row[m]['no_change_minus_field'], 4)}" for m in methods]
+            lines.append(f"| {cls} | {row['contacts']} | {_cell(row['no_change'], 4)} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _pyplot():
@@ -918,6 +1178,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--contacts", nargs="+", metavar="NAME",
                         help=f"any of {', '.join(list(BASE) + list(ANALYTIC) + list(PUBLISHED))} (default: all available)")
     parser.add_argument("--spec", type=Path, help="sensor spec TOML (default: the embedded GelTip); any shape")
+    parser.add_argument("--surface", type=int, metavar="N",
+                        help=f"taps drawn per class of region, named surface_* (default {SURFACE_PER_CLASS} on a "
+                             "membrane other than a capsule, else 0); with --contacts, only those named are used")
     parser.add_argument("--reference", type=Path,
                         help=f"the published data (default ${REFERENCE_ENV} or ../shared/data/geltip_reference)")
     args = parser.parse_args(argv)
@@ -932,7 +1195,8 @@ def main(argv: list[str] | None = None) -> dict:
     if missing is not None and not args.quick:
         print(f"{missing}; analytic contacts only", file=sys.stderr)
     try:
-        results = run(args.out, settings, contacts, reference_dir, load_spec(args.spec) if args.spec else None)
+        results = run(args.out, settings, contacts, reference_dir, load_spec(args.spec) if args.spec else None,
+                      args.surface)
     except ValueError as exc:
         parser.error(str(exc))
     print_report(results)

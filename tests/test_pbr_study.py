@@ -203,3 +203,68 @@ def test_the_study_runs_on_any_shape_but_the_published_maps_are_the_geltips(tmp_
     thumb = load_spec(Path(__file__).parents[1] / "scenes" / "sensors" / "thumb.toml")
     with pytest.raises(ValueError, match="published depth maps are the GelTip's"):
         study.run(tmp_path, study.QUICK, ("sphere_tip", "published_0"), None, thumb)
+
+
+def test_region_errors_score_each_class_against_predicting_no_change():
+    rng = np.random.default_rng(6)
+    K, h, w = 4, 6, 8
+    ref = rng.normal(size=(K, h, w, 3))
+    regions = np.full((h, w), "convex")
+    regions[:, 4:] = "saddle"
+    regions[0] = "flat"  # seen by one contact alone: left out
+    pixels = np.ones((K, h, w), bool)
+    pixels[1:, 0] = False
+    perfect = study.region_errors(ref, ref, pixels, regions, seed=0)
+    assert set(perfect) == {"convex", "saddle"}
+    assert all(r["ratio"] == r["ci_low"] == r["ci_high"] == 0.0 and r["contacts"] == K for r in perfect.values())
+    none = study.region_errors(np.zeros_like(ref), ref, pixels, regions, seed=0)
+    assert all(r["ratio"] == pytest.approx(1.0) for r in none.values())
+    # Right on the convex pixels, doubled (error = signal) on the saddle ones.
+    pred = np.where((regions == "saddle")[None, ..., None], 2 * ref, ref)
+    mixed = study.region_errors(pred, ref, pixels, regions, seed=0)
+    assert mixed["convex"]["ratio"] == 0.0 and mixed["saddle"]["ratio"] == pytest.approx(1.0)
+    assert mixed["saddle"]["pixels"] == K * (h - 1) * 4
+    # Noisy predictions: the interval brackets the ratio.
+    noisy = study.region_errors(ref + rng.normal(scale=0.5, size=ref.shape), ref, pixels, regions, seed=0)
+    assert all(r["ci_low"] <= r["ratio"] <= r["ci_high"] and r["ci_low"] < r["ci_high"] for r in noisy.values())
+    with pytest.raises(ValueError, match="must agree"):
+        study.region_errors(ref, ref, pixels[:, :, :4], regions, seed=0)
+
+
+def test_contact_regions_and_failures_name_the_classes_where_a_field_does_no_better_than_no_change():
+    per_contact = {"good": [{"change": {"mae": 0.1 + 0.01 * k}} for k in range(5)],
+                   "bad": [{"change": {"mae": 0.5 + 0.01 * k}} for k in range(5)]}
+    no_change = [{"change": {"mae": 0.4}} for _ in range(5)]
+    table = study.contact_region_table(per_contact, no_change, ["saddle"] * 3 + ["convex", "flat"], seed=0)
+    assert list(table) == ["saddle"]  # one contact per other class: left out
+    assert table["saddle"]["contacts"] == 3
+    assert table["saddle"]["good"]["no_change_minus_field"]["ci_low"] > 0
+    assert table["saddle"]["bad"]["no_change_minus_field"]["ci_high"] < 0
+    ratio = lambda r, lo, hi: {"ratio": r, "ci_low": lo, "ci_high": hi, "pixels": 10, "contacts": 3}  # noqa: E731
+    results = {"pixel_regions": {"ratio": {"good": {"saddle": ratio(0.5, 0.4, 0.6), "convex": ratio(0.9, 0.7, 1.1)},
+                                           "bad": {"saddle": ratio(1.2, 1.0, 1.5)}}}}
+    assert study.failures(results) == {"good": {"fails": [], "tracks": ["saddle"], "unclear": ["convex"]},
+                                       "bad": {"fails": ["saddle"], "tracks": [], "unclear": []}}
+
+
+def test_surface_taps_spread_over_each_class_of_the_paw():
+    from pathlib import Path
+
+    from scenes.curvature import classify, principal_curvatures
+    from scenes.geometry import membrane_mesh
+    from scenes.spec import load_spec
+
+    paw = load_spec(Path(__file__).parents[1] / "scenes" / "sensors" / "paw.toml")
+    mesh = membrane_mesh(paw)
+    taps = study.surface_taps(paw, mesh, per_class=3, seed=0)
+    assert taps == study.surface_taps(paw, mesh, per_class=3, seed=0)  # seeded
+    named = [name.split("_")[1] for name in taps]
+    points = np.array([t.point for t in taps.values()])
+    assert list(classify(principal_curvatures(mesh, points))) == named  # each tap sits on its class
+    assert {"convex", "cylindrical", "saddle"} <= set(named) and max(named.count(c) for c in named) == 3
+    saddles = points[[c == "saddle" for c in named]]
+    # Farthest-point sampling: the saddles are the valleys between the toes and the waist below them.
+    assert np.ptp(saddles[:, 2]) > 0.015
+    assert all(t.replica == 0 and t.object in name for name, t in taps.items())
+    with pytest.raises(ValueError, match="per_class must be an integer >= 1"):
+        study.surface_taps(paw, mesh, per_class=0)
