@@ -17,6 +17,10 @@ REFERENCE_ENV = "GELTIP_REFERENCE"
 SIBLING = Path("shared") / "data" / "geltip_reference"
 #: The file that marks a folder as the published data.
 MANIFEST = "MANIFEST.txt"
+#: Per pixel, two no-contact frames of the published GelTip's camera differ by about this
+#: much (RGB, [0, 1] display units): the noise floor of any sim-to-real comparison, and
+#: the least image change a real camera shows (``studies.design``).
+CAMERA_NOISE_RGB = (0.012, 0.010, 0.006)
 
 
 def reference_candidates() -> list[Path]:
