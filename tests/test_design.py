@@ -128,5 +128,8 @@ def test_the_reference_checks_the_best_and_the_worst_on_the_same_taps(thumb, tmp
         assert r["fast_ratio"] == pytest.approx(r["fast_best"] / r["fast_worst"])
         assert r["agrees"] == ((r["fast_ratio"] > 1) == (r["reference_ratio"] > 1))
     assert data["reference_settings"]["width"] == QUICK.width
-    assert len(list((tmp_path / "reference_cache").glob("*.npy"))) == 2 * (1 + 2)
+    assert len(list((tmp_path / "reference_cache").glob("*.npy"))) == 2 * (1 + 2)  # no-contact frames shared
+    for d in data["designs"]:
+        reach = d["reference_reach"]
+        assert 0 <= reach["dark_share"] < 1 and 0 <= reach["evenness"] <= 1 and reach["p99_5"] > 0
     assert "The reference agrees with the fast path's ranking on" in (tmp_path / "summary.md").read_text()

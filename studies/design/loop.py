@@ -15,6 +15,13 @@ For each design (``studies.design.sweep``):
 3. ``studies.design.score`` scores the taps: contrast in camera-noise units per unit
    depth, its spread, and dead taps.
 
+The fast path's light fields are unit directions: it has no falloff of light along the
+membrane, so it cannot see a dead zone that distance or the shape's bends leave dark. So
+when the reference runs, it renders every scored design's no-contact frame
+(``reference_reach``): the share of the membrane it sees darker than DARK_FRACTION of
+its own 99.5th percentile (the dark share), and the 10th percentile over its 99.5th (the
+evenness of the light). The report puts both beside the fast path's score.
+
 The designs are ranked by score. The best and the worst are rendered again by the
 reference (``pbr_tactile``, through ``studies.pbr_field_comparison.reference_frame`` and
 its cache) on the same REFERENCE_TAPS taps (the same rows and positions on each
@@ -52,6 +59,9 @@ STANDARD_DEPTH_M = 1.0e-3
 FIELD = "plane"
 #: Taps the reference renders per checked design (it takes about a minute a frame here).
 REFERENCE_TAPS = 4
+#: A membrane pixel of the reference's no-contact frame darker than this share of the
+#: frame's 99.5th percentile (largest channel) is dark: light hardly reaches it.
+DARK_FRACTION = 0.05
 JSON_NAME = "design.json"
 
 
@@ -143,6 +153,34 @@ def reference_check(spec: SensorSpec, evaluated: dict, indices: Sequence[int], s
     return {"taps": out}
 
 
+def membrane_pixels(ref_depth: np.ndarray, camera: Camera, shape: tuple[int, int]) -> np.ndarray:
+    """(h, w) bool: film pixels inside the image circle whose every depth-camera pixel sees
+    the membrane (a finite D_ref)."""
+    from studies.pbr_field_comparison import downsample
+
+    seen = np.repeat(np.isfinite(ref_depth)[..., None], 3, axis=-1).astype(np.float32)
+    return (downsample(seen, shape)[..., 0] == 1.0) & camera.scaled(shape[1], shape[0]).mask
+
+
+def reference_reach(spec: SensorSpec, evaluated: dict, settings, cache: Path, label: str) -> dict:
+    """Where the reference's light reaches a design's membrane without contact: the dark
+    share (pixels under DARK_FRACTION of the frame's p99.5, largest channel), the evenness
+    (p10 over p99.5) and the p99.5 itself (linear radiance, comparable between designs)."""
+    from scenes.geometry import membrane_mesh
+    from studies.pbr_field_comparison import NO_CONTACT, reference_frame
+
+    camera = Camera.from_spec(spec)
+    mean, _, _ = reference_frame(f"{label}_{NO_CONTACT}", None, evaluated["ref_depth"], membrane_mesh(spec), spec,
+                                 camera, settings, cache)
+    seen = membrane_pixels(evaluated["ref_depth"], camera, (settings.height, settings.width))
+    level = mean.max(axis=-1)[seen]
+    top = float(np.percentile(level, 99.5))
+    if not top > 0:
+        return {"dark_share": 1.0, "evenness": 0.0, "p99_5": top}
+    return {"dark_share": float(np.mean(level < DARK_FRACTION * top)),
+            "evenness": float(np.percentile(level, 10.0) / top), "p99_5": top}
+
+
 def run(spec: SensorSpec, sweep: Mapping[str, Sequence[float]], out: Path, field: str = FIELD,
         indenter: str = INDENTER, taps: int | None = None, reference: bool = True,
         reference_taps: int = REFERENCE_TAPS, settings=None, progress: bool = True,
@@ -185,8 +223,12 @@ def run(spec: SensorSpec, sweep: Mapping[str, Sequence[float]], out: Path, field
     order = sorted(scored, key=lambda i: results[i]["score"]["score"], reverse=True)
     best, worst = order[0], order[-1]
     check = None
+    cache = out / CACHE_FOLDER
+    if reference:
+        for i in tqdm(scored, desc="reference, no contact", unit="design", disable=not progress):
+            results[i]["reference_reach"] = reference_reach(candidates[i].spec, evaluated[i], settings, cache,
+                                                            f"design{i}")
     if reference and best != worst:
-        cache = out / CACHE_FOLDER
         check = {}
         for role, i in (("best", best), ("worst", worst)):
             check[role] = reference_check(candidates[i].spec, evaluated[i], checked, settings, cache,
@@ -196,7 +238,7 @@ def run(spec: SensorSpec, sweep: Mapping[str, Sequence[float]], out: Path, field
         "sensor": spec.name, "family": spec.membrane.shape, "sweep": {k: list(v) for k, v in sweep.items()},
         "field": field, "indenter": indenter, "tap_depth_m": depth, "taps_per_design": n_taps,
         "designs": results, "ranking": [results[i]["label"] for i in order], "best": best, "worst": worst,
-        "reference_settings": dataclasses.asdict(settings) if check else None,
+        "reference_settings": dataclasses.asdict(settings) if reference else None, "dark_fraction": DARK_FRACTION,
         "reference_check": None if check is None else {k: v for k, v in check.items() if k != "images"},
         "seconds": time.perf_counter() - t0,
     }

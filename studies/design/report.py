@@ -26,17 +26,25 @@ def markdown(data: dict) -> str:
          "p95 over a tap's changed pixels of the largest channel's change in units of the real camera's noise, per "
          f"mm of depth. Score: its p{SCORE_PERCENTILE:g} over the taps. Dead: contrast under {VISIBLE_SNR:g}."),
         "",
-        "| design | score (/mm) | median (/mm) | p90 (/mm) | evenness | dead taps | fast path (s) |",
-        "|---|---|---|---|---|---|---|",
+        "| design | score (/mm) | median (/mm) | p90 (/mm) | evenness | dead taps | fast path (s) | reference: dark share "
+        "| reference: light evenness | reference: p99.5 radiance |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for i, d in enumerate(data["designs"]):
         mark = " **best**" if i == data["best"] else " *worst*" if i == data["worst"] else ""
         if d["refused"] is not None:
-            lines.append(f"| {d['label']} | refused: {d['refused']} | | | | | |")
+            lines.append(f"| {d['label']} | refused: {d['refused']} | | | | | | | | |")
             continue
         s = d["score"]
+        reach = d.get("reference_reach")
+        lit = (f"{reach['dark_share']:.1%} | {reach['evenness']:.3f} | {reach['p99_5']:.4g}" if reach else " | | ")
         lines.append(f"| {d['label']}{mark} | {_per_mm(s['score'])} | {_per_mm(s['median'])} | {_per_mm(s['p90'])} | "
-                     f"{s['evenness']:.2f} | {s['dead_share']:.0%} | {d['seconds']:.1f} |")
+                     f"{s['evenness']:.2f} | {s['dead_share']:.0%} | {d['seconds']:.1f} | {lit} |")
+    if data["reference_settings"] is not None:
+        lines += ["", (f"Reference columns: its no-contact frame of each design; dark share = membrane pixels under "
+                       f"{data['dark_fraction']:.0%} of the frame's p99.5 (largest channel), light evenness = p10 over "
+                       "p99.5. The fast path's fields carry no falloff of light, so only the reference can show a "
+                       "dead zone that distance or a bend leaves dark.")]
     check = data["reference_check"]
     if check is not None:
         st = data["reference_settings"]
