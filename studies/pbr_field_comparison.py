@@ -131,7 +131,8 @@ fields.
 
 Run ``python -m studies.pbr_field_comparison --out DIR [--spec TOML --surface N --width W
 --height H --photons N --quick]``. It writes ``pbr_field_comparison.json``, ``summary.md``, ``metrics.png`` and
-``grid_<contact>.png``. The published contacts are used when ``$GELTIP_REFERENCE`` (or
+``grid_<contact>.png``, and ``regions.png`` when some class of region is reached by two
+contacts. The published contacts are used when ``$GELTIP_REFERENCE`` (or
 ``../shared/data/geltip_reference``) holds the data; without it, the run uses only the
 analytic contacts and says so.
 """
@@ -950,6 +951,8 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
     atomic_write_json(out / JSON_NAME, results)
     (out / "summary.md").write_text(markdown(results))
     metrics_figure(out / "metrics.png", results)
+    if any(results["pixel_regions"]["ratio"].values()):
+        region_figure(out / "regions.png", results, regions_px)
     for k, name in enumerate(names, start=1):
         grid_figure(out / f"grid_{name}.png", name, ref[0], ref[k], calibrated, k, mask, per_contact)
     return results
@@ -1122,6 +1125,44 @@ def metrics_figure(path: Path, results: dict) -> Path:
             ax.set_title(f"{kind}: {metric}")
     fig.suptitle(f"fast path vs PBR reference ({results['confidence']:.0%} bootstrap CI over "
                  f"{len(results['contacts'])} contacts; dots: contacts)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def region_figure(path: Path, results: dict, regions: np.ndarray) -> Path:
+    """Left: the class of region each film pixel sees. Right: each field's pixel error
+    ratio per class (1: no better than predicting no change), with its interval."""
+    from matplotlib.colors import ListedColormap
+
+    plt = _pyplot()
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
+    present = [c for c in CLASSES if (regions == c).any()]
+    index = np.full(regions.shape, np.nan)
+    for j, c in enumerate(present):
+        index[regions == c] = j
+    cmap = ListedColormap([f"C{CLASSES.index(c)}" for c in present])
+    left.imshow(index, cmap=cmap, vmin=-0.5, vmax=len(present) - 0.5, interpolation="nearest")
+    for j, c in enumerate(present):
+        left.plot([], [], "s", color=f"C{CLASSES.index(c)}", label=c)
+    left.legend(fontsize=7, loc="lower right")
+    left.set_axis_off()
+    left.set_title("class of region seen by each pixel", fontsize=9)
+    table = results["pixel_regions"]["ratio"]
+    classes = [c for c in CLASSES if any(c in t for t in table.values())]
+    width = 0.8 / max(1, len(table))
+    for m, (method, rows) in enumerate(table.items()):
+        x = np.array([k for k, c in enumerate(classes) if c in rows], dtype=float) + (m - (len(table) - 1) / 2) * width
+        cells = [rows[c] for c in classes if c in rows]
+        err = np.array([[c["ratio"] - c["ci_low"] for c in cells], [c["ci_high"] - c["ratio"] for c in cells]])
+        right.bar(x, [c["ratio"] for c in cells], width, yerr=err, capsize=3, label=method, alpha=0.85)
+    right.axhline(1.0, color="tab:red", ls=":", lw=1.2, label="no change")
+    right.set_xticks(range(len(classes)), classes)
+    right.set_ylabel("|error| / |reference change| near the contacts")
+    right.legend(fontsize=7)
+    right.set_title("where each field fails (below 1: tracks the contact)", fontsize=9)
+    fig.suptitle(f"{results['sensor']}: light fields by class of region")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
