@@ -118,6 +118,7 @@ def test_a_tap_the_rig_cannot_reach_is_refused():
         validate(Protocol(name="custom", taps=(tap,), seed=None), spec, mesh)
 
 
+@pytest.mark.slow
 def test_a_capsule_described_as_a_mesh_renders_as_the_parametric_one(tmp_path):
     """The issue's goal: the fast path's images of a capsule read from a mesh file (in
     millimetres, placed by a transform, triangulated apart: 0.7 mm edges against 0.5 mm)
