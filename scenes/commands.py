@@ -152,6 +152,19 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def positive_int(text: str) -> int:
+    """A whole number >= 1 on the command line (an argparse ``type``), e.g. ``--taps``."""
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
+    return value
+
+
 def non_negative_int(text: str) -> int:
     """A whole number >= 0 on the command line (an argparse ``type``), e.g. ``--limit``."""
     import argparse

@@ -84,3 +84,14 @@ def block_mean(image: np.ndarray, factor: int, axes: tuple[int, int] = (0, 1)) -
     for a in axes:
         block[a] = factor
     return block_reduce(image, tuple(block), np.mean, func_kwargs={"dtype": np.float64}).astype(image.dtype)
+
+
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (files, no display), imported only when a
+    figure is drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

@@ -168,7 +168,7 @@ from scenes.curvature import (CLASSES, CURVATURE_RADIUS_M, FLAT_RADIUS_M, classi
 from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes
 from scenes.elastic import MembraneLayer
 from scenes.geometry import membrane_mesh
-from scenes.images import srgb
+from scenes.images import pyplot, srgb
 from scenes.indenters import INDENTERS
 from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.spec import SensorSpec, load_spec
@@ -1088,18 +1088,9 @@ def region_markdown(results: dict) -> list[str]:
     return lines
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def metrics_figure(path: Path, results: dict) -> Path:
     """Bars of each metric per field (mean over contacts) with bootstrap CI error bars."""
-    plt = _pyplot()
+    plt = pyplot()
     methods = list(results["table"])
     fig, axes = plt.subplots(len(KINDS), len(METRICS), figsize=(4.2 * len(METRICS), 3.4 * len(KINDS)))
     x = np.arange(len(methods))
@@ -1136,7 +1127,7 @@ def region_figure(path: Path, results: dict, regions: np.ndarray) -> Path:
     ratio per class (1: no better than predicting no change), with its interval."""
     from matplotlib.colors import ListedColormap
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [1, 1.4]})
     present = [c for c in CLASSES if (regions == c).any()]
     index = np.full(regions.shape, np.nan)
@@ -1173,7 +1164,7 @@ def grid_figure(path: Path, name: str, ref0: np.ndarray, refk: np.ndarray, fast:
                 per_contact: dict) -> Path:
     """Reference and each calibrated field for one contact: frames (sRGB for viewing) on
     top, contact change (mean over channels) below."""
-    plt = _pyplot()
+    plt = pyplot()
     cols = ["reference"] + list(fast)
     fig, axes = plt.subplots(2, len(cols), figsize=(2.8 * len(cols), 5.0), squeeze=False)
     change_ref = (refk - ref0).mean(axis=-1)

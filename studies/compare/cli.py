@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from scenes.commands import add_quiet_argument, add_renderer_arguments, renderer_options
+from scenes.commands import add_quiet_argument, add_renderer_arguments, positive_int, renderer_options
 
 from .run import BACKGROUNDS, REFERENCE_TAPS
 
@@ -15,13 +15,6 @@ def _names(text: str) -> tuple[str, ...]:
     if not names:
         raise argparse.ArgumentTypeError(f"expected a comma-separated list, got {text!r}")
     return names
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
-    return value
 
 
 def cmd_compare(args) -> int:
@@ -50,8 +43,8 @@ def register(registry) -> None:
     p.add_argument("capture", metavar="CAPTURE_DIR", help="a capture of the rig (docs/dataset-format.md)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="where table.json, table.md, report.html, figures and renders/ go (renders resume)")
-    p.add_argument("--taps", type=_positive, help="the fast path's taps, spread evenly over the capture (default all)")
-    p.add_argument("--reference-taps", type=_positive, default=REFERENCE_TAPS,
+    p.add_argument("--taps", type=positive_int, help="the fast path's taps, spread evenly over the capture (default all)")
+    p.add_argument("--reference-taps", type=positive_int, default=REFERENCE_TAPS,
                    help=f"the reference's taps, spread evenly over the fast path's (default {REFERENCE_TAPS}: it "
                         "takes minutes per tap)")
     p.add_argument("--no-reference", action="store_true", help="leave the physically based reference out")
@@ -60,8 +53,8 @@ def register(registry) -> None:
     p.add_argument("--backgrounds", type=_names,
                    help=f"the fast path's backgrounds, some of {', '.join(BACKGROUNDS)} (default all; real is the "
                         "capture's background.png); not with --profile, whose background is the unit's")
-    p.add_argument("--bootstrap", type=_positive, default=2000, help="bootstrap resamples of the taps (default 2000)")
+    p.add_argument("--bootstrap", type=positive_int, default=2000, help="bootstrap resamples of the taps (default 2000)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default 0)")
-    p.add_argument("--workers", type=_positive, default=min(2, os.cpu_count() or 1))
+    p.add_argument("--workers", type=positive_int, default=min(2, os.cpu_count() or 1))
     add_quiet_argument(p)
     add_renderer_arguments(p, skip=("field", "background"))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from scenes.commands import add_quiet_argument
+from scenes.commands import add_quiet_argument, positive_int
 
 from .loop import FIELD, INDENTER, REFERENCE_TAPS, STANDARD_DEPTH_M
 
@@ -18,13 +18,6 @@ def _sweep(text: str):
         return parse_sweep(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
-    return value
 
 
 def cmd_design(args) -> int:
@@ -64,15 +57,15 @@ def register(registry) -> None:
                    help=f"the standard tap's indenter (default {INDENTER})")
     p.add_argument("--depth", type=float, default=STANDARD_DEPTH_M * 1e3, metavar="MM",
                    help=f"the standard tap's depth along the normal, mm (default {STANDARD_DEPTH_M * 1e3:g})")
-    p.add_argument("--taps", type=_positive, help="standard taps per design, spread over the extended protocol's 80 "
+    p.add_argument("--taps", type=positive_int, help="standard taps per design, spread over the extended protocol's 80 "
                                                   "(default all)")
     p.add_argument("--no-reference", action="store_true", help="leave the reference check out")
-    p.add_argument("--reference-taps", type=_positive, default=REFERENCE_TAPS,
+    p.add_argument("--reference-taps", type=positive_int, default=REFERENCE_TAPS,
                    help=f"taps the reference renders per checked design (default {REFERENCE_TAPS}; about a minute "
                         "a frame on 2 cores)")
-    p.add_argument("--width", type=_positive, default=160, help="reference film width, px (default 160)")
-    p.add_argument("--height", type=_positive, default=120, help="reference film height, px (default 120)")
-    p.add_argument("--photons", type=_positive, default=1 << 18, help="photons per LED per pass (default 2^18)")
-    p.add_argument("--passes", type=_positive, default=4, help="independent passes (default 4)")
-    p.add_argument("--spp", type=_positive, default=32, help="camera samples per pixel in all (default 32)")
+    p.add_argument("--width", type=positive_int, default=160, help="reference film width, px (default 160)")
+    p.add_argument("--height", type=positive_int, default=120, help="reference film height, px (default 120)")
+    p.add_argument("--photons", type=positive_int, default=1 << 18, help="photons per LED per pass (default 2^18)")
+    p.add_argument("--passes", type=positive_int, default=4, help="independent passes (default 4)")
+    p.add_argument("--spp", type=positive_int, default=32, help="camera samples per pixel in all (default 32)")
     add_quiet_argument(p)

@@ -50,7 +50,7 @@ from scenes.dataset import atomic_write_json
 from scenes.spec import SensorSpec
 
 from .score import changed_pixels, design_score, tap_contrast
-from .sweep import Design, designs
+from .sweep import designs
 
 #: The indenter of the standard tap, and its depth along the normal, metres.
 INDENTER = "sphere"

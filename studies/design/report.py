@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from scenes.camera import Camera, project
-from scenes.images import srgb
+from scenes.images import pyplot, srgb
 
 from .score import SCORE_PERCENTILE, VISIBLE_SNR
 
@@ -77,18 +77,9 @@ def markdown(data: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def sweep_figure(path: Path, data: dict) -> Path:
     """Score, median and p90 against the first parameter (one line per value of the second)."""
-    plt = _pyplot()
+    plt = pyplot()
     names = list(data["sweep"])
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
     second = data["sweep"][names[1]] if len(names) > 1 else [None]
@@ -126,7 +117,7 @@ def _shown(frame: np.ndarray) -> np.ndarray:
 def maps_figure(path: Path, data: dict, candidates, evaluated: dict) -> Path:
     """Each design's no-contact frame with its taps, coloured by contrast per mm; dead taps
     crossed."""
-    plt = _pyplot()
+    plt = pyplot()
     shown = [i for i in evaluated]
     cols = min(4, max(1, len(shown)))
     rows = int(np.ceil(len(shown) / cols)) or 1
@@ -154,7 +145,7 @@ def maps_figure(path: Path, data: dict, candidates, evaluated: dict) -> Path:
 def check_figure(path: Path, data: dict, evaluated: dict, check: dict | None) -> Path:
     """The best and the worst design: fast-path frames of the checked taps, and the
     reference's when it ran."""
-    plt = _pyplot()
+    plt = pyplot()
     roles = (("best", data["best"]), ("worst", data["worst"]))
     kept = sorted(evaluated[data["best"]]["kept"])
     images = check["images"] if check else None

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from scenes.commands import add_quiet_argument, non_negative_int
+from scenes.commands import add_quiet_argument, non_negative_int, positive_int
 
 from . import effects as fx
 from .physical_benchmark import PAIRINGS
@@ -32,13 +32,6 @@ def _fraction(text: str) -> float:
     value = float(text)
     if not 0 < value < 1:
         raise argparse.ArgumentTypeError(f"must be a fraction in (0, 1), got {text}")
-    return value
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text}")
     return value
 
 
@@ -129,15 +122,15 @@ def register(registry) -> None:
     p.add_argument("--out", metavar="REPORT_DIR", help="where report.html, report.json and figures go")
     p.add_argument("--heldout", type=_fraction, default=0.5, help="share of samples held out (default 0.5)")
     p.add_argument("--seed", type=int, default=0, help="split seed (benchmark: case seed)")
-    p.add_argument("--factor", type=_positive, default=2,
+    p.add_argument("--factor", type=positive_int, default=2,
                    help="fits run at 1/FACTOR of the image resolution (default 2); results are measured at full size")
     p.add_argument("--effects", type=_effects, default=None, help="'all' (default) or a comma-separated subset")
     p.add_argument("--intervals", type=non_negative_int, default=None,
                    help="bootstrap refits behind the best-ranked effects' parameter intervals (default: "
                         "studies.gap.fit.PARAM_RESAMPLES; 0: none, about halves a fast-path diagnosis)")
     add_quiet_argument(p)
-    p.add_argument("--cases", type=_positive, default=20, help="benchmark: number of cases (default 20)")
-    p.add_argument("--pairs", type=_positive, default=48, help="benchmark: pairs per case (default 48)")
+    p.add_argument("--cases", type=positive_int, default=20, help="benchmark: number of cases (default 20)")
+    p.add_argument("--pairs", type=positive_int, default=48, help="benchmark: pairs per case (default 48)")
     p.add_argument("--work", metavar="DIR", default=None, help="benchmark: keep the case datasets here")
     p.add_argument("--json", metavar="PATH", default=None, help="benchmark: where to write the results")
     p.add_argument("--stratified", action="store_true",
@@ -157,6 +150,6 @@ def register(registry) -> None:
                         "catalogue for them (comma-separated; default all); each case keeps its index and seed from "
                         "the full run")
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
-    b.add_argument("--pairs", type=_positive, default=144, help="pairs (default 144, the base protocol)")
+    b.add_argument("--pairs", type=positive_int, default=144, help="pairs (default 144, the base protocol)")
     b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")
     add_quiet_argument(b)
