@@ -153,12 +153,12 @@ def reference_check(spec: SensorSpec, evaluated: dict, indices: Sequence[int], s
     return {"taps": out}
 
 
-def membrane_pixels(ref_depth: np.ndarray, camera: Camera, shape: tuple[int, int]) -> np.ndarray:
+def membrane_pixels(valid: np.ndarray, camera: Camera, shape: tuple[int, int]) -> np.ndarray:
     """(h, w) bool: film pixels inside the image circle whose every depth-camera pixel sees
-    the membrane (a finite D_ref)."""
+    the membrane (``valid``, (H, W) bool, from ``scenes.camera.reference_depth``)."""
     from studies.pbr_field_comparison import downsample
 
-    seen = np.repeat(np.isfinite(ref_depth)[..., None], 3, axis=-1).astype(np.float32)
+    seen = np.repeat(np.asarray(valid, bool)[..., None], 3, axis=-1).astype(np.float32)
     return (downsample(seen, shape)[..., 0] == 1.0) & camera.scaled(shape[1], shape[0]).mask
 
 
@@ -166,13 +166,15 @@ def reference_reach(spec: SensorSpec, evaluated: dict, settings, cache: Path, la
     """Where the reference's light reaches a design's membrane without contact: the dark
     share (pixels under DARK_FRACTION of the frame's p99.5, largest channel), the evenness
     (p10 over p99.5) and the p99.5 itself (linear radiance, comparable between designs)."""
+    from scenes.camera import reference_depth
     from scenes.geometry import membrane_mesh
     from studies.pbr_field_comparison import NO_CONTACT, reference_frame
 
     camera = Camera.from_spec(spec)
-    mean, _, _ = reference_frame(f"{label}_{NO_CONTACT}", None, evaluated["ref_depth"], membrane_mesh(spec), spec,
-                                 camera, settings, cache)
-    seen = membrane_pixels(evaluated["ref_depth"], camera, (settings.height, settings.width))
+    mesh = membrane_mesh(spec)
+    mean, _, _ = reference_frame(f"{label}_{NO_CONTACT}", None, evaluated["ref_depth"], mesh, spec, camera, settings,
+                                 cache)
+    seen = membrane_pixels(reference_depth(mesh, camera)[1], camera, (settings.height, settings.width))
     level = mean.max(axis=-1)[seen]
     top = float(np.percentile(level, 99.5))
     if not top > 0:
