@@ -66,6 +66,9 @@ SUPPORT_LENGTHS = 8.0
 EDGE_ON_COS = 0.05
 #: Iterations of the primal-dual active-set solver (it converges in a few).
 MAX_ACTIVE_SET_ITERATIONS = 50
+#: Deformations a MembraneLayer keeps, the most recently solved: a contact rendered with
+#: several light fields, or checked and then rendered, is solved once.
+KEPT_DEFORMATIONS = 2
 
 
 def smooth(delta: np.ndarray, elastic: Elastic) -> np.ndarray:
@@ -225,6 +228,10 @@ class LayerDeformation:
     displacement: np.ndarray
     penetration: np.ndarray
 
+    def __post_init__(self):
+        for array in (self.vertices, self.displacement, self.penetration):
+            array.flags.writeable = False  # a layer keeps its results: they are shared
+
 
 class MembraneLayer:
     """The membrane as an elastic layer on the glass core (see module doc), precomputed.
@@ -287,10 +294,24 @@ class MembraneLayer:
         """The deformed surface for a contact depth map D (H, W) and D_ref, metres.
 
         Raises ValueError when the contact depth map reaches into the glass core by more
-        than PENETRATION_TOLERANCE_M (deeper than the membrane).
+        than PENETRATION_TOLERANCE_M (deeper than the membrane). The last
+        KEPT_DEFORMATIONS results are kept, keyed by the two maps' bytes.
         """
-        depth = check_depth(depth, self.camera).astype(np.float64)
-        ref_depth = check_depth(ref_depth, self.camera, "ref_depth").astype(np.float64)
+        from .cache import make_key
+
+        depth = check_depth(depth, self.camera)
+        ref_depth = check_depth(ref_depth, self.camera, "ref_depth")
+        key = make_key(np.asarray(depth), np.asarray(ref_depth))
+        kept = self.__dict__.setdefault("_kept", {})
+        if key not in kept:
+            kept[key] = self._deformation(depth, ref_depth)
+            while len(kept) > KEPT_DEFORMATIONS:
+                del kept[next(iter(kept))]
+        return kept[key]
+
+    def _deformation(self, depth: np.ndarray, ref_depth: np.ndarray) -> LayerDeformation:
+        depth = depth.astype(np.float64)
+        ref_depth = ref_depth.astype(np.float64)
         core, seen = self.core_depth
         inside = seen & (depth < core - PENETRATION_TOLERANCE_M)
         if inside.any():
