@@ -349,17 +349,31 @@ def surface_taps(spec: SensorSpec, mesh: trimesh.Trimesh, per_class: int = SURFA
     return out
 
 
-def rig_contacts(spec: SensorSpec, mesh: trimesh.Trimesh, taps: dict) -> dict[str, np.ndarray]:
-    """Taps captured on the MuJoCo rig: name -> (H, W) float32 depth, metres.
+def rig_contacts(spec: SensorSpec, mesh: trimesh.Trimesh, taps: dict, ref_depth: np.ndarray) -> dict[str, np.ndarray]:
+    """Taps captured on the MuJoCo rig, moved onto the ray-cast D_ref: name -> (H, W)
+    float32 depth, metres.
 
-    taps : name -> ``scenes.protocol.Tap``.
+    The rig's depth camera and the ray caster see the membrane up to ~0.1 mm apart (the
+    rig's z-buffer and its own meshing), so a raw capture against the ray-cast D_ref would
+    dent the membrane everywhere by that much. Each capture's indentation is measured
+    against the rig's own no-contact capture instead, dropped where it is within
+    ``scenes.camera.CONTACT_EPS_M`` (as the dataset renderers drop it), and applied to the
+    ray-cast D_ref: D = D_ref - indentation.
+
+    taps : name -> ``scenes.protocol.Tap``.  ref_depth : (H, W), the ray-cast D_ref.
     """
+    from scenes.camera import CONTACT_EPS_M
     from scenes.rig import tap_depths
 
     names = {id(t): n for n, t in taps.items()}
     captures = tap_depths(spec, list(taps.values()), mesh)
-    next(captures)  # the rig's no-contact capture; every contact uses the ray-cast D_ref
-    return {names[id(tap)]: depth for depth, tap in captures}
+    rig_ref, _ = next(captures)
+    out = {}
+    for depth, tap in captures:
+        indentation = rig_ref.astype(np.float64) - depth
+        indentation = np.where(indentation > CONTACT_EPS_M, indentation, 0.0)
+        out[names[id(tap)]] = (ref_depth - indentation).astype(np.float32)
+    return out
 
 
 def contact_points(depths: dict[str, np.ndarray], ref_depth: np.ndarray, camera: Camera, taps: dict) -> dict:
@@ -830,11 +844,12 @@ def run(out: Path, settings: Settings = Settings(), contacts: tuple[str, ...] | 
     taps = {**base_taps(spec, mesh, tuple(c for c in contacts if c in BASE)),
             **{n: t for n, t in taps.items() if n in contacts}}
     if taps:
-        raw.update(rig_contacts(spec, mesh, taps))
+        raw.update(rig_contacts(spec, mesh, taps, ref_depth))
 
-    from pbr_tactile.membrane import ElastomerBuilder
+    from pbr_tactile.membrane import shared_builder
 
-    build = ElastomerBuilder(mesh, spec, camera)
+    # The builder the reference renders with: the solids checked here are not built twice.
+    build = shared_builder(mesh, spec, camera)
     depths, info, skipped = {}, {}, {}
     for name in tqdm(contacts, desc="contacts the reference builds", unit="contact"):
         why = refusal(raw[name], ref_depth, build)

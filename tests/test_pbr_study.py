@@ -268,3 +268,14 @@ def test_surface_taps_spread_over_each_class_of_the_paw():
     assert all(t.replica == 0 and t.object in name for name, t in taps.items())
     with pytest.raises(ValueError, match="per_class must be an integer >= 1"):
         study.surface_taps(paw, mesh, per_class=0)
+    # Captured on the rig and moved onto the ray-cast D_ref: untouched pixels are D_ref
+    # exactly (the rig's own depth differs from it by up to ~0.1 mm), the dent is the tap's.
+    from scenes.camera import Camera, reference_depth
+
+    ref = reference_depth(mesh, Camera.from_spec(paw))[0]
+    name = next(n for n in taps if n.startswith("surface_saddle"))
+    depth = study.rig_contacts(paw, mesh, {name: taps[name]}, ref)[name]
+    dent = ref - depth
+    assert depth.dtype == np.float32 and (dent >= 0).all()
+    assert 100 < (dent > 0).sum() < 0.2 * dent.size  # a contact, not the whole membrane
+    assert 1.5e-3 < dent.max() < 6e-3  # 2 mm along the normal, more along an oblique ray
