@@ -48,7 +48,9 @@ Monte Carlo noise. Here is what the study does so that the two can be compared.
   the fast path renders the depth map of the same deformed surface (``Renderer(...,
   layer=...)``), not the published smoothing. Each published map is moved onto our
   membrane as D = D_ref − (bkg − D_published); its indentation is measured against the
-  authors' ``bkg.npy``, which differs from our D_ref by at most 0.16 mm.
+  authors' ``bkg.npy``, which differs from our D_ref by at most 0.16 mm. A rig capture is
+  moved onto D_ref the same way, by its indentation against the rig's own no-contact
+  capture (``rig_contacts``).
 * **Real depth.** Every contact is rendered at its own depth. The published spheres reach
   7.9–12.4 mm along the camera ray, through the 2.5 mm membrane and into the glass; the
   layer model refuses them (as ``scenes.protocol.validate`` refuses a tap deeper than the
