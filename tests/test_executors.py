@@ -194,6 +194,7 @@ def test_ray_gives_the_same_samples_as_local_processes(tmp_path, spec, mesh, clu
     assert (tmp_path / "ray" / "background.png").read_bytes() == (tmp_path / "local" / "background.png").read_bytes()
 
 
+@pytest.mark.slow
 def test_two_nodes_share_nothing_but_the_object_store(tmp_path, spec, mesh, cluster, monkeypatch):
     import ray
 
