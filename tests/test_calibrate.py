@@ -247,6 +247,7 @@ def test_the_fitted_camera_reads_as_a_spec_states_it(spec, camera):
     assert bound["search"] == ["log_scale"] and "leak[0]" in bound["physical"]
 
 
+@pytest.mark.slow
 def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, spec, monkeypatch):
     """The sensor's own point, rendered noisily, against a clean point that is slightly
     wrong: the raw loss prefers the clean one, the loss less the basis' predicted noise

@@ -49,6 +49,7 @@ def _synthetic(camera, h=60, w=80):
     return basis, np.array(names), change
 
 
+@pytest.mark.slow
 def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     A, names, change = _synthetic(camera)
     circle = (321.0, 241.0, 236.0)
