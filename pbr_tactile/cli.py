@@ -194,19 +194,8 @@ def cmd_bench_solids(args) -> int:
     return 0 if not summary["refused"] else 1
 
 
-def _positive_int(value: str) -> int:
-    """A count >= 1, for ``--sample``."""
-    try:
-        n = int(value)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value!r}")
-    return n
-
-
 def register(registry) -> None:
-    from scenes.commands import non_negative_int
+    from scenes.commands import non_negative_int, positive_int
     from scenes.indenters import INDENTERS
 
     p = registry.command("reference", cmd_reference, "render one frame with the physically based reference (Mitsuba 3)")
@@ -267,7 +256,7 @@ def register(registry) -> None:
     p.add_argument("--spec", metavar="TOML")
     p.add_argument("--protocol", choices=["base", "extended"], default="extended")
     p.add_argument("--protocol-seed", type=int, default=0, help="seed of the extended protocol's perturbations")
-    p.add_argument("--sample", type=_positive_int, metavar="N",
+    p.add_argument("--sample", type=positive_int, metavar="N",
                    help="check a seeded sample of N taps (default: every tap)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sample")
     p.add_argument("--edge-mm", type=float, default=0.25, help="refined edge of the membrane, mm (the reference's)")

@@ -63,6 +63,16 @@ def test_designs_seat_their_leds_on_their_own_membrane_and_impossible_ones_are_r
     assert grid[3].spec.membrane.thickness == 0.003
 
 
+def test_the_standard_tap_count_is_what_the_protocol_gives(thumb):
+    from scenes.geometry import membrane_mesh
+    from studies.design import loop
+
+    taps = loop.standard_taps(thumb, membrane_mesh(thumb))
+    assert loop.standard_tap_count() == len(taps) == 80
+    assert loop.standard_tap_count(7) == len(loop.spread(len(taps), 7)) == 7
+    assert loop.standard_tap_count(500) == 80
+
+
 def test_contrast_is_a_percentile_of_the_change_in_noise_units():
     no_contact = np.full((20, 30, 3), 0.2)
     frame = no_contact.copy()

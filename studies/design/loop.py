@@ -80,6 +80,15 @@ def standard_taps(spec: SensorSpec, mesh, indenter: str = INDENTER, count: int |
     return taps
 
 
+def standard_tap_count(count: int | None = None) -> int:
+    """How many taps ``standard_taps`` gives, without building the protocol: the extended
+    protocol's rows x contacts per row (80), or ``count`` of them."""
+    from scenes.protocol import EXTENDED_CONTACTS_PER_ROW, EXTENDED_ROLLS_RAD
+
+    n = len(EXTENDED_ROLLS_RAD) * EXTENDED_CONTACTS_PER_ROW
+    return n if count is None else min(count, n)
+
+
 def spread(n: int, count: int) -> list[int]:
     """``count`` indices spread evenly over range(n), both ends included (all when count >= n)."""
     if count >= n:
@@ -204,7 +213,7 @@ def run(spec: SensorSpec, sweep: Mapping[str, Sequence[float]], out: Path, field
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     candidates = designs(spec, sweep)
-    n_taps = len(standard_taps(spec, _mesh(spec), indenter, taps, depth))
+    n_taps = standard_tap_count(taps)
     checked = spread(n_taps, reference_taps)
     shown = sorted(set(checked) | set(spread(n_taps, 4)))
     results, evaluated = [], {}
@@ -250,12 +259,6 @@ def run(spec: SensorSpec, sweep: Mapping[str, Sequence[float]], out: Path, field
     report.maps_figure(out / "maps.png", data, candidates, evaluated)
     report.check_figure(out / "check.png", data, evaluated, check)
     return data
-
-
-def _mesh(spec: SensorSpec):
-    from scenes.geometry import membrane_mesh
-
-    return membrane_mesh(spec)
 
 
 def summarise_check(check: dict, best: dict, worst: dict, indices: Sequence[int]) -> dict:
