@@ -60,6 +60,23 @@ def test_a_builder_keeps_the_solids_of_its_last_contacts(monkeypatch, mesh, spec
     build(np.where(pressed < ref, pressed - 1e-4, pressed).astype(pressed.dtype), ref)  # the oldest goes
     assert build(deeper, ref) is other and build(pressed, ref) is not solid
 
+    # A dropped solid is freed by the next build, not whenever the interpreter next runs a
+    # full collection (trimesh meshes are reference cycles): automatic collection is off.
+    import gc
+    import weakref
+
+    def dent(step):
+        return np.where(pressed < ref, pressed - step, pressed).astype(pressed.dtype)
+
+    gc.disable()
+    try:
+        gone = weakref.ref(build(dent(0.5e-4), ref).outer)
+        for step in (0.3e-4, 0.2e-4, 0.1e-4):  # two push it out, the third build collects it
+            build(dent(step), ref)
+        assert gone() is None
+    finally:
+        gc.enable()
+
 
 def test_contact_dents_the_outer_surface_inwards_along_its_normals(mesh, spec, camera, ref, pressed):
     flat = elastomer(mesh, spec, camera, edge=0.5e-3)
