@@ -71,6 +71,9 @@ def test_the_standard_tap_count_is_what_the_protocol_gives(thumb):
     assert loop.standard_tap_count() == len(taps) == 80
     assert loop.standard_tap_count(7) == len(loop.spread(len(taps), 7)) == 7
     assert loop.standard_tap_count(500) == 80
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="count must be a whole number >= 1"):
+            loop.standard_tap_count(bad)
 
 
 def test_contrast_is_a_percentile_of_the_change_in_noise_units():

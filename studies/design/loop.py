@@ -72,19 +72,18 @@ def standard_taps(spec: SensorSpec, mesh, indenter: str = INDENTER, count: int |
     (default all 80)."""
     from scenes.protocol import extended_protocol
 
+    n = standard_tap_count(count)  # refuses a bad count before the protocol is built
     taps = extended_protocol(spec, mesh, (indenter,), replicas=1, depth=depth).taps
-    if count is not None:
-        if not isinstance(count, int) or count < 1:
-            raise ValueError(f"count must be a whole number >= 1, got {count!r}")
-        taps = tuple(taps[i] for i in spread(len(taps), count))
-    return taps
+    return taps if count is None else tuple(taps[i] for i in spread(len(taps), n))
 
 
 def standard_tap_count(count: int | None = None) -> int:
     """How many taps ``standard_taps`` gives, without building the protocol: the extended
-    protocol's rows x contacts per row (80), or ``count`` of them."""
+    protocol's rows x contacts per row (80), or ``count`` of them (a whole number >= 1)."""
     from scenes.protocol import EXTENDED_CONTACTS_PER_ROW, EXTENDED_ROLLS_RAD
 
+    if count is not None and (not isinstance(count, int) or isinstance(count, bool) or count < 1):
+        raise ValueError(f"count must be a whole number >= 1, got {count!r}")
     n = len(EXTENDED_ROLLS_RAD) * EXTENDED_CONTACTS_PER_ROW
     return n if count is None else min(count, n)
 
