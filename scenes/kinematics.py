@@ -210,9 +210,11 @@ def _rx_pi() -> np.ndarray:
     return np.diag([1.0, -1.0, -1.0])
 
 
-def _ry(pitch: float) -> np.ndarray:
-    c, s = math.cos(pitch), math.sin(pitch)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+def _ry(pitch) -> np.ndarray:
+    """Rotations about +Y, (..., 3, 3)."""
+    c, s = np.cos(pitch), np.sin(pitch)
+    o, i = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, o, s], -1), np.stack([o, i, o], -1), np.stack([-s, o, c], -1)], -2)
 
 
 @dataclass(frozen=True)
@@ -294,6 +296,23 @@ def indenter_to_world(head, pitch: float, layout: RigLayout = RigLayout()) -> tu
     t = np.asarray(head, dtype=np.float64) + np.array([0.0, 0.0, -layout.mount_length]) \
         + ry @ np.array([0.0, 0.0, -layout.indenter_offset])
     return R, t
+
+
+def indenter_to_sensor(roll, pitch) -> np.ndarray:
+    """Rotation from an indenter mesh's frame to the sensor frame at these servo angles:
+    its local +z (the feature's direction) goes to -normal_in_sensor(roll, pitch).
+
+    Parameters
+    ----------
+    roll, pitch : float or (N,) float, rad.
+
+    Returns
+    -------
+    (3, 3) or (N, 3, 3) float64, ``sensor_to_world(roll).T @ R`` with R the rotation of
+    :func:`indenter_to_world`.
+    """
+    R = _ry(np.asarray(pitch, dtype=np.float64)) @ _rx_pi()
+    return np.swapaxes(sensor_to_world(roll), -1, -2) @ R
 
 
 def head_for_tap(tap, vertices: np.ndarray, layout: RigLayout = RigLayout()) -> np.ndarray:

@@ -17,10 +17,12 @@ sensor shape works.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -91,6 +93,10 @@ PITCH_RANGE_RAD = (0.0, PITCH_TRAVEL_RAD[1])
 #: membrane is not on the membrane (the mesh's chords sag ~3 um; 50 um is 2.5 % of a
 #: 2 mm tap).
 ON_MEMBRANE_TOLERANCE_M = 5e-5
+#: How far (metres) a tap's indenter may reach past the glass core under its footprint
+#: (scenes.clearance) before it is refused: float rounding only, as protocols cap their
+#: taps to touch it at most.
+CORE_CLEARANCE_TOLERANCE_M = 1e-6
 #: Largest angle (rad) between the roll/pitch-realised approach and -normal.
 SERVO_CONSISTENCY_TOLERANCE_RAD = 1e-6
 #: Largest angle (rad) between a tap's approach and the membrane normal: beyond it the
@@ -338,7 +344,9 @@ def base_protocol(
 
     Returns
     -------
-    Protocol named "base", seed None, validated against the mesh.
+    Protocol named "base", seed None, validated against the mesh; a tap whose indenter
+    would reach the glass core under its footprint presses only until it touches it
+    (:func:`core_safe_depth_m`).
     """
     objects = _check_objects(objects)
     if spec.membrane.shape != "capsule":
@@ -366,8 +374,9 @@ def base_protocol(
     n = len(point)
     per_tap = (rows, positions, np.zeros(n, int), roll, pitch, point, normal, np.full(n, float(depth)), np.zeros(n))
     taps = [tap for o, obj in enumerate(objects) for tap in _make_taps(obj, o * n, *per_tap)]
-    protocol = Protocol(name="base", taps=tuple(taps), seed=None)
-    validate(protocol, spec, mesh)
+    taps, safe = _capped(taps, spec, mesh)
+    protocol = Protocol(name="base", taps=taps, seed=None)
+    _validate(protocol, spec, mesh, safe)
     return protocol
 
 
@@ -411,7 +420,9 @@ def extended_protocol(
 
     Returns
     -------
-    Protocol named "extended" with 5 x 16 x replicas taps per object, validated.
+    Protocol named "extended" with 5 x 16 x replicas taps per object, validated; a tap
+    whose indenter would reach the glass core under its footprint presses only until it
+    touches it (:func:`core_safe_depth_m`).
     """
     objects = _check_objects(objects)
     if not isinstance(replicas, int) or isinstance(replicas, bool) or replicas < 1:
@@ -495,8 +506,9 @@ def extended_protocol(
             obj, len(taps), rows.ravel(), positions.ravel(), reps.ravel(), roll[o].ravel(), pitch[o].ravel(),
             point[o].reshape(-1, 3), normal[o].reshape(-1, 3), depth_all[o].ravel(), spin[o].ravel(),
         )
-    protocol = Protocol(name="extended", taps=tuple(taps), seed=seed)
-    validate(protocol, spec, mesh)
+    taps, safe = _capped(taps, spec, mesh)
+    protocol = Protocol(name="extended", taps=taps, seed=seed)
+    _validate(protocol, spec, mesh, safe)
     return protocol
 
 
@@ -566,6 +578,60 @@ def max_safe_depth_m(spec: SensorSpec, points: np.ndarray | None = None, mesh: t
     return body.min_thickness if points is None else body.thickness_at(points)
 
 
+@functools.lru_cache(maxsize=64)
+def _paper_top_map(name: str, erosion: float):
+    from .clearance import top_map
+    from .indenters import make_indenter
+
+    return top_map(make_indenter(name), erosion)
+
+
+def _top_maps(objects, erosion: float) -> dict:
+    """name -> scenes.clearance.TopMap of each indenter (a paper indenter's kept, a mesh
+    file's read each time)."""
+    from .clearance import top_map
+    from .indenters import INDENTERS, indenter
+
+    return {name: _paper_top_map(name, erosion) if name in INDENTERS else top_map(indenter(name), erosion)
+            for name in sorted(set(objects))}
+
+
+def core_safe_depth_m(spec: SensorSpec, mesh: trimesh.Trimesh, taps: Sequence[Tap]) -> np.ndarray:
+    """How deep each tap may press before its indenter reaches the glass core, metres.
+
+    The indenter is posed as the rig poses it (``scenes.kinematics.head_for_tap``) and
+    measured over its whole footprint against the sensor's core (``scenes.body``,
+    ``scenes.clearance``): where the membrane curves towards it, thins, or the approach
+    tilts, that is shallower than the thickness under the contact point.
+
+    Returns
+    -------
+    (N,) float64: each tap's own depth where its indenter stays clear of the core, else
+    the depth at which it would touch it (<= 0 where it touches before it presses).
+    """
+    from .body import sensor_body
+    from .clearance import core_clearance, core_erosion
+
+    taps = list(taps)
+    if not taps:
+        return np.zeros(0)
+    core = sensor_body(spec, mesh).core
+    objects = [t.object for t in taps]
+    depth = np.array([t.depth for t in taps], dtype=np.float64)
+    clearance = core_clearance(
+        core, [t.point for t in taps], [t.normal for t in taps], depth, [t.sensor_roll for t in taps],
+        [t.indenter_pitch for t in taps], objects, _top_maps(objects, core_erosion(core)))
+    return depth + clearance
+
+
+def _capped(taps: list[Tap], spec: SensorSpec, mesh: trimesh.Trimesh) -> tuple[tuple[Tap, ...], np.ndarray]:
+    """The taps, each pressing no deeper than its indenter may before it touches the glass
+    core, and those safe depths (:func:`core_safe_depth_m`, which a tap's own depth does
+    not change); a tap that cannot press at all is left for :func:`validate` to refuse."""
+    safe = core_safe_depth_m(spec, mesh, taps)
+    return tuple(replace(t, depth=float(d)) if 0.0 < d < t.depth else t for t, d in zip(taps, safe)), safe
+
+
 def _approach_hits(mesh: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray):
     """Where rays from outside the mesh, along -normals through points, first meet it.
 
@@ -607,6 +673,8 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
 
     - indents by depth <= 0 or past the elastomer's thickness under it
       (max_safe_depth_m; it would hit the glass core);
+    - presses an indenter that would reach the glass core anywhere under its footprint
+      (core_safe_depth_m), or names an object that is not an indenter;
     - has a normal that is not finite and unit;
     - approaches along a ray (from outside, along -normal) that misses the membrane;
     - has a contact point farther than ON_MEMBRANE_TOLERANCE_M from the membrane;
@@ -616,6 +684,11 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
     - needs servo angles past the servos' travel (the rig cannot reach it);
     - has servo angles (roll, pitch) that do not point the indenter along -normal.
     """
+    _validate(protocol, spec, mesh)
+
+
+def _validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh, safe: np.ndarray | None = None) -> None:
+    """:func:`validate`, given the taps' core_safe_depth_m where they are known."""
     if not isinstance(protocol, Protocol):
         raise ValueError(f"protocol must be a Protocol, got {type(protocol).__name__}")
     taps = protocol.taps
@@ -701,4 +774,16 @@ def validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh) -> Non
         err > SERVO_CONSISTENCY_TOLERANCE_RAD,
         lambda i: f"sensor_roll {roll[i]:.6g} rad and indenter_pitch {pitch[i]:.6g} rad point the indenter "
         f"{math.degrees(err[i]):.4f} deg away from -normal",
+    )
+    from .indenters import INDENTERS
+
+    known = {o: o in INDENTERS or Path(o).is_file() for o in {t.object for t in taps}}
+    fail(np.array([not known[t.object] for t in taps]),
+         lambda i: f"object {taps[i].object!r} is none of the indenters {', '.join(INDENTERS)} and no mesh file")
+    safe = core_safe_depth_m(spec, mesh, taps) if safe is None else safe
+    fail(
+        depth > safe + CORE_CLEARANCE_TOLERANCE_M,
+        lambda i: f"the {taps[i].object} indenter would reach {(depth[i] - safe[i]) * 1e3:.3f} mm into the glass "
+        f"core under its footprint (it may press {max(safe[i], 0.0) * 1e3:.3f} mm here, not {depth[i] * 1e3:.3f} "
+        "mm: the membrane curves towards it, thins or the approach tilts)",
     )
