@@ -273,6 +273,13 @@ def lens_resample(image: np.ndarray, lens: "Camera", pinhole: "Camera", order: i
     image = np.asarray(image)
     if image.shape[:2] != pinhole.shape:
         raise ValueError(f"image must be the pinhole camera's {pinhole.shape}, got {image.shape[:2]}")
+    if order == 1 and mode == "nearest" and image.dtype.kind == "f":
+        # The same bilinear read, planned once per pair of cameras: a capture reads
+        # every frame through it.
+        index, weight = _bilinear_plan(lens, pinhole)
+        planes = np.ascontiguousarray(image.reshape(pinhole.height * pinhole.width, -1).T)  # (C, H*W)
+        out = np.stack([sum(w * plane[i] for i, w in zip(index, weight)) for plane in planes], axis=-1)
+        return out.reshape(lens.shape + image.shape[2:]).astype(image.dtype)
     rays = lens.rays
     coords = np.stack([pinhole.cy + pinhole.f * rays[..., 1], pinhole.cx + pinhole.f * rays[..., 0]])
     if image.ndim == 2:
@@ -281,6 +288,30 @@ def lens_resample(image: np.ndarray, lens: "Camera", pinhole: "Camera", order: i
     out = np.stack([ndimage.map_coordinates(flat[..., c], coords, order=order, mode=mode, cval=cval)
                     for c in range(flat.shape[-1])], axis=-1)
     return out.reshape(lens.shape + image.shape[2:]).astype(image.dtype)
+
+
+def _bilinear_plan(lens: "Camera", pinhole: "Camera") -> tuple[np.ndarray, np.ndarray]:
+    """Where ``lens_resample`` reads each of the lens' pixels in the pinhole's image, as
+    scipy.ndimage.map_coordinates(order=1, mode="nearest") does: flat indices (4, H*W) of
+    the four pixels round it and their weights (4, H*W) float32 (coordinates clamped to
+    the frame). Kept on the lens, per pinhole."""
+    plans = lens.__dict__.setdefault("_bilinear_plans", {})
+    key = (pinhole.width, pinhole.height, pinhole.f, pinhole.cx, pinhole.cy)
+    if key not in plans:
+        rays = lens.rays.reshape(-1, 3)
+        h, w = pinhole.shape
+        r = np.clip(pinhole.cy + pinhole.f * rays[:, 1], 0.0, h - 1.0)
+        c = np.clip(pinhole.cx + pinhole.f * rays[:, 0], 0.0, w - 1.0)
+        r0 = np.minimum(np.floor(r), max(h - 2, 0)).astype(np.int64)
+        c0 = np.minimum(np.floor(c), max(w - 2, 0)).astype(np.int64)
+        fr, fc = r - r0, c - c0
+        r1, c1 = np.minimum(r0 + 1, h - 1), np.minimum(c0 + 1, w - 1)
+        index = np.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1])
+        weight = np.stack([(1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc]).astype(np.float32)
+        for array in (index, weight):
+            array.setflags(write=False)
+        plans[key] = (index, weight)
+    return plans[key]
 
 
 def pinhole_view(image: np.ndarray, lens: "Camera", pinhole: "Camera", order: int = 0) -> np.ndarray:

@@ -82,6 +82,26 @@ def test_a_principal_point_off_the_frames_centre_moves_the_tube(spec):
     assert (moved.scaled(160, 120).cx, moved.scaled(160, 120).cy) == pytest.approx((74.625, 62.125))
 
 
+def test_the_planned_bilinear_read_is_scipys(spec, rng):
+    """lens_resample's kept plan reads what scipy.ndimage.map_coordinates(order=1,
+    mode="nearest") reads, for one plane or several, float32 or float64."""
+    from scipy import ndimage
+
+    lens = Camera.from_spec(_lens(spec, projection="fisheye", fov_y=math.radians(150),
+                                  principal_point_px=(310.0, 245.0)).camera)
+    cover = lens.pinhole_cover()
+    coords = np.stack([cover.cy + cover.f * lens.rays[..., 1], cover.cx + cover.f * lens.rays[..., 0]])
+    for image in (rng.random(cover.shape).astype(np.float32), rng.random(cover.shape + (3,))):
+        planes = image.reshape(cover.shape + (-1,))
+        want = np.stack([ndimage.map_coordinates(planes[..., c], coords, order=1, mode="nearest")
+                         for c in range(planes.shape[-1])], axis=-1).reshape(image.shape)
+        got = lens_resample(image, lens, cover)
+        assert got.dtype == image.dtype and got.shape == lens.shape + image.shape[2:]
+        np.testing.assert_allclose(got, want, atol=1e-6)
+    # other modes still go through scipy
+    assert lens_resample(np.ones(cover.shape), lens, cover, mode="constant", cval=7.0).max() == 7.0
+
+
 def test_the_pinhole_cover_holds_every_ray_of_the_image_circle(spec):
     lens = Camera.from_spec(_lens(spec, projection="fisheye", fov_y=math.radians(135),
                                   principal_point_px=(310.0, 245.0)).camera)
