@@ -35,6 +35,9 @@ from .spec import SensorSpec
 #: Geom groups: what the in-sensor depth camera sees, and visual-only parts.
 GROUP_MEMBRANE_VIEW, GROUP_INDENTER, GROUP_MEMBRANE, GROUP_BODY, GROUP_SPARE = 0, 1, 2, 3, 4
 DEPTH_GROUPS = (GROUP_MEMBRANE_VIEW, GROUP_INDENTER)
+#: Multisampling of the depth camera's buffer: none. Depth is read at pixel centres
+#: either way, and on the software renderer 4 samples cost a quarter of a capture.
+DEPTH_SAMPLES = 0
 
 #: Model extent for MuJoCo's near/far planes, which are fractions of it (metres).
 EXTENT_M = 0.5
@@ -230,6 +233,7 @@ class Rig:
         self.mounted: str | None = None
         self.mount(scene.indenters[0])
         self._renderers: dict = {}
+        self._membrane_depth: np.ndarray | None = None  # the pinhole cover's, rendered once
 
     # -- indenters --------------------------------------------------------------------
 
@@ -292,30 +296,50 @@ class Rig:
 
     # -- rendering --------------------------------------------------------------------
 
-    def _renderer(self, width: int, height: int):
-        key = (width, height)
+    def _renderer(self, width: int, height: int, samples: int | None = None):
+        """A renderer of this size; ``samples``: its buffer's multisampling (None: the
+        model's, MuJoCo's 4)."""
+        key = (width, height, samples)
         if key not in self._renderers:
+            quality = self.model.vis.quality
+            kept = quality.offsamples
+            if samples is not None:
+                quality.offsamples = samples  # read when the context is made
             try:
                 self._renderers[key] = self.mujoco.Renderer(self.model, height, width)
             except Exception as exc:  # MuJoCo raises plain Exceptions for GL failures
                 from .gl import GLPlatformError, missing_message
 
                 raise GLPlatformError(f"MuJoCo could not open a rendering context: {exc}; {missing_message()}") from exc
+            finally:
+                quality.offsamples = kept
         return self._renderers[key]
 
-    def depth(self) -> np.ndarray:
-        """Depth map of the in-sensor camera: (H, W) float32, metres, planar z."""
+    def _depth_of(self, groups) -> np.ndarray:
+        """The depth camera's (pinhole cover's) z-depth of these geom groups, (H, W)
+        float32 metres; the far plane where none is seen."""
         cam = self.spec.camera
-        renderer = self._renderer(cam.width, cam.height)
+        renderer = self._renderer(cam.width, cam.height, DEPTH_SAMPLES)
         option = self.mujoco.MjvOption()
         option.geomgroup[:] = 0
         option.sitegroup[:] = 0  # sites would stand out of the indenter's surface
-        for group in DEPTH_GROUPS:
+        for group in groups:
             option.geomgroup[group] = 1
         renderer.enable_depth_rendering()
         self._effects(renderer, False)  # shadows and reflections only cost time in depth
         renderer.update_scene(self.data, camera="geltip_depth", scene_option=option)
-        depth = np.asarray(renderer.render(), dtype=np.float32)
+        return np.asarray(renderer.render(), dtype=np.float32)
+
+    def depth(self) -> np.ndarray:
+        """Depth map of the in-sensor camera: (H, W) float32, metres, planar z.
+
+        The membrane does not move in the camera's view, so its depth is rendered once;
+        each capture renders the mounted indenter alone and keeps the nearer of the two
+        at each pixel, as one render of both would (the z-buffer's test).
+        """
+        if self._membrane_depth is None:
+            self._membrane_depth = self._depth_of([g for g in DEPTH_GROUPS if g != GROUP_INDENTER])
+        depth = np.minimum(self._membrane_depth, self._depth_of([GROUP_INDENTER]))
         # the pinhole's z-depth read where each of the lens' rays lands: z is the same
         # point's, whichever camera saw it
         return depth if self._cover is self._lens else lens_resample(depth, self._lens, self._cover)

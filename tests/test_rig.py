@@ -86,6 +86,20 @@ def test_measured_indentation_equals_the_commanded_depth(rig_factory, spec, mesh
         assert got == pytest.approx(tap.depth, abs=DEPTH_TOLERANCE_M), f"tap {tap.index} ({name})"
 
 
+def test_a_capture_is_one_render_of_membrane_and_indenter(rig_factory, spec, mesh):
+    """Rig.depth keeps the membrane's depth and renders the indenter alone: what one
+    render of both gives, to float32 rounding, on taps of every kind of indenter."""
+    from scenes.rig import DEPTH_GROUPS
+
+    for name in ("sphere", "indented_prism", "open_cylinder"):
+        rig = rig_factory(name)
+        for tap in base_protocol(spec, mesh, (name,)).taps[::6]:
+            rig.press(tap)
+            both = rig._depth_of(DEPTH_GROUPS)
+            np.testing.assert_allclose(rig.depth(), both, rtol=0, atol=1e-7)
+            assert (both < rig._membrane_depth - 1e-4).any()  # the indenter is in the view
+
+
 def test_pose_puts_the_indenter_where_the_tap_says(rig_factory, spec, mesh):
     rig = rig_factory()
     tap = base_protocol(spec, mesh, ("sphere",)).taps[0]  # the apex, from +X
