@@ -2,9 +2,9 @@
 
 A tap is one task, ``run_tap(job, task, shared)``: it presses the indenter (or, for a
 ``PosedTap``, sets the rig's joints to an explicit pose, e.g. a capture's measured one),
-captures the depth map and renders it, and returns arrays; it writes nothing. The same
-task runs in local processes or on a Ray cluster (``scenes.executors``), and the driver
-alone (``run_tasks``) writes the sample's files and appends its line to ``samples.jsonl``.
+captures the depth map, renders it and encodes the sample's files; it writes nothing.
+The same task runs in local processes or on a Ray cluster (``scenes.executors``), and
+the driver alone (``run_tasks``) writes the files and appends the line to ``samples.jsonl``.
 
 Renderers are plugins (entry point group ``tactile_sim.renderers``), so this module never
 imports one. A plugin is a module with
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import Camera
-from .dataset import DatasetWriter, sample_id, write_sample_files
+from .dataset import DatasetWriter, sample_files, sample_id, write_files
 from .geometry import membrane_mesh
 from .protocol import Protocol, Tap, validate
 from .spec import SensorSpec
@@ -211,13 +211,17 @@ def runner(job: Job, shared=None) -> TapRunner:
 
 
 def run_tap(job: Job, task: Task, shared=None) -> dict:
-    """The task of one tap: press (or pose), capture depth, render; returns arrays,
-    writes nothing.
+    """The task of one tap: press (or pose), capture depth, render, and encode the
+    sample's files (PNG, .npy) where it ran, so that the driver, which writes every file,
+    only writes bytes; writes nothing.
 
-    Returns ``{"record": {...JSON fields...}, "image": (H, W, 3) float32 in [0, 1],
-    "depth": (H, W) float32 metres planar z, "arrays": {name: float32 array}}``.
+    Returns ``{"record": {...JSON fields...}, "files": {key: (relative path, bytes)}}``
+    (``scenes.dataset.sample_files``: its image, depth and the renderer's arrays).
     """
-    return runner(job, shared).run(task)
+    result = runner(job, shared).run(task)
+    sid = result["record"]["id"]
+    return {"record": result["record"],
+            "files": sample_files(sid, result["image"], result["depth"], result["arrays"])}
 
 
 def no_contact(job: Job, shared=None) -> np.ndarray:
@@ -227,9 +231,7 @@ def no_contact(job: Job, shared=None) -> np.ndarray:
 
 def record_sample(writer: DatasetWriter, result: dict) -> None:
     """Write one task's result into the dataset: its files, then its line (driver only)."""
-    record = result["record"]
-    files = write_sample_files(writer.root, record["id"], result["image"], result["depth"], result["arrays"])
-    writer.append({**record, **files})
+    writer.append({**result["record"], **write_files(writer.root, result["files"])})
 
 
 def generate(

@@ -8,6 +8,7 @@ Physically based renders (linear radiance) are sRGB-encoded for viewing (``srgb`
 
 from __future__ import annotations
 
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -46,20 +47,28 @@ def to_uint8(rgb: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(rgb) * 255.0), 0, 255).astype(np.uint8)
 
 
-def write_rgb(path: str | Path, rgb: np.ndarray, compress_level: int = 6) -> Path:
-    """Write (H, W, 3) float RGB in [0, 1] as an 8-bit PNG, atomically.
+def png_bytes(rgb: np.ndarray, compress_level: int = 6) -> bytes:
+    """(H, W, 3) float RGB in [0, 1] as the bytes of an 8-bit PNG.
 
     compress_level : zlib level 0-9 (1 is several times faster, for bulk datasets).
     """
     rgb = np.asarray(rgb)
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"image must be (H, W, 3), got {rgb.shape}")
+    buf = io.BytesIO()
+    Image.fromarray(to_uint8(rgb)).save(buf, format="PNG", compress_level=compress_level)
+    return buf.getvalue()
+
+
+def write_rgb(path: str | Path, rgb: np.ndarray, compress_level: int = 6) -> Path:
+    """Write (H, W, 3) float RGB in [0, 1] as an 8-bit PNG (:func:`png_bytes`), atomically."""
+    data = png_bytes(rgb, compress_level)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png.tmp")
-    os.close(fd)
     try:
-        Image.fromarray(to_uint8(rgb)).save(tmp, format="PNG", compress_level=compress_level)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
