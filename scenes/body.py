@@ -51,6 +51,8 @@ MAX_CORE_TURN_RAD = math.radians(60.0)
 MIN_SEEN_SHARE = 0.5
 #: Bodies :func:`sensor_body` keeps, the most recently used.
 KEPT_BODIES = 4
+#: Version of the thickness kept on disk: bump it when _derived or _given change.
+BODY_CACHE_VERSION = 1
 
 
 @dataclass(frozen=True, eq=False)
@@ -259,6 +261,15 @@ def _check_leds(spec: SensorSpec, body: SensorBody, name: str) -> None:
 _bodies: OrderedDict = OrderedDict()
 
 
+def _kept_thickness(kind: str, key: list, build) -> np.ndarray:
+    """The thickness ``build()`` derives and checks (seconds on a new shape's mesh: every
+    worker process of a dataset needs it), kept on disk (``scenes.cache``) under what it
+    depends on; a mesh that fails the checks raises and is never kept."""
+    from .cache import cached, make_key
+
+    return cached(f"body-{kind}", make_key(BODY_CACHE_VERSION, *key), lambda: {"thickness": build()})["thickness"]
+
+
 def sensor_body(spec: SensorSpec, membrane: trimesh.Trimesh | None = None) -> SensorBody:
     """The body of a sensor spec, built and checked (module doc); kept across calls,
     keyed by the membrane and everything of the spec it reads.
@@ -284,9 +295,11 @@ def sensor_body(spec: SensorSpec, membrane: trimesh.Trimesh | None = None) -> Se
         if m.mesh_transform is not None:
             core.apply_transform(np.reshape(m.mesh_transform, (4, 4)))
         validate_mesh(core, f"{name}: core {m.core_mesh_path}")
-        thickness = _given(membrane, core, name)
+        thickness = _kept_thickness("given", [mesh_digest(membrane), mesh_digest(core)],
+                                    lambda: _given(membrane, core, name))
     else:
-        thickness = _derived(membrane, m.thickness, name)
+        thickness = _kept_thickness("derived", [mesh_digest(membrane), m.thickness, MAX_CORE_TURN_RAD],
+                                    lambda: _derived(membrane, m.thickness, name))
     _check_thickness(thickness, m.thickness_bounds, membrane, name)
     body = SensorBody(membrane, thickness, check_seen(membrane, camera, name))
     if m.shape != "capsule":

@@ -165,7 +165,28 @@ def test_a_core_thinner_than_the_minimum_somewhere_is_refused(coarse, tmp_path):
         sensor_body(_mesh_spec(_write(mesh, tmp_path), core_mesh_path=_write(core, tmp_path, "core.ply")))
 
 
-def test_a_derived_core_that_folds_is_refused(tmp_path):
+def test_a_derived_thickness_is_kept_on_disk_and_a_refused_one_is_not(coarse, tmp_path, monkeypatch):
+    """What a dataset's worker processes read instead of deriving it again (seconds on a
+    new shape), under the membrane and the thickness; a refusal is never kept."""
+    import scenes.body as body_module
+
+    capsule, _ = coarse
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    spec = _mesh_spec(_write(capsule, tmp_path), thickness=THICKNESS_M, mesh_edge=0.001)
+    first = sensor_body(spec).thickness
+    assert len(list((tmp_path / "cache").glob("body-derived-*.npz"))) == 1
+    body_module._bodies.clear()  # as a new process: only the disk has it
+    monkeypatch.setattr(body_module, "_derived", lambda *a: pytest.fail("derived again"))
+    np.testing.assert_array_equal(sensor_body(spec).thickness, first)
+    # another thickness is another entry, derived afresh
+    monkeypatch.undo()
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    body_module._bodies.clear()
+    sensor_body(_mesh_spec(_write(capsule, tmp_path), thickness=2e-3, mesh_edge=0.001))
+    assert len(list((tmp_path / "cache").glob("body-derived-*.npz"))) == 2
+
+
+def test_a_derived_core_that_folds_is_refused(tmp_path, monkeypatch):
     # A 3 mm-radius groove round a capsule: a 4 mm elastomer offset inwards folds there.
     spec = default_spec()
     mesh = membrane_mesh(spec)
@@ -174,8 +195,11 @@ def test_a_derived_core_that_folds_is_refused(tmp_path):
     groove = 2.0e-3 * np.exp(-((V[:, 2] - 0.01) / 1.5e-3) ** 2)
     V[:, :2] *= ((r - groove) / np.maximum(r, 1e-12))[:, None]
     grooved = trimesh.Trimesh(V, mesh.faces, process=False)
-    with pytest.raises(ValueError, match="folds over|intersects itself"):
-        sensor_body(_mesh_spec(_write(grooved, tmp_path), thickness=4e-3))
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    for _ in range(2):  # refused again: a refusal is not kept
+        with pytest.raises(ValueError, match="folds over|intersects itself"):
+            sensor_body(_mesh_spec(_write(grooved, tmp_path), thickness=4e-3))
+    assert not list((tmp_path / "cache").glob("body-*.npz"))
 
 
 def test_a_membrane_the_camera_cannot_see_whole_is_refused(coarse, tmp_path):
