@@ -1,7 +1,8 @@
 """Where tap tasks run: local processes or a Ray cluster, results yielded as they finish.
 
 Both executors run the same task, ``scenes.generate.run_tap(job, tap, shared)``, which
-returns arrays and writes nothing; the caller (the driver) writes every file. The plugin's
+returns a sample's record and its files' encoded bytes and writes nothing; the caller (the
+driver) writes every file. The plugin's
 large shared inputs reach each worker process once: through the pool's initializer
 locally, through Ray's object store (``ray.put`` once, the ObjectRef passed to every
 task) on a cluster. Ray is imported here only, and only for ``executor="ray"``.
