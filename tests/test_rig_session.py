@@ -241,7 +241,7 @@ def _check_dataset(root: Path, protocol):
 
 def test_a_virtual_session_captures_what_the_dataset_generator_renders(spec, protocol, virtual, tmp_path):
     from rig.session import prepare
-    from scenes.generate import Job, no_contact, run_tap
+    from scenes.generate import Job, no_contact, runner
     from scenes.images import read_rgb
 
     short = _taps(protocol, 4)
@@ -261,7 +261,7 @@ def test_a_virtual_session_captures_what_the_dataset_generator_renders(spec, pro
             tolerance = POSITION_RESOLUTION_M if joint.startswith("printer") else ANGLE_RESOLUTION_RAD
             assert abs(record["measured_pose"][joint] - value) <= tolerance, joint
         assert record["measured_depth"] == pytest.approx(tap.depth, abs=POSITION_RESOLUTION_M)
-        expected = run_tap(job, tap)["image"]
+        expected = runner(job).run(tap)["image"]
         got = read_rgb(tmp_path / "cap" / record["image"])
         assert np.abs(got - expected).mean() < 1.0 / 255, record["id"]
     background = read_rgb(tmp_path / "cap" / "background.png")
