@@ -217,6 +217,12 @@ def _ry(pitch) -> np.ndarray:
     return np.stack([np.stack([c, o, s], -1), np.stack([o, i, o], -1), np.stack([-s, o, c], -1)], -2)
 
 
+def _indenter_turn(pitch) -> np.ndarray:
+    """Rotation (..., 3, 3) of an indenter mesh into the world at a pitch: pointing down,
+    then turned by the pitch servo."""
+    return _ry(pitch) @ _rx_pi()
+
+
 @dataclass(frozen=True)
 class RigLayout:
     """Where the rig's parts are, metres (world frame).
@@ -291,10 +297,9 @@ class RigLayout:
 def indenter_to_world(head, pitch: float, layout: RigLayout = RigLayout()) -> tuple[np.ndarray, np.ndarray]:
     """(R, t): an indenter mesh's frame in the world, with the head at ``head`` (3,) m and
     the pitch servo at ``pitch`` rad; world = R @ v + t for a mesh vertex v."""
-    ry = _ry(float(pitch))
-    R = ry @ _rx_pi()
+    R = _indenter_turn(float(pitch))
     t = np.asarray(head, dtype=np.float64) + np.array([0.0, 0.0, -layout.mount_length]) \
-        + ry @ np.array([0.0, 0.0, -layout.indenter_offset])
+        + _ry(float(pitch)) @ np.array([0.0, 0.0, -layout.indenter_offset])
     return R, t
 
 
@@ -311,8 +316,7 @@ def indenter_to_sensor(roll, pitch) -> np.ndarray:
     (3, 3) or (N, 3, 3) float64, ``sensor_to_world(roll).T @ R`` with R the rotation of
     :func:`indenter_to_world`.
     """
-    R = _ry(np.asarray(pitch, dtype=np.float64)) @ _rx_pi()
-    return np.swapaxes(sensor_to_world(roll), -1, -2) @ R
+    return np.swapaxes(sensor_to_world(roll), -1, -2) @ _indenter_turn(np.asarray(pitch, dtype=np.float64))
 
 
 def head_for_tap(tap, vertices: np.ndarray, layout: RigLayout = RigLayout()) -> np.ndarray:
