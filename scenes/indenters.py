@@ -512,15 +512,20 @@ def load_indenter(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     return mesh
 
 
+def is_indenter(name_or_path: str | Path) -> bool:
+    """Whether :func:`indenter` takes it: a paper indenter's name or an existing file."""
+    return str(name_or_path) in INDENTERS or Path(name_or_path).is_file()
+
+
 def indenter(name_or_path: str | Path, seed: int = 0, units: str = "mm") -> trimesh.Trimesh:
     """A paper indenter by name (:data:`INDENTERS`), or any mesh file by path, in metres.
 
     ``seed`` seeds ``"random"``; ``units`` are those of a mesh file (see :func:`load_indenter`).
     """
+    if not is_indenter(name_or_path):
+        raise ValueError(
+            f"indenter must be one of {', '.join(INDENTERS)} or an existing mesh file; got {str(name_or_path)!r}"
+        )
     if str(name_or_path) in INDENTERS:
         return make_indenter(str(name_or_path), seed=seed)
-    if Path(name_or_path).is_file():
-        return load_indenter(name_or_path, units=units)
-    raise ValueError(
-        f"indenter must be one of {', '.join(INDENTERS)} or an existing mesh file; got {str(name_or_path)!r}"
-    )
+    return load_indenter(name_or_path, units=units)

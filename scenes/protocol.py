@@ -22,7 +22,6 @@ import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -626,8 +625,9 @@ def core_safe_depth_m(spec: SensorSpec, mesh: trimesh.Trimesh, taps: Sequence[Ta
 
 def _capped(taps: list[Tap], spec: SensorSpec, mesh: trimesh.Trimesh) -> tuple[tuple[Tap, ...], np.ndarray]:
     """The taps, each pressing no deeper than its indenter may before it touches the glass
-    core, and those safe depths (:func:`core_safe_depth_m`, which a tap's own depth does
-    not change); a tap that cannot press at all is left for :func:`validate` to refuse."""
+    core, and their safe depths (:func:`core_safe_depth_m`: a capped tap's is the depth it
+    now has, an uncapped one's its own, so they hold for the capped taps as well); a tap
+    that cannot press at all is left for :func:`validate` to refuse."""
     safe = core_safe_depth_m(spec, mesh, taps)
     return tuple(replace(t, depth=float(d)) if 0.0 < d < t.depth else t for t, d in zip(taps, safe)), safe
 
@@ -775,9 +775,9 @@ def _validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh, safe:
         lambda i: f"sensor_roll {roll[i]:.6g} rad and indenter_pitch {pitch[i]:.6g} rad point the indenter "
         f"{math.degrees(err[i]):.4f} deg away from -normal",
     )
-    from .indenters import INDENTERS
+    from .indenters import INDENTERS, is_indenter
 
-    known = {o: o in INDENTERS or Path(o).is_file() for o in {t.object for t in taps}}
+    known = {o: is_indenter(o) for o in {t.object for t in taps}}
     fail(np.array([not known[t.object] for t in taps]),
          lambda i: f"object {taps[i].object!r} is none of the indenters {', '.join(INDENTERS)} and no mesh file")
     safe = core_safe_depth_m(spec, mesh, taps) if safe is None else safe
