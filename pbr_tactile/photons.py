@@ -300,9 +300,12 @@ def _sample_dielectric(mi, dr, d, n, eta, u):
 
 
 def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: dict, sampler, photons: int,
-                      sigma_t: float, albedo: float, coating_albedo: float, may_split: bool) -> dict:
-    """Trace one generation of photons from ``start``, depositing into ``acc``; returns
-    the queue of photons the weight window split (slot per lane, k = 0 where none)."""
+                      sigma_t: float, albedo: float, coating_albedo: float, may_split: bool, grid=None,
+                      track=None) -> dict:
+    """Trace one generation of photons from ``start``, depositing into ``acc`` (and, with a
+    ``grid`` (``pbr_tactile.fluence.FluenceGrid``), their tracks in the elastomer into
+    ``track``); returns the queue of photons the weight window split (slot per lane, k = 0
+    where none)."""
     import drjit as dr
 
     n_vertices = len(c.vertex_area)
@@ -323,6 +326,13 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
         pi = scene.ray_intersect_preliminary(ray, False, active)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
         scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
+        if grid is not None:
+            # Track length: the segment's w l, at one point drawn uniformly along it.
+            length = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
+            crossed = active & in_el & (scatter | si.is_valid())
+            at = ray(sampler.next_1d(active) * length)
+            dr.scatter_reduce(dr.ReduceOp.Add, track, weight * length, s * grid.size + grid.index(mi, at), crossed,
+                              mode=dr.ReduceMode.Expand)
         surface = active & ~scatter & si.is_valid()
         hit_coating = surface & (si.shape == c.coating)
         corners, bary = _corners(mi, c.faces, pi, hit_coating)
@@ -373,7 +383,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
 
 
 def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-             photons: int, seed: int = 0, window: np.ndarray | None = None) -> np.ndarray:
+             photons: int, seed: int = 0, window: np.ndarray | None = None, grid=None):
     """Per source, the flux each coating vertex receives, per unit flux emitted.
 
     All sources' photons are traced in one wavefront, as one symbolic Dr.Jit loop (one
@@ -388,7 +398,10 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         next generation. Both keep the estimate unbiased; they move photons from the
         bright LED end to the dim tip, so every part of the coating gets about the same
         number of deposits. Without a window, plain Russian roulette after RR_DEPTH.
-    Returns (S, V) float64, V the coating mesh's vertex count.
+    grid : a ``pbr_tactile.fluence.FluenceGrid``: the photons' tracks in the elastomer
+        are summed per voxel too (``FluenceGrid.fluence`` makes them the fluence).
+    Returns (S, V) float64, V the coating mesh's vertex count; with a grid, that and the
+    (S, N) tracks, N the grid's voxels (m per unit flux emitted).
     """
     import drjit as dr
 
@@ -397,6 +410,7 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     n_src = len(sources)
     interfaces = _interfaces(mi, scene)
     acc = dr.zeros(mi.Float, n_src * n_vertices)
+    track = None if grid is None else dr.zeros(mi.Float, n_src * grid.size)
     target = None if window is None else _owned(mi.Float, np.asarray(window, dtype=np.float64).ravel())
 
     # Generation 0: points on the LED spheres, cosine about their normals.
@@ -421,10 +435,14 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         if generation > 0:
             sampler = _Rng(mi, identity)
         queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
-                                  coating_albedo, target is not None and generation < MAX_GENERATIONS - 1)
+                                  coating_albedo, target is not None and generation < MAX_GENERATIONS - 1,
+                                  grid, track)
         if target is None:
             break
-        dr.eval(acc, queue)
+        if track is None:
+            dr.eval(acc, queue)
+        else:
+            dr.eval(acc, track, queue)
         split = np.asarray(queue["k"]) > 0
         if not split.any():
             break
@@ -443,7 +461,8 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
                  "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": _owned(mi.UInt32, rep["s"]),
                  "depth": _owned(mi.UInt32, rep["depth"]), "id": _owned(mi.UInt64, identity),
                  "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"]))}
-    return np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
+    flux = np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
+    return flux if track is None else (flux, np.asarray(track, dtype=np.float64).reshape(n_src, grid.size))
 
 
 def weight_window(irradiance_pilot: np.ndarray, vertex_area: np.ndarray, photons: int,
@@ -538,7 +557,7 @@ CAMERA_PASS_VERSION = 3
 
 def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
                 coating_albedo: float, spp: int, seed: int = 0, batch: int = 1 << 21,
-                scatter_split: int = SCATTER_SPLIT) -> np.ndarray:
+                scatter_split: int = SCATTER_SPLIT, fluence=None) -> np.ndarray:
     """Per pixel and source, the radiance reaching the camera per unit emitted flux.
 
     Camera rays (the scene's sensor, spp per pixel, one in each cell of a jittered grid
@@ -556,6 +575,13 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     (without the medium the contact region's noise is 0.36 % at 48 spp; with it, 2.5 %),
     so that is where the samples go.
 
+    fluence : (grid, phi): a ``pbr_tactile.fluence.FluenceGrid`` and the (S, N) fluence
+        per unit flux of each source in its voxels (``FluenceGrid.fluence`` of the photons'
+        tracks). A ray's scattering event then ends its walk with the in-scattered
+        radiance phi(x) / (4 pi) read there, which holds all the light that reaches x, the
+        LEDs' through the glass included: no split, no next-event estimate
+        (``pbr_tactile.fluence``; ``scatter_split`` is unused).
+
     The transport is grey, so no wavelength is sampled here: the film's response is
     applied exactly afterwards (pbr_tactile.spectra.film_response). Rays are traced in
     one symbolic loop per batch of at most ``batch`` camera samples.
@@ -566,6 +592,13 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     c = _coating(mi, scene)
     interfaces = _interfaces(mi, scene)
     E = [_owned(mi.Float, m) for m in maps]
+    if fluence is not None:
+        grid, phi = fluence
+        phi = np.asarray(phi)
+        if phi.shape != (len(sources), grid.size):
+            raise ValueError(f"fluence must be (sources, voxels) = ({len(sources)}, {grid.size}), got {phi.shape}")
+        fluence = (grid, _owned(mi.Float, phi.ravel()))
+        scatter_split = 1
     emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance).
     # The axis is a scalar vector, copied into each expression: Dr.Jit 1.5 can broadcast a
@@ -614,7 +647,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         in_el = both(dielectric & enters, dr.zeros(mi.Bool, n))
         walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, led_radiance, interfaces,
                                  sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
-                                 coating_albedo=coating_albedo)
+                                 coating_albedo=coating_albedo, fluence=fluence)
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
         # One kernel for every source's output (converting them one by one would trace
         # the walk once per source).
@@ -685,14 +718,16 @@ def _led_nee(mi, dr, scene, leds, emitters, led_radiance, point, beta, sampler, 
 
 def _camera_walk(mi, dr, scene, c, E, leds, emitters, led_radiance, interfaces, sampler, ray, beta, in_el,
                  sigma_s: float, sigma_a: float, coating_albedo: float, stop_at_scatter: bool = False,
-                 after_scatter=None):
+                 after_scatter=None, fluence=None):
     """Follow camera rays (one symbolic loop) until they end on the coating, an LED or
     nothing. At a scattering event the LEDs' direct light comes by next-event estimation
     (``_led_nee``), so a segment starting there does not count an LED it hits (it would
     count that light twice); after an interface it does. Returns the radiance per unit
     flux of each source per lane, and, with ``stop_at_scatter``, the lanes stopped at
     their first scattering event (a dict of arrays: flag, position, weight, one slot per
-    lane), else None. ``after_scatter``: lanes that start at a scattering event."""
+    lane), else None. ``after_scatter``: lanes that start at a scattering event.
+    ``fluence``: (FluenceGrid, its (S * N) Dr.Jit fluence): a scattering event adds
+    beta phi(x) / (4 pi) and ends the lane (``camera_pass``)."""
     n_src = len(E)
     n = dr.width(beta)
     lane_index = dr.arange(mi.UInt32, n)
@@ -723,14 +758,20 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, led_radiance, interfaces, 
         ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
         depth += 1
         keep = scatter
-        if stopped is not None:
+        if fluence is not None:
+            grid, phi = fluence
+            voxel = grid.index(mi, scatter_pos)
+            T = [t + dr.select(scatter, beta * dr.gather(mi.Float, phi, m * grid.size + voxel, scatter) / (4 * math.pi),
+                               0.0) for m, t in enumerate(T)]
+            keep = mi.Bool(False)
+        elif stopped is not None:
             # Lanes carrying little (the tube's reflection, weight F) are not worth splitting.
             stop = scatter & (beta > SPLIT_MIN_WEIGHT)
             for key, value in (("flag", mi.Float(1.0)), ("px", scatter_pos.x), ("py", scatter_pos.y),
                                ("pz", scatter_pos.z), ("beta", beta)):
                 dr.scatter(stopped[key], value, lane_index, stop)
             keep = scatter & ~stop
-        if sigma_s > 0:
+        if sigma_s > 0 and fluence is None:
             direct = _led_nee(mi, dr, scene, leds, emitters, led_radiance, scatter_pos, beta, sampler, keep, sigma_t)
             T = [t + dt for t, dt in zip(T, direct)]
         after = keep

@@ -1,0 +1,116 @@
+"""The elastomer's fluence from the photons' tracks: the camera's in-scattered light by lookup.
+
+Light that the elastomer scatters towards the camera at a point x is, for its isotropic
+phase, sigma_s / (4 pi) times the fluence phi(x) = integral of L(x, w) over all
+directions. The photon pass (``pbr_tactile.photons.deposits``) already carries every path
+by which light reaches the elastomer, including those the camera cannot find by path
+tracing: an LED seen from a scattering point through the glass core is a small, bright
+target behind a smooth interface, which camera rays hit rarely and then with a large
+weight. Those rare samples were most of a contact's noise (measured on a GelTip top-row
+tap: 1 % of the contact region's pixels held all of the per-pass error).
+
+The fluence is estimated on a voxel grid by the track-length estimator: a photon of
+weight w that crosses the elastomer along a segment of length l adds w l at one point
+drawn uniformly on the segment, to the voxel that point falls in. Divided by the
+elastomer's volume inside the voxel (``FluenceGrid.volume``), that is an unbiased estimate
+of the fluence averaged over the voxel's elastomer; reading it at a point is biased by
+the fluence's variation across one voxel, as the coating's density estimate is by its
+kernel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Default edge of a fluence voxel, m: a fifth of the GelTip's 2.5 mm elastomer.
+VOXEL_M = 0.5e-3
+#: Voxels whose elastomer fills less than this fraction of them read the fluence of their
+#: elastomer over at least this fraction's volume (a sliver's few tracks would otherwise be
+#: divided by a near-zero volume).
+MIN_FRACTION = 0.05
+#: Points per voxel edge that measure the elastomer's volume in a voxel the surface cuts.
+SUBSAMPLES = 4
+
+
+@dataclass(frozen=True)
+class FluenceGrid:
+    """A regular grid over the elastomer: ``origin`` (3,) m, the corner of voxel (0, 0, 0);
+    ``voxel`` its edge, m; ``volume`` (nx, ny, nz) m^3 of elastomer inside each voxel."""
+
+    origin: np.ndarray
+    voxel: float
+    volume: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.volume.shape)
+
+    @property
+    def size(self) -> int:
+        return int(self.volume.size)
+
+    def index(self, mi, p):
+        """Dr.Jit: the flat voxel index of points p (Point3f), clamped to the grid."""
+        import drjit as dr
+
+        nx, ny, nz = self.shape
+        i = [dr.clip(mi.Int32(dr.floor((p[k] - float(self.origin[k])) / self.voxel)), 0, n - 1)
+             for k, n in enumerate((nx, ny, nz))]
+        return mi.UInt32((i[0] * ny + i[1]) * nz + i[2])
+
+    def fluence(self, track: np.ndarray) -> np.ndarray:
+        """(S, N) fluence per unit emitted flux, 1/m^2, from the tracks' (S, N) summed w l,
+        m (``deposits(..., grid=)``); 0 in voxels with no elastomer."""
+        floor = MIN_FRACTION * self.voxel**3
+        volume = self.volume.ravel()
+        return np.where(volume > 0, np.asarray(track, np.float64) / np.maximum(volume, floor), 0.0)
+
+
+def fluence_grid(solid, voxel: float = VOXEL_M, like: FluenceGrid | None = None,
+                 within: np.ndarray | None = None) -> FluenceGrid:
+    """The grid of a closed solid (``trimesh.Trimesh``, watertight: the elastomer's
+    ``Elastomer.solid()``), its voxels' elastomer volume measured by point containment.
+
+    A voxel whose 8 corners are all inside (outside) counts whole (empty); one the surface
+    cuts is measured on SUBSAMPLES^3 points. like, within : a grid of the same solid
+    before a local change, and the (2, 3) bounds of the change: only the voxels that
+    overlap it are measured again (a contact's dent), the rest are ``like``'s.
+    """
+    if not (np.isfinite(voxel) and voxel > 0):
+        raise ValueError(f"voxel must be a finite edge > 0 m, got {voxel!r}")
+    if not solid.is_watertight:
+        raise ValueError("the fluence grid needs a closed (watertight) solid")
+    if like is not None:
+        if within is None:
+            raise ValueError("like needs within, the bounds of the change")
+        origin, voxel, volume = like.origin, like.voxel, like.volume.copy()
+        lo = np.maximum(np.floor((np.asarray(within[0]) - origin) / voxel).astype(int) - 1, 0)
+        hi = np.minimum(np.ceil((np.asarray(within[1]) - origin) / voxel).astype(int) + 1, volume.shape)
+    else:
+        origin = np.asarray(solid.bounds[0], np.float64) - voxel
+        shape = np.ceil((solid.bounds[1] + voxel - origin) / voxel).astype(int)
+        volume = np.zeros(shape)
+        lo, hi = np.zeros(3, int), shape
+    volume[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = _measure(solid, origin, voxel, lo, hi)
+    return FluenceGrid(origin, float(voxel), volume)
+
+
+def _measure(solid, origin: np.ndarray, voxel: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Elastomer volume, m^3, of the voxels [lo, hi) of the grid at origin."""
+    from scipy import ndimage
+
+    n = hi - lo
+    axes = [origin[k] + (lo[k] + np.arange(n[k] + 1)) * voxel for k in range(3)]
+    corners = solid.contains(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape(n + 1)
+    inside = sum(corners[i:i + n[0], j:j + n[1], k:k + n[2]].astype(int) for i in (0, 1) for j in (0, 1) for k in (0, 1))
+    fraction = (inside == 8).astype(np.float64)
+    # The surface can clip a voxel without enclosing any of its corners: measure the empty
+    # voxels beside any elastomer too.
+    cut = np.argwhere(((inside > 0) & (inside < 8)) | ((inside == 0) & ndimage.binary_dilation(inside > 0)))
+    if len(cut):
+        offsets = (np.stack(np.meshgrid(*[np.arange(SUBSAMPLES)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5)
+        points = origin + ((lo + cut)[:, None, :] + offsets[None] / SUBSAMPLES) * voxel
+        fraction[tuple(cut.T)] = solid.contains(points.reshape(-1, 3)).reshape(len(cut), -1).mean(axis=1)
+    return fraction * voxel**3

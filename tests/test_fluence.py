@@ -1,0 +1,115 @@
+"""The elastomer's fluence grid and the camera's in-scattered light read from it."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import trimesh
+
+from pbr_tactile.effects import Effects
+from pbr_tactile.fluence import MIN_FRACTION, FluenceGrid, fluence_grid
+
+
+def test_the_grid_measures_a_shells_volume_voxel_by_voxel():
+    """A tube wall (annulus) 2.5 mm thick, about the GelTip's elastomer: the voxels' summed
+    elastomer volume is the wall's, and no voxel holds more than its own volume."""
+    shell = trimesh.creation.annulus(r_min=9e-3, r_max=11.5e-3, height=20e-3, sections=256)
+    grid = fluence_grid(shell, voxel=0.5e-3)
+    exact = np.pi * (11.5e-3**2 - 9e-3**2) * 20e-3
+    assert grid.volume.sum() == pytest.approx(exact, rel=0.01)
+    assert grid.volume.max() <= grid.voxel**3 * (1 + 1e-12) and grid.volume.min() >= 0
+    # Voxels well inside the wall are whole, those well inside the bore empty.
+    centre = grid.origin + (np.argwhere(np.ones(grid.shape, bool)) + 0.5) * grid.voxel
+    radius = np.hypot(centre[:, 0], centre[:, 1]).reshape(grid.shape)
+    middle = np.abs(centre[:, 2].reshape(grid.shape)) < 9e-3
+    assert np.all(grid.volume[(radius > 9.5e-3) & (radius < 11e-3) & middle] == grid.voxel**3)
+    assert np.all(grid.volume[radius < 8.5e-3] == 0)
+
+
+def test_a_local_change_remeasures_only_the_voxels_it_overlaps():
+    shell = trimesh.creation.annulus(r_min=9e-3, r_max=11.5e-3, height=20e-3, sections=128)
+    grid = fluence_grid(shell, voxel=0.5e-3)
+    dented = shell.copy()
+    moved = dented.vertices[:, 0] > 11.4e-3  # the outer wall's vertices on +x
+    dented.vertices[moved, 0] -= 1e-3
+    bounds = np.array([dented.vertices[moved].min(0), shell.vertices[moved].max(0)])
+    local = fluence_grid(dented, like=grid, within=bounds)
+    whole = fluence_grid(dented, voxel=0.5e-3)
+    assert np.array_equal(local.volume, whole.volume)
+    assert local.volume.sum() < grid.volume.sum()
+    with pytest.raises(ValueError, match="within"):
+        fluence_grid(dented, like=grid)
+
+
+def test_bad_grids_are_refused():
+    box = trimesh.creation.box((1e-2, 1e-2, 1e-2))
+    with pytest.raises(ValueError, match="voxel"):
+        fluence_grid(box, voxel=0.0)
+    open_box = box.copy()
+    open_box.update_faces(np.arange(len(box.faces)) > 0)
+    with pytest.raises(ValueError, match="watertight"):
+        fluence_grid(open_box)
+
+
+def test_fluence_is_the_tracks_over_the_elastomers_volume():
+    voxel = 1e-3
+    volume = np.array([1.0, 0.5, 0.01, 0.0]).reshape(1, 1, 4) * voxel**3
+    grid = FluenceGrid(np.zeros(3), voxel, volume)
+    track = np.array([[2e-9, 2e-9, 2e-9, 2e-9]])
+    phi = grid.fluence(track)
+    assert phi.shape == (1, 4)
+    np.testing.assert_allclose(phi[0, :2], [2e-9 / voxel**3, 4e-9 / voxel**3])
+    assert phi[0, 2] == pytest.approx(2e-9 / (MIN_FRACTION * voxel**3))  # a sliver: the floor
+    assert phi[0, 3] == 0.0  # no elastomer
+
+
+@pytest.mark.slow
+def test_in_scatter_from_the_fluence_agrees_with_the_split_estimator(tmp_path, mesh, spec, camera):
+    """The same no-contact frame by both ways of finding the light the elastomer scatters
+    towards the camera: split camera paths with next-event estimates, or the photons'
+    fluence. Only that part differs (a scattering event is where the two walks part), so
+    the frames agree to the fluence grid's bias, and the fluence's has far less noise."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.membrane import elastomer
+    from pbr_tactile.photons import (camera_pass, coating_areas, coating_vertices, density_kernel, deposits,
+                                     irradiance, sources_from)
+    from pbr_tactile.render import source_response
+    from pbr_tactile.scene import geltip_scene, led_sources, write_meshes
+
+    from test_pbr import _vectorised
+
+    effects = Effects()
+    solid = elastomer(mesh, spec, camera)
+    scene = geltip_scene(write_meshes(solid, tmp_path), spec, camera, effects, 64, 48, spp=4)
+    mi, loaded = _vectorised(scene)
+    grid = fluence_grid(solid.solid())
+    leds = led_sources(spec, effects)
+    srcs, response = sources_from(leds), source_response(leds, effects)
+    kernel = density_kernel(coating_vertices(loaded), 1.5e-3)
+    area = coating_areas(loaded)
+    args = (effects.sigma_t, effects.albedo, effects.coating_albedo)
+    split, looked_up, seconds = [], [], {"split": 0.0, "fluence": 0.0}
+    for k in range(4):
+        flux, track = deposits(mi, loaded, srcs, *args, photons=1 << 17, seed=k, grid=grid)
+        maps = irradiance(flux, area, kernel)
+        t0 = time.perf_counter()
+        split.append(camera_pass(mi, loaded, srcs, maps, *args, spp=16, seed=k) @ response)
+        t1 = time.perf_counter()
+        looked_up.append(camera_pass(mi, loaded, srcs, maps, *args, spp=16, seed=k,
+                                     fluence=(grid, grid.fluence(track))) @ response)
+        seconds["split"] += t1 - t0
+        seconds["fluence"] += time.perf_counter() - t1
+    split, looked_up = np.stack(split), np.stack(looked_up)
+    circle = camera.scaled(64, 48).mask
+    ratio = looked_up.mean(0)[circle].sum(0) / split.mean(0)[circle].sum(0)
+    # Each pass's own error, by channel, over the image circle: RMS relative spread.
+    spread = {name: float(np.sqrt(np.nanmean(s.var(0, ddof=1)[circle] / s.mean(0)[circle] ** 2)))
+              for name, s in (("split", split), ("fluence", looked_up))}
+    print(f"fluence / split per channel {np.round(ratio, 4)}; per-pass RMS relative error {spread}; "
+          f"camera seconds {seconds}")
+    np.testing.assert_allclose(ratio, 1.0, atol=0.02)
+    assert spread["fluence"] < spread["split"]
+    with pytest.raises(ValueError, match="fluence must be"):
+        camera_pass(mi, loaded, srcs, maps, *args, spp=1, fluence=(grid, grid.fluence(track)[:1]))
