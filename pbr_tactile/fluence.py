@@ -63,9 +63,12 @@ class FluenceGrid:
     def fluence(self, track: np.ndarray) -> np.ndarray:
         """(S, N) fluence per unit emitted flux, 1/m^2, from the tracks' (S, N) summed w l,
         m (``deposits(..., grid=)``); 0 in voxels with no elastomer."""
+        track = np.asarray(track, np.float64)
+        if track.ndim != 2 or track.shape[1] != self.size:
+            raise ValueError(f"track must be (sources, {self.size}) for this grid's voxels, got {track.shape}")
         floor = MIN_FRACTION * self.voxel**3
         volume = self.volume.ravel()
-        return np.where(volume > 0, np.asarray(track, np.float64) / np.maximum(volume, floor), 0.0)
+        return np.where(volume > 0, track / np.maximum(volume, floor), 0.0)
 
 
 def fluence_grid(solid, voxel: float = VOXEL_M, like: FluenceGrid | None = None,

@@ -589,16 +589,17 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     """
     import drjit as dr
 
-    c = _coating(mi, scene)
-    interfaces = _interfaces(mi, scene)
-    E = [_owned(mi.Float, m) for m in maps]
+    lookup = None
     if fluence is not None:
         grid, phi = fluence
         phi = np.asarray(phi)
         if phi.shape != (len(sources), grid.size):
             raise ValueError(f"fluence must be (sources, voxels) = ({len(sources)}, {grid.size}), got {phi.shape}")
-        fluence = (grid, _owned(mi.Float, phi.ravel()))
+        lookup = (grid, _owned(mi.Float, phi.ravel()))
         scatter_split = 1
+    c = _coating(mi, scene)
+    interfaces = _interfaces(mi, scene)
+    E = [_owned(mi.Float, m) for m in maps]
     emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance).
     # The axis is a scalar vector, copied into each expression: Dr.Jit 1.5 can broadcast a
@@ -647,7 +648,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         in_el = both(dielectric & enters, dr.zeros(mi.Bool, n))
         walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, led_radiance, interfaces,
                                  sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
-                                 coating_albedo=coating_albedo, fluence=fluence)
+                                 coating_albedo=coating_albedo, fluence=lookup)
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
         # One kernel for every source's output (converting them one by one would trace
         # the walk once per source).
