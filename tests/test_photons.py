@@ -40,6 +40,31 @@ def test_kernel_weights_every_pair_within_the_radius_seams_included():
     assert density_kernel(positions + 1e-9, radius) is not K
 
 
+def test_a_dented_kernel_is_its_undeformed_kernel_changed_where_vertices_moved():
+    """density_kernel(like=): only the moved vertices' rows and columns are computed again,
+    and the kernel is the one computed from scratch, entry for entry (seams that moved
+    together, and pairs of two moved vertices, included)."""
+    rng = np.random.default_rng(2)
+    flat = rng.uniform(0, 3e-3, size=(400, 3))
+    flat[1] = flat[0]  # a seam
+    radius = 1e-3
+    K0 = density_kernel(flat, radius)
+    dented = flat.copy()
+    moved = np.linalg.norm(flat - 1.5e-3, axis=1) < 1e-3
+    moved[:2] = True
+    dented[moved] -= rng.uniform(0, 4e-4, size=(moved.sum(), 3))
+    dented[1] = dented[0]
+    assert 20 < moved.sum() < 380
+    again = density_kernel(dented, radius, like=(flat, K0))
+    from pbr_tactile import photons
+
+    photons._KERNELS.clear()  # a fresh computation, not the kept one
+    scratch = density_kernel(dented, radius)
+    assert again is not scratch and (again != scratch).nnz == 0
+    assert again.nnz == scratch.nnz
+    assert density_kernel(flat.copy(), radius, like=(flat, K0)).nnz == K0.nnz  # nothing moved
+
+
 def test_kernel_density_averages_noise_down_as_one_over_radius():
     rng = np.random.default_rng(0)
     positions, area = _plane_grid(n=61)
