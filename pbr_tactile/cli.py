@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .fluence import INSCATTER
+
 
 def _pixel(value: str) -> tuple[float, float]:
     """``U,V`` in pixels -> (u, v), for ``--at``."""
@@ -110,7 +112,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     est = reference(depth, ref, mesh, spec, camera, effects, spp=args.spp, width=args.width, height=args.height,
                     seed=args.seed, variant=args.variant, progress=progress, passes=args.passes,
                     estimator=args.estimator, photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3,
-                    no_contact_runs=args.no_contact_runs, per_source=profile is not None)
+                    no_contact_runs=args.no_contact_runs, per_source=profile is not None, inscatter=args.inscatter)
     bar.close()
     out = output_paths(args.out)
     out["linear"].parent.mkdir(parents=True, exist_ok=True)
@@ -164,7 +166,8 @@ def cmd_bench_pbr(args) -> int:
     results = bench_pbr(load_spec(args.spec), photons=args.photons, camera_spp=args.camera_spp,
                         volpath_spp=args.volpath_spp, no_contact_runs=args.no_contact_runs)
     atomic_write_json(Path(args.json), results)
-    print(json.dumps({k: results[k] for k in ("seconds_to_2pct", "volpath_seconds_to_2pct", "speedup", "variant")}))
+    print(json.dumps({k: results[k] for k in ("seconds_to_2pct", "fluence_seconds_to_2pct", "volpath_seconds_to_2pct",
+                                              "speedup", "fluence_speedup", "variant")}))
     return 0
 
 
@@ -225,6 +228,9 @@ def register(registry) -> None:
     p.add_argument("--estimator", choices=["photons", "volpath"], default="photons",
                    help="photons (two-pass, fast) or volpath (brute force)")
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
+    p.add_argument("--inscatter", choices=list(INSCATTER), default="split",
+                   help="photons: the light the elastomer scatters towards the camera, by split camera paths "
+                        "(default) or read from the photons' fluence on a voxel grid (less noise, faster)")
     p.add_argument("--effect", action="append", metavar="NAME=VALUE",
                    help="set one physical effect of pbr_tactile.effects.Effects, e.g. contact_shadow=false or "
                         "scattering_per_m=0 (repeatable)")
@@ -242,7 +248,7 @@ def register(registry) -> None:
                    help="output stem: writes STEM.npy, STEM_variance.npy and STEM.png (the stem is kept whole, dots "
                         "and all; a stem ending in .npy or .png drops that suffix)")
 
-    p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 %% noise at 320x240, photons vs volpath")
+    p = registry.bench("pbr", cmd_bench_pbr, "reference: seconds to 2 %% noise at 320x240, photons (split and fluence) vs volpath")
     p.add_argument("--spec", metavar="TOML")
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
     p.add_argument("--camera-spp", type=int, default=16, help="camera samples per pixel per pass (photons)")

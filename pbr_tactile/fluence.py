@@ -24,6 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The photon estimator's ways of finding the light the elastomer scatters towards the
+#: camera (``render.reference``'s inscatter): split camera paths, or this module's lookup.
+INSCATTER = ("split", "fluence")
 #: Default edge of a fluence voxel, m: a fifth of the GelTip's 2.5 mm elastomer.
 VOXEL_M = 0.5e-3
 #: Voxels whose elastomer fills less than this fraction of them read the fluence of their
@@ -32,6 +35,8 @@ VOXEL_M = 0.5e-3
 MIN_FRACTION = 0.05
 #: Points per voxel edge that measure the elastomer's volume in a voxel the surface cuts.
 SUBSAMPLES = 4
+#: Bump when ``fluence_grid`` measures differently: grids kept on disk then miss.
+GRID_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -72,36 +77,47 @@ class FluenceGrid:
 
 
 def fluence_grid(solid, voxel: float = VOXEL_M, like: FluenceGrid | None = None,
-                 within: np.ndarray | None = None) -> FluenceGrid:
+                 within: np.ndarray | None = None, shrinks: bool = False) -> FluenceGrid:
     """The grid of a closed solid (``trimesh.Trimesh``, watertight: the elastomer's
     ``Elastomer.solid()``), its voxels' elastomer volume measured by point containment.
 
     A voxel whose 8 corners are all inside (outside) counts whole (empty); one the surface
     cuts is measured on SUBSAMPLES^3 points. like, within : a grid of the same solid
     before a local change, and the (2, 3) bounds of the change: only the voxels that
-    overlap it are measured again (a contact's dent), the rest are ``like``'s.
+    overlap it are measured again (a contact's dent), the rest are ``like``'s; each is
+    measured as it would be in the whole grid (its neighbours are looked at too).
+    shrinks : the change only took material away (a dent pressed inwards), so ``like``'s
+    empty voxels stay empty and are not measured again (every point inside the changed
+    solid was inside the old one: the same points measure the same volumes).
     """
     if not (np.isfinite(voxel) and voxel > 0):
         raise ValueError(f"voxel must be a finite edge > 0 m, got {voxel!r}")
     if not solid.is_watertight:
         raise ValueError("the fluence grid needs a closed (watertight) solid")
-    if like is not None:
-        if within is None:
-            raise ValueError("like needs within, the bounds of the change")
-        origin, voxel, volume = like.origin, like.voxel, like.volume.copy()
-        lo = np.maximum(np.floor((np.asarray(within[0]) - origin) / voxel).astype(int) - 1, 0)
-        hi = np.minimum(np.ceil((np.asarray(within[1]) - origin) / voxel).astype(int) + 1, volume.shape)
-    else:
+    if like is None:
+        # One empty voxel of margin all round: every voxel's neighbours are in the grid.
         origin = np.asarray(solid.bounds[0], np.float64) - voxel
         shape = np.ceil((solid.bounds[1] + voxel - origin) / voxel).astype(int)
-        volume = np.zeros(shape)
-        lo, hi = np.zeros(3, int), shape
-    volume[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = _measure(solid, origin, voxel, lo, hi)
-    return FluenceGrid(origin, float(voxel), volume)
+        return FluenceGrid(origin, float(voxel), _measure(solid, origin, float(voxel), np.zeros(3, int), shape))
+    if within is None:
+        raise ValueError("like needs within, the bounds of the change")
+    origin, voxel, volume = like.origin, like.voxel, like.volume.copy()
+    first = np.maximum(np.floor((np.asarray(within[0]) - origin) / voxel).astype(int), 0)
+    last = np.minimum(np.floor((np.asarray(within[1]) - origin) / voxel).astype(int) + 1, volume.shape)
+    if np.any(last <= first):
+        return FluenceGrid(origin, voxel, volume)
+    lo, hi = np.maximum(first - 1, 0), np.minimum(last + 1, volume.shape)  # and their neighbours
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    measured = _measure(solid, origin, voxel, lo, hi, like.volume[box] > 0 if shrinks else None)
+    inner = tuple(slice(a - b0, c - b0) for a, c, b0 in zip(first, last, lo))
+    volume[tuple(slice(a, b) for a, b in zip(first, last))] = measured[inner]
+    return FluenceGrid(origin, voxel, volume)
 
 
-def _measure(solid, origin: np.ndarray, voxel: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Elastomer volume, m^3, of the voxels [lo, hi) of the grid at origin."""
+def _measure(solid, origin: np.ndarray, voxel: float, lo: np.ndarray, hi: np.ndarray,
+             only: np.ndarray | None = None) -> np.ndarray:
+    """Elastomer volume, m^3, of the voxels [lo, hi) of the grid at origin; with ``only``
+    (a bool mask of those voxels), the others are 0 and not measured."""
     from scipy import ndimage
 
     n = hi - lo
@@ -111,7 +127,11 @@ def _measure(solid, origin: np.ndarray, voxel: float, lo: np.ndarray, hi: np.nda
     fraction = (inside == 8).astype(np.float64)
     # The surface can clip a voxel without enclosing any of its corners: measure the empty
     # voxels beside any elastomer too.
-    cut = np.argwhere(((inside > 0) & (inside < 8)) | ((inside == 0) & ndimage.binary_dilation(inside > 0)))
+    cut = ((inside > 0) & (inside < 8)) | ((inside == 0) & ndimage.binary_dilation(inside > 0))
+    if only is not None:
+        fraction *= only
+        cut &= only
+    cut = np.argwhere(cut)
     if len(cut):
         offsets = (np.stack(np.meshgrid(*[np.arange(SUBSAMPLES)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5)
         points = origin + ((lo + cut)[:, None, :] + offsets[None] / SUBSAMPLES) * voxel

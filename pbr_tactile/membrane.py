@@ -22,6 +22,8 @@ from scenes.elastic import LAYER_EDGE_M, MembraneLayer
 from scenes.geometry import crossing_faces
 from scenes.spec import SensorSpec
 
+from .fluence import GRID_VERSION, SUBSAMPLES, VOXEL_M, FluenceGrid, fluence_grid
+
 #: A face whose normal turns by more than this has folded over (turned its back on where
 #: it faced), radians.
 MAX_FACE_TURN_RAD = np.radians(90.0)
@@ -75,6 +77,8 @@ class ElastomerBuilder:
         self.undeformed = Elastomer(outer, inner, _base_ring(outer, inner), float(thickness.min()))
         check_closed(self.undeformed)
         self._solids: OrderedDict = OrderedDict()  # the last KEPT_SOLIDS dented solids, by contact
+        self._grids: OrderedDict = OrderedDict()  # fluence grids, undeformed and dented, by contact and voxel
+        self._written: dict = {}  # the undeformed solid's scene meshes, by glass wall
 
     def __call__(self, depth: np.ndarray | None = None, ref_depth: np.ndarray | None = None) -> Elastomer:
         """The solid dented by a contact depth map D (H, W) metres, with D_ref; None: no contact.
@@ -92,6 +96,56 @@ class ElastomerBuilder:
         return _kept(self._solids, make_key(np.asarray(depth), np.asarray(ref_depth)),
                      lambda: self._deformed(depth, ref_depth), KEPT_SOLIDS)
 
+    def meshes(self, glass_wall: float) -> dict[str, str]:
+        """The undeformed solid's scene meshes (``pbr_tactile.scene.write_meshes``),
+        written once into a folder this builder owns and removes when it is collected:
+        every contact's render reads them (its pilot, and its light with the contact's
+        shadow off), and ``render.load(keep=True)`` keeps them loaded."""
+        if glass_wall not in self._written:
+            import shutil
+            import tempfile
+            import weakref
+
+            from .scene import write_meshes
+
+            folder = tempfile.mkdtemp(prefix="tactile-undeformed-")  # one per wall: a load keys on the paths
+            weakref.finalize(self, shutil.rmtree, folder, True)
+            self._written[glass_wall] = write_meshes(self.undeformed, folder, glass_wall)
+        return self._written[glass_wall]
+
+    def grid(self, depth: np.ndarray | None = None, ref_depth: np.ndarray | None = None, voxel: float = VOXEL_M):
+        """The ``pbr_tactile.fluence.FluenceGrid`` of the solid of a contact (None: the
+        undeformed solid), voxel edge in metres.
+
+        The undeformed grid (12.8 s at 0.5 mm on the GelTip) is measured once and kept on
+        disk (``scenes.cache``, keyed by the solid's mesh). A contact's is that grid
+        measured again only over the faces its dent moved, before and after they moved,
+        and only where there was elastomer (a dent moves the surface inwards, so it only
+        takes elastomer away): the grids of all contacts share one origin and shape, so
+        their tracks add voxel by voxel.
+        """
+        from scenes.cache import cached, make_key
+
+        def undeformed():
+            mesh = self.undeformed.solid()
+            key = make_key(GRID_VERSION, SUBSAMPLES, float(voxel), np.asarray(mesh.vertices), np.asarray(mesh.faces))
+            arrays = cached("fluence-grid", key, lambda: _grid_arrays(fluence_grid(mesh, voxel)))
+            return FluenceGrid(arrays["origin"], float(arrays["voxel"]), arrays["volume"])
+
+        flat = _kept(self._grids, make_key("undeformed", float(voxel)), undeformed, KEPT_SOLIDS)
+        if depth is None:
+            return flat
+        solid = self(depth, ref_depth)
+        new, old = np.asarray(solid.outer.vertices), self.layer.vertices
+        faces = np.asarray(solid.outer.faces)
+        changed = faces[np.any(new != old, axis=1)[faces].any(axis=1)]
+        if not len(changed):
+            return flat
+        corners = np.concatenate([new[changed.ravel()], old[changed.ravel()]])
+        within = np.array([corners.min(axis=0), corners.max(axis=0)])
+        return _kept(self._grids, make_key(np.asarray(depth), np.asarray(ref_depth), float(voxel)),
+                     lambda: fluence_grid(solid.solid(), like=flat, within=within, shrinks=True), KEPT_SOLIDS)
+
     def _deformed(self, depth: np.ndarray, ref_depth: np.ndarray) -> Elastomer:
         try:
             outer = self.layer.surface(depth, ref_depth)
@@ -106,6 +160,10 @@ class ElastomerBuilder:
             # `bench solids` grew by about 60 MB a tap and was killed at 14 GB.
             gc.collect()
         return result
+
+
+def _grid_arrays(grid: FluenceGrid) -> dict[str, np.ndarray]:
+    return {"origin": grid.origin, "voxel": np.float64(grid.voxel), "volume": grid.volume}
 
 
 #: Builders ``shared_builder`` keeps, the most recently used.

@@ -24,6 +24,10 @@ the contact, so they are cached on disk (``scenes.cache``, one entry for E_0 and
 G per pass, float32 as traced): the first contact of a sensor pays for them, every later
 one traces only its own photons. A memo (a plain dict by cache key) sits in front of the
 disk cache: filled by one render, it carries the deposits to workers with no shared disk.
+
+With a fluence grid (``pbr_tactile.fluence``), each run also carries the photons' tracks
+in the elastomer, and a pass's fluence is combined the same way: phi_G + (phi_c - phi_0).
+The grid is part of the key, so deposits without tracks keep their entries.
 """
 
 from __future__ import annotations
@@ -56,10 +60,11 @@ class NoContact:
     """Cached no-contact photon deposits of one undeformed scene (see module doc)."""
 
     def __init__(self, mi, scene, key_parts: list, runs: int = DEFAULT_RUNS, use_cache: bool = True,
-                 memo: dict | None = None):
+                 memo: dict | None = None, grid=None):
         """key_parts: what else than the scene the deposits depend on (sources, medium,
-        photons per run). memo: a dict of deposits by cache key, read before the disk
-        cache and given every deposit this object returns (None: none)."""
+        photons per run). memo: a dict of deposit arrays by cache key, read before the
+        disk cache and given every array this object returns (None: none). grid: the
+        undeformed scene's ``FluenceGrid``: each run's tracks are kept too."""
         from scenes.cache import make_key
 
         if runs < 1:
@@ -67,33 +72,47 @@ class NoContact:
         self.runs = runs
         self._use_cache = use_cache
         self._memo = memo
-        self._base = make_key(CACHE_VERSION, mi.variant(), *scene_fingerprint(mi, scene), *key_parts)
+        grid_parts = [] if grid is None else ["fluence", grid.origin, grid.voxel, grid.volume]
+        self._base = make_key(CACHE_VERSION, mi.variant(), *scene_fingerprint(mi, scene), *key_parts, *grid_parts)
 
-    def flux(self, name, trace) -> np.ndarray:
+    def flux(self, name, trace, parts: tuple[str, ...] = ("flux",)) -> dict[str, np.ndarray]:
         """The no-contact deposits called ``name`` (JSON-able: a seed, with what the
-        run is for), from the memo, the cache, or ``trace()`` stored; (S, V) float32."""
+        run is for), from the memo, the cache, or ``trace()`` stored: a dict of float32
+        arrays named ``parts`` ("flux", (S, V); "track", (S, N) with a grid), which
+        ``trace`` returns in that order (one array where parts is ("flux",))."""
         from scenes.cache import cached, make_key
 
         key = make_key(self._base, name)
-        if self._memo is not None and key in self._memo:
-            return self._memo[key]
-        flux = cached("pbr-nocontact", key, lambda: {"flux": np.asarray(trace(), np.float32)},
-                      use_cache=self._use_cache)["flux"]
-        if self._memo is not None:
-            self._memo[key] = flux
-        return flux
+        keys = {part: key if part == "flux" else make_key(key, part) for part in parts}
+        if self._memo is not None and all(k in self._memo for k in keys.values()):
+            return {part: self._memo[k] for part, k in keys.items()}
 
-    def pass_flux(self, seed: int, window_seed: int, trace) -> tuple[np.ndarray, np.ndarray]:
-        """(E_0's deposits, G's deposits) for the pass of this seed: the same seed as
-        the contact's photons, and the mean of ``runs`` independent seeds. trace(seed)
-        traces one run, in the weight window of the pilot of ``window_seed`` (the key
-        names the pilot, not the window's values, whose last bits vary from run to run
-        with the order of Dr.Jit's atomic adds)."""
+        def build():
+            traced = trace()
+            traced = (traced,) if len(parts) == 1 else traced
+            return {part: np.asarray(a, np.float32) for part, a in zip(parts, traced, strict=True)}
+
+        arrays = cached("pbr-nocontact", key if parts == ("flux",) else make_key(key, *parts), build,
+                        use_cache=self._use_cache)
+        if self._memo is not None:
+            self._memo.update({k: arrays[part] for part, k in keys.items()})
+        return {part: arrays[part] for part in parts}
+
+    def pass_flux(self, seed: int, window_seed: int, trace, parts: tuple[str, ...] = ("flux",)
+                  ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """(E_0's deposits, G's deposits) for the pass of this seed, as ``flux`` returns
+        them: the same seed as the contact's photons, and the mean of ``runs``
+        independent seeds. trace(seed) traces one run, in the weight window of the pilot
+        of ``window_seed`` (the key names the pilot, not the window's values, whose last
+        bits vary from run to run with the order of Dr.Jit's atomic adds)."""
         from .photons import _seed
 
-        same = self.flux([int(seed), int(window_seed)], lambda: trace(seed))
+        same = self.flux([int(seed), int(window_seed)], lambda: trace(seed), parts)
 
         def mean_of_runs():
-            return np.mean([trace(_seed(seed, run, 0xC0A7)) for run in range(self.runs)], axis=0)
+            runs = [trace(_seed(seed, run, 0xC0A7)) for run in range(self.runs)]
+            if len(parts) == 1:
+                return np.mean(runs, axis=0)
+            return tuple(np.mean([run[i] for run in runs], axis=0) for i in range(len(parts)))
 
-        return same, self.flux(["G", int(seed), int(window_seed), self.runs], mean_of_runs)
+        return same, self.flux(["G", int(seed), int(window_seed), self.runs], mean_of_runs, parts)

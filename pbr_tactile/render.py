@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -26,7 +27,8 @@ from scenes.camera import CONTACT_EPS_M, Camera, lens_resample, pinhole_view
 from scenes.spec import SensorSpec
 
 from .effects import Effects
-from .membrane import ElastomerBuilder, shared_builder
+from .fluence import INSCATTER
+from .membrane import ElastomerBuilder, _kept, shared_builder
 from .scene import geltip_scene, led_sources, write_meshes
 from .variant import choose_variant
 
@@ -49,10 +51,29 @@ def to_mitsuba(value, mi):
     return value
 
 
-def load(scene: dict, variant: str | None = None):
-    """The Mitsuba scene object of a plain scene dict (the one place that loads)."""
+def load(scene: dict, variant: str | None = None, keep: bool = False):
+    """The Mitsuba scene object of a plain scene dict (the one place that loads).
+
+    keep : keep the loaded scene (the last KEPT_SCENES) and return it again for the same
+        dict whose mesh files have the same size and modification time: the undeformed
+        membrane's scene, which every contact loads (0.6 s a load on the GelTip).
+    """
     mi = choose_variant(variant)
-    return mi, mi.load_dict(to_mitsuba(scene, mi))
+    if not keep:
+        return mi, mi.load_dict(to_mitsuba(scene, mi))
+    import os
+
+    from scenes.cache import make_key
+
+    files = sorted(v["filename"] for v in scene.values() if isinstance(v, dict) and "filename" in v)
+    stamps = [[f, os.stat(f).st_size, os.stat(f).st_mtime_ns] for f in files]
+    key = make_key(mi.variant(), scene, stamps)
+    return mi, _kept(_scenes, key, lambda: mi.load_dict(to_mitsuba(scene, mi)), KEPT_SCENES)
+
+
+#: Loaded scenes ``load(keep=True)`` keeps, the most recently used.
+KEPT_SCENES = 2
+_scenes: OrderedDict = OrderedDict()
 
 
 #: Fewest passes of any estimate: the variance across passes needs two.
@@ -282,7 +303,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                    pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True,
                    target_rse: float | None = None, region: np.ndarray | None = None, max_passes: int = MAX_PASSES,
                    no_contact_memo: dict | None = None, control: Control | None = None,
-                   control_spp: int = 0, per_source: bool = False) -> Estimate:
+                   control_spp: int = 0, per_source: bool = False, fluence_grids: tuple | None = None) -> Estimate:
     """The two-pass photon estimator (pbr_tactile.photons), in independent passes.
 
     spp : camera samples per pixel of one pass.
@@ -320,6 +341,11 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         image is that times ``source_response(sources, effects)`` (S, 3): the transport
         is linear in each source's power and grey, so a source's power and spectrum act
         only through its row (what calibration fits).
+    fluence_grids : (the light scene's grid, the pilot scene's grid), ``FluenceGrid``s
+        of one origin, voxel and shape (``ElastomerBuilder.grid``): the camera reads the
+        light its scattering events receive from the photons' fluence (``pbr_tactile.
+        fluence``) instead of splitting its paths there. Each pass's fluence is formed as
+        its map is (with the no-contact cache: phi_G + phi_c - phi_0). None: split.
 
     The pilot's seed follows the last pass's (``passes``, or ``max_passes`` with a
     target), so a pass never shares its random numbers with the pilot, and every render
@@ -351,6 +377,13 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
     if control_spp < 0:
         raise ValueError(f"control_spp must be >= 0, got {control_spp}")
+    grid_lit = grid_pilot = None
+    if fluence_grids is not None:
+        grid_lit, grid_pilot = fluence_grids
+        if grid_lit.shape != grid_pilot.shape or grid_lit.voxel != grid_pilot.voxel or \
+                not np.array_equal(grid_lit.origin, grid_pilot.origin):
+            raise ValueError("fluence_grids must share one origin, voxel and shape (a contact's grid is its "
+                             "undeformed grid re-measured where it moved: ElastomerBuilder.grid)")
     mi, loaded = load(scene, variant)
     if not mi.variant().startswith(("llvm_", "cuda_")):
         raise ValueError(f"the photon estimator needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}; "
@@ -361,7 +394,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         vertex."""
         if other is None or other is scene:
             return loaded
-        scene_ = load(other, variant)[1]
+        scene_ = load(other, variant, keep=True)[1]
         n_other, n_seen = len(coating_vertices(scene_)), len(coating_vertices(loaded))
         if n_other != n_seen:
             raise ValueError(f"{role}'s coating has {n_other} vertices but the camera scene's has {n_seen}: "
@@ -372,15 +405,19 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     srcs = sources_from(sources)
     response = np.eye(len(sources)) if per_source else source_response(sources, effects)
     sigma_t, albedo = effects.sigma_t, effects.albedo
-    kernel = density_kernel(coating_vertices(lit), kernel_radius)
     area = coating_areas(lit)
     # A pilot pass (an eighth of the photons) sets the weight window that spreads the
     # deposits evenly over the coating. Its density is the kernel applied twice (about
     # 1.4 times as wide): E = K (K Phi) / K (K A).
     pilot_lit = lit if pilot_scene is None else same_mesh("pilot_scene", pilot_scene)
-    pilot_kernel, pilot_area = kernel, area
-    if pilot_lit is not lit:
-        pilot_kernel, pilot_area = density_kernel(coating_vertices(pilot_lit), kernel_radius), coating_areas(pilot_lit)
+    if pilot_lit is lit:
+        kernel = pilot_kernel = density_kernel(coating_vertices(lit), kernel_radius)
+        pilot_area = area
+    else:
+        # The undeformed membrane's kernel first: a contact's is it, changed where the dent moved.
+        flat = coating_vertices(pilot_lit)
+        pilot_kernel, pilot_area = density_kernel(flat, kernel_radius), coating_areas(pilot_lit)
+        kernel = density_kernel(coating_vertices(lit), kernel_radius, like=(flat, pilot_kernel))
     no_contact = None
     if no_contact_runs:
         if pilot_scene is None:
@@ -389,37 +426,50 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
 
         no_contact = NoContact(mi, pilot_lit, [[s.key() for s in srcs],
                                                sigma_t, albedo, effects.coating_albedo, photons],
-                               no_contact_runs, use_cache, no_contact_memo)
+                               no_contact_runs, use_cache, no_contact_memo, grid_pilot)
     pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
 
-    def trace(in_scene, count: int, run_seed: int, window_=None):
-        return deposits(mi, in_scene, srcs, sigma_t, albedo, effects.coating_albedo, count, run_seed, window_)
+    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None):
+        return deposits(mi, in_scene, srcs, sigma_t, albedo, effects.coating_albedo, count, run_seed, window_,
+                        grid)
 
     def trace_pilot():
         return trace(pilot_lit, max(1, photons // 8), pilot_seed)
 
     # With the no-contact cache, the pilot is cached too: it is a no-contact run.
-    pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)
+    pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)["flux"]
     pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
     traced = no_contact is None or lit is not pilot_lit  # else E_c = E_0: the map is G
 
+    parts = ("flux",) if grid_lit is None else ("flux", "track")
+
     def one_pass(k: int) -> np.ndarray:
         pass_seed = seed * 7919 + k
+        phi = None
         if traced:
-            maps = irradiance(trace(lit, photons, pass_seed, window), area, kernel)
+            flux = trace(lit, photons, pass_seed, window, grid_lit)
+            if grid_lit is not None:
+                flux, track = flux
+                phi = grid_lit.fluence(track)
+            maps = irradiance(flux, area, kernel)
         if no_contact is not None:
-            flux_0, flux_g = no_contact.pass_flux(pass_seed, pilot_seed,
-                                                  lambda run_seed: trace(pilot_lit, photons, run_seed, window))
-            no_contact_map = irradiance(flux_g, pilot_area, pilot_kernel)
+            same, runs = no_contact.pass_flux(pass_seed, pilot_seed,
+                                              lambda run_seed: trace(pilot_lit, photons, run_seed, window,
+                                                                     grid_pilot), parts)
+            no_contact_map = irradiance(runs["flux"], pilot_area, pilot_kernel)
             # G plus the contact's change, with the same random numbers.
-            maps = no_contact_map + (maps - irradiance(flux_0, pilot_area, pilot_kernel) if traced else 0.0)
-        image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed) @ response
+            maps = no_contact_map + (maps - irradiance(same["flux"], pilot_area, pilot_kernel) if traced else 0.0)
+            if grid_pilot is not None:
+                phi = grid_pilot.fluence(runs["track"]) + (phi - grid_pilot.fluence(same["track"]) if traced else 0.0)
+        fluence = None if phi is None else (grid_lit, phi)
+        image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed,
+                            fluence=fluence) @ response
         if not control_spp:
             return image
         as_traced.append(image)
         more = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, control_spp,
-                           _seed(pass_seed, CONTROL_STREAM)) @ response
+                           _seed(pass_seed, CONTROL_STREAM), fluence=fluence) @ response
         return (spp * image + control_spp * more) / (spp + control_spp)
 
     as_traced: list[np.ndarray] = []
@@ -456,6 +506,7 @@ def reference(
     control_spp: int = 0,
     per_source: bool = False,
     led_power=1.0,
+    inscatter: str = "split",
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
@@ -482,6 +533,10 @@ def reference(
     per_source : one grey image per source of ``led_sources(spec, effects)`` instead of
         RGB (see ``render_photons``; photons only).
     led_power : each LED's radiance scale, one for all or one per LED (``led_sources``).
+    inscatter : how the photon estimator's camera finds the light its scattering events
+        in the elastomer receive: "split" (trace SCATTER_SPLIT paths on from the first
+        event, with next-event estimates of the LEDs) or "fluence" (read it from the
+        photons' fluence on the solid's voxel grid, ``pbr_tactile.fluence``).
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -498,6 +553,8 @@ def reference(
         raise ValueError("a control variate (control, control_spp) needs the photon estimator")
     if per_source and estimator != "photons":
         raise ValueError("per_source images need the photon estimator")
+    if inscatter not in INSCATTER:
+        raise ValueError(f"inscatter must be one of {', '.join(map(repr, INSCATTER))}, got {inscatter!r}")
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
     targets = {"target_rse": target_rse, "region": region, "max_passes": max_passes}
     build = solids if solids is not None else shared_builder(membrane, spec, camera)
@@ -512,19 +569,23 @@ def reference(
                 # contact (common random numbers with the no-contact frame) and, with
                 # contact_shadow off, is what the light sees: no shadow, no guiding by
                 # the dent; only the camera sees it.
-                flat = write_meshes(build(), f"{folder}/undeformed", spec.membrane.glass_wall)
+                flat = build.meshes(spec.membrane.glass_wall)
                 flat_scene = geltip_scene(flat, spec, camera, effects, width, height, spp=spp, seed=seed,
                                           led_power=led_power)
                 if not effects.contact_shadow:
                     light_scene = flat_scene
             elif no_contact_runs:
                 flat_scene = scene  # the no-contact frame: its map is the cached one
+            grids = None
+            if inscatter == "fluence":
+                flat_grid = build.grid()
+                grids = (build.grid(depth, ref_depth) if light_scene is None else flat_grid, flat_grid)
             est = render_photons(scene, led_sources(spec, effects, led_power), effects, photons=photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
                                  pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,
                                  no_contact_memo=no_contact_memo, control=control, control_spp=control_spp,
-                                 per_source=per_source, **targets)
+                                 per_source=per_source, fluence_grids=grids, **targets)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
     return sensor_effects(est, camera, effects, seed)

@@ -34,10 +34,17 @@ def test_a_local_change_remeasures_only_the_voxels_it_overlaps():
     dented = shell.copy()
     moved = dented.vertices[:, 0] > 11.4e-3  # the outer wall's vertices on +x
     dented.vertices[moved, 0] -= 1e-3
-    bounds = np.array([dented.vertices[moved].min(0), shell.vertices[moved].max(0)])
+    # The change: every face with a moved vertex, before and after.
+    changed = np.unique(shell.faces[moved[shell.faces].any(axis=1)])
+    corners = np.concatenate([shell.vertices[changed], dented.vertices[changed]])
+    bounds = np.array([corners.min(0), corners.max(0)])
     local = fluence_grid(dented, like=grid, within=bounds)
     whole = fluence_grid(dented, voxel=0.5e-3)
     assert np.array_equal(local.volume, whole.volume)
+    # The dent only took material away: measuring only the voxels that had some is the same.
+    assert np.array_equal(fluence_grid(dented, like=grid, within=bounds, shrinks=True).volume, whole.volume)
+    # A change outside the grid changes nothing.
+    assert np.array_equal(fluence_grid(dented, like=grid, within=bounds + 1.0).volume, grid.volume)
     assert local.volume.sum() < grid.volume.sum()
     with pytest.raises(ValueError, match="within"):
         fluence_grid(dented, like=grid)
@@ -129,3 +136,78 @@ def test_in_scatter_from_the_fluence_agrees_with_the_split_estimator(tmp_path, m
           f"camera seconds {seconds}")
     np.testing.assert_allclose(ratio, 1.0, atol=0.02)
     assert spread["fluence"] < spread["split"]
+
+
+def test_a_contacts_grid_is_its_undeformed_grid_measured_again_where_it_moved(tmp_path, monkeypatch, mesh, spec,
+                                                                              camera, ref, pressed):
+    """ElastomerBuilder.grid: the undeformed grid is kept on disk, and a contact's equals
+    the dented solid measured again everywhere, on the same voxels (coarse 2 mm voxels:
+    the test is of what is re-measured, not of the voxel size)."""
+    from pbr_tactile.membrane import ElastomerBuilder
+
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    build = ElastomerBuilder(mesh, spec, camera)
+    flat = build.grid(voxel=2e-3)
+    dented = build.grid(pressed, ref, voxel=2e-3)
+    assert dented.shape == flat.shape and np.array_equal(dented.origin, flat.origin)
+    everywhere = fluence_grid(build(pressed, ref).solid(), like=flat, within=np.array([[-1.0] * 3, [1.0] * 3]))
+    np.testing.assert_array_equal(dented.volume, everywhere.volume)
+    assert dented.volume.sum() < flat.volume.sum()  # the dent took elastomer away, and added none
+    assert np.all(dented.volume <= flat.volume)
+    assert build.grid(voxel=2e-3) is flat and build.grid(pressed, ref, voxel=2e-3) is dented  # kept
+    # Another builder of the same membrane reads the undeformed grid from the disk cache.
+    assert len(list((tmp_path / "cache").glob("fluence-grid-*.npz"))) == 1
+    again = ElastomerBuilder(mesh, spec, camera).grid(voxel=2e-3)
+    np.testing.assert_array_equal(again.volume, flat.volume)
+    np.testing.assert_array_equal(again.origin, flat.origin)
+
+
+def test_fluence_settings_are_checked_before_any_work(mesh, spec, camera):
+    from pbr_tactile.plugin import options_from
+    from pbr_tactile.render import reference, render_photons
+
+    with pytest.raises(ValueError, match="inscatter must be one of 'split', 'fluence', got 'voxels'"):
+        reference(None, None, mesh, spec, camera, inscatter="voxels")
+    with pytest.raises(ValueError, match="option inscatter must be one of 'split', 'fluence', got 'nee'"):
+        options_from({"inscatter": "nee"}, camera)
+    assert options_from({}, camera)["inscatter"] == "fluence"
+    a = FluenceGrid(np.zeros(3), 1e-3, np.ones((2, 2, 2)))
+    b = FluenceGrid(np.full(3, 1e-3), 1e-3, np.ones((2, 2, 2)))
+    with pytest.raises(ValueError, match="fluence_grids must share one origin, voxel and shape"):
+        render_photons({}, [], Effects(), fluence_grids=(a, b))
+
+
+@pytest.mark.slow
+def test_a_contact_by_the_fluence_equals_the_split_estimator_inside_and_outside_its_region(
+        tmp_path, monkeypatch, mesh, spec, camera, ref, pressed):
+    """The dataset's way of rendering a contact (the no-contact control of the photon map,
+    ``reference``) with both ways of finding the in-scattered light: per pixel, the two
+    images agree within their stated errors (z = difference / its standard error), in the
+    contact region and outside it, and the fluence's error is the smaller."""
+    from pbr_tactile.render import contact_region, contact_rse, reference
+
+    from test_pbr import _needs_vectorised_variant
+
+    _needs_vectorised_variant()
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    width, height = 64, 48
+    kw = {"spp": 64, "width": width, "height": height, "passes": 4, "photons": 1 << 17, "no_contact_runs": 2}
+    est = {inscatter: reference(pressed, ref, mesh, spec, camera, Effects(), inscatter=inscatter, seed=3, **kw)
+           for inscatter in ("split", "fluence")}
+    region = contact_region(pressed, ref, camera, width, height)
+    circle = camera.scaled(width, height).mask
+    diff = est["fluence"].mean - est["split"].mean
+    z = diff / np.sqrt(est["fluence"].variance + est["split"].variance)
+    lit = (est["split"].mean > 0) & np.isfinite(z)
+    for name, where in (("contact region", region), ("outside", circle & ~region)):
+        zs = z[where[..., None] & lit]
+        ratio = est["fluence"].mean[where].sum(0) / est["split"].mean[where].sum(0)
+        print(f"{name}: {zs.size} pixel-channels, z mean {zs.mean():+.2f} sd {zs.std():.2f}, "
+              f"|z| > 4 {np.mean(np.abs(zs) > 4):.4f}; fluence / split {np.round(ratio, 4)}")
+        assert zs.size > 100
+        assert abs(zs.mean()) < 0.3 and 0.7 < zs.std() < 1.3
+        assert np.mean(np.abs(zs) > 4) < 0.01
+        np.testing.assert_allclose(ratio, 1.0, atol=0.02)
+    rse = {k: contact_rse(e, region) for k, e in est.items()}
+    print(f"contact RSE {rse}")
+    assert rse["fluence"] < rse["split"]
