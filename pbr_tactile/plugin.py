@@ -18,6 +18,12 @@ CONTROL_SPP_FACTOR times more camera samples. Measured on three base taps at 320
 0.085 (dots), 0.079 to 0.046 (sphere) and 0.071 to 0.038 (cylinder), mostly by
 cancelling the rare, bright camera samples that see an LED through the glass.
 
+The camera reads the light the elastomer scatters towards it from the photons' fluence
+(option ``inscatter``, default "fluence"; ``pbr_tactile.fluence``) instead of splitting
+its paths at the first scattering event ("split", the estimator before it): those LED
+samples are then not drawn at all, the camera pass costs a fifth, and the fluence of a
+pass is formed from the no-contact cache as its photon map is.
+
 With a calibrated unit's profile (option ``profile``, a ``profile.toml`` of ``tactile-sim
 calibrate``) the scene is the unit's (``Profile.sensor_spec``: its LEDs turned, its image
 circle) with the profile's effects (``calibrate.profile_effects``, then the option
@@ -40,6 +46,7 @@ from scenes.camera import CONTACT_EPS_M, Camera, check_depth
 from scenes.spec import SensorSpec
 
 from .effects import Effects
+from .fluence import INSCATTER
 from .membrane import shared_builder
 from .nocontact import CACHE_VERSION
 from .photons import CAMERA_PASS_VERSION
@@ -56,14 +63,17 @@ SOURCE = "pbr"
 #: Options and their defaults (timed on 2 cores for the fewest seconds to 5 % noise).
 #: A dataset's first run renders the no-contact frame with every pass a contact may
 #: use, each with no_contact_runs + 1 no-contact runs: 8 passes and 4 runs keep that
-#: one-time cost near 5 minutes at 2^19 photons (16 and 8 took 20), and a contact
-#: reaches 5 % in 2-4 passes.
+#: one-time cost near 3 minutes at 2^18 photons (16 and 8 took 20 at 2^19). With the
+#: fluence lookup a contact reaches 5 % in 2-3 passes at 2^18 photons (median contact
+#: RSE 0.040 on the benchmark's 16 taps; 2^19 gave 0.029, all at 2 passes, at twice the
+#: photon cost: ``tactile-sim bench dataset --renderer pbr``).
 DEFAULTS = {
     "target_rse": 0.05,
     "max_passes": 8,
     "effects": [],
     "estimator": "photons",
-    "photons": 1 << 19,
+    "inscatter": "fluence",
+    "photons": 1 << 18,
     "camera_spp": 16,
     "kernel_radius_mm": 0.75,
     "no_contact_runs": 4,
@@ -76,7 +86,7 @@ DEFAULTS = {
 EXPOSURE_LEVEL = 0.8
 EXPOSURE_PERCENTILE = 99.5
 #: Bump when the cached no-contact frame (scenes.cache "pbr-dataset-frame") changes meaning.
-FRAME_VERSION = 3
+FRAME_VERSION = 4
 #: Cache entries of the frame that hold no-contact deposits start with this.
 DEPOSIT_PREFIX = "deposit_"
 #: Cache entries of the frame that hold its control variate (pbr_tactile.render.Control).
@@ -143,6 +153,10 @@ def options_from(options: dict, camera: Camera) -> dict:
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"option estimator must be 'photons' or 'volpath', got {estimator!r}")
     opts["estimator"] = estimator
+    if given["inscatter"] not in INSCATTER:
+        raise ValueError(f"option inscatter must be one of {', '.join(map(repr, INSCATTER))}, "
+                         f"got {given['inscatter']!r}")
+    opts["inscatter"] = given["inscatter"]
     settings = given["effects"]
     if isinstance(settings, str) or not all(isinstance(item, str) for item in settings):
         raise ValueError(f"option effects must be a list of NAME=VALUE strings, got {settings!r}")
@@ -227,7 +241,7 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
                         estimator=opts["estimator"], photons=opts["photons"],
                         kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
                         no_contact_memo=memo, control_spp=opts["camera_spp"] * CONTROL_SPP_FACTOR if photons else 0,
-                        per_source=profile is not None, led_power=power)
+                        per_source=profile is not None, led_power=power, inscatter=opts["inscatter"])
         rse = contact_rse(est, camera.scaled(width, height).mask)
         control = {} if est.control is None else {CONTROL_PREFIX + k: getattr(est.control, k)
                                                   for k in ("images", "mean", "variance")}
@@ -286,6 +300,7 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
     return {
         "renderer": "pbr",
         "estimator": opts["estimator"],
+        "inscatter": opts["inscatter"] if photons else None,
         "target_rse": opts["target_rse"],
         "noise": "passes are added until the RMS relative standard error over the contact region (the dent and "
                  "its rim; the image circle without contact) is at most target_rse, from min_passes to max_passes"
@@ -378,7 +393,7 @@ class PbrDatasetRenderer:
                             kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
                             target_rse=opts["target_rse"], max_passes=opts["max_passes"], no_contact_memo=self._memo,
                             solids=self._solids, control=self._control, per_source=self.profile is not None,
-                            led_power=self.led_power)
+                            led_power=self.led_power, inscatter=opts["inscatter"])
         linear = self._camera_size(est.mean)
         rse = est.rse if est.rse is not None and math.isfinite(est.rse) else None
         return {

@@ -87,7 +87,7 @@ def cmd_scene(args) -> int:
 #: phong takes field, background, rectify and elastic; pbr the others (see its plugin).
 RENDERER_OPTIONS = {
     "field": "field", "background": "background", "rectify": "rectify", "elastic": "elastic",
-    "target_rse": "target_rse", "max_passes": "max_passes", "effects": "effect", "estimator": "estimator",
+    "target_rse": "target_rse", "max_passes": "max_passes", "effects": "effect", "estimator": "estimator", "inscatter": "inscatter",
     "photons": "photons", "camera_spp": "camera_spp", "kernel_radius_mm": "kernel_radius_mm",
     "no_contact_runs": "no_contact_runs", "film": "film", "profile": "profile", "seed": "render_seed",
 }
@@ -225,6 +225,9 @@ def add_renderer_arguments(p, skip: tuple[str, ...] = ()) -> None:
                                     "help": "pbr: set one physical effect of pbr_tactile.effects.Effects "
                                             "(repeatable)"}),
         "estimator": (("--estimator",), {"help": "pbr: photons (default) or volpath"}),
+        "inscatter": (("--inscatter",), {"help": "pbr: how the photon estimator's camera finds the light the "
+                                         "elastomer scatters towards it: fluence (default; read from the photons' "
+                                         "fluence on a voxel grid) or split (camera paths split and traced on)"}),
         "photons": (("--photons",), {"type": int, "help": "pbr: photons per LED per pass"}),
         "camera_spp": (("--camera-spp",), {"type": int, "help": "pbr: camera samples per pixel per pass"}),
         "kernel_radius_mm": (("--kernel-radius-mm",), {"type": float,
@@ -396,7 +399,7 @@ def cmd_bench_dataset(args) -> int:
 
     spec = load_spec(args.spec)
     if args.renderer != "phong":
-        options = {"target_rse": args.target_rse} if args.target_rse is not None else {}
+        options = renderer_options(args)
         results = bench_dataset_slice(spec, args.renderer, options, workers=args.workers or 1,
                                       executor=args.executor, address=args.address)
         atomic_write_json(Path(args.json), results)
@@ -449,7 +452,8 @@ def register(registry) -> None:
     p.add_argument("--renderer", default="phong",
                    help="phong (default: the whole base protocol) or another renderer plugin, e.g. pbr: frames per "
                         "hour on a fixed 16-tap slice of 4 objects")
-    p.add_argument("--target-rse", type=float, metavar="R", help="pbr: the noise target (default the renderer's, 0.05)")
+    # the renderer's own options (pbr: --target-rse R, --inscatter, --photons N, ...), as the dataset command takes them
+    add_renderer_arguments(p, skip=("field", "background", "rectify", "elastic"))
     p.add_argument("--workers", type=int,
                    help="local processes or Ray CPUs (default 2 for phong, 1 for pbr, which uses both cores)")
     p.add_argument("--executor", default="local",

@@ -188,8 +188,10 @@ def test_prepare_records_every_setting(prepared):
     assert settings["variant"].startswith(("llvm_", "cuda_")) and settings["variant"] == shared["variant"]
     assert settings["exposure_gain"] == shared["exposure_gain"] > 0
     assert "resampled" in settings["resampling"]
-    # Pilot, then per pass E_0 and G: every no-contact deposit a contact may use.
-    assert len(shared["deposits"]) == 1 + 2 * OPTIONS["max_passes"]
+    # Pilot, then per pass E_0 and G, each its flux and its tracks (inscatter "fluence"):
+    # every no-contact deposit a contact may use.
+    assert settings["inscatter"] == "fluence"
+    assert len(shared["deposits"]) == 1 + 2 * 2 * OPTIONS["max_passes"]
 
 
 def test_a_contact_reaches_a_loose_target_from_shared_deposits(monkeypatch, tmp_path, prepared, spec, mesh, camera,
