@@ -1,0 +1,72 @@
+"""The photon estimator against brute-force volpath on a contact of every indenter.
+
+Both ways of finding the light the elastomer scatters towards the camera
+(``pbr_tactile.render.INSCATTER``: split camera paths, and the photons' fluence) are
+set beside one volpath render of the same scene. The film is cropped to the dent, so
+every pixel is one the contact changed or borders, at a cost that volpath can meet.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pbr_tactile.effects import Effects
+from scenes.contact import press
+from scenes.indenters import INDENTERS
+
+#: The film (the camera's aspect) and the crop rendered of it, around PIXEL.
+FILM = (64, 48)
+CROP = (8, 6)
+#: Where the indenter is pressed (camera pixel) and how far, m.
+PIXEL = (350, 220)
+DEPTH = 1e-3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", INDENTERS)
+def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera, ref, name):
+    """A per-pixel z-test, as the no-contact one in test_pbr (z = difference over the root
+    of both estimates' variances of the mean, each from its own independent passes), on the
+    contact of each of the paper's indenters, with the photon estimator as a contact is
+    rendered (the undeformed membrane's pilot, the contact's own photons)."""
+    pytest.importorskip("manifold3d", reason="building indenters needs the manifold boolean engine")
+    from test_pbr import _vectorised
+
+    from pbr_tactile.membrane import ElastomerBuilder
+    from pbr_tactile.fluence import INSCATTER
+    from pbr_tactile.render import render, render_photons
+    from pbr_tactile.scene import geltip_scene, led_sources, write_meshes
+    from scenes.indenters import make_indenter
+
+    effects = Effects()
+    depth = press(ref, camera, mesh, make_indenter(name), PIXEL, DEPTH)
+    build = ElastomerBuilder(mesh, spec, camera, edge=0.5e-3)
+    width, height = FILM
+    centre = (PIXEL[0] * width // camera.width, PIXEL[1] * height // camera.height)
+    crop = {"crop_offset_x": centre[0] - CROP[0] // 2, "crop_offset_y": centre[1] - CROP[1] // 2,
+            "crop_width": CROP[0], "crop_height": CROP[1]}
+
+    def scene_of(solid, folder):
+        scene = geltip_scene(write_meshes(solid, tmp_path / folder), spec, camera, effects, width, height, spp=4)
+        scene["sensor"]["film"].update(crop)
+        return scene
+
+    scene, flat = scene_of(build(depth, ref), "contact"), scene_of(build(), "undeformed")
+    _vectorised(scene)
+    grids = (build.grid(depth, ref), build.grid())
+    volpath = render(scene, spp=16 * 4096, passes=16, seed=2)
+    assert volpath.mean.shape[:2] == (CROP[1], CROP[0])
+    for inscatter in INSCATTER:
+        photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=4, passes=6,
+                                 seed=1, pilot_scene=flat, fluence_grids=grids if inscatter == "fluence" else None)
+        lit = (photons.mean > 1e-5) & (volpath.mean > 0)
+        z = ((photons.mean - volpath.mean) / np.sqrt(photons.variance + volpath.variance))[lit]
+        print(f"{name}, {inscatter}: per-pixel z over {z.size} px: median |z| {np.median(np.abs(z)):.2f}, "
+              f"mean {z.mean():.2f}, |z|>3 {np.mean(np.abs(z) > 3):.3f}; "
+              f"aggregate {photons.mean[lit].sum() / volpath.mean[lit].sum() - 1:+.3f}")
+        assert z.size > 100
+        assert np.median(np.abs(z)) < 1.0
+        assert np.mean(np.abs(z) > 3) < 0.05
+        assert abs(z.mean()) < 0.6
+        assert photons.mean[lit].sum() == pytest.approx(volpath.mean[lit].sum(), rel=0.06)
