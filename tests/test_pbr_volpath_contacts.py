@@ -2,8 +2,12 @@
 
 Both ways of finding the light the elastomer scatters towards the camera
 (``pbr_tactile.render.INSCATTER``: split camera paths, and the photons' fluence) are
-set beside one volpath render of the same scene. The film is cropped to the dent, so
-every pixel is one the contact changed or borders, at a cost that volpath can meet.
+set beside one volpath render of the same scene. The camera is aimed at the dent and
+zoomed (ZOOM times narrower), so every pixel is one the contact changed or borders, at a
+cost that volpath can meet. (A cropped film would do the same, but Mitsuba 3.9's volpath
+did not render a crop as the same block of the whole film: at the GelTip's tip the crop's
+mean was 0.61 of the block's, uncorrelated pixel by pixel, while the photon estimator's
+crop equalled its block to 0.1 %.)
 """
 
 from __future__ import annotations
@@ -15,12 +19,15 @@ from pbr_tactile.effects import Effects
 from scenes.contact import press
 from scenes.indenters import INDENTERS
 
-#: The film (the camera's aspect) and the crop rendered of it, around PIXEL.
-FILM = (64, 48)
-CROP = (8, 6)
+#: The film (the camera's aspect), and how much narrower its view is than the camera's.
+FILM = (8, 6)
+ZOOM = 8.0
 #: Where the indenter is pressed (camera pixel) and how far, m.
 PIXEL = (350, 220)
 DEPTH = 1e-3
+#: Passes of 4096 samples per pixel of the volpath render: its per-pass means are heavy
+#: tailed, so its variance needs many passes to be read.
+VOLPATH_PASSES = 64
 
 
 @pytest.mark.slow
@@ -43,30 +50,32 @@ def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_pat
     depth = press(ref, camera, mesh, make_indenter(name), PIXEL, DEPTH)
     build = ElastomerBuilder(mesh, spec, camera, edge=0.5e-3)
     width, height = FILM
-    centre = (PIXEL[0] * width // camera.width, PIXEL[1] * height // camera.height)
-    crop = {"crop_offset_x": centre[0] - CROP[0] // 2, "crop_offset_y": centre[1] - CROP[1] // 2,
-            "crop_width": CROP[0], "crop_height": CROP[1]}
+    slope_x, slope_y = camera.slopes()  # the ray through PIXEL, in the camera's frame (z ahead, y down)
+    towards = [float(slope_x[PIXEL[1], PIXEL[0]]), float(slope_y[PIXEL[1], PIXEL[0]]), 1.0]
 
     def scene_of(solid, folder):
         scene = geltip_scene(write_meshes(solid, tmp_path / folder), spec, camera, effects, width, height, spp=4)
-        scene["sensor"]["film"].update(crop)
+        scene["sensor"]["to_world"] = {"look_at": {"origin": [0, 0, 0], "target": towards, "up": [0, -1, 0]}}
+        scene["sensor"]["fov"] /= ZOOM
         return scene
 
     scene, flat = scene_of(build(depth, ref), "contact"), scene_of(build(), "undeformed")
     _vectorised(scene)
     grids = (build.grid(depth, ref), build.grid())
-    volpath = render(scene, spp=16 * 4096, passes=16, seed=2)
-    assert volpath.mean.shape[:2] == (CROP[1], CROP[0])
+    volpath = render(scene, spp=VOLPATH_PASSES * 4096, passes=VOLPATH_PASSES, seed=2)
+    assert volpath.mean.shape[:2] == (height, width)
+    z_of = {}
     for inscatter in INSCATTER:
-        photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=4, passes=6,
+        photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=4, passes=8,
                                  seed=1, pilot_scene=flat, fluence_grids=grids if inscatter == "fluence" else None)
         lit = (photons.mean > 1e-5) & (volpath.mean > 0)
         z = ((photons.mean - volpath.mean) / np.sqrt(photons.variance + volpath.variance))[lit]
+        z_of[inscatter] = z, photons.mean[lit].sum() / volpath.mean[lit].sum()
         print(f"{name}, {inscatter}: per-pixel z over {z.size} px: median |z| {np.median(np.abs(z)):.2f}, "
-              f"mean {z.mean():.2f}, |z|>3 {np.mean(np.abs(z) > 3):.3f}; "
-              f"aggregate {photons.mean[lit].sum() / volpath.mean[lit].sum() - 1:+.3f}")
+              f"mean {z.mean():.2f}, |z|>3 {np.mean(np.abs(z) > 3):.3f}; aggregate {z_of[inscatter][1] - 1:+.3f}")
+    for z, ratio in z_of.values():
         assert z.size > 100
         assert np.median(np.abs(z)) < 1.0
         assert np.mean(np.abs(z) > 3) < 0.05
         assert abs(z.mean()) < 0.6
-        assert photons.mean[lit].sum() == pytest.approx(volpath.mean[lit].sum(), rel=0.06)
+        assert ratio == pytest.approx(1.0, rel=0.06)
