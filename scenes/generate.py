@@ -14,7 +14,9 @@ imports one. A plugin is a module with
   returning an object with ``.render(depth) -> (H, W, 3) float image`` and
   ``.no_contact``, and optionally ``.render_sample(depth) -> {"image": ..., "arrays":
   {name: array}, "record": {field: value}}``, whose arrays are written as
-  ``<name>/<id>.npy`` and whose record fields join the sample's line;
+  ``<name>/<id>.npy`` and whose record fields join the sample's line; a renderer
+  whose ``writes_depth`` is False keeps its own (e.g. reduced) depth among those arrays,
+  and the full-resolution depth map is not written (it is 1.2 MB of a 640x480 sample);
 - optionally ``shared(spec, mesh, camera, options) -> picklable``: large inputs every
   worker needs (e.g. cached photon maps). The driver computes them once; each worker gets
   them as ``make_renderer(..., shared=value)`` (through Ray's object store on a cluster).
@@ -169,7 +171,8 @@ class TapRunner:
 
     def run(self, task: Task) -> dict:
         """One task -> ``{"record", "image" (H, W, 3) float32, "depth" (H, W) float32
-        metres, "arrays" {name: float32 array}}``. A posed tap's record holds its
+        metres (None where the renderer's ``writes_depth`` is False), "arrays" {name:
+        float32 array}}``. A posed tap's record holds its
         ``pose``."""
         tap = task_tap(task)
         depth = np.asarray(self.capture(task), np.float32)
@@ -185,7 +188,7 @@ class TapRunner:
         return {
             "record": {**record, **out["record"]},
             "image": np.asarray(out["image"], np.float32),
-            "depth": depth,
+            "depth": depth if getattr(self.renderer, "writes_depth", True) else None,
             "arrays": {name: np.asarray(a, np.float32) for name, a in out["arrays"].items()},
         }
 
