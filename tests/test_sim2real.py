@@ -1,0 +1,352 @@
+"""The Sim2Real learning study (studies/sim2real): its data, effects, scoring, models and
+the whole pipeline on a slice (scikit-learn's ridge, which CI has; the torch models skip
+without torch, saying why)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+
+import numpy as np
+import pytest
+
+from scenes.camera import project
+from scenes.indenters import INDENTERS
+from studies.sim2real import augment, data, study
+from studies.sim2real.learn import Training, need, train
+from studies.sim2real.study import Run, Settings
+
+TORCH = importlib.util.find_spec("torch") is not None
+needs_torch = pytest.mark.skipif(not TORCH, reason="torch is not installed (pip install '.[sim2real]')")
+needs_sklearn = pytest.mark.skipif(importlib.util.find_spec("sklearn") is None,
+                                   reason="scikit-learn is not installed (pip install '.[learn]')")
+
+
+# --- analytic pieces ----------------------------------------------------------------------
+
+def test_split_is_stratified_seeded_and_disjoint():
+    labels = np.repeat(np.arange(8), 18)
+    train_a, test_a = data.split(labels, 3)
+    train_b, test_b = data.split(labels, 3)
+    assert np.array_equal(test_a, test_b) and np.array_equal(train_a, train_b)
+    assert not set(train_a) & set(test_a) and len(train_a) + len(test_a) == len(labels)
+    assert np.bincount(labels[test_a]).tolist() == [4] * 8  # round(0.2 * 18) of each indenter
+    assert not np.array_equal(data.split(labels, 4)[1], test_a)
+
+
+def test_patches_are_centred_on_the_contact_and_padded_off_the_image():
+    images = np.zeros((2, 120, 160, 3), np.uint8)
+    images[0, 60, 100] = 255  # array pixel (row 60, col 100) = full-res centre (4 * 100 + 1.5, 4 * 60 + 1.5)
+    pixel = np.array([[401.5, 241.5], [0.0, 0.0]])
+    out = study.patches(images, pixel, 4, 32)
+    assert out.shape == (2, 32, 32, 3)
+    assert out[0, 16, 16, 0] == 255 and out[0].sum() == 3 * 255
+    images[1] = 7
+    corner = study.patches(images, pixel, 4, 32)[1]
+    assert corner[:15, :15].max() == 0 and corner[17:, 17:].min() == 7  # zero outside the image
+
+
+def test_full_inputs_average_blocks():
+    images = np.arange(2 * 4 * 4 * 3, dtype=np.uint8).reshape(2, 4, 4, 3)
+    out = study.full_inputs(images, 2)
+    assert out.shape == (2, 2, 2, 3)
+    assert out[0, 0, 0, 0] == round(np.mean(images[0, :2, :2, 0]))
+
+
+def test_membrane_lookup_inverts_the_camera_model(spec, camera):
+    from scenes.camera import cast_rays
+    from scenes.geometry import membrane_mesh
+
+    lookup = data.MembraneLookup(spec)
+    samples = cast_rays(membrane_mesh(spec), camera)
+    rng = np.random.default_rng(0)
+    points = samples.points[rng.choice(len(samples.points), 200, replace=False)]
+    back = lookup(project(points, camera))
+    error = np.linalg.norm(back - points, axis=1)
+    assert np.median(error) < 0.1e-3 and error.max() < 0.5e-3  # half a pixel on the membrane
+    # a pixel off the image circle is moved onto the membrane, not left in the void
+    far = lookup(np.array([[0.0, 0.0]]))[0]
+    assert np.isfinite(far).all() and far[2] > 0
+
+
+def test_gap_closed_is_the_share_of_the_r2r_gap():
+    settings = Settings(model="ridge", seeds=2, trainings=("none", "diagnosed"))
+
+    def res(acc, mm, which):
+        return {which: {"accuracy": acc}}, {which: {"localisation_mm": mm}}
+
+    results = {}
+    values = {("real", "none"): (80.0, 5.0), ("base_plane", "none"): (40.0, 15.0),
+              ("base_plane", "diagnosed"): (60.0, 10.0)}
+    for seed in range(2):
+        for (train_set, training), (acc, mm) in values.items():
+            which = "own" if train_set == "real" else "real"
+            for inp in study.INPUTS:
+                c, loc = res(acc + seed, mm, which)
+                results[Run(train_set, training, inp, "classification", seed).name] = c
+                results[Run(train_set, training, inp, "localisation", seed).name] = loc
+                if which == "real":
+                    results[Run(train_set, training, inp, "classification", seed).name]["own"] = {"accuracy": acc}
+                    results[Run(train_set, training, inp, "localisation", seed).name]["own"] = {"localisation_mm": mm}
+    s = study.summarise(results, settings, ["base_plane"], ["base_plane"])
+    closed = s["gap_closed"]["diagnosed"]["base"]["full"]
+    assert closed["classification"]["share"] == pytest.approx(0.5)  # (60 - 40) / (80 - 40)
+    assert closed["localisation"]["share"] == pytest.approx(0.5)  # (10 - 15) / (5 - 15): lower is better
+    assert s["gap_closed"]["none"]["base"]["full"]["classification"]["share"] == 0.0
+    assert s["s2r_by_training"]["diagnosed"]["base"]["full"]["accuracy"]["mean"] == pytest.approx(60.5)
+    assert s["r2r"]["base"]["full"]["localisation_mm"]["mean"] == pytest.approx(5.0)
+
+
+def test_interval_is_a_t_interval():
+    iv = study.interval([1.0, 2.0, 3.0])
+    assert iv["mean"] == 2.0
+    assert iv["interval"][1] - 2.0 == pytest.approx(4.302652729911275 * 1.0 / math.sqrt(3))
+
+
+# --- effects ----------------------------------------------------------------------------------
+
+def test_diagnosed_params_read_the_last_selection_step():
+    report = {"selection": [{"params": {"blur_noise": {"sigma_px": 1.0}}},
+                            {"params": {"blur_noise": {"sigma_px": 1.2}, "vignetting": {"a": 0.1}}}]}
+    assert augment.diagnosed_params(report) == {"blur_noise": {"sigma_px": 1.2}, "vignetting": {"a": 0.1}}
+    assert augment.diagnosed_params({"selection": []}) == {}
+    with pytest.raises(ValueError, match="params"):
+        augment.diagnosed_params({"selection": [{"params": None}]})
+    with pytest.raises(ValueError, match="unknown effects"):
+        augment.check_effects({"glare": {}})
+
+
+def test_random_params_stay_in_their_ranges():
+    from studies.gap.effects import catalogue
+
+    cat = catalogue(3, 4.0)
+    rng = np.random.default_rng(1)
+    draws = [augment.random_params(cat, rng) for _ in range(200)]
+    assert set(draws[0]) == {n for n, e in cat.items() if e.params}
+    for name, effect in cat.items():
+        for p in effect.params:
+            v = np.array([d[name][p.name] for d in draws])
+            assert v.min() >= min(p.low, p.identity) - 1e-12 and v.max() <= max(p.high, p.identity) + 1e-12
+            if p.high > p.low:
+                assert v.std() > 0  # drawn, not fixed
+
+
+# --- the compact renderer and the arrays --------------------------------------------------
+
+@pytest.fixture(scope="module")
+def sim_pair(tmp_path_factory, spec, mujoco_gl):
+    """The same few base taps of two indenters as a compact fast-path dataset and as the
+    phong plugin's own."""
+    from dataclasses import replace
+
+    from scenes.body import checked_membrane
+    from scenes.commands import make_protocol
+    from scenes.generate import generate
+
+    protocol = make_protocol("base", spec, checked_membrane(spec), ("sphere", "cone"))
+    protocol = replace(protocol, taps=protocol.taps[::3])
+    base = tmp_path_factory.mktemp("s2r")
+    for name, renderer in (("sim", "studies.sim2real.plugin"), ("phong", "phong")):
+        generate(base / name, spec, protocol, renderer=renderer, options={"field": "plane"}, workers=1,
+                 progress=False)
+    return base / "sim", base / "phong"
+
+
+@pytest.fixture(scope="module")
+def sim_root(sim_pair):
+    return sim_pair[0]
+
+
+def test_compact_dataset_keeps_the_phong_image_and_a_block_indentation(sim_pair, spec, mesh, camera):
+    from scenes.dataset import read_meta, read_samples
+    from scenes.generate import Job, runner
+    from studies.sim2real import plugin
+
+    compact, full = sim_pair
+    records = {r["id"]: r for r in read_samples(compact)}
+    assert records and all("depth" not in r and r["indentation"].startswith("indentation/") for r in records.values())
+    assert not any((compact / "depth").glob("*"))  # the writer makes the folder; nothing goes in it
+    assert read_meta(compact)["renderer"]["depth_factor"] == 4
+    # the no-contact depth both datasets were rendered against: the same rig's
+    ref = runner(Job(spec, "phong", {"field": "plane"}, ("sphere", "cone"))).ref_depth
+    for r in read_samples(full):
+        c = records[r["id"]]
+        assert (compact / c["image"]).read_bytes() == (full / r["image"]).read_bytes()  # the phong image
+        ind = np.load(compact / c["indentation"])
+        assert ind.shape == (camera.height // 4, camera.width // 4) and ind.max() > 0.5e-3  # a pressed contact
+        assert np.array_equal(ind, plugin.indentation(np.load(full / r["depth"]), ref, 4))
+    with pytest.raises(ValueError, match="depth_factor"):
+        plugin.prepare(spec, mesh, camera, {"depth_factor": 0})
+
+
+def test_indentation_is_the_block_mean_of_the_thresholded_difference():
+    from studies.sim2real.plugin import indentation
+
+    ref = np.full((8, 8), 0.02, np.float32)
+    depth = ref.copy()
+    depth[:4, :4] -= 1e-3  # a 1 mm press over one 4x4 block
+    depth[4:, 4:] -= 5e-7  # below the contact threshold: no contact
+    out = indentation(depth, ref, 4)
+    assert out.shape == (2, 2)
+    assert out[0, 0] == pytest.approx(1e-3, rel=1e-3) and out[1, 1] == 0.0 and out[0, 1] == 0.0
+
+
+def test_arrays_load_labels_pixels_and_cache(sim_root, tmp_path, camera):
+    from scenes.dataset import read_samples
+
+    a = data.load(sim_root, 4, cache=tmp_path)
+    records = read_samples(sim_root)
+    assert len(a) == len(records) and a.images.shape[1:] == (120, 160, 3) and a.images.dtype == np.uint8
+    assert [INDENTERS[k] for k in a.labels] == [r["object"] for r in records]
+    assert np.allclose(a.pixel, project(np.array([r["contact_point"] for r in records]), camera), atol=1e-3)
+    assert a.indentation is not None and a.indentation.shape == (len(a), 120, 160)
+    cached = list(tmp_path.glob("*.npz"))
+    assert len(cached) == 1
+    b = data.load(sim_root, 4, cache=tmp_path)
+    assert np.array_equal(a.images, b.images) and np.array_equal(a.indentation, b.indentation)
+    assert list(a.ids) == list(b.ids)
+    shuffled = a.take(np.arange(len(a))[::-1])
+    assert np.array_equal(data.aligned(shuffled, a.ids, "x").images, a.images)
+    with pytest.raises(Exception, match="not the capture's"):
+        data.aligned(a.take([0]), a.ids, "the replay")
+
+
+def test_augmenter_applies_fitted_effects_and_none_is_identity(sim_root):
+    from scenes.dataset import read_meta
+
+    a = data.load(sim_root, 4)
+    aug = augment.Augmenter(data.dataset_spec(sim_root), read_meta(sim_root)["renderer"], 4)
+    assert aug.apply(a.images, a.indentation, {}) is a.images
+    gains = {"camera_response": {"gain_r": 0.5, "gain_g": 1.0, "gain_b": 1.0, "mix_rg": 0.0, "mix_rb": 0.0,
+                                 "mix_gr": 0.0, "mix_gb": 0.0, "mix_br": 0.0, "mix_bg": 0.0, "offset": 0.0,
+                                 "gamma": 1.0}}
+    out = aug.apply(a.images[:2], a.indentation[:2], gains)
+    red, green = out[..., 0].astype(int), out[..., 1].astype(int)
+    assert np.abs(red - np.rint(a.images[:2, ..., 0] * 0.5)).max() <= 1
+    assert np.abs(green - a.images[:2, ..., 1]).max() <= 1
+    # a membrane effect changes the contact only: a softer membrane, a shallower imprint
+    soft = aug.apply(a.images[:2], a.indentation[:2], {"membrane_compliance": {"scale": 0.3}})
+    changed = np.abs(soft.astype(int) - a.images[:2].astype(int)).max(axis=-1) > 2
+    pressed = a.indentation[:2] > 1e-5
+    assert changed.any() and changed[~pressed].mean() < 0.01
+    rand = aug.randomised(a.images[:3], a.indentation[:3], seed=0)
+    assert np.array_equal(rand, aug.randomised(a.images[:3], a.indentation[:3], seed=0))
+    assert not np.array_equal(rand, a.images[:3])
+
+
+# --- models -------------------------------------------------------------------------------
+
+def _blobs(n: int, rng, size=(24, 32)):
+    """Images with one bright blob, left or right: a class and a position to learn."""
+    h, w = size
+    images = np.full((n, h, w, 3), 40, np.uint8)
+    labels = rng.integers(0, 2, n)
+    pos = np.zeros((n, 2), np.float32)
+    for i in range(n):
+        c = rng.integers(2, w // 2 - 3) + labels[i] * (w // 2)
+        r = rng.integers(3, h - 3)
+        images[i, r - 2:r + 3, c - 2:c + 3] = 220
+        pos[i] = (c / w, r / h)
+    return images, labels, pos
+
+
+def test_need_names_the_missing_library():
+    assert need("nope").startswith("model must be one of")
+    if not TORCH:
+        assert "torch" in need("cnn") and "sim2real" in need("cnn")
+
+
+@needs_sklearn
+def test_ridge_learns_a_separable_task():
+    rng = np.random.default_rng(0)
+    x, y, _ = _blobs(300, rng)
+    model = train("ridge", x[:200], np.eye(2, dtype=np.float32)[y[:200]], 0)
+    assert np.mean(model.predict(x[200:]).argmax(axis=1) == y[200:]) > 0.9
+
+
+@needs_torch
+def test_cnn_learns_class_and_position():
+    rng = np.random.default_rng(0)
+    x, y, pos = _blobs(400, rng)
+    quick = Training(epochs=15)
+    model = train("cnn", x[:300], np.eye(2, dtype=np.float32)[y[:300]], 0, quick)
+    assert model.steps == 120
+    assert np.mean(model.predict(x[300:]).argmax(axis=1) == y[300:]) > 0.9
+    loc = train("cnn", x[:300], pos[:300], 0, Training(epochs=40))
+    err = np.abs(loc.predict(x[300:]) - pos[300:]).mean()
+    assert err < 0.5 * np.abs(pos[300:] - pos[:300].mean(axis=0)).mean()  # better than the mean position
+
+
+@needs_torch
+def test_resnet18_trains_and_predicts_its_outputs():
+    pytest.importorskip("torchvision", reason="torchvision is not installed (pip install '.[sim2real]')")
+    rng = np.random.default_rng(0)
+    x, y, _ = _blobs(16, rng, (32, 32))
+    model = train("resnet18", x, np.eye(8, dtype=np.float32)[y], 0, Training(batch=8, batches_per_epoch=1, epochs=2))
+    out = model.predict(x[:5])
+    assert out.shape == (5, 8) and np.isfinite(out).all()
+
+
+def test_train_refuses_bad_input():
+    if need("ridge"):
+        pytest.skip(need("ridge"))
+    with pytest.raises(ValueError, match="uint8"):
+        train("ridge", np.zeros((4, 8, 8, 3), np.float32), np.zeros((4, 2), np.float32), 0)
+    with pytest.raises(ValueError, match="targets must be"):
+        train("ridge", np.zeros((4, 8, 8, 3), np.uint8), np.zeros((3, 2), np.float32), 0)
+    with pytest.raises(ValueError, match="NaN"):
+        train("ridge", np.zeros((4, 8, 8, 3), np.uint8), np.full((4, 2), np.nan, np.float32), 0)
+
+
+# --- the pipeline on a slice ---------------------------------------------------------------
+
+@needs_sklearn
+def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
+    """A virtual-rig capture (the fast path's twin, with a camera of its own: gains and a
+    defocus the diagnosis must find) of two indenters, the study with the ridge model: the
+    tables, the figure, results.json; the diagnosed effects bring the simulated images
+    towards the capture; a second call resumes without training again."""
+    from scenes.cli import main
+
+    capture = tmp_path / "capture"
+    assert main(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--renderer", "phong",
+                 "--unit", "camera_gains=1.25,0.95,0.8", "--unit", "blur=1.5", "--protocol", "base",
+                 "--objects", "sphere,cone", "--out", str(capture), "--yes", "--quiet"]) == 0
+    out = tmp_path / "study"
+    settings = Settings(model="ridge", seeds=2, extended_taps=48)
+    args = dict(capture=capture, fields=("plane",), progress=False,
+                diagnose_args=("--effects", "camera_response,blur_noise,vignetting", "--intervals", "0"))
+    doc = study.run(out, settings, **args)
+    for key in ("r2r", "s2s", "s2r", "s2r_by_training", "gap_closed", "paper", "timing"):
+        assert key in doc
+    assert set(doc["s2r_by_training"]) == {"none", "randomised", "diagnosed"}
+    cell = doc["s2r"]["base"]["full"]
+    assert set(cell) == {"accuracy", "localisation_mm"} and len(cell["accuracy"]["seeds"]) == 2
+    assert "localisation_mm" not in doc["s2r"]["extended"]["patch"]
+    assert json.loads((out / "results.json").read_text())["gap_closed"] == doc["gap_closed"]
+    assert "Real2Real" in (out / "tables.md").read_text() and (out / "transfer.png").stat().st_size > 10_000
+    assert "camera_response" in doc["diagnosis"]["effects"]
+    # the fitted effects bring the simulated base protocol nearer the capture, tap for tap
+    s = study.Study(out, settings, progress=False)
+    real = s.add("real", capture)
+    sim = s.add("base_plane", out / "sim_base_plane")
+    s.params = doc["diagnosis"]["params"]
+    order = data.aligned(sim, real.ids, "sim").ids
+    where = {i: k for k, i in enumerate(sim.ids)}
+    idx = [where[i] for i in order]
+    before = np.abs(sim.images[idx].astype(float) - real.images.astype(float)).mean()
+    after = np.abs(s.training_images("base_plane", "diagnosed")[idx].astype(float) - real.images.astype(float)).mean()
+    assert after < 0.7 * before
+    runs_dir = out / "runs" / "ridge"
+    stamps = {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*.json")}
+    again = study.run(out, settings, **args)
+    assert again["gap_closed"] == doc["gap_closed"]
+    assert {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*.json")} == stamps
+
+
+def test_run_refuses_a_capture_that_is_not_real(tmp_path, sim_root):
+    if need("ridge"):
+        pytest.skip(need("ridge"))
+    with pytest.raises(ValueError, match="not a capture"):
+        study.run(tmp_path / "s", Settings(model="ridge"), capture=sim_root, progress=False)
