@@ -350,3 +350,42 @@ def test_run_refuses_a_capture_that_is_not_real(tmp_path, sim_root):
         pytest.skip(need("ridge"))
     with pytest.raises(ValueError, match="not a capture"):
         study.run(tmp_path / "s", Settings(model="ridge"), capture=sim_root, progress=False)
+
+
+def test_runs_cover_the_tables_and_a_subset_only_its_cells():
+    every = study.runs(Settings(seeds=2), ["base_plane", "extended_plane"], ["extended_plane"])
+    # per seed: 3 input-task cells (no localisation from a patch) x (real + 2 sets + 2 trainings)
+    assert len(every) == 2 * 3 * 5 and len({r.name for r in every}) == len(every)
+    assert not any(r.input == "patch" and r.task == "localisation" for r in every)
+    few = study.runs(Settings(seeds=1, inputs=("full",), tasks=("classification",)), ["extended_plane"],
+                     ["extended_plane"])
+    assert [(r.train_set, r.training) for r in few] == [("real", "none"), ("extended_plane", "none"),
+                                                         ("extended_plane", "randomised"),
+                                                         ("extended_plane", "diagnosed")]
+    assert Settings(model="resnet18").stem == "-resnet18" and Settings().stem == ""
+
+
+def test_cli_refuses_unknown_values(capsys):
+    from studies.sim2real.__main__ import main
+
+    with pytest.raises(SystemExit):
+        main(["--out", "x", "--tasks", "segmentation"])
+    assert "segmentation" in capsys.readouterr().err
+
+
+def test_contrast_measures_the_contact_against_the_rest():
+    n, h, w = 8, 6, 6
+    images = np.full((n, h, w, 3), 100, np.uint8)
+    indentation = np.zeros((n, h, w), np.float32)
+    for i in range(n):
+        images[i, i % 3, i % 3] = 151  # each contact at its own pixel: the median stays the background
+        indentation[i, i % 3, i % 3] = 1e-3
+    images[:, 5, 5] += np.arange(n, dtype=np.uint8)[:, None]  # "noise" off the contacts
+    a = data.Arrays(images=images, labels=np.arange(n) % 2, pixel=np.zeros((n, 2), np.float32),
+                    point=np.zeros((n, 3), np.float32), path=np.zeros(n, int), position=np.zeros(n, int),
+                    replica=np.zeros(n, int), ids=np.array([f"{i:06d}_x" for i in range(n)]),
+                    indentation=indentation, factor=1)
+    out = study.contrast({"set": a}, a, np.ones((h, w), bool))["per_set"]["set"]
+    assert set(out) == {INDENTERS[0], INDENTERS[1]}
+    assert out[INDENTERS[0]]["contact"] == pytest.approx(51 / 255, rel=1e-5)
+    assert 0 < out[INDENTERS[0]]["elsewhere"] < 0.01

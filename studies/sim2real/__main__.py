@@ -9,7 +9,7 @@ import sys
 from scenes.commands import positive_int
 
 from .learn import MODELS, Training
-from .study import FIELDS, PROTOCOLS, Settings, run
+from .study import FIELDS, INPUTS, PROTOCOLS, TASKS, Settings, run
 from .augment import TRAININGS
 
 
@@ -31,27 +31,32 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--protocols", default=",".join(PROTOCOLS), help="simulated protocols (default base,extended)")
     p.add_argument("--fields", default=",".join(FIELDS), help="light fields whose replays pick the best one")
     p.add_argument("--trainings", default=",".join(TRAININGS), help="none,randomised,diagnosed (default all)")
+    p.add_argument("--inputs", default=",".join(INPUTS), help="full,patch (default both)")
+    p.add_argument("--tasks", default=",".join(TASKS), help="classification,localisation (default both)")
     p.add_argument("--workers", type=positive_int, default=2)
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     split = lambda v: tuple(x.strip() for x in v.split(",") if x.strip())  # noqa: E731
     trainings = split(args.trainings)
     bad = sorted(set(trainings) - set(TRAININGS)) + sorted(set(split(args.protocols)) - set(PROTOCOLS)) \
-        + sorted(set(split(args.fields)) - set(FIELDS))
+        + sorted(set(split(args.fields)) - set(FIELDS)) + sorted(set(split(args.inputs)) - set(INPUTS)) \
+        + sorted(set(split(args.tasks)) - set(TASKS))
     if bad:
-        p.error(f"unknown values {bad}: trainings are {TRAININGS}, protocols {PROTOCOLS}, fields {FIELDS}")
+        p.error(f"unknown values {bad}: trainings are {TRAININGS}, protocols {PROTOCOLS}, fields {FIELDS}, "
+                f"inputs {INPUTS}, tasks {TASKS}")
     settings = Settings(model=args.model, seeds=args.seeds, factor=args.factor, full_block=args.full_block,
                         patch_px=args.patch_px, extended_taps=args.extended_taps,
                         trainings=tuple(dict.fromkeys(("none",) + trainings)),
                         training=Training(batch=args.batch, batches_per_epoch=args.batches_per_epoch,
-                                          epochs=args.epochs), workers=args.workers)
+                                          epochs=args.epochs), workers=args.workers,
+                        inputs=split(args.inputs), tasks=split(args.tasks))
     try:
         doc = run(args.out, settings, capture=args.capture, spec=args.spec, fields=split(args.fields),
                   protocols=split(args.protocols), progress=not args.quiet)
     except (ValueError, RuntimeError, FileNotFoundError) as exc:
         print(f"studies.sim2real: error: {exc}", file=sys.stderr)
         return 1
-    print(json.dumps({k: doc[k] for k in ("gap_closed",)}, indent=1)[:4000])
+    print(json.dumps(doc["gap_closed"], indent=1)[:4000])
     return 0
 
 

@@ -71,6 +71,15 @@ def tables(doc: dict) -> str:
             lines.append(f"| {t} | {p} | {_fmt(cells['full'], 'accuracy')} | {_fmt(cells['patch'], 'accuracy')} | "
                          f"{_fmt(cells['full'], 'localisation_mm')} | {share('full', 'classification')} | "
                          f"{share('patch', 'classification')} | {share('full', 'localisation')} |")
+    shown = doc.get("contrast")
+    if shown:
+        sets = list(shown["per_set"])
+        lines += ["", "## How strongly the contacts show", "", shown["what"] + ": contact / elsewhere.", "",
+                  "| indenter | " + " | ".join(sets) + " |", "|---" * (len(sets) + 1) + "|"]
+        for name in shown["per_set"][sets[0]]:
+            lines.append(f"| {name} | " + " | ".join(
+                f"{shown['per_set'][s][name]['contact']:.4f} / {shown['per_set'][s][name]['elsewhere']:.4f}"
+                for s in sets) + " |")
     return "\n".join(lines) + "\n"
 
 

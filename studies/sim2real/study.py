@@ -67,7 +67,9 @@ class Settings:
     averaged again by this (2: 80x60); patch_px : the patch's side at the arrays'
     resolution (32: 128 full-resolution pixels, about 11 mm of the GelTip's membrane);
     extended_taps : a seeded subset of the extended protocol's taps (None: all 23,040);
-    trainings : which of ``augment.TRAININGS`` the simulated sets are trained with.
+    trainings : which of ``augment.TRAININGS`` the simulated sets are trained with;
+    inputs, tasks : which of ``INPUTS`` and ``TASKS`` are run (a subset: a costly model on
+    the cells that matter).
     """
 
     model: str = "cnn"
@@ -79,9 +81,18 @@ class Settings:
     trainings: tuple[str, ...] = augment.TRAININGS
     training: Training = field(default_factory=Training)
     workers: int = 2
+    inputs: tuple[str, ...] = INPUTS
+    tasks: tuple[str, ...] = TASKS
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "training": self.training.to_dict(), "trainings": list(self.trainings)}
+        return {**asdict(self), "training": self.training.to_dict(), "trainings": list(self.trainings),
+                "inputs": list(self.inputs), "tasks": list(self.tasks)}
+
+    @property
+    def stem(self) -> str:
+        """What the outputs are called: ``results.json`` etc. for the default model, else
+        ``results-<model>.json``, so a costly model's subset sits beside the default's."""
+        return "" if self.model == "cnn" else f"-{self.model}"
 
 
 @dataclass(frozen=True)
@@ -347,8 +358,8 @@ def runs(settings: Settings, sim_sets: list[str], augmented_sets: list[str]) -> 
     the plane field's sets with each other training."""
     out = []
     for seed in range(settings.seeds):
-        for inp in INPUTS:
-            for task in TASKS:
+        for inp in settings.inputs:
+            for task in settings.tasks:
                 if task == "localisation" and inp == "patch":
                     continue  # a patch centred on the contact gives its place away
                 out.append(Run("real", "none", inp, task, seed))
@@ -432,6 +443,32 @@ def summarise(results: dict[str, dict], settings: Settings, sim_sets: list[str],
             "s2r_by_training_all_real_taps": by_training_all, "gap_closed": gap, "paper": PAPER}
 
 
+def contrast(sets: dict[str, data.Arrays], region_from: data.Arrays, mask: np.ndarray,
+             pressed_m: float = 1e-4) -> dict:
+    """How strongly each indenter's contact shows in each set: per indenter, the mean
+    |image - the set's per-pixel median| ([0, 1] units, channels averaged) over the contact
+    (where ``region_from``'s indentation, aligned by sample id, exceeds ``pressed_m``) and
+    over the rest of the image circle (the noise a classifier must see the contact
+    through)."""
+    where = {str(i): k for k, i in enumerate(region_from.ids)}
+    out = {}
+    for name, a in sets.items():
+        x = a.images.astype(np.float32) / 255.0
+        change = np.abs(x - np.median(x, axis=0)).mean(axis=-1)
+        rows = {}
+        for c in np.unique(a.labels):
+            contact, rest = [], []
+            for i in np.flatnonzero(a.labels == c):
+                ind = region_from.indentation[where[str(a.ids[i])]]
+                contact.append(float(change[i][ind > pressed_m].mean()))
+                rest.append(float(change[i][mask & (ind == 0)].mean()))
+            rows[INDENTERS[c]] = {"contact": float(np.mean(contact)), "elsewhere": float(np.mean(rest))}
+        out[name] = rows
+    return {"per_set": out, "what": "mean |image - per-pixel median of the set| over the contact (the fast path's "
+                                    f"base taps' indentation > {pressed_m * 1e3:g} mm) and elsewhere in the image "
+                                    "circle, [0, 1] units, channels averaged, at the arrays' resolution"}
+
+
 # --- the whole study ----------------------------------------------------------------------
 
 def run(out: str | Path, settings: Settings = Settings(), capture: str | Path | None = None, spec: str | None = None,
@@ -506,6 +543,13 @@ def run(out: str | Path, settings: Settings = Settings(), capture: str | Path | 
         results[r.name] = study.evaluate(r)
     seconds["runs"] = time.perf_counter() - t0
     summary = summarise(results, settings, sim_sets, plane_sets)
+    shown = None
+    if "base_plane" in study.sets:
+        inside = block_mean(Camera.from_spec(spec_obj).mask.astype(np.float32), settings.factor) > 0.99
+        base = study.sets["base_plane"]
+        shown = contrast({"real": real, "base_plane": data.aligned(base, real.ids, "the base protocol")}
+                         if set(map(str, real.ids)) == set(map(str, base.ids)) else {"base_plane": base},
+                         base, inside)
     train_seconds = [v["seconds"] for v in results.values()]
     effects_cost = {p.stem: json.loads(p.read_text()) for p in study.cache.glob("*.json")}
     doc = {
@@ -517,14 +561,16 @@ def run(out: str | Path, settings: Settings = Settings(), capture: str | Path | 
                       "params": study.params,
                       "share_closed": (report.get("explained") or {}).get("share_closed")},
         **summary,
+        "contrast": shown,
         "timing": {"this_call_seconds": seconds, "runs": len(results),
                    "train_seconds_total": float(sum(train_seconds)),
                    "train_seconds_median": float(np.median(train_seconds)) if train_seconds else None,
                    "effects_images": effects_cost},
     }
-    atomic_write_json(out / "results.json", doc)
+    stem = settings.stem
+    atomic_write_json(out / f"results{stem}.json", doc)
     from .report import figure, tables
 
-    (out / "tables.md").write_text(tables(doc))
-    figure(doc, results, study, out / "transfer.png")
+    (out / f"tables{stem}.md").write_text(tables(doc))
+    figure(doc, results, study, out / f"transfer{stem}.png")
     return doc
