@@ -324,8 +324,9 @@ def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
     cell = doc["s2r"]["base"]["full"]
     assert set(cell) == {"accuracy", "localisation_mm"} and len(cell["accuracy"]["seeds"]) == 2
     assert "localisation_mm" not in doc["s2r"]["extended"]["patch"]
-    assert json.loads((out / "results.json").read_text())["gap_closed"] == doc["gap_closed"]
-    assert "Real2Real" in (out / "tables.md").read_text() and (out / "transfer.png").stat().st_size > 10_000
+    assert json.loads((out / "results-ridge.json").read_text())["gap_closed"] == doc["gap_closed"]
+    assert "Real2Real" in (out / "tables-ridge.md").read_text()
+    assert (out / "transfer-ridge.png").stat().st_size > 10_000
     assert "camera_response" in doc["diagnosis"]["effects"]
     # the fitted effects bring the simulated base protocol nearer the capture, tap for tap
     s = study.Study(out, settings, progress=False)
@@ -339,10 +340,14 @@ def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
     after = np.abs(s.training_images("base_plane", "diagnosed")[idx].astype(float) - real.images.astype(float)).mean()
     assert after < 0.7 * before
     runs_dir = out / "runs" / "ridge"
-    stamps = {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*.json")}
+    stamps = {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*/*.json")}
+    assert len(stamps) == doc["timing"]["runs"]
     again = study.run(out, settings, **args)
     assert again["gap_closed"] == doc["gap_closed"]
-    assert {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*.json")} == stamps
+    assert {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*/*.json")} == stamps
+    # other settings are other models: they do not reuse these runs
+    assert s.run_path(Run("real", "none", "full", "classification", 0)).parent != study.Study(
+        out, Settings(model="ridge", patch_px=16)).run_path(Run("real", "none", "full", "classification", 0)).parent
 
 
 def test_run_refuses_a_capture_that_is_not_real(tmp_path, sim_root):

@@ -13,7 +13,8 @@ Stages, each cached under ``DIR`` and resumed (``run``):
    replay: the effects to add, fitted;
 4. ``DIR/sim_<protocol>_<field>``: the fast path's base and extended protocols (all 8
    indenters) with the capture's background (``studies.sim2real.plugin``);
-5. ``DIR/runs/<model>/<run>.json``: one trained model each, evaluated (``Run``);
+5. ``DIR/runs/<model>/<settings tag>/<run>.json``: one trained model each, evaluated
+   (``Run``, ``Study.run_path``);
 6. ``DIR/results.json``, ``DIR/tables.md``, ``DIR/transfer.png``.
 
 Evaluation, as the paper's: seeded 80/20 splits stratified by indenter. Real2Real trains
@@ -313,9 +314,20 @@ class Study:
             self._inputs[key] = inputs(self.sets[name], self.training_images(name, training), kind, self.settings)
         return self._inputs[key]
 
+    def run_path(self, run: Run) -> Path:
+        """Where ``run``'s result is kept: ``runs/<model>/<tag>/<run>.json``, the tag a digest
+        of the settings a model depends on (so other epochs, resolutions or subsets of the
+        extended protocol train anew), a diagnosed run's name also carrying a digest of the
+        fitted effects it was trained with."""
+        s = self.settings
+        tag = data.sha({"factor": s.factor, "full_block": s.full_block, "patch_px": s.patch_px,
+                        "extended_taps": s.extended_taps, "training": s.training.to_dict()})[:10]
+        name = run.name + (f"-{data.sha(self.params)[:8]}" if run.training == "diagnosed" else "")
+        return self.out / "runs" / s.model / tag / f"{name}.json"
+
     def evaluate(self, run: Run, real_all: bool = True) -> dict:
-        """Train ``run``'s model and evaluate it (cached as ``runs/<model>/<run>.json``)."""
-        path = self.out / "runs" / self.settings.model / f"{run.name}.json"
+        """Train ``run``'s model and evaluate it (cached, ``run_path``)."""
+        path = self.run_path(run)
         if path.exists():
             return json.loads(path.read_text())
         s = self.settings
@@ -390,8 +402,9 @@ def summarise(results: dict[str, dict], settings: Settings, sim_sets: list[str],
     def cell(train_set: str, training: str, inp: str, test: str) -> dict:
         out = {}
         for task in TASKS:
-            vals = [results[Run(train_set, training, inp, task, s).name][test][METRIC[task]]
-                    for s in range(settings.seeds) if Run(train_set, training, inp, task, s).name in results]
+            got = [results.get(Run(train_set, training, inp, task, s).name, {}).get(test)
+                   for s in range(settings.seeds)]
+            vals = [g[METRIC[task]] for g in got if g is not None]
             if vals:
                 out[METRIC[task]] = interval(vals)
         return out
