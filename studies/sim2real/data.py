@@ -15,7 +15,6 @@ file keyed by its ``dataset.json`` and sample count, written atomically.
 from __future__ import annotations
 
 import hashlib
-import json
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -23,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from scenes.camera import Camera, project
-from scenes.dataset import DatasetError, atomic_write_bytes, load_sample, read_meta, read_samples
+from scenes.dataset import DatasetError, atomic_write_bytes, load_sample, read_meta, read_samples, sha256_json
 from scenes.images import block_mean
 from scenes.indenters import INDENTERS
 from scenes.spec import SensorSpec, spec_from_dict
@@ -207,4 +206,5 @@ def describe(root: str | Path) -> dict:
 
 
 def sha(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:16]
+    """A short digest of a JSON-able object (``scenes.dataset.sha256_json``'s first 16)."""
+    return sha256_json(obj)[:16]

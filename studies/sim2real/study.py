@@ -38,14 +38,16 @@ from pathlib import Path
 import numpy as np
 
 from scenes.camera import Camera
-from scenes.dataset import atomic_write_json, read_meta, read_samples
+from phong_reference.bake import METHODS
+from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes, read_meta, read_samples
 from scenes.images import block_mean
 from scenes.indenters import INDENTERS
 
 from . import augment, data
 from .learn import Training, need, train
 
-FIELDS = ("plane", "linear", "geodesic", "transport")
+#: The light fields whose replays pick the best one, the published plane field first.
+FIELDS = ("plane",) + tuple(m for m in METHODS if m != "plane")
 PROTOCOLS = ("base", "extended")
 INPUTS = ("full", "patch")
 TASKS = ("classification", "localisation")
@@ -296,13 +298,7 @@ class Study:
                 images = aug.randomised(arrays.images, arrays.indentation, seed=0)
             else:
                 raise ValueError(f"training must be one of {augment.TRAININGS}, got {training!r}")
-            from io import BytesIO
-
-            from scenes.dataset import atomic_write_bytes
-
-            buf = BytesIO()
-            np.save(buf, images)
-            atomic_write_bytes(path, buf.getvalue())
+            atomic_write_bytes(path, npy_bytes(images))
             atomic_write_json(path.with_suffix(".json"), {"seconds": time.perf_counter() - t0, "images": len(images)})
         self.images[key] = images
         return images
