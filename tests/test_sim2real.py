@@ -394,3 +394,19 @@ def test_contrast_measures_the_contact_against_the_rest():
     assert set(out) == {INDENTERS[0], INDENTERS[1]}
     assert out[INDENTERS[0]]["contact"] == pytest.approx(51 / 255, rel=1e-5)
     assert 0 < out[INDENTERS[0]]["elsewhere"] < 0.01
+
+
+def test_load_refuses_an_object_that_is_no_indenter_and_a_wrong_indentation(sim_root, tmp_path):
+    import shutil
+
+    from scenes.dataset import DatasetError
+
+    bad = tmp_path / "bad"
+    shutil.copytree(sim_root, bad)
+    lines = (bad / "samples.jsonl").read_text().splitlines()
+    record = json.loads(lines[0])
+    (bad / "samples.jsonl").write_text("\n".join([json.dumps({**record, "object": "teapot"})] + lines[1:]) + "\n")
+    with pytest.raises(DatasetError, match="teapot"):
+        data.load(bad, 4)
+    with pytest.raises(DatasetError, match="indentation is"):
+        data.load(sim_root, 8)  # the stored maps are 160x120, not 80x60
