@@ -410,3 +410,26 @@ def test_load_refuses_an_object_that_is_no_indenter_and_a_wrong_indentation(sim_
         data.load(bad, 4)
     with pytest.raises(DatasetError, match="indentation is"):
         data.load(sim_root, 8)  # the stored maps are 160x120, not 80x60
+
+
+def test_contact_contrast_scores_the_dent_against_the_far_circle():
+    from studies.sim2real.visibility import contact_contrast
+
+    h, w = 80, 80
+    frame = np.full((h, w, 3), 0.5)
+    touched = np.zeros((h, w), bool)
+    touched[10:14, 10:14] = True
+    image = frame.copy()
+    image[10:14, 10:14] += 0.1  # the dent
+    image[70:, 70:, 0] += 0.03  # far off it: noise in one channel
+    mask = np.ones((h, w), bool)
+    out = contact_contrast(image, frame, touched, mask, rim_px=2, far_px=20)
+    grown = 16 + 4 * 4 * 2 + 4  # a 4x4 square grown by 2 in L1 distance (scipy's cross): sides, one per corner
+    assert out["contact"] == pytest.approx(0.1 * 16 / grown)
+    assert out["relative"] == pytest.approx(out["contact"] / 0.5)
+    assert out["peak"] == pytest.approx(0.1)
+    assert 0 < out["far"] < 0.01
+    with pytest.raises(ValueError, match="no pixel"):
+        contact_contrast(image, frame, np.zeros((h, w), bool), mask)
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        contact_contrast(image[..., 0], frame, touched, mask)

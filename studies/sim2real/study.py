@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import dataclasses
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -556,9 +557,13 @@ def run(out: str | Path, settings: Settings = Settings(), capture: str | Path | 
     if "base_plane" in study.sets:
         inside = block_mean(Camera.from_spec(spec_obj).mask.astype(np.float32), settings.factor) > 0.99
         base = study.sets["base_plane"]
-        shown = contrast({"real": real, "base_plane": data.aligned(base, real.ids, "the base protocol")}
-                         if set(map(str, real.ids)) == set(map(str, base.ids)) else {"base_plane": base},
-                         base, inside)
+        # the trained images too: how far each training brings the contacts' strength to the capture's
+        trained = {"base_plane" + ("" if t == "none" else f" {t}"):
+                   dataclasses.replace(base, images=study.training_images("base_plane", t))
+                   for t in dict.fromkeys(("none",) + tuple(settings.trainings))}
+        if set(map(str, real.ids)) == set(map(str, base.ids)):
+            trained = {"real": real, **{k: data.aligned(v, real.ids, "the base protocol") for k, v in trained.items()}}
+        shown = contrast(trained, base, inside)
     train_seconds = [v["seconds"] for v in results.values()]
     effects_cost = {p.stem: json.loads(p.read_text()) for p in study.cache.glob("*.json")}
     doc = {
