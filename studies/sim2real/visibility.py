@@ -20,7 +20,6 @@ seen through), and the first relative to the frame's brightness there::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
