@@ -348,6 +348,24 @@ def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
     # other settings are other models: they do not reuse these runs
     assert s.run_path(Run("real", "none", "full", "classification", 0)).parent != study.Study(
         out, Settings(model="ridge", patch_px=16)).run_path(Run("real", "none", "full", "classification", 0)).parent
+    # difference inputs: their own runs and outputs; a capture's contact shows in its difference
+    diff = Settings(model="ridge", seeds=1, extended_taps=48, difference=True, inputs=("full",),
+                    tasks=("classification",))
+    assert study.Study(out, diff).run_path(Run("real", "none", "full", "classification", 0)).parent != \
+        s.run_path(Run("real", "none", "full", "classification", 0)).parent
+    ddoc = study.run(out, diff, **args)
+    assert (out / "results-ridge-difference.json").exists() and ddoc["settings"]["difference"]
+    ds = study.Study(out, diff, progress=False)
+    ds.add("real", capture)
+    ds.add("base_plane", out / "sim_base_plane")
+    ds.params = ddoc["diagnosis"]["params"]
+    for name, training in (("real", "none"), ("base_plane", "diagnosed"), ("base_plane", "randomised")):
+        x = study.difference(ds.training_images(name, training), ds.frames(name, training), ds.mask)
+        pressed = sim.indentation[idx] > 1e-4  # the contacts, tap for tap (the capture's order)
+        if name != "real":
+            x = x[idx]
+        change = np.abs(x.astype(float) - study.DIFFERENCE_ZERO).mean(axis=-1)
+        assert change[pressed].mean() > 3 * change[~pressed & ds.mask].mean(), (name, training)
 
 
 def test_run_refuses_a_capture_that_is_not_real(tmp_path, sim_root):
@@ -433,3 +451,47 @@ def test_contact_contrast_scores_the_dent_against_the_far_circle():
         contact_contrast(image, frame, np.zeros((h, w), bool), mask)
     with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
         contact_contrast(image[..., 0], frame, touched, mask)
+
+
+def test_difference_scales_each_image_by_its_own_rms_in_the_circle():
+    frame = np.full((4, 4, 3), 100, np.uint8)
+    images = np.repeat(frame[None], 3, axis=0)
+    images[0, 1, 1] = 110  # one pixel 10 brighter in every channel
+    images[1, 1, 1] = 200  # the same contact ten times stronger
+    mask = np.ones((4, 4), bool)
+    mask[3, 3] = False
+    images[:, 3, 3] = 0  # outside the circle: ignored
+    out = study.difference(images, frame, mask)
+    rms = np.sqrt(3 * 10.0 ** 2 / (3 * 15))  # one pixel of 15 inside the circle
+    want = study.DIFFERENCE_ZERO + study.DIFFERENCE_SCALE * 10 / rms
+    assert np.all(out[0, 1, 1] == np.clip(np.rint(want), 0, 255))
+    assert np.array_equal(out[0], out[1])  # strength drops out, shape stays
+    assert np.all(out[2] == study.DIFFERENCE_ZERO)  # no contact: zero everywhere
+    assert np.all(out[:, 3, 3] == study.DIFFERENCE_ZERO)
+    per_image = np.stack([frame, frame, np.full_like(frame, 90)])
+    assert not np.all(study.difference(images, per_image, mask)[2] == study.DIFFERENCE_ZERO)
+    with pytest.raises(ValueError, match="one per image"):
+        study.difference(images, per_image[:2], mask)
+    with pytest.raises(ValueError, match="mask"):
+        study.difference(images, frame, mask[:3])
+
+
+def test_patches_pad_with_the_fill():
+    images = np.full((1, 8, 8, 3), 200, np.uint8)
+    out = study.patches(images, np.array([[0.0, 0.0]]), 1, 4, fill=128)
+    assert out[0, 0, 0, 0] == 128 and out[0, -1, -1, 0] == 200
+
+
+def test_randomised_frames_are_each_draws_no_contact_frame(sim_root):
+    from scenes.dataset import read_meta
+
+    arrays = data.load(sim_root, 4)
+    aug = augment.Augmenter(data.dataset_spec(sim_root), read_meta(sim_root)["renderer"], 4)
+    plain = data.frame(sim_root, 4)
+    assert plain.shape == arrays.images.shape[1:] and plain.dtype == np.uint8
+    frames = aug.randomised_frames(plain, 3, seed=5)
+    draws = aug.draws(3, seed=5)
+    zero = np.zeros((1,) + plain.shape[:2], np.float32)
+    for i in range(3):
+        assert np.array_equal(frames[i], aug.apply(plain[None], zero, draws[i])[0])
+    assert not np.array_equal(frames[0], frames[1])  # each image its own draw

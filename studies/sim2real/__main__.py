@@ -33,6 +33,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trainings", default=",".join(TRAININGS), help="none,randomised,diagnosed (default all)")
     p.add_argument("--inputs", default=",".join(INPUTS), help="full,patch (default both)")
     p.add_argument("--tasks", default=",".join(TASKS), help="classification,localisation (default both)")
+    p.add_argument("--difference", action="store_true",
+                   help="the networks see each image's difference from its set's no-contact frame (shown with the "
+                        "same effects), over its RMS in the image circle, instead of the image; writes "
+                        "results-difference.json etc.")
     p.add_argument("--workers", type=positive_int, default=2)
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
@@ -49,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
                         trainings=tuple(dict.fromkeys(("none",) + trainings)),
                         training=Training(batch=args.batch, batches_per_epoch=args.batches_per_epoch,
                                           epochs=args.epochs), workers=args.workers,
-                        inputs=split(args.inputs), tasks=split(args.tasks))
+                        inputs=split(args.inputs), tasks=split(args.tasks), difference=args.difference)
     try:
         doc = run(args.out, settings, capture=args.capture, spec=args.spec, fields=split(args.fields),
                   protocols=split(args.protocols), progress=not args.quiet)

@@ -75,20 +75,39 @@ class Augmenter:
         out = self.model.predict(sim, depth, params)
         return np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
 
+    def draws(self, count: int, seed: int) -> list[dict]:
+        """The random draws (``random_params``) of ``randomised``'s ``count`` images, in order:
+        the seed fixes them."""
+        rng = np.random.default_rng(seed)
+        return [random_params(self.catalogue, rng) for _ in range(count)]
+
     def randomised(self, images: np.ndarray, indentation: np.ndarray | None, seed: int) -> np.ndarray:
-        """Each image with its own random draw of every effect (``random_params``)."""
+        """Each image with its own random draw of every effect (``draws``)."""
+        draws = self.draws(len(images), seed)
+        return self._each(len(images), lambda i: self.apply(
+            images[i:i + 1], None if indentation is None else indentation[i:i + 1], draws[i])[0], images.dtype,
+            images.shape[1:])
+
+    def randomised_frames(self, frame: np.ndarray, count: int, seed: int) -> np.ndarray:
+        """(count, h, w, 3) uint8: the no-contact ``frame`` (h, w, 3) uint8 under each draw
+        of ``randomised(images, ..., seed)`` with ``count`` images, so that each image has
+        the frame it would have shown without contact."""
+        draws = self.draws(count, seed)
+        zero = np.zeros((1,) + frame.shape[:2], np.float32)
+        return self._each(count, lambda i: self.apply(frame[None], zero, draws[i])[0], frame.dtype, frame.shape)
+
+    @staticmethod
+    def _each(count: int, one, dtype, shape) -> np.ndarray:
         import os
         from concurrent.futures import ThreadPoolExecutor
 
-        rng = np.random.default_rng(seed)
-        draws = [random_params(self.catalogue, rng) for _ in range(len(images))]  # in order: the seed fixes them
-        out = np.empty_like(images)
+        out = np.empty((count,) + tuple(shape), dtype)
 
-        def one(i: int) -> None:
-            out[i] = self.apply(images[i:i + 1], None if indentation is None else indentation[i:i + 1], draws[i])[0]
+        def put(i: int) -> None:
+            out[i] = one(i)
 
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # numpy and OpenCV release the GIL
-            list(pool.map(one, range(len(images))))
+            list(pool.map(put, range(count)))
         return out
 
 

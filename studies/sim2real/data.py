@@ -23,7 +23,7 @@ import numpy as np
 
 from scenes.camera import Camera, project
 from scenes.dataset import DatasetError, atomic_write_bytes, load_sample, read_meta, read_samples, sha256_json
-from scenes.images import block_mean
+from scenes.images import block_mean, read_rgb
 from scenes.indenters import INDENTERS
 from scenes.spec import SensorSpec, spec_from_dict
 
@@ -153,6 +153,21 @@ def load(root: str | Path, factor: int = 4, cache: str | Path | None = None, wor
                  indentation=arrays.indentation if arrays.indentation is not None else np.zeros(0, np.float32))
         atomic_write_bytes(path, buf.getvalue())
     return arrays
+
+
+def frame(root: str | Path, factor: int = 4) -> np.ndarray:
+    """(h, w, 3) uint8: a dataset's no-contact frame (its ``background.png``) at 1/``factor``
+    of its camera's resolution, made as ``load`` makes each image."""
+    root = Path(root)
+    camera = Camera.from_spec(dataset_spec(root))
+    path = root / "background.png"
+    if not path.exists():
+        raise DatasetError(f"{root} has no background.png: difference inputs need the no-contact frame")
+    try:
+        image = read_rgb(path, camera.shape)
+    except ValueError as exc:
+        raise DatasetError(f"{root}: background.png: {exc}") from None
+    return np.clip(np.rint(block_mean(image, factor) * 255.0), 0, 255).astype(np.uint8)
 
 
 def split(labels: np.ndarray, seed: int, test_share: float = 0.2) -> tuple[np.ndarray, np.ndarray]:

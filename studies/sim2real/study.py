@@ -33,6 +33,7 @@ import json
 import math
 import time
 import dataclasses
+import hashlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -73,7 +74,9 @@ class Settings:
     extended_taps : a seeded subset of the extended protocol's taps (None: all 23,040);
     trainings : which of ``augment.TRAININGS`` the simulated sets are trained with;
     inputs, tasks : which of ``INPUTS`` and ``TASKS`` are run (a subset: a costly model on
-    the cells that matter).
+    the cells that matter); difference : the networks see each image's difference from
+    its set's no-contact frame, as shown with the same effects, over its RMS in the image
+    circle (``difference``), instead of the image as published.
     """
 
     model: str = "cnn"
@@ -87,6 +90,7 @@ class Settings:
     workers: int = 2
     inputs: tuple[str, ...] = INPUTS
     tasks: tuple[str, ...] = TASKS
+    difference: bool = False
 
     def to_dict(self) -> dict:
         return {**asdict(self), "training": self.training.to_dict(), "trainings": list(self.trainings),
@@ -95,8 +99,9 @@ class Settings:
     @property
     def stem(self) -> str:
         """What the outputs are called: ``results.json`` etc. for the default model, else
-        ``results-<model>.json``, so a costly model's subset sits beside the default's."""
-        return "" if self.model == "cnn" else f"-{self.model}"
+        ``results-<model>.json``, so a costly model's subset sits beside the default's; with
+        difference inputs ``-difference`` follows."""
+        return ("" if self.model == "cnn" else f"-{self.model}") + ("-difference" if self.difference else "")
 
 
 @dataclass(frozen=True)
@@ -208,12 +213,12 @@ def full_inputs(images: np.ndarray, block: int, chunk: int = 1024) -> np.ndarray
                            .astype(np.uint8) for i in range(0, len(images), chunk)])
 
 
-def patches(images: np.ndarray, pixel: np.ndarray, factor: int, size: int) -> np.ndarray:
+def patches(images: np.ndarray, pixel: np.ndarray, factor: int, size: int, fill: int = 0) -> np.ndarray:
     """(N, size, size, 3) crops centred on each contact's pixel (full-resolution (u, v),
-    ``pixel``) at the arrays' resolution (1/``factor``), zero outside the image."""
+    ``pixel``) at the arrays' resolution (1/``factor``), ``fill`` outside the image."""
     n, h, w, _ = images.shape
     pad = size
-    padded = np.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+    padded = np.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)), constant_values=fill)
     out = np.empty((n, size, size, 3), np.uint8)
     centre = (np.asarray(pixel, np.float64) + 0.5) / factor - 0.5  # full-res pixel centre -> array pixels
     for i in range(n):
@@ -224,11 +229,43 @@ def patches(images: np.ndarray, pixel: np.ndarray, factor: int, size: int) -> np
     return out
 
 
+#: Difference inputs are stored as uint8 DIFFERENCE_ZERO + DIFFERENCE_SCALE z (``difference``).
+DIFFERENCE_ZERO = 128
+DIFFERENCE_SCALE = 8.0
+
+
+def difference(images: np.ndarray, frames: np.ndarray, mask: np.ndarray, chunk: int = 1024) -> np.ndarray:
+    """(N, h, w, 3) uint8 images and their no-contact frames ((h, w, 3), or one per image)
+    -> uint8 DIFFERENCE_ZERO + DIFFERENCE_SCALE z, clipped, z = (image - frame) over its
+    RMS inside the image circle ``mask`` (h, w), zero outside it.
+
+    Scaled per image, the input keeps the contact's shape and drops its strength, which a
+    simulator may get wrong by an order of magnitude (``visibility``); an image equal to
+    its frame gives z = 0."""
+    images = np.asarray(images)
+    frames = np.asarray(frames)
+    if images.ndim != 4 or frames.shape[-3:] != images.shape[1:] or frames.ndim not in (3, 4) or (
+            frames.ndim == 4 and len(frames) != len(images)):
+        raise ValueError(f"frames {frames.shape} must be one (h, w, 3) frame or one per image of {images.shape}")
+    if mask.shape != images.shape[1:3]:
+        raise ValueError(f"mask {mask.shape} must be the images' (h, w) {images.shape[1:3]}")
+    out = np.empty_like(images, dtype=np.uint8)
+    for i in range(0, len(images), chunk):
+        f = frames if frames.ndim == 3 else frames[i:i + chunk]
+        d = images[i:i + chunk].astype(np.float32) - f.astype(np.float32)
+        d *= mask[None, :, :, None]
+        rms = np.sqrt((d ** 2).sum(axis=(1, 2, 3)) / (3.0 * mask.sum()))
+        z = d / np.maximum(rms, 1e-6)[:, None, None, None]
+        out[i:i + chunk] = np.clip(np.rint(DIFFERENCE_ZERO + DIFFERENCE_SCALE * z), 0, 255)
+    return out
+
+
 def inputs(arrays: data.Arrays, images: np.ndarray, kind: str, settings: Settings) -> np.ndarray:
     if kind == "full":
         return full_inputs(images, settings.full_block)
     if kind == "patch":
-        return patches(images, arrays.pixel, arrays.factor, settings.patch_px)
+        return patches(images, arrays.pixel, arrays.factor, settings.patch_px,
+                       fill=DIFFERENCE_ZERO if settings.difference else 0)
     raise ValueError(f"input must be one of {INPUTS}, got {kind!r}")
 
 
@@ -287,10 +324,7 @@ class Study:
         if path.exists():
             images = np.load(path, allow_pickle=False)
         else:
-            if name not in self.augmenters:
-                spec = data.dataset_spec(root)
-                self.augmenters[name] = augment.Augmenter(spec, meta["renderer"], arrays.factor)
-            aug = self.augmenters[name]
+            aug = self._augmenter(name)
             t0 = time.perf_counter()
             if training == "diagnosed":
                 images = np.concatenate([aug.apply(arrays.images[i:i + 256], arrays.indentation[i:i + 256],
@@ -304,11 +338,49 @@ class Study:
         self.images[key] = images
         return images
 
+    def frames(self, name: str, training: str) -> np.ndarray:
+        """A set's no-contact frame as shown with ``training``: (h, w, 3) uint8, or one
+        per image for ``randomised`` (each image's own draw, cached on disk)."""
+        plain = data.frame(self.roots[name], self.sets[name].factor)
+        if training == "none":
+            return plain
+        if training == "diagnosed":
+            return self._augmenter(name).apply(plain[None], np.zeros((1,) + plain.shape[:2], np.float32),
+                                               self.params)[0]
+        if training != "randomised":
+            raise ValueError(f"training must be one of {augment.TRAININGS}, got {training!r}")
+        arrays = self.sets[name]
+        tag = data.sha({"set": read_meta(self.roots[name]), "n": len(arrays), "training": training,
+                        "factor": arrays.factor, "frame": hashlib.sha256(plain.tobytes()).hexdigest()})
+        path = self.cache / f"{name}-{training}-frames-{tag}.npy"
+        if path.exists():
+            return np.load(path, allow_pickle=False)
+        frames = self._augmenter(name).randomised_frames(plain, len(arrays), seed=0)
+        atomic_write_bytes(path, npy_bytes(frames))
+        return frames
+
+    def _augmenter(self, name: str) -> augment.Augmenter:
+        if name not in self.augmenters:
+            root = self.roots[name]
+            self.augmenters[name] = augment.Augmenter(data.dataset_spec(root), read_meta(root)["renderer"],
+                                                      self.sets[name].factor)
+        return self.augmenters[name]
+
+    @property
+    def mask(self) -> np.ndarray:
+        """The image circle at the arrays' resolution."""
+        camera = Camera.from_spec(data.dataset_spec(self.roots["real"]))
+        return block_mean(camera.mask.astype(np.float32), self.settings.factor) > 0.5
+
     def inputs(self, name: str, training: str, kind: str) -> np.ndarray:
-        """A set's network inputs (``INPUTS``) as trained with ``training``, kept."""
+        """A set's network inputs (``INPUTS``) as trained with ``training``, kept; with
+        ``Settings.difference``, from each image's difference from its frame."""
         key = (name, training, kind)
         if key not in self._inputs:
-            self._inputs[key] = inputs(self.sets[name], self.training_images(name, training), kind, self.settings)
+            images = self.training_images(name, training)
+            if self.settings.difference:
+                images = difference(images, self.frames(name, training), self.mask)
+            self._inputs[key] = inputs(self.sets[name], images, kind, self.settings)
         return self._inputs[key]
 
     def run_path(self, run: Run) -> Path:
@@ -318,7 +390,8 @@ class Study:
         fitted effects it was trained with."""
         s = self.settings
         tag = data.sha({"factor": s.factor, "full_block": s.full_block, "patch_px": s.patch_px,
-                        "extended_taps": s.extended_taps, "training": s.training.to_dict()})[:10]
+                        "extended_taps": s.extended_taps, "training": s.training.to_dict(),
+                        **({"difference": [DIFFERENCE_ZERO, DIFFERENCE_SCALE]} if s.difference else {})})[:10]
         name = run.name + (f"-{data.sha(self.params)[:8]}" if run.training == "diagnosed" else "")
         return self.out / "runs" / s.model / tag / f"{name}.json"
 
