@@ -128,7 +128,10 @@ def measure(replay: str | Path, taps: list[str], settings: dict[str, list[str]],
         row["fast_path_over_this"] = float(fast / np.mean([r["contact"] for r in row["taps"].values()]))
     out["render"] = {"photons": photons, "passes": passes, "camera_spp": camera_spp, "film": list(film),
                      "kernel_radius_mm": kernel_radius_mm, "seed": seed}
-    out["what"] = __doc__.split("\n\n")[2].replace("\n", " ")
+    out["what"] = ("per tap: the mean |image - no-contact frame| ([0, 1], channels averaged) over the dent and "
+                   f"its rim ({RIM_PX} px), over the image circle beyond {FAR_PX} px of it (far), the first over "
+                   "the frame's brightness there (relative), and its 95th percentile (peak); fast_path_over_this: "
+                   "the fast path's mean contact change over this setting's")
     return out
 
 
