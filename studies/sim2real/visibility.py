@@ -29,6 +29,7 @@ from scipy import ndimage
 
 from scenes.camera import CONTACT_EPS_M, Camera
 from scenes.dataset import atomic_write_json, read_samples
+from scenes.images import read_rgb
 
 from . import data
 
@@ -60,31 +61,19 @@ def contact_contrast(image: np.ndarray, frame: np.ndarray, touched: np.ndarray, 
             "peak": float(np.percentile(change[region], 95))}
 
 
-def _rig_depth(spec, objects):
-    from scenes.geometry import membrane_mesh
-    from scenes.indenters import indenter
-    from scenes.rig import Rig, rig_scene
-
-    mesh = membrane_mesh(spec)
-    rig = Rig(rig_scene(spec, {objects[0]: indenter(objects[0])}, membrane=mesh), spec)
-    try:
-        rig.home()
-        return mesh, rig.depth()
-    finally:
-        rig.close()
-
-
 def measure(replay: str | Path, taps: list[str], settings: dict[str, list[str]], photons: int = 1 << 18,
             passes: int = 2, camera_spp: int = 16, film=(320, 240), kernel_radius_mm: float = 0.75,
             seed: int = 0) -> dict:
     """The contact contrast of each tap of a fast-path replay (its depth maps and images)
     rendered by the reference under each named list of ``Effects`` settings, and the
     fast path's own (the replay's image against its background)."""
-    from skimage import io
     from skimage.transform import resize
 
     from pbr_tactile.effects import Effects
+    from pbr_tactile.plugin import EXPOSURE_LEVEL, EXPOSURE_PERCENTILE
     from pbr_tactile.render import reference
+    from scenes.geometry import membrane_mesh
+    from scenes.rig import tap_depths
 
     replay = Path(replay)
     spec = data.dataset_spec(replay)
@@ -93,18 +82,20 @@ def measure(replay: str | Path, taps: list[str], settings: dict[str, list[str]],
     missing = [t for t in taps if t not in by_id]
     if missing:
         raise ValueError(f"taps {missing} are not samples of {replay}")
-    mesh, ref = _rig_depth(spec, [by_id[taps[0]]["object"]])
-    depths, touched = {}, {}
-    for t in taps:
-        path = replay / "depth" / f"{t}.npy"
-        if not path.exists():
-            raise ValueError(f"{path} is missing: the replay must keep its depth maps")
-        depths[t] = np.load(path)
-        touched[t] = np.abs(depths[t] - ref) > CONTACT_EPS_M
-    frame = io.imread(replay / "background.png")[..., :3] / 255.0
+    paths = {t: replay / "depth" / f"{t}.npy" for t in taps}
+    absent = [str(p) for p in paths.values() if not p.exists()]
+    if absent:
+        raise ValueError(f"{absent[0]} is missing: the replay must keep its depth maps")
+    mesh = membrane_mesh(spec)
+    rig = tap_depths(spec, (), mesh)
+    ref, _ = next(rig)  # the no-contact depth D_ref
+    rig.close()
+    depths = {t: np.load(p) for t, p in paths.items()}
+    touched = {t: np.abs(d - ref) > CONTACT_EPS_M for t, d in depths.items()}
+    frame = read_rgb(replay / "background.png", camera.shape)
     out = {"fast_path": {}, "settings": {}}
     for t in taps:
-        image = io.imread(replay / by_id[t]["image"])[..., :3] / 255.0
+        image = read_rgb(replay / by_id[t]["image"], camera.shape)
         out["fast_path"][t] = contact_contrast(image, frame, touched[t], camera.mask)
     width, height = film
     for name, items in settings.items():
@@ -118,7 +109,7 @@ def measure(replay: str | Path, taps: list[str], settings: dict[str, list[str]],
             return resize(est.mean, camera.shape, order=1, mode="edge", preserve_range=True)
 
         still = shot(None)
-        gain = 0.8 / np.percentile(still[camera.mask], 99.5)
+        gain = EXPOSURE_LEVEL / np.percentile(still[camera.mask], EXPOSURE_PERCENTILE)
         rows = {t: contact_contrast(np.clip(gain * shot(np.where(touched[t], depths[t], ref)), 0, 1),
                                     np.clip(gain * still, 0, 1), touched[t], camera.mask) for t in taps}
         out["settings"][name] = {"effects": items, "exposure_gain": float(gain), "taps": rows,
