@@ -170,6 +170,13 @@ def frame(root: str | Path, factor: int = 4) -> np.ndarray:
     return np.clip(np.rint(block_mean(image, factor) * 255.0), 0, 255).astype(np.uint8)
 
 
+def circle(root: str | Path, factor: int = 4, share: float = 0.5) -> np.ndarray:
+    """(h, w) bool: the blocks of a dataset's image circle, at 1/``factor`` of its camera's
+    resolution, more than ``share`` of whose pixels are inside it."""
+    camera = Camera.from_spec(dataset_spec(root))
+    return block_mean(camera.mask.astype(np.float32), factor) > share
+
+
 def split(labels: np.ndarray, seed: int, test_share: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
     """(train, test) sample indices: a seeded split stratified by indenter, ``test_share``
     of each indenter's samples (rounded, at least one where it has two) held out."""

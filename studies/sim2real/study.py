@@ -29,17 +29,15 @@ contact's pixel.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import time
-import dataclasses
-import hashlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from scenes.camera import Camera
 from phong_reference.bake import METHODS
 from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes, read_meta, read_samples
 from scenes.images import block_mean
@@ -369,8 +367,7 @@ class Study:
     @property
     def mask(self) -> np.ndarray:
         """The image circle at the arrays' resolution."""
-        camera = Camera.from_spec(data.dataset_spec(self.roots["real"]))
-        return block_mean(camera.mask.astype(np.float32), self.settings.factor) > 0.5
+        return data.circle(self.roots["real"], self.settings.factor)
 
     def inputs(self, name: str, training: str, kind: str) -> np.ndarray:
         """A set's network inputs (``INPUTS``) as trained with ``training``, kept; with
@@ -585,7 +582,7 @@ def run(out: str | Path, settings: Settings = Settings(), capture: str | Path | 
     t0 = time.perf_counter()
     replays = ensure_replays(out, real_root, fields, progress)
     seconds["replays"] = time.perf_counter() - t0
-    mask = block_mean(Camera.from_spec(data.dataset_spec(real_root)).mask.astype(np.float32), settings.factor) > 0.5
+    mask = data.circle(real_root, settings.factor)
     gaps = field_gaps(real, {f: data.load(r, settings.factor, study.cache, settings.workers) for f, r in replays.items()},
                       mask)
     best = min(gaps, key=gaps.get)
@@ -628,11 +625,11 @@ def run(out: str | Path, settings: Settings = Settings(), capture: str | Path | 
     summary = summarise(results, settings, sim_sets, plane_sets)
     shown = None
     if "base_plane" in study.sets:
-        inside = block_mean(Camera.from_spec(spec_obj).mask.astype(np.float32), settings.factor) > 0.99
+        inside = data.circle(real_root, settings.factor, share=0.99)
         base = study.sets["base_plane"]
         # the trained images too: how far each training brings the contacts' strength to the capture's
         trained = {"base_plane" + ("" if t == "none" else f" {t}"):
-                   dataclasses.replace(base, images=study.training_images("base_plane", t))
+                   replace(base, images=study.training_images("base_plane", t))
                    for t in dict.fromkeys(("none",) + tuple(settings.trainings))}
         if set(map(str, real.ids)) == set(map(str, base.ids)):
             trained = {"real": real, **{k: data.aligned(v, real.ids, "the base protocol") for k, v in trained.items()}}
