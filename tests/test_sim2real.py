@@ -495,3 +495,27 @@ def test_randomised_frames_are_each_draws_no_contact_frame(sim_root):
     for i in range(3):
         assert np.array_equal(frames[i], aug.apply(plain[None], zero, draws[i])[0])
     assert not np.array_equal(frames[0], frames[1])  # each image its own draw
+
+
+def test_bad_input_to_frames_and_visibility_is_refused_by_name(sim_root, tmp_path):
+    import argparse
+    import shutil
+
+    from scenes.dataset import DatasetError
+    from studies.sim2real import visibility
+
+    bare = tmp_path / "bare"
+    shutil.copytree(sim_root, bare)
+    (bare / "background.png").unlink()
+    with pytest.raises(DatasetError, match="no background.png"):
+        data.frame(bare)
+    with pytest.raises(ValueError, match="not samples"):
+        visibility.measure(sim_root, ["000000_teapot"], {"default": []})
+    first = json.loads((sim_root / "samples.jsonl").read_text().splitlines()[0])["id"]
+    with pytest.raises(ValueError, match="depth maps"):
+        visibility.measure(sim_root, [first], {"default": []})  # a compact set keeps no full depth
+    assert visibility._setting("clear=scattering_per_m=0;absorption_per_m=0") == (
+        "clear", ["scattering_per_m=0", "absorption_per_m=0"])
+    assert visibility._setting("default=") == ("default", [])
+    with pytest.raises(argparse.ArgumentTypeError, match="NAME="):
+        visibility._setting("clear")
