@@ -152,6 +152,22 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def cmd_import(args) -> int:
+    """``tactile-sim import FORMAT ARCHIVE --out DIR``: a published capture as a capture dataset."""
+    from .imports import DEFAULTS, FORMATS, import_capture
+
+    defaults = DEFAULTS[args.format]
+    spec = load_spec(args.spec or defaults["spec"])
+    ball = defaults["ball_m"] if args.ball_mm is None else args.ball_mm * 1e-3
+    pixel = defaults["pixel_m"] if args.pixel_mm is None else args.pixel_mm * 1e-3
+    archive = FORMATS[args.format](args.archive)
+    summary = import_capture(archive, args.out, spec, ball, pixel, depth=args.depth, fmt=args.format)
+    d = summary["depth_mm"]
+    print(f"{summary['presses']} presses of {args.archive} in {args.out} ({summary['object']}, depth by "
+          f"{summary['depth']}: median {d['median']:.3f} mm, {d['min']:.3f} to {d['max']:.3f} mm; {summary['camera']})")
+    return 0
+
+
 def positive_int(text: str) -> int:
     """A whole number >= 1 on the command line (an argparse ``type``), e.g. ``--taps``."""
     import argparse
@@ -446,6 +462,24 @@ def register(registry) -> None:
     p.add_argument("--address", metavar="HOST:PORT",
                    help="ray: the head of a running Ray cluster (default: start one here with --workers CPUs)")
     p.add_argument("--out", required=True, metavar="DIR")
+
+    from .imports import DEFAULTS, DEPTH_METHODS, FORMATS
+
+    p = registry.command("import", cmd_import, "import a published capture (a real sensor's presses with known "
+                         "geometry) as a capture dataset that replay, compare, calibrate and diagnose take")
+    p.add_argument("format", choices=sorted(FORMATS), help="the archive's format (taxim: a Taxim calibration pack)")
+    p.add_argument("archive", metavar="ARCHIVE", help="the archive: a file, or a folder holding one")
+    p.add_argument("--out", required=True, metavar="DIR", help="the capture dataset's folder (new or empty, or the "
+                   "same import's to complete it)")
+    p.add_argument("--spec", metavar="TOML", help="the unit's sensor spec (default: the format's set's, "
+                   f"taxim: {DEFAULTS['taxim']['spec'].name})")
+    p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (taxim default "
+                   f"{DEFAULTS['taxim']['ball_m'] * 1e3:g})")
+    p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the membrane at the frames' "
+                   f"resolution, mm (taxim default {DEFAULTS['taxim']['pixel_m'] * 1e3:g})")
+    p.add_argument("--depth", choices=DEPTH_METHODS, default="profile",
+                   help="each press's depth from its contact rim fitted to the image (profile, default) or from "
+                        "its annotated radius (radius)")
 
     p = registry.bench("dataset", cmd_bench_dataset, "frames per second of base-protocol dataset generation")
     p.add_argument("--spec", metavar="TOML")

@@ -202,6 +202,10 @@ def membrane_mesh(spec: SensorSpec) -> trimesh.Trimesh:
         return check_membrane(mesh, f"membrane {m.mesh_path}")
     if m.shape == "capsule":
         mesh = capsule_mesh(m)
+    elif m.shape == "pad":
+        from .pad import pad_mesh
+
+        mesh = pad_mesh(dict(m.params), m.base_z, m.mesh_edge)
     else:
         from .shapes import shape_mesh
 

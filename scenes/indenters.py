@@ -13,6 +13,7 @@ variant is one keyword away::
     make_indenter("cone", top_radius=0.0)        # a sharp one
     make_indenter("random", seed=3)              # another seeded relief
     indenter("my_part.stl")                      # any closed mesh, mm by default
+    indenter("ball_4mm")                         # a 4 mm ball (any diameter: ball_<D>mm)
 
 The published objects also have a mounting pocket cut from below into the base;
 the in-sensor camera never sees that side, so the base here is solid.
@@ -36,6 +37,10 @@ from .geometry import UNIT_SCALE, read_mesh_file, validate_mesh
 #: The paper's objects, by the names used here. "indented_prism" is the published
 #: ``dot_in``, "open_cylinder" the published ``cylinder_shell``.
 INDENTERS = ("dots", "sphere", "indented_prism", "cylinder", "open_cylinder", "cone", "pacman", "random")
+#: Balls of any diameter, by name: ``ball_<diameter in mm>mm`` (:func:`ball_name`), e.g. the
+#: 4 mm ball that pressed the public GelSight's calibration set (Taxim), "ball_4mm". Each
+#: is the sphere indenter's build with that radius, its top at the envelope's top.
+BALL_PREFIX, BALL_SUFFIX = "ball_", "mm"
 
 #: Side of the square base block, metres.
 BASE_SIDE_M = 16e-3
@@ -43,6 +48,8 @@ BASE_SIDE_M = 16e-3
 BASE_HEIGHT_M = 10e-3
 #: Tallest feature above the base, metres: every paper indenter ends at z = 20 mm.
 MAX_FEATURE_HEIGHT_M = 10e-3
+#: The balls' diameters a name may give, metres: the base block holds up to 16 mm.
+BALL_DIAMETER_BOUNDS_M = (0.5e-3, BASE_SIDE_M)
 
 #: Facets per full circle of every round part: the polygon's area is
 #: sin(2 pi / n) n / (2 pi) = 0.9984 of the circle's.
@@ -512,9 +519,46 @@ def load_indenter(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     return mesh
 
 
+def ball_name(diameter_m: float) -> str:
+    """The name of a ball indenter of ``diameter_m`` metres, e.g. "ball_4mm" (module doc);
+    ValueError outside BALL_DIAMETER_BOUNDS_M."""
+    d = float(diameter_m)
+    lo, hi = BALL_DIAMETER_BOUNDS_M
+    if not (math.isfinite(d) and lo <= d <= hi):
+        raise ValueError(f"a ball's diameter must be in [{lo * 1e3:g}, {hi * 1e3:g}] mm, got {d * 1e3:g} mm"
+                         + (" (metres were expected, not millimetres?)" if d > hi * 10 else ""))
+    return f"{BALL_PREFIX}{round(d * 1e3, 6):g}{BALL_SUFFIX}"
+
+
+def ball_diameter(name: str) -> float | None:
+    """A ball indenter's diameter, metres, from its name (``ball_<D>mm``); None for any
+    other name or a diameter out of bounds."""
+    name = str(name)
+    if not (name.startswith(BALL_PREFIX) and name.endswith(BALL_SUFFIX)):
+        return None
+    try:
+        d = float(name[len(BALL_PREFIX):-len(BALL_SUFFIX)]) * 1e-3
+    except ValueError:
+        return None
+    lo, hi = BALL_DIAMETER_BOUNDS_M
+    return d if math.isfinite(d) and lo <= d <= hi and ball_name(d) == name else None
+
+
+def make_ball(diameter_m: float) -> trimesh.Trimesh:
+    """A ball of ``diameter_m`` metres on the sphere indenter's neck, its top at the
+    envelope's top (the paper indenters' frame, module doc)."""
+    ball_name(diameter_m)  # checks the diameter
+    p = SphereParams(radius=float(diameter_m) / 2, height=MAX_FEATURE_HEIGHT_M)
+    mesh = _sphere_on_neck(p, None)
+    if not (mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0):  # a bug, never input
+        raise RuntimeError(f"building a ball of {diameter_m * 1e3:g} mm gave a mesh that is not a closed solid")
+    return mesh
+
+
 def is_indenter(name_or_path: str | Path) -> bool:
-    """Whether :func:`indenter` takes it: a paper indenter's name or an existing file."""
-    return str(name_or_path) in INDENTERS or Path(name_or_path).is_file()
+    """Whether :func:`indenter` takes it: a paper indenter's name, a ball's
+    (``ball_<D>mm``) or an existing file."""
+    return str(name_or_path) in INDENTERS or ball_diameter(str(name_or_path)) is not None or Path(name_or_path).is_file()
 
 
 def indenter(name_or_path: str | Path, seed: int = 0, units: str = "mm") -> trimesh.Trimesh:
@@ -524,8 +568,11 @@ def indenter(name_or_path: str | Path, seed: int = 0, units: str = "mm") -> trim
     """
     if not is_indenter(name_or_path):
         raise ValueError(
-            f"indenter must be one of {', '.join(INDENTERS)} or an existing mesh file; got {str(name_or_path)!r}"
+            f"indenter must be one of {', '.join(INDENTERS)}, a ball ({BALL_PREFIX}<diameter>{BALL_SUFFIX}, e.g. "
+            f"ball_4mm) or an existing mesh file; got {str(name_or_path)!r}"
         )
     if str(name_or_path) in INDENTERS:
         return make_indenter(str(name_or_path), seed=seed)
+    if (diameter := ball_diameter(str(name_or_path))) is not None:
+        return make_ball(diameter)
     return load_indenter(name_or_path, units=units)

@@ -779,7 +779,8 @@ def _validate(protocol: Protocol, spec: SensorSpec, mesh: trimesh.Trimesh, safe:
 
     known = {o: is_indenter(o) for o in {t.object for t in taps}}
     fail(np.array([not known[t.object] for t in taps]),
-         lambda i: f"object {taps[i].object!r} is none of the indenters {', '.join(INDENTERS)} and no mesh file")
+         lambda i: f"object {taps[i].object!r} is none of the indenters {', '.join(INDENTERS)}, no ball "
+                   "(ball_<diameter>mm) and no mesh file")
     safe = core_safe_depth_m(spec, mesh, taps) if safe is None else safe
     fail(
         depth > safe + CORE_CLEARANCE_TOLERANCE_M,

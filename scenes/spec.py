@@ -42,7 +42,8 @@ class MembraneSpec:
     shape : "capsule" (cylinder + hemispherical tip, built from ``radius``,
         ``cylinder_length`` and ``core_radius``), a shape family of ``scenes.shapes``
         ("thumb", "paw": built from ``params``, seated like the capsule by the camera's
-        ``offset_m`` and ``tilt_rad``), or "mesh" (read from ``mesh_path`` in
+        ``offset_m`` and ``tilt_rad``), "pad" (a flat sensor's domed elastomer disc on a
+        clear plate, ``scenes.pad``, from ``params``), or "mesh" (read from ``mesh_path`` in
         ``mesh_units``, placed in the camera frame by ``mesh_transform``).
     thickness : the elastomer's thickness, metres, where the core is derived by offsetting
         the membrane inwards (every shape but a capsule, unless ``core_mesh_path`` gives
@@ -221,6 +222,28 @@ class SensorSpec:
     def replace(self, **changes) -> "SensorSpec":
         return dataclasses.replace(self, **changes)
 
+    def at_resolution(self, width: int, height: int) -> "SensorSpec":
+        """This sensor with a camera of ``width`` x ``height`` pixels: the same field of view
+        and lens; its principal point, image circle and the published smoothing's Gaussian
+        (pixels) scaled with it. ValueError for another aspect ratio (the vertical field of
+        view is the spec's, so the frame's shape must be the camera's)."""
+        c = self.camera
+        if not (isinstance(width, int) and isinstance(height, int) and width >= 2 and height >= 2):
+            raise ValueError(f"a camera's size must be whole pixels, at least 2x2, got {width!r}x{height!r}")
+        if abs(width * c.height - height * c.width) > 1e-9 * width * c.height:
+            raise ValueError(f"a {width}x{height} frame has another aspect ratio than the {c.width}x{c.height} "
+                             f"camera of sensor {self.name!r}; give a spec whose camera has the frames' aspect")
+        s = height / c.height
+
+        def px(point):  # a pixel position: centres at integers, so scale about -0.5
+            return None if point is None else tuple((v + 0.5) * s - 0.5 for v in point)
+
+        camera = dataclasses.replace(c, width=width, height=height, mask_radius_px=c.mask_radius_px * s,
+                                     mask_center_px=px(c.mask_center_px), principal_point_px=px(c.principal_point_px))
+        elastic = dataclasses.replace(self.elastic, sigma_px=self.elastic.sigma_px * s,
+                                      radius_px=max(1, int(round(self.elastic.radius_px * s))))
+        return self.replace(camera=camera, elastic=elastic)
+
     def with_led_groups(self, groups) -> "SensorSpec":
         """This sensor with its LED groups replaced, each checked as a spec file's
         would be, and its single LEDs kept."""
@@ -356,11 +379,13 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
     thickness and its bounds, the glass."""
     if not isinstance(m, dict):
         raise ValueError(f"{where} must be a table, got {m!r}")
+    from .pad import PAD
     from .shapes import FAMILIES
 
     shape = _take(m, "shape", str, where, "capsule")
-    if shape not in FAMILIES + ("mesh",):  # a capsule from its own keys, a family from params, or a file
-        raise ValueError(f"{where}.shape must be one of {', '.join(FAMILIES + ('mesh',))}, got {shape!r}")
+    shapes = FAMILIES + (PAD, "mesh")  # a capsule from its own keys, a family or a pad from params, or a file
+    if shape not in shapes:
+        raise ValueError(f"{where}.shape must be one of {', '.join(shapes)}, got {shape!r}")
     if shape != "capsule":
         given = [k for k in CAPSULE_KEYS if k in m]
         if given:
@@ -379,13 +404,17 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
         params = dict(params)  # as a spec written out whole (dataclasses.asdict) lists them
     if not isinstance(params, dict):
         raise ValueError(f"{where}.params must be a table of numbers ([membrane.params]), got {params!r}")
-    if shape not in ("capsule", "mesh"):
+    if shape == PAD:
+        from .pad import check_pad_params
+
+        params = check_pad_params(params, f"{where}.params")
+    elif shape not in ("capsule", "mesh"):
         from .shapes import check_params
 
         params = check_params(shape, params, f"{where}.params")
     elif params:
-        raise ValueError(f"{where}.params is for a shape family ({', '.join(f for f in FAMILIES if f != 'capsule')}), "
-                         f"not a {shape!r} membrane")
+        raise ValueError(f"{where}.params is for a shape family ({', '.join(f for f in FAMILIES if f != 'capsule')}) "
+                         f"or a {PAD}, not a {shape!r} membrane")
     membrane = MembraneSpec(
         shape=shape,
         radius=_positive(_take(m, "radius", float, where, 0.0115), "membrane.radius"),

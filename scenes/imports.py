@@ -1,0 +1,359 @@
+"""Published captures imported as capture datasets of the project's own format.
+
+A public set of real tactile images of presses with known geometry (a ball of known
+size, each press's annotated centre and radius) becomes a capture dataset
+(``docs/dataset-format.md``, ``source: "real"``) as the rig would have written it: the
+no-contact frame as ``background.png``, each press a sample with its indenter, its tap in
+``protocol.json`` and the rig's ``measured_pose`` that presses it. Every command that takes
+a capture (``dataset --replay``, ``compare``, ``calibrate``, ``diagnose``) then works on it.
+
+A format is one small reader (:data:`FORMATS`): a function from the archive's path to an
+:class:`Archive` (frames as linear RGB in [0, 1], centres and radii in pixels). The rest
+is the same for every format (:func:`import_capture`):
+
+- the camera: the sensor spec's, at the frames' size (``SensorSpec.at_resolution``) with
+  its field of view set so that a pixel spans ``pixel_m`` on the membrane where the
+  optical axis meets it (a distortion-free pinhole; the spec's lens otherwise, refused
+  where its pixel differs);
+- each press's contact point: where the camera's ray through the annotated centre meets
+  the membrane; its approach along the membrane's normal there, as the protocols press;
+- each press's depth d = R - sqrt(R^2 - a^2) for a ball of radius R whose contact circle
+  has radius a. With ``depth="profile"`` (the default) a is fitted from the image: the
+  radius at which the press's change from the no-contact frame, averaged round the
+  annotated centre, peaks (:func:`contact_edge_px`): a ball's rim is where the membrane is
+  steepest, and a lit membrane's change grows with its slope. With ``depth="radius"`` a is
+  the annotated radius, which a published annotation may draw round the visible ring
+  instead (the Taxim set's 17 px circles are 2.1 mm at 0.1245 mm a pixel, wider than its
+  2 mm ball: that mode refuses them).
+
+The Taxim format (``taxim``, :func:`read_taxim`) is the calibration data pack of the
+Taxim simulator (Si and Yuan, RA-L 2022; Robo-Touch/Taxim, ``calibs/dataPack*.npz``): an
+``.npz`` (or a folder holding exactly one ``dataPack*.npz``) with ``f0`` (H, W, 3) uint8,
+the no-contact frame; ``imgs`` (N, H, W, 3) uint8, one frame per press; ``touch_center``
+(N, 2), each press's annotated centre in pixels as (x = column, y = row); ``touch_radius``
+(N,), its annotated radius in pixels; and optionally ``names`` (N,). The frames are stored
+as OpenCV reads them, BGR: the reader turns them to RGB.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import DatasetError, DatasetWriter, read_samples, sample_id, write_sample_files
+
+#: Defaults of each format: the sensor spec, the ball's diameter (metres) and the pixel's
+#: size on the membrane (metres) of the set the format was published with.
+TAXIM = "taxim"
+DEFAULTS = {TAXIM: {"spec": Path(__file__).with_name("sensors") / "gelsight.toml", "ball_m": 4.0e-3,
+                    "pixel_m": 0.1245e-3}}
+#: How a press's depth is found (module doc).
+DEPTH_METHODS = ("profile", "radius")
+#: The profile's radial bins, pixels, and where its peak is sought: this share of the
+#: ball's radius in pixels, at least and at most.
+PROFILE_BIN_PX = 0.5
+PROFILE_SEARCH = (0.3, 1.5)
+#: A profile bin needs this many pixels to count (bins near the centre hold few).
+PROFILE_MIN_PIXELS = 4
+#: The apex's pixel may differ from ``pixel_m`` by this share for a lens that cannot be
+#: rescaled (distorted or not a pinhole) before the spec is refused.
+PIXEL_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class Archive:
+    """A published capture as a format reader returns it.
+
+    no_contact : (H, W, 3) float64, linear RGB in [0, 1], the frame without contact.
+    frames : (N, H, W, 3) float64, likewise, one per press.
+    centres_px : (N, 2) float64, each press's annotated centre (u = column, v = row), px.
+    radii_px : (N,) float64, each press's annotated radius, px.
+    names : (N,) the presses' names in the archive.
+    path : where it was read from.
+    notes : what the reader did (e.g. the channel order it turned).
+    """
+
+    no_contact: np.ndarray
+    frames: np.ndarray
+    centres_px: np.ndarray
+    radii_px: np.ndarray
+    names: tuple[str, ...]
+    path: str
+    notes: dict = field(default_factory=dict)
+
+
+def _npz_file(path: Path, pattern: str) -> Path:
+    if path.is_dir():
+        found = sorted(path.glob(pattern))
+        if len(found) != 1:
+            raise ValueError(f"archive {path}: a folder must hold exactly one {pattern}, found "
+                             f"{[p.name for p in found] or 'none'}")
+        return found[0]
+    if not path.is_file():
+        raise FileNotFoundError(f"archive {path} does not exist")
+    return path
+
+
+def read_taxim(path: str | Path) -> Archive:
+    """Read a Taxim calibration data pack (module doc); ValueError naming the archive and
+    the key for anything missing or malformed."""
+    path = _npz_file(Path(path), "dataPack*.npz")
+    try:
+        pack = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"archive {path} is not a readable .npz: {exc}") from None
+    where = f"archive {path}"
+    keys = set(pack.files)
+    if "f0" not in keys:
+        raise ValueError(f"{where} has no no-contact frame (key 'f0'); a capture needs one")
+    for key in ("imgs", "touch_center", "touch_radius"):
+        if key not in keys:
+            raise ValueError(f"{where} has no {key!r}; a Taxim data pack has f0, imgs, touch_center and touch_radius")
+
+    def array(key):
+        try:
+            return pack[key]
+        except ValueError as exc:  # an object array (pickled): frames of unequal size, or Python objects
+            raise ValueError(f"{where}: {key} is not one regular array ({exc}); frames of unequal size or Python "
+                             "objects are not read") from None
+
+    f0, imgs = array("f0"), array("imgs")
+    for key, value, rank in (("f0", f0, 3), ("imgs", imgs, 4)):
+        if value.dtype != np.uint8 or value.ndim != rank or value.shape[-1] != 3:
+            want = "(H, W, 3)" if rank == 3 else "(N, H, W, 3)"
+            raise ValueError(f"{where}: {key} must be {want} uint8 (8-bit BGR), got {value.shape} {value.dtype}")
+    if imgs.shape[1:3] != f0.shape[:2]:
+        raise ValueError(f"{where}: frames of unequal size: the presses are {imgs.shape[2]}x{imgs.shape[1]} px, the "
+                         f"no-contact frame f0 {f0.shape[1]}x{f0.shape[0]} px")
+    names = [str(n) for n in array("names")] if "names" in keys else [f"press_{i}" for i in range(len(imgs))]
+    # Taxim's frames come from cv2.imread: BGR.
+    return Archive(no_contact=f0[..., ::-1] / 255.0, frames=imgs[..., ::-1] / 255.0,
+                   centres_px=np.asarray(array("touch_center"), np.float64),
+                   radii_px=np.asarray(array("touch_radius"), np.float64), names=tuple(names[:len(imgs)]),
+                   path=str(path.resolve()), notes={"channels": "stored BGR (OpenCV), turned to RGB"})
+
+
+#: Format name -> reader.
+FORMATS: dict[str, Callable[[str | Path], Archive]] = {TAXIM: read_taxim}
+
+
+def check_archive(archive: Archive) -> None:
+    """Refuse an archive whose arrays disagree, or a press whose centre lies outside the
+    frame or whose radius is not a positive number: ValueError naming the press."""
+    where = f"archive {archive.path}"
+    frames, f0 = np.asarray(archive.frames), np.asarray(archive.no_contact)
+    if f0.ndim != 3 or f0.shape[-1] != 3:
+        raise ValueError(f"{where}: the no-contact frame must be (H, W, 3), got {f0.shape}")
+    if frames.ndim != 4 or frames.shape[1:] != f0.shape:
+        raise ValueError(f"{where}: frames of unequal size: presses {frames.shape[1:]} against the no-contact "
+                         f"frame's {f0.shape}")
+    n = len(frames)
+    if n == 0:
+        raise ValueError(f"{where} holds no presses")
+    centres, radii = np.asarray(archive.centres_px), np.asarray(archive.radii_px)
+    if centres.shape != (n, 2) or radii.shape != (n,) or len(archive.names) != n:
+        raise ValueError(f"{where}: {n} frames need {n} centres (N, 2), radii (N,) and names; got {centres.shape}, "
+                         f"{radii.shape} and {len(archive.names)}")
+    h, w = f0.shape[:2]
+    for i, ((u, v), r) in enumerate(zip(centres, radii)):
+        name = f"{where}: press {i} ({archive.names[i]})"
+        if not (np.isfinite(u) and np.isfinite(v) and 0 <= u <= w - 1 and 0 <= v <= h - 1):
+            raise ValueError(f"{name}: its centre ({u:g}, {v:g}) px lies outside the {w}x{h} frame "
+                             "((x = column, y = row) in pixels was expected)")
+        if not (np.isfinite(r) and r > 0):
+            raise ValueError(f"{name}: its radius must be a positive number of pixels, got {r!r}")
+
+
+def contact_edge_px(frame: np.ndarray, no_contact: np.ndarray, centre_px, ball_radius_px: float) -> float:
+    """The radius, px, at which a press's change peaks round its centre (module doc).
+
+    The mean over channels of |frame - no_contact| is averaged over rings PROFILE_BIN_PX
+    wide about ``centre_px`` (u, v), and the peak sought between PROFILE_SEARCH times the
+    ball's radius in pixels, refined by a parabola through its neighbours. ValueError when
+    the peak lies at either end of the search (no rim inside it).
+    """
+    change = np.abs(np.asarray(frame, np.float64) - np.asarray(no_contact, np.float64)).mean(axis=2)
+    h, w = change.shape
+    v, u = np.mgrid[:h, :w]
+    r = np.hypot(u - centre_px[0], v - centre_px[1]).ravel()
+    lo, hi = PROFILE_SEARCH[0] * ball_radius_px, PROFILE_SEARCH[1] * ball_radius_px
+    bins = np.floor(r / PROFILE_BIN_PX).astype(np.int64)
+    count = np.bincount(bins, minlength=int(hi / PROFILE_BIN_PX) + 2)
+    total = np.bincount(bins, change.ravel(), minlength=len(count))
+    radius = (np.arange(len(count)) + 0.5) * PROFILE_BIN_PX
+    profile = np.where(count >= PROFILE_MIN_PIXELS, total / np.maximum(count, 1), np.nan)
+    search = np.flatnonzero((radius >= lo) & (radius <= hi) & np.isfinite(profile))
+    if len(search) < 3:
+        raise ValueError(f"the press at ({centre_px[0]:g}, {centre_px[1]:g}) px has too little of its ring inside "
+                         "the frame to find its rim")
+    k = search[np.argmax(profile[search])]
+    if k in (search[0], search[-1]):
+        raise ValueError(f"the press at ({centre_px[0]:g}, {centre_px[1]:g}) px changes the image most at "
+                         f"{radius[k]:.1f} px from its centre, at the end of the search ({lo:.1f} to {hi:.1f} px for a "
+                         f"ball {ball_radius_px:.1f} px in radius): no rim found")
+    a, b, c = profile[k - 1], profile[k], profile[k + 1]
+    curve = a - 2 * b + c
+    shift = 0.5 * (a - c) / curve if curve < 0 else 0.0
+    return float(radius[k] + np.clip(shift, -0.5, 0.5) * PROFILE_BIN_PX)
+
+
+def ball_depth(contact_radius_m: float, ball_radius_m: float) -> float:
+    """The depth, metres, at which a ball of ``ball_radius_m`` leaves a contact circle of
+    ``contact_radius_m``: R - sqrt(R^2 - a^2); ValueError for a circle the ball cannot
+    leave (a >= R)."""
+    a, R = float(contact_radius_m), float(ball_radius_m)
+    if not 0 < a < R:
+        raise ValueError(f"a contact circle {a * 1e3:.3g} mm in radius is larger than a ball {R * 1e3:.3g} mm in radius "
+                         "allows (a < R)")
+    return R - math.sqrt(R * R - a * a)
+
+
+def capture_spec(spec, width: int, height: int, pixel_m: float):
+    """The spec's sensor with a camera of the frames' size whose pixel spans ``pixel_m``
+    metres where its optical axis meets the membrane (module doc); returns (spec, note)."""
+    import dataclasses
+
+    from .camera import Camera
+    from .contact import surface_point
+    from .geometry import membrane_mesh
+    from .spec import spec_from_dict
+
+    if not (isinstance(pixel_m, (int, float)) and math.isfinite(pixel_m) and 0 < pixel_m < 0.01):
+        raise ValueError(f"pixel size must be a length in metres, > 0 and under 10 mm, got {pixel_m!r}")
+    scaled = spec.at_resolution(width, height)
+    camera = Camera.from_spec(scaled)
+    point, _ = surface_point(membrane_mesh(scaled), camera, (camera.cx, camera.cy))
+    z = float(point[2])
+    now = z / camera.f
+    if camera.is_pinhole:
+        fov_y = 2 * math.atan(height / 2 * pixel_m / z)
+        scaled = spec_from_dict(scaled.replace(camera=dataclasses.replace(scaled.camera, fov_y=fov_y)).to_dict(),
+                                f"sensor {spec.name!r} at {width}x{height}")
+        return scaled, (f"fov_y set to {fov_y:.6g} rad so that a pixel spans {pixel_m * 1e3:.6g} mm where the optical "
+                        f"axis meets the membrane, {z * 1e3:.4g} mm from the camera (the spec's gave "
+                        f"{now * 1e3:.6g} mm)")
+    if abs(now / pixel_m - 1) > PIXEL_TOLERANCE:
+        raise ValueError(f"sensor {spec.name!r}: its {spec.camera.projection} lens with distortion "
+                         f"{list(spec.camera.distortion)} sees {now * 1e3:.5g} mm a pixel at {width}x{height}, not "
+                         f"{pixel_m * 1e3:.5g} mm; give a spec whose camera matches the set")
+    return scaled, f"the spec's lens kept: {now * 1e3:.6g} mm a pixel where its axis meets the membrane"
+
+
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel_m: float,
+                   depth: str = "profile", fmt: str = TAXIM, layout=None) -> dict:
+    """Write ``archive`` as a capture dataset in ``out`` (module doc); returns a summary.
+
+    Parameters
+    ----------
+    spec : the unit's ``SensorSpec`` (its camera is put at the frames' size and pixel).
+    ball_m : the ball's diameter, metres. pixel_m : a pixel's size on the membrane, metres.
+    depth : "profile" or "radius" (module doc).
+    layout : the rig's ``RigLayout`` the poses are for (default: the project's rig).
+
+    A folder that holds another capture, or files but no dataset, is refused and left as
+    it is; the same import again completes what an interrupted one left (resumable).
+    """
+    from .geometry import membrane_mesh
+    from .contact import surface_point
+    from .indenters import ball_name, indenter
+    from .kinematics import RigLayout, normal_in_sensor, tap_pose
+    from .protocol import Protocol, Tap, _aim, max_safe_depth_m, validate
+    from .camera import Camera
+
+    if depth not in DEPTH_METHODS:
+        raise ValueError(f"depth must be one of {DEPTH_METHODS}, got {depth!r}")
+    layout = layout or RigLayout()
+    check_archive(archive)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / "dataset.json").exists():
+        raise DatasetError(f"{out} holds files but no dataset; import into an empty or new folder (nothing was "
+                           "written)")
+    obj = ball_name(ball_m)
+    R = ball_m / 2
+    h, w = archive.no_contact.shape[:2]
+    unit, camera_note = capture_spec(spec, w, h, pixel_m)
+    camera = Camera.from_spec(unit)
+    mesh = membrane_mesh(unit)
+
+    taps, fitted = [], []
+    for i, (centre, radius) in enumerate(zip(archive.centres_px, archive.radii_px)):
+        name = f"archive {archive.path}: press {i} ({archive.names[i]})"
+        if depth == "radius":
+            edge_px = float(radius)
+        else:
+            try:
+                edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
+            except ValueError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+        try:
+            d = ball_depth(edge_px * pixel_m, R)
+        except ValueError as exc:
+            what = "its annotated radius" if depth == "radius" else "the rim fitted to its image"
+            raise ValueError(f"{name}: {what}, {edge_px:.2f} px at {pixel_m * 1e3:g} mm a pixel: {exc}"
+                             + ("; --depth profile fits the rim from the image instead" if depth == "radius" else "")
+                             ) from None
+        point, normal = surface_point(mesh, camera, tuple(float(c) for c in centre))
+        safe = float(max_safe_depth_m(unit, point[None], mesh)[0])
+        if d >= safe:
+            raise ValueError(f"{name}: a press {d * 1e3:.3g} mm deep would reach the plate under the "
+                             f"{safe * 1e3:.3g} mm elastomer")
+        roll, pitch = (float(a[0]) for a in _aim(normal[None]))
+        taps.append(Tap(index=i, object=obj, row=0, position=i, replica=0, sensor_roll=roll, indenter_pitch=pitch,
+                        point=tuple(point), normal=tuple(normal_in_sensor(roll, pitch)), depth=d))
+        fitted.append(edge_px)
+    protocol = Protocol(name=f"import-{fmt}", taps=tuple(taps), seed=None)
+    validate(protocol, unit, mesh)
+
+    digest = _sha256(archive.path)
+    meta = {
+        "source": "real",
+        "sensor": unit.to_dict(),
+        "protocol": {"name": protocol.name, "seed": None, "taps": len(taps), "objects": [obj]},
+        "image_size": [w, h],
+        "image": "8-bit RGB PNG from the camera",
+        "depth": "none: a real capture has no depth map",
+        "renderer": {"renderer": "camera", "camera": {"kind": "archive", "format": fmt, "sha256": digest,
+                                                      **archive.notes}},
+        "rig": {"layout": layout.to_dict(), "virtual": False, "printer": None, "servos": None},
+        "import": {"format": fmt, "archive": archive.path, "sha256": digest, "ball_mm": ball_m * 1e3,
+                   "pixel_mm": pixel_m * 1e3, "depth": depth, "camera": camera_note,
+                   "poses": "each press's measured_pose is the rig's pose that presses the ball as annotated: on the "
+                            "membrane where the camera sees the annotated centre, along its normal, to the depth "
+                            "the depth method gives"},
+    }
+    writer = DatasetWriter(out, meta, protocol.to_dict())
+    if not (out / "background.png").exists():
+        writer.write_background(archive.no_contact)
+    vertices = np.asarray(indenter(obj).vertices, np.float64)
+    from .generate import tap_fields
+
+    for tap, edge_px, centre, radius, name in zip(taps, fitted, archive.centres_px, archive.radii_px, archive.names):
+        sid = sample_id(tap.index, tap.object)
+        if sid in writer.done:
+            continue
+        pose = tap_pose(tap, vertices, layout)
+        record = {**tap_fields(tap), "commanded_pose": pose, "measured_pose": pose, "measured_depth": tap.depth,
+                  "contact_center_px": [float(c) for c in centre], "contact_radius_px": float(radius),
+                  "contact_edge_px": edge_px, "source_name": name}
+        files = write_sample_files(out, sid, archive.frames[tap.index], None)
+        writer.append({**record, **files})
+    depths = np.array([t.depth for t in taps])
+    return {"out": str(out), "presses": len(read_samples(out)), "object": obj, "depth": depth,
+            "depth_mm": {"median": float(np.median(depths) * 1e3), "min": float(depths.min() * 1e3),
+                         "max": float(depths.max() * 1e3)},
+            "camera": camera_note}
