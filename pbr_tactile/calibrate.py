@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenes.camera import Camera, lens_angle
+from scenes.captures import split
 from scenes.images import block_mean
 from scenes.profile import Alignment, CameraProfile, Profile
 from scenes.spec import SensorSpec
@@ -75,7 +76,8 @@ def _grid_points(grid: dict) -> list[dict]:
 def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, film: tuple[int, int] = (160, 120),
                          grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
                          seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
-                         progress=None, taps=None, fast_path_fit=None, image_variance=None) -> Calibration:
+                         progress=None, taps=None, fast_path_fit=None, image_variance=None,
+                         fast_taps=None) -> Calibration:
     """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1], and to
     its sensor's taps if given.
 
@@ -88,7 +90,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     callable (spec, mesh, camera, profile, taps, real) -> (the profile's ``phong`` table,
     the report's ``fast_path.taps`` section) that fits the fast path's LED constants to
     them (the phong renderer plugin's ``calibrate``: this package imports no other
-    renderer); None leaves them out. ``image_variance``: (h, w, 3) the real image's noise
+    renderer); None leaves them out. ``fast_taps``: the taps it fits instead of ``taps``
+    (more than the reference can render: its fit costs no render of the reference). ``image_variance``: (h, w, 3) the real image's noise
     variance at the film (without taps, the report's ``standard_errors`` then count it with
     the basis' own Monte Carlo noise; None: the basis' alone). Raises ValueError for a bad
     image; a fit that did not converge is reported (``report["converged"]`` False).
@@ -195,7 +198,11 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "taps": tap_report,
     }
     if taps is not None and fit.converged and fast_path_fit is not None:
-        table, report["fast_path"]["taps"] = fast_path_fit(spec, mesh, camera, profile, taps, real)
+        chosen = taps if fast_taps is None else fast_taps
+        table, report["fast_path"]["taps"] = fast_path_fit(spec, mesh, camera, profile, chosen, real)
+        fitted = split(len(chosen.ids))
+        report["fast_path"]["taps"]["ids"] = {"fitted": [i for i, f in zip(chosen.ids, fitted) if f],
+                                              "judged": [i for i, f in zip(chosen.ids, fitted) if not f]}
         profile = dataclasses.replace(profile, phong={**profile.phong, **table})
     return Calibration(profile, report, {"real": r, "before": before, "after": after, "fast_path": fast_path.pop("image"),
                                          "judged": np.stack([judged[ch] for ch in "rgb"], -1)})

@@ -34,6 +34,19 @@ def real_background(real: str | None, background_only: str | None) -> tuple[Path
     return background, f"the background of capture dataset {folder}"
 
 
+def capture_spec(real: str):
+    """The sensor a capture dataset records (its dataset.json), which a calibration of it
+    takes when no --spec is given: an imported capture's camera is the set's own."""
+    from scenes.dataset import read_meta
+    from scenes.spec import spec_from_dict
+
+    meta = read_meta(real)
+    try:
+        return spec_from_dict(meta["sensor"], f"REAL {real}/dataset.json sensor")
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"REAL {real}/dataset.json has no usable sensor spec: {exc!r}") from None
+
+
 def _figure(images: dict, path: Path) -> None:
     import matplotlib
 
@@ -146,9 +159,10 @@ def cmd_calibrate(args) -> int:
 
     from .calibrate import GRID, calibrate_background
     from scenes.captures import MAX_TAPS, load_real_taps
+    from scenes.dataset import read_samples
 
     path, what = real_background(args.real, args.background_only)
-    spec = load_spec(args.spec)
+    spec = load_spec(args.spec) if args.spec is not None or args.real is None else capture_spec(args.real)
     camera = Camera.from_spec(spec)
     real = read_rgb(path)
     grid = GRID if not args.grid else _grid(args.grid)
@@ -156,11 +170,15 @@ def cmd_calibrate(args) -> int:
     count = MAX_TAPS if args.taps is None else args.taps
     if not 0 <= count <= MAX_TAPS:
         raise ValueError(f"--taps must be in [0, {MAX_TAPS}], got {count}")
+    fast_taps = None
     if args.real is not None and count:
         taps = load_real_taps(args.real, spec, camera, count)
         what += f" and {len(taps.ids)} of its taps"
-    elif args.taps:
-        raise ValueError("--taps needs REAL, a capture dataset (--background-only has no taps)")
+        if args.fast_taps is not None:
+            fast_taps = load_real_taps(args.real, spec, camera, args.fast_taps or len(read_samples(args.real)))
+            what += f" ({len(fast_taps.ids)} for the fast path)"
+    elif args.taps or args.fast_taps is not None:
+        raise ValueError("--taps and --fast-taps need REAL, a capture dataset (--background-only has no taps)")
     bar = tqdm(desc="calibrating", unit="grid point", disable=args.quiet)
 
     def progress(done, total):
@@ -171,7 +189,7 @@ def cmd_calibrate(args) -> int:
     cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
                                grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
                                bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps,
-                               fast_path_fit=fast_path_fit())
+                               fast_path_fit=fast_path_fit(), fast_taps=fast_taps)
     bar.close()
     cal.report["seconds"] = time.perf_counter() - t0
     paths = write_outputs(cal, Path(args.out), what)
@@ -263,7 +281,8 @@ def register(registry) -> None:
     p.add_argument("--background-only", metavar="IMAGE", help="calibrate from one no-contact image instead")
     p.add_argument("--out", metavar="DIR", help="writes profile.toml, report.json, report.html, "
                                                                "residual images")
-    p.add_argument("--spec", metavar="TOML")
+    p.add_argument("--spec", metavar="TOML", help="the sensor (default: REAL's own, as its dataset.json records it; "
+                   "the GelTip for --background-only)")
     p.add_argument("--width", type=int, default=160, help="film width of the basis renders (height: 3/4 of it)")
     p.add_argument("--photons", type=int, default=1 << 18, help="photons per LED per pass of each basis render")
     p.add_argument("--spp", type=int, default=32, help="camera samples per pixel per pass of each basis render")
@@ -276,6 +295,10 @@ def register(registry) -> None:
     p.add_argument("--taps", type=int, help="taps of REAL used, spread over it (default and at most 10; 0: its "
                                            "no-contact image only); with REAL = benchmark: virtual taps per sensor "
                                            "(default 0)")
+    p.add_argument("--fast-taps", type=int, metavar="N",
+                   help="taps of REAL the fast path's LED constants are fitted (and judged) on, fitted and judged in "
+                        "turn from its even and odd samples (0: all; default: the reference's --taps): the fast path "
+                        "renders many taps in the time the reference renders one")
     p.add_argument("--cases", type=int, help="with REAL = benchmark: virtual sensors to recover (default 6)")
     p.add_argument("--json", metavar="PATH", help="with REAL = benchmark: where to write its results")
     add_quiet_argument(p)

@@ -29,7 +29,8 @@ from the reference's images.
 
 Taps alternate (``scenes.captures``): even ones are fitted with the no-contact image's
 training sectors, odd ones judge. A tap is fitted and judged on its contact region
-(``scenes.captures.contact_region``), found in the real images themselves.
+(``scenes.captures.RealTaps.regions``): its annotated disc, or else found in the real
+images themselves.
 
 The fit starts from the no-contact fit. That fit pins each LED's whole turn only loosely
 (each LED lights the membrane nearly all round, and its gains are free: on a virtual
@@ -48,7 +49,7 @@ import numpy as np
 
 from scenes import captures
 from scenes.camera import Camera
-from scenes.captures import RealTaps, contact_region
+from scenes.captures import RealTaps
 from scenes.images import block_mean
 
 from .basis import basis_layout, emitter_basis, led_of_source
@@ -186,11 +187,12 @@ def film_views(taps: RealTaps, changes: dict, background_film: np.ndarray, insid
                film: tuple[int, int]) -> list[TapView]:
     """Each tap at the film's size with its change (``tap_changes``) and contact region."""
     views = []
-    for t, image in enumerate(taps.images):
-        real = block_mean(np.asarray(image, np.float64), film_factor(image.shape, film))
+    reals = np.stack([block_mean(np.asarray(image, np.float64), film_factor(image.shape, film))
+                      for image in taps.images])
+    regions = taps.regions(background_film, inside, reals)
+    for t, real in enumerate(reals):
         slope, curve = (None, None) if changes["slope"] is None else (changes["slope"][t], changes["curve"][t])
-        views.append(TapView(changes["change"][t], real, contact_region(real, background_film, inside),
-                             slope=slope, curve=curve))
+        views.append(TapView(changes["change"][t], real, regions[t], slope=slope, curve=curve))
     return views
 
 
@@ -202,8 +204,7 @@ def rank_with_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.nd
     losses compare): ``loss``, ``noise`` (``_debiased``), ``converged``, and ``known``
     the changes rendered (by tap index), which the full fit reuses."""
     fitted = np.flatnonzero(captures.split(len(taps.ids)))
-    subset = captures.RealTaps(taps.images[fitted], taps.depths[fitted], taps.ref_depth,
-                               [taps.ids[i] for i in fitted])
+    subset = taps.subset(fitted)
     changes = tap_changes(spec, mesh, camera, effects, film, subset, basis, photons, spp, passes, seed, use_cache,
                           azimuths=False, spans=fit.nl.span_rad)
     views = [v for v in film_views(subset, changes, r, model.inside, film) if v.pixels.sum() >= captures.MIN_REGION]
@@ -237,8 +238,9 @@ def fit_taps(taps, fit: ImageFit, model: ImageModel, basis: dict, r: np.ndarray,
     report = {
         "fitted": ids[fitted & np.array(seen)].tolist(), "judged": ids[~fitted & np.array(seen)].tolist(),
         "without_contact": ids[~np.array(seen)].tolist(),
-        "split": "alternate taps: even ones fitted with the image's training sectors, odd ones judged; each on its "
-                 "contact region (where the real tap differs from the real no-contact image)",
+        "split": "alternate taps: even ones (from the capture's even samples) fitted with the image's training "
+                 "sectors, odd ones (from its odd samples) judged; each on its contact region (its annotated disc, "
+                 "else where the real tap differs from the real no-contact image)",
         "heldout": tap_scores(model, fit, judge_views, r), "fit": tap_scores(model, fit, fit_views, r),
         "heldout_before_taps": tap_scores(model, background_only, judge_views, r),
     }

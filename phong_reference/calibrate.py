@@ -26,7 +26,7 @@ import numpy as np
 from scipy import optimize
 
 from scenes.camera import Camera
-from scenes.captures import RealTaps, contact_region, split
+from scenes.captures import RealTaps, split
 from scenes.elastic import MembraneLayer
 from scenes.profile import Profile
 from scenes.spec import SensorSpec
@@ -99,7 +99,7 @@ def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L
                          f"{taps.images.shape[1:]} and {background.shape}")
     inside = Camera.from_spec(profile.sensor_spec(spec)).mask
     real = taps.images - background
-    regions = np.stack([contact_region(image, background, inside) for image in taps.images])
+    regions = taps.regions(background, inside)
     fitted = split(len(taps.ids))
     if not regions[fitted].any():
         raise ValueError("none of the fitted taps shows a contact in the real images: the fast path's LED constants "

@@ -1,11 +1,15 @@
 """Real taps of a sensor for calibration: images, where each was pressed (depth maps),
 and where its contact shows.
 
-A calibration uses at most MAX_TAPS taps of a capture dataset (``docs/dataset-format.md``,
-``source: "real"``), spread evenly over it. A real capture has no depth map: its tap is
-replayed on the MuJoCo rig from the dataset's protocol.json. Taps alternate between fitted
-(even positions) and judged. A tap's contact region is found in the real images alone,
-before any alignment: where the tap differs from the no-contact capture.
+A calibration of the reference uses at most MAX_TAPS taps of a capture dataset
+(``docs/dataset-format.md``, ``source: "real"``). A real capture has no depth map: its tap
+is replayed on the MuJoCo rig from the dataset's protocol.json. The capture's samples
+alternate between fitted (even positions) and judged (odd ones), and so do the taps
+loaded from it: the fitted ones are spread evenly over its even samples, the judged ones
+over its odd samples, so that a calibration never fits a tap that ``compare --heldout``
+judges it on. A tap's contact region is its annotated disc where the capture has one (an
+imported set, ``scenes.imports``), else found in the real images alone, before any
+alignment: where the tap differs from the no-contact capture.
 """
 
 from __future__ import annotations
@@ -31,12 +35,15 @@ MIN_REGION = 4
 class RealTaps:
     """Real taps at the camera's size: images (T, H, W, 3) in [0, 1], contact depth maps
     (T, H, W) m (planar z, the spec's camera, the membrane's frame), the no-contact
-    depth map (H, W) and each tap's id."""
+    depth map (H, W), each tap's id, and its annotated contact disc where it has one:
+    ``discs`` (T, 3) (u, v, radius) px at the camera's size, NaN rows for taps without
+    (None: none has one)."""
 
     images: np.ndarray
     depths: np.ndarray
     ref_depth: np.ndarray
     ids: list[str]
+    discs: np.ndarray | None = None
 
     def __post_init__(self):
         images, depths = np.asarray(self.images), np.asarray(self.depths)
@@ -49,8 +56,31 @@ class RealTaps:
             raise ValueError(f"taps: {len(self.ids)} ids for {len(images)} images")
         if not (np.all(np.isfinite(depths)) and np.all(np.isfinite(self.ref_depth))):
             raise ValueError("taps: depth maps must be finite (NaN or inf found)")
-        if len(images) > MAX_TAPS:
-            raise ValueError(f"taps: at most {MAX_TAPS} taps, got {len(images)}")
+        if self.discs is not None and np.shape(self.discs) != (len(images), 3):
+            raise ValueError(f"taps: discs must be ({len(images)}, 3) (u, v, radius px), got {np.shape(self.discs)}")
+
+    def subset(self, pick) -> "RealTaps":
+        """The taps ``pick`` (indices or a bool mask)."""
+        pick = np.flatnonzero(pick) if np.asarray(pick).dtype == bool else np.asarray(pick, int)
+        return RealTaps(self.images[pick], self.depths[pick], self.ref_depth, [self.ids[i] for i in pick],
+                        None if self.discs is None else np.asarray(self.discs)[pick])
+
+    def regions(self, background: np.ndarray, inside: np.ndarray, images: np.ndarray | None = None) -> np.ndarray:
+        """(T, h, w) bool, each tap's contact region at the size of ``background`` (h, w, 3)
+        and ``inside`` (h, w): its annotated disc scaled to that size, else where its image
+        (``images``, (T, h, w, 3) at that size; default the taps' own) differs from the
+        no-contact ``background`` (:func:`contact_region`)."""
+        images = self.images if images is None else images
+        shape = np.shape(inside)
+        scale = shape[0] / self.images.shape[1]
+        out = np.zeros((len(images), *shape), bool)
+        for t, image in enumerate(images):
+            disc = None if self.discs is None else np.asarray(self.discs[t], np.float64)
+            if disc is not None and np.all(np.isfinite(disc)):
+                out[t] = contact_disc(shape, (disc[:2] + 0.5) * scale - 0.5, disc[2] * scale) & inside
+            else:
+                out[t] = contact_region(image, background, inside)
+        return out
 
 
 def split(count: int) -> np.ndarray:
@@ -66,10 +96,83 @@ def contact_region(tap: np.ndarray, background: np.ndarray, inside: np.ndarray) 
     return ndimage.binary_dilation(changed, iterations=REGION_DILATION) & inside
 
 
+def contact_disc(shape: tuple[int, int], centre_px, radius_px: float) -> np.ndarray:
+    """(H, W) bool: the pixels whose centres lie within ``radius_px`` of ``centre_px``
+    (u = column, v = row): an annotated press's contact region."""
+    v, u = np.mgrid[: shape[0], : shape[1]]
+    return np.hypot(u - float(centre_px[0]), v - float(centre_px[1])) <= float(radius_px)
+
+
+def press_regions(records, images: np.ndarray, background: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """(N, H, W) bool: each real press's contact region: its annotated disc where its
+    record has one (``contact_center_px``, ``contact_radius_px``: an imported capture,
+    ``scenes.imports``), else where its image differs from the no-contact one
+    (:func:`contact_region`); within ``inside`` (the image circle) either way.
+
+    records : N sample records; images : (N, H, W, 3) real frames in [0, 1];
+    background : (H, W, 3) the real no-contact frame; inside : (H, W) bool.
+    """
+    images = np.asarray(images)
+    out = np.zeros(images.shape[:3], bool)
+    for i, record in enumerate(records):
+        centre, radius = record.get("contact_center_px"), record.get("contact_radius_px")
+        if centre is not None and radius is not None:
+            out[i] = contact_disc(images.shape[1:3], centre, radius) & inside
+        else:
+            out[i] = contact_region(images[i], background, inside)
+    return out
+
+
+def contact_strength(images: np.ndarray, no_contact: np.ndarray, regions: np.ndarray) -> np.ndarray:
+    """(N,) how strongly each press shows: the mean over its contact region of
+    |image - no_contact|, averaged over the channels, in the images' units.
+
+    The project's one measure of a contact's strength: the simulated over the real
+    (each against its own no-contact frame, over the same region) is the contact
+    strength ratio that ``compare``, the diagnosis and the studies report.
+
+    images : (N, H, W, 3); no_contact : (H, W, 3), or (N, H, W, 3) one per image;
+    regions : (N, H, W) bool, or (H, W) for all. A press with an empty region is NaN.
+    """
+    images = np.asarray(images, np.float64)
+    if images.ndim != 4 or images.shape[-1] != 3:
+        raise ValueError(f"images must be (N, H, W, 3), got shape {images.shape}")
+    no_contact = np.asarray(no_contact, np.float64)
+    if no_contact.shape not in (images.shape, images.shape[1:]):
+        raise ValueError(f"no_contact must be (H, W, 3) or (N, H, W, 3) like images {images.shape}, got "
+                         f"{no_contact.shape}")
+    regions = np.broadcast_to(np.asarray(regions, bool), images.shape[:3]) if np.ndim(regions) == 2 \
+        else np.asarray(regions, bool)
+    if regions.shape != images.shape[:3]:
+        raise ValueError(f"regions must be (N, H, W) or (H, W) bool like images {images.shape[:3]}, got "
+                         f"{regions.shape}")
+    change = np.abs(images - no_contact).mean(axis=3)
+    count = regions.sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, (change * regions).sum(axis=(1, 2)) / count, np.nan)
+
+
+def halves(count: int, limit: int) -> np.ndarray:
+    """Up to ``limit`` of ``count`` samples, the fitted ones (even positions of the result)
+    spread evenly over the even samples and the judged ones (odd positions) over the odd
+    samples (module doc): (K,) int, the samples' indices, fitted and judged in turn."""
+    even, odd = np.arange(0, max(count, 0), 2), np.arange(1, max(count, 0), 2)
+    n_judge = min(len(odd), max(limit, 0) // 2)
+    n_fit = min(len(even), max(limit, 0) - n_judge, n_judge + 1)
+
+    def spread(pool, n):
+        return pool[np.linspace(0, len(pool) - 1, n).round().astype(int)] if n else pool[:0]
+
+    out = np.empty(n_fit + n_judge, int)
+    out[0::2], out[1::2] = spread(even, n_fit), spread(odd, n_judge)
+    return out
+
+
 def load_real_taps(folder: str | Path, spec, camera, limit: int = MAX_TAPS) -> RealTaps:
-    """Up to ``limit`` taps of a capture dataset, evenly spread over its samples (replica 0
-    only), with their depth maps: a sample's own depth file, or else its tap replayed on
-    the MuJoCo rig from the dataset's protocol.json (a real capture has no depth)."""
+    """Up to ``limit`` taps of a capture dataset (replica 0 only), fitted and judged in
+    turn from its even and odd samples (:func:`halves`), with their depth maps: a
+    sample's own depth file, or else its tap replayed on the MuJoCo rig from the dataset's
+    protocol.json (a real capture has no depth), and their annotated discs if any."""
     from scenes.dataset import DatasetError, load_sample, read_samples
     from scenes.protocol import Protocol
     from scenes.rig import tap_depths
@@ -78,8 +181,7 @@ def load_real_taps(folder: str | Path, spec, camera, limit: int = MAX_TAPS) -> R
     records = [r for r in read_samples(folder) if int(r.get("replica", 0)) == 0]
     if not records:
         raise DatasetError(f"REAL {folder} has no taps (samples.jsonl is empty)")
-    pick = np.unique(np.linspace(0, len(records) - 1, min(limit, len(records))).round().astype(int))
-    records = [records[i] for i in pick]
+    records = [records[i] for i in halves(len(records), limit)]
     images, depths = [], []
     for record in records:
         image, depth = load_sample(folder, record, (camera.height, camera.width))
@@ -114,5 +216,12 @@ def load_real_taps(folder: str | Path, spec, camera, limit: int = MAX_TAPS) -> R
         if np.shape(depth) != (camera.height, camera.width):
             raise DatasetError(f"REAL {folder}: sample {record.get('id')}: depth map of shape {np.shape(depth)}, "
                                f"expected ({camera.height}, {camera.width})")
+    from scenes.dataset import read_meta
+
+    size = read_meta(folder).get("image_size") or [camera.width, camera.height]
+    scale = camera.height / float(size[1])  # annotations are at the capture's size
+    discs = np.array([[*r["contact_center_px"], r["contact_radius_px"]] if "contact_center_px" in r
+                      and "contact_radius_px" in r else [np.nan] * 3 for r in records], np.float64)
+    discs = None if np.isnan(discs).all() else discs * [scale, scale, scale]
     return RealTaps(np.stack(images).astype(np.float64), np.stack(depths).astype(np.float32),
-                    np.asarray(ref_depth, np.float32), [str(r.get("id")) for r in records])
+                    np.asarray(ref_depth, np.float32), [str(r.get("id")) for r in records], discs)

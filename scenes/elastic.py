@@ -272,6 +272,13 @@ class MembraneLayer:
         self.length = layer_length(spec, self.thickness)
 
     @cached_property
+    def base(self) -> np.ndarray:
+        """(K,) int, the refined mesh's boundary vertices (its open base), held fixed."""
+        from .geometry import base_loop
+
+        return base_loop(self.mesh, "the refined membrane")
+
+    @cached_property
     def stiffness(self) -> sparse.csr_matrix:
         """K = L + M / l^2: the cotangent Laplacian and lumped vertex areas, so that
         E(w) = 1/2 w^T K w is the module doc's energy."""
@@ -332,6 +339,9 @@ class MembraneLayer:
             # Solve near the contact only; beyond, w is below exp(-SUPPORT_LENGTHS).
             near, _ = spatial.cKDTree(self.vertices[touching]).query(
                 self.vertices, distance_upper_bound=SUPPORT_LENGTHS * float(self.length.max()))
+            # The base loop is held (w = 0 there): the elastomer solid is closed at it by the
+            # undeformed base ring, which a pad's rim, near its contacts, would otherwise leave.
+            near[self.base] = np.inf
             patch = np.flatnonzero(np.isfinite(near))
             K = self.stiffness[patch][:, patch]
             local = np.where(obstacle[patch] > 0, obstacle[patch], -np.inf)

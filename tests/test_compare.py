@@ -86,6 +86,9 @@ def test_compare_finds_the_settings_the_capture_was_made_with(compare_result):
     assert result["best_fast"] == own["label"]
     assert own["masked"]["mae"]["high"] < LSB and own["masked"]["ssim"]["low"] > 0.99
     assert own["full"]["mae"]["mean"] < own["masked"]["mae"]["mean"]  # the black border agrees exactly
+    # its contacts, where the real taps differ from the real no-contact image, as strong as the capture's
+    assert own["contact"]["mae"]["high"] < 2 * LSB and own["strength"]["median"] == pytest.approx(1.0, abs=0.02)
+    assert result["contact"].startswith("where each real tap differs") and len(result["real_strength"]) == 4
     for label, r in rows.items():
         if label != own["label"]:
             assert r["masked"]["mae"]["mean"] > 10 * own["masked"]["mae"]["mean"], label
@@ -100,6 +103,16 @@ def test_compare_finds_the_settings_the_capture_was_made_with(compare_result):
     assert "| fast: plane, background solid | 4 | 0.000" in md and "On the reference's 2 taps only" in md
     for name in ("report.html", "metrics.png", "error_maps.png", "examples.png"):
         assert (out / name).stat().st_size > 500, name
+
+
+def test_compare_judges_the_held_out_half_alone(tiny_capture, tmp_path):
+    from studies.compare.run import compare, heldout_ids
+
+    assert heldout_ids(["a", "b", "c", "d", "e"]) == ["b", "d"]
+    result = compare(tiny_capture, tmp_path / "t", fields=("plane",), backgrounds=("solid",), reference=False,
+                     heldout=True, bootstrap=50, progress=False)
+    assert result["heldout"] and result["taps"] == ["000001_sphere", "000003_cylinder"]
+    assert result["rows"][0]["strength"]["per_tap"] == pytest.approx([1.0, 1.0], abs=0.03)
 
 
 def test_compare_applies_the_captures_alignment(tmp_path, tiny_spec, session_env):

@@ -25,7 +25,7 @@ def cmd_compare(args) -> int:
 
     options = renderer_options(args)
     profile = options.pop("profile", None)
-    result = compare(args.capture, args.out, profile=profile, options=options, taps=args.taps,
+    result = compare(args.capture, args.out, profile=profile, options=options, taps=args.taps, heldout=args.heldout,
                      reference_taps=args.reference_taps, fields=args.fields or METHODS, backgrounds=args.backgrounds,
                      reference=not args.no_reference, bootstrap=args.bootstrap, seed=args.seed, workers=args.workers,
                      progress=not args.quiet)
@@ -38,12 +38,15 @@ def register(registry) -> None:
     p = registry.command("compare", cmd_compare,
                          "the paper's Table 1 on a capture of the rig (source 'real'): its taps rendered at their "
                          "measured poses by the fast path (each light field and background) and the physically "
-                         "based reference, MAE/SSIM/PSNR full frame and in the image circle with bootstrap intervals "
+                         "based reference, MAE/SSIM/PSNR full frame, in the image circle and over each tap's "
+                         "contact with bootstrap intervals, and the contact strength, simulated over real "
                          "(CAPTURE_DIR --out DIR)")
     p.add_argument("capture", metavar="CAPTURE_DIR", help="a capture of the rig (docs/dataset-format.md)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="where table.json, table.md, report.html, figures and renders/ go (renders resume)")
     p.add_argument("--taps", type=positive_int, help="the fast path's taps, spread evenly over the capture (default all)")
+    p.add_argument("--heldout", action="store_true",
+                   help="only the capture's judged half (its odd samples), the taps a calibration from it holds out")
     p.add_argument("--reference-taps", type=positive_int, default=REFERENCE_TAPS,
                    help=f"the reference's taps, spread evenly over the fast path's (default {REFERENCE_TAPS}: it "
                         "takes minutes per tap)")

@@ -35,17 +35,17 @@ def figures(out: Path, result: dict, examples: dict, mask: np.ndarray) -> dict[s
     files = {}
     rows = result["rows"]
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 0.35 * len(rows) + 1.6), squeeze=False)
+    scopes = table.scopes_of(rows)
+    fig, axes = plt.subplots(1, len(scopes), figsize=(6 * len(scopes), 0.35 * len(rows) + 1.6), squeeze=False)
     y = np.arange(len(rows))[::-1]
-    for ax, scope in zip(axes[0], table.SCOPES):
+    colour = {"reference": "#c0504d", "peer": "#9bbb59"}
+    for ax, scope in zip(axes[0], scopes):
         ci = [r[scope]["mae"] for r in rows]
         mean = np.array([c["mean"] for c in ci])
         err = np.array([[c["mean"] - c["low"], c["high"] - c["mean"]] for c in ci]).T
-        colours = ["#c0504d" if r["method"] == "reference" else "#5b7fbd" for r in rows]
-        ax.barh(y, mean, xerr=err, color=colours, capsize=3)
+        ax.barh(y, mean, xerr=err, color=[colour.get(r["method"], "#5b7fbd") for r in rows], capsize=3)
         ax.set_yticks(y, [r["label"] for r in rows], fontsize=8)
-        ax.set_xlabel(f"MAE, {'full frame' if scope == 'full' else 'image circle'} (mean, 95% CI over taps)",
-                      fontsize=8)
+        ax.set_xlabel(f"MAE, {table.SCOPE_NAMES[scope]} (mean, 95% CI over taps)", fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "metrics.png", dpi=80)
     plt.close(fig)
@@ -109,8 +109,9 @@ def markdown(result: dict) -> str:
 
 
 def _html_table(rows: list[dict]) -> str:
-    head = "".join(f"<th>{html.escape(h)}</th>" for h in table.header())
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in table.cells(r)) + "</tr>" for r in rows)
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in table.header(rows))
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in table.cells(r, rows)) + "</tr>"
+                   for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 

@@ -30,7 +30,9 @@ from phong_reference.bake import METHODS
 from phong_reference.plugin import OPTIONS as FAST_OPTIONS
 from phong_reference.render import finish
 from scenes.camera import Camera
+from scenes.captures import contact_strength, press_regions, split
 from scenes.dataset import load_sample, read_samples
+from scenes.images import read_rgb
 from scenes.profile import Alignment, align_image, load_profile
 from rig.align import alignment_from_dict
 from scenes.replay import Capture, read_capture, replay
@@ -57,6 +59,13 @@ def spread(ids: Sequence[str], n: int | None) -> list[str]:
     if n < 1:
         raise ValueError(f"the number of taps must be >= 1, got {n}")
     return [ids[i] for i in np.unique(np.linspace(0, len(ids) - 1, n).round().astype(int))]
+
+
+def heldout_ids(ids: Sequence[str]) -> list[str]:
+    """The judged half of a capture's samples: those a calibration from it holds out (the
+    odd positions, ``scenes.captures.split``), in order."""
+    ids = list(ids)
+    return [sid for sid, fitted in zip(ids, split(len(ids))) if not fitted]
 
 
 def with_background(shading: np.ndarray, background: np.ndarray, ambient: float, mask: np.ndarray) -> np.ndarray:
@@ -88,6 +97,12 @@ class Aligner:
         return out * self.mask[..., None] if masked else out
 
 
+def no_contact_of(root: Path, camera: Camera) -> np.ndarray:
+    """(H, W, 3) float32, a replay's no-contact image (its background.png): what its contact
+    strength is measured against."""
+    return read_rgb(Path(root) / "background.png", camera.shape).astype(np.float32)
+
+
 def _backgrounds(capture: Capture, camera: Camera, wanted: Sequence[str] | None) -> dict[str, np.ndarray]:
     have_real = (capture.root / "background.png").is_file()
     names = list(wanted) if wanted is not None else [b for b in BACKGROUNDS if b != "real" or have_real]
@@ -106,6 +121,7 @@ def compare(
     profile: str | Path | None = None,
     options: dict | None = None,
     taps: int | None = None,
+    heldout: bool = False,
     reference_taps: int = REFERENCE_TAPS,
     fields: Sequence[str] = METHODS,
     backgrounds: Sequence[str] | None = None,
@@ -128,6 +144,8 @@ def compare(
         background, which the comparison sweeps): the fast path's (``rectify``,
         ``elastic``) go to it, the others to the reference.
     taps : the fast path's taps, spread evenly over the capture (None: all).
+    heldout : only the capture's judged half (:func:`heldout_ids`): the taps a calibration
+        from it did not fit.
     reference_taps : the reference's taps, spread evenly over the fast path's.
     fields, backgrounds : the fast path's light fields and backgrounds (None: every one
         the capture allows: ``real`` needs its background.png).
@@ -157,9 +175,16 @@ def compare(
     block = capture.meta.get("alignment")
     alignment = alignment_from_dict(block) if block is not None and profile is None else None
     align = Aligner(alignment, camera, mask)
-    ids = spread(capture.ids, taps)
+    ids = spread(heldout_ids(capture.ids) if heldout else capture.ids, taps)
     ref_ids = spread(ids, reference_taps) if reference else []
     real = load_images(capture.root, ids, camera.shape)
+    by_id = {r["id"]: r for r in capture.records}
+    real_bg = read_rgb(capture.root / "background.png", camera.shape) if (capture.root / "background.png").is_file() \
+        else None
+    annotated = all("contact_center_px" in by_id[i] for i in ids)
+    regions = None if real_bg is None and not annotated else press_regions(
+        [by_id[i] for i in ids], real, real_bg if real_bg is not None else np.zeros_like(real[0]), mask)
+    real_strength = None if regions is None or real_bg is None else contact_strength(real, real_bg, regions)
     fast_options = {k: v for k, v in options.items() if k in FAST_OPTIONS}
     ref_options = {k: v for k, v in options.items() if k not in FAST_OPTIONS}
     common = {"workers": workers, "progress": progress}
@@ -169,11 +194,16 @@ def compare(
     rows = []
     examples = {"ids": shown, "real": real[[ids.index(i) for i in shown]], "images": {}, "mean_abs": {}}
 
-    def add(label: str, method: dict, stack: np.ndarray, which: list[str]) -> None:
-        """Score a method's images of the taps ``which``; keep its error map and examples."""
+    def add(label: str, method: dict, stack: np.ndarray, which: list[str], no_contact: np.ndarray | None) -> None:
+        """Score a method's images of the taps ``which`` (and its no-contact image, for the
+        contact strength); keep its error map and examples."""
         pick = [ids.index(i) for i in which]
-        values = table.score(real[pick], stack, mask)
-        rows.append(table.row(label, method, values, which, bootstrap, seed))
+        region = None if regions is None else regions[pick]
+        values = table.score(real[pick], stack, mask, region)
+        strength = None
+        if real_strength is not None and no_contact is not None:
+            strength = contact_strength(stack, no_contact, region) / real_strength[pick]
+        rows.append(table.row(label, method, values, which, bootstrap, seed, strength=strength))
         examples["mean_abs"][label] = np.abs(stack - real[pick]).mean(axis=(0, 3))
         examples["images"][label] = stack[[which.index(i) for i in shown]]
 
@@ -183,21 +213,22 @@ def compare(
             where = renders / f"{FAST}_{field}"
             replay(capture, where, FAST, {**fast_options, "field": field, "background": "none"}, ids=ids, **common)
             shading = align(load_images(where, ids, camera.shape), masked=False)
+            shading_0 = align(no_contact_of(where, camera)[None], masked=False)[0]
             for name, background in bgs.items():
                 stack = np.stack([with_background(s, background, spec.material.ambient, mask) for s in shading])
                 add(f"fast: {field}, background {name}", {"method": "fast", "field": field, "background": name},
-                    stack, ids)
+                    stack, ids, with_background(shading_0, background, spec.material.ambient, mask))
         else:
             where = renders / f"{FAST}_{field}_profile"
             replay(capture, where, FAST, {**fast_options, "field": field, "profile": str(profile)}, ids=ids, **common)
             add(f"fast: {field}, profile", {"method": "fast", "field": field, "background": "profile"},
-                load_images(where, ids, camera.shape), ids)
+                load_images(where, ids, camera.shape), ids, no_contact_of(where, camera))
     if reference:
         where = renders / ("reference" if profile is None else "reference_profile")
         opts = ref_options if profile is None else {**ref_options, "profile": str(profile)}
         replay(capture, where, reference_renderer, opts, ids=ref_ids, **common)
         add(f"reference: {reference_renderer}", {"method": "reference", "renderer": reference_renderer},
-            align(load_images(where, ref_ids, camera.shape)), ref_ids)
+            align(load_images(where, ref_ids, camera.shape)), ref_ids, align(no_contact_of(where, camera)[None])[0])
 
     best = min((r for r in rows if r["method"] == "fast"), key=lambda r: r["masked"]["mae"]["mean"])
     on_reference = [table.subset(r, ref_ids, bootstrap, seed) for r in rows] if 0 < len(ref_ids) < len(ids) else []
@@ -209,6 +240,11 @@ def compare(
         note = "applied: each simulated image moved by the capture's alignment block (scenes.profile.align_image)"
     result = {
         "capture": str(capture.root.resolve()),
+        "heldout": heldout,
+        "contact": ("each tap's annotated contact disc" if regions is not None and annotated else
+                    "where each real tap differs from the real no-contact image (scenes.captures.contact_region)"
+                    if regions is not None else "none: the capture has neither annotations nor a background.png"),
+        "real_strength": None if real_strength is None else [float(v) for v in real_strength],
         "taps": ids,
         "reference_taps": ref_ids,
         "profile": None if profile is None else str(profile),

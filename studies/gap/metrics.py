@@ -30,7 +30,8 @@ def _psnr(mse: np.ndarray) -> np.ndarray:
 
 
 def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool = True,
-               areas: np.ndarray | None = None, regions: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+               areas: np.ndarray | None = None, regions: dict[str, np.ndarray] | None = None,
+               contact: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Metrics of each sample: {"full": {mae, ssim, psnr}, "masked": {...}}, arrays (N,).
 
     real, pred : (N, H, W, 3) or (H, W, 3) float in [0, 1]; mask : (H, W) bool, the
@@ -40,6 +41,9 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
     each sample is measured only there ("full") and there within the mask ("masked"),
     for samples that are parts of one image. ``regions`` {name: (H, W) bool}, optional:
     each adds a scope of that name, measured within the mask there (no ``areas`` then).
+    ``contact`` (N, H, W) bool, optional: each sample's contact region
+    (``scenes.captures.press_regions``), a scope "contact" measured within the mask there
+    (a sample whose region is empty gets NaN).
     """
     real, pred = np.asarray(real), np.asarray(pred)
     if real.shape != pred.shape:
@@ -57,8 +61,12 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         if name in SCOPES or region.shape != mask.shape or not (region & mask).any():
             raise ValueError(f"region {name!r} must be an (H, W) bool mask like the image circle's, with pixels inside "
                              f"it, and not named full or masked; got shape {region.shape}")
+    if contact is not None and (np.shape(contact) != real.shape[:3] or np.asarray(contact).dtype != bool):
+        raise ValueError(f"contact must be (N, H, W) bool like the images {real.shape[:3]}, got "
+                         f"{np.shape(contact)} {getattr(contact, 'dtype', '')}")
     n = len(real)
-    out = {k: {m: np.empty(n) for m in METRICS} for k in (*SCOPES, *regions)}
+    out = {k: {m: np.empty(n) for m in METRICS} for k in (*SCOPES, *regions, *(("contact",) if contact is not None
+                                                                                else ()))}
 
     def one(i: int) -> None:
         a, b = real[i].astype(np.float64), pred[i].astype(np.float64)
@@ -78,8 +86,12 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
         out["masked"]["mae"][i] = np.abs(err[inner]).mean()
         out["masked"]["psnr"][i] = _psnr(sq[inner].mean())
         out["masked"]["ssim"][i] = smap[inner].mean()
-        for name, region in regions.items():
+        for name, region in (*regions.items(), *((("contact", contact[i]),) if contact is not None else ())):
             inner = mask & region
+            if not inner.any():
+                for m in METRICS:
+                    out[name][m][i] = np.nan
+                continue
             out[name]["mae"][i] = np.abs(err[inner]).mean()
             out[name]["psnr"][i] = _psnr(sq[inner].mean())
             out[name]["ssim"][i] = smap[inner].mean()
