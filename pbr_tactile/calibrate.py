@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenes.camera import Camera, lens_angle
-from scenes.captures import split
+from scenes.captures import MAX_TAPS, split
 from scenes.images import block_mean
 from scenes.profile import Alignment, CameraProfile, Profile
 from scenes.spec import SensorSpec
@@ -101,6 +101,9 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         if name not in Effects.__dataclass_fields__:
             raise ValueError(f"grid: {name!r} is not an effect of the reference ({', '.join(Effects.__dataclass_fields__)})")
     real = check_real(real, camera, "the real no-contact image")
+    if taps is not None and len(taps.ids) > MAX_TAPS:
+        raise ValueError(f"taps: the reference renders at most {MAX_TAPS} taps of a unit (each per source, at several "
+                         f"grid points), got {len(taps.ids)}; fit the fast path on more with fast_taps")
     circle = image_circle(real)
     width, height = film
     factor = film_factor(real.shape, film)
@@ -318,3 +321,56 @@ def _uncalibrated(rendered: SensorSpec, model: ImageModel, r, train) -> np.ndarr
         a, b = np.polyfit(x, y, 1)
         out[..., c] = np.clip(a * linear[..., c] + b, 0.0, 1.0)
     return np.where(model.inside[..., None], out, 0.0)
+
+
+def calibrate_fast(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, taps, fast_path_fit,
+                   seed: int = 0) -> Calibration:
+    """The fast path alone, calibrated to a unit: its background term fitted to the real
+    no-contact image (H, W, 3) on the even sectors and judged on the odd ones, as
+    :func:`calibrate_background` fits it, and its LED constants fitted to the taps
+    (``fast_path_fit``, as there); no render of the reference, so in seconds.
+
+    The profile's alignment is the identity (the spec's camera: a capture whose contacts
+    were placed by its own camera, as an imported set's are, needs no other), its camera
+    the defaults and its ``reference`` table empty: the reference cannot render it.
+    """
+    real = check_real(real, camera, "the real no-contact image")
+    if taps is None or fast_path_fit is None:
+        raise ValueError("calibrate_fast fits the fast path's LED constants to taps: give taps and fast_path_fit")
+    circle = image_circle(real)
+    centre = (camera.cx, camera.cy) if circle is None else circle[:2]
+    sector = sector_index(real.shape[:2], centre)
+    inside = camera.mask
+    train, test = (sector % 2 == 0) & inside, (sector % 2 == 1) & inside
+    clipped = real >= CLIP_LEVEL
+    judged = {ch: test & ~clipped[..., c] for c, ch in enumerate("rgb")}
+    fast_table, fast_path = fit_fast_background(real, circle, camera, train, test, clipped, judged, sector, seed)
+    image = fast_path.pop("image")
+    profile = Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds),
+                      camera=CameraProfile(image_circle=circle),
+                      phong={"ambient": 1.0, "background": fast_table},
+                      fit={"data": f"one no-contact image and {len(taps.ids)} taps, the fast path alone",
+                           "converged": True, "phong_heldout_r2": fast_path["heldout_r2"]})
+    table, fast_path["taps"] = fast_path_fit(spec, mesh, camera, profile, taps, real)
+    fitted = split(len(taps.ids))
+    fast_path["taps"]["ids"] = {"fitted": [i for i, f in zip(taps.ids, fitted) if f],
+                                "judged": [i for i, f in zip(taps.ids, fitted) if not f]}
+    profile = dataclasses.replace(profile, phong={**profile.phong, **table})
+    heldout = fast_path["heldout_r2"]
+    mae = fast_path["heldout_mae"]
+    report = {
+        "converged": True, "renderers": ["phong"], "loss": float("nan"), "start_loss": float("nan"),
+        "heldout_r2": heldout, "heldout_r2_before": fast_path["solid"]["heldout_r2"], "heldout_mae": mae,
+        "heldout_mae_before": fast_path["solid"]["heldout_mae"],
+        "saturated": {ch: float(clipped[..., c][inside].mean()) > SATURATED_SHARE for c, ch in enumerate("rgb")},
+        "image_circle": circle, "sectors": SECTORS,
+        "split": "even angular sectors of the image fit the background term, odd ones judge; the capture's even "
+                 "samples fit the LED constants, its odd ones judge",
+        "best_effects": {}, "not_identifiable": ["the reference: not calibrated (--fast-only)"],
+        "fast_path": fast_path, "what": "the fast path alone: its background term (before: the best solid colour) "
+                                        "and its LED constants per light field",
+    }
+    judged_image = np.stack([judged[ch] for ch in "rgb"], -1)
+    return Calibration(profile, report, {"real": real, "before": np.where(
+        inside[..., None], [real[..., c][train].mean() for c in range(3)], 0.0), "after": image,
+        "fast_path": image, "judged": judged_image})

@@ -186,6 +186,23 @@ def cmd_calibrate(args) -> int:
         bar.update(done - bar.n)
 
     t0 = time.perf_counter()
+    if args.fast_only:
+        if taps is None:
+            raise ValueError("--fast-only fits the fast path's LED constants to taps: give REAL, a capture dataset")
+        from .calibrate import calibrate_fast
+
+        cal = calibrate_fast(real, spec, membrane_mesh(spec), camera, fast_taps or taps, fast_path_fit(),
+                             seed=args.seed)
+        bar.close()
+        cal.report["seconds"] = time.perf_counter() - t0
+        paths = write_outputs(cal, Path(args.out), what + ", the fast path alone")
+        fast = cal.report["fast_path"]["taps"]
+        print(f"fast path: background held-out R^2 " + ", ".join(f"{ch} {cal.report['heldout_r2'][ch]:.3f}" for ch
+                                                                  in "rgb")
+              + f"; LED constants of the {fast['field']} field, held-out change R^2 "
+              + ", ".join(f"{ch} {fast['heldout']['change_r2'][ch]:.3f}" for ch in "rgb")
+              + f"; wrote {', '.join(str(p) for p in paths.values())}")
+        return 0
     cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
                                grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
                                bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps,
@@ -295,6 +312,9 @@ def register(registry) -> None:
     p.add_argument("--taps", type=int, help="taps of REAL used, spread over it (default and at most 10; 0: its "
                                            "no-contact image only); with REAL = benchmark: virtual taps per sensor "
                                            "(default 0)")
+    p.add_argument("--fast-only", action="store_true",
+                   help="calibrate the fast path alone (its background term and LED constants per light field, "
+                        "seconds): no render of the reference, whose profile table stays empty")
     p.add_argument("--fast-taps", type=int, metavar="N",
                    help="taps of REAL the fast path's LED constants are fitted (and judged) on, fitted and judged in "
                         "turn from its even and odd samples (0: all; default: the reference's --taps): the fast path "

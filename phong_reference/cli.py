@@ -98,7 +98,7 @@ def cmd_render(args) -> int:
     if profile is not None:
         from .profiled import ProfiledRenderer
 
-        renderer = ProfiledRenderer(spec, ref, light_vectors(fields, args.rectify), profile)
+        renderer = ProfiledRenderer(spec, ref, light_vectors(fields, args.rectify), profile, field=args.field)
     else:
         renderer = Renderer(spec, camera, ref, light_vectors(fields, args.rectify),
                             _background(args.background or "none", camera))
@@ -186,7 +186,7 @@ def _demo(args, spec, mesh, camera, out: Path) -> dict:
             from .profiled import ProfiledRenderer
             from .render import light_vectors
 
-            renderer = ProfiledRenderer(spec, ref, light_vectors(unit_fields[method]), profile)
+            renderer = ProfiledRenderer(spec, ref, light_vectors(unit_fields[method]), profile, field=method)
         else:
             renderer = Renderer.from_fields(spec, camera, fields[method], _background(backgrounds[bkg], camera))
         for name, depth in depths.items():

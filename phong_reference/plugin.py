@@ -76,7 +76,7 @@ class PhongDatasetRenderer:
         else:
             from .profiled import ProfiledRenderer
 
-            self._renderer = ProfiledRenderer(spec, ref_depth, L, profile, layer)
+            self._renderer = ProfiledRenderer(spec, ref_depth, L, profile, layer, field=opts["field"])
         self.ref_depth = self._renderer.ref_depth
 
     @property
@@ -94,12 +94,20 @@ def make_renderer(spec, mesh, camera, ref_depth, options) -> PhongDatasetRendere
 
 
 def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background: np.ndarray,
-              field: str = "plane") -> tuple[dict, dict]:
+              fields=METHODS) -> tuple[dict, dict]:
     """The fast path's LED constants from a unit's taps (``phong_reference.calibrate``), with
-    the light fields of ``field`` baked for the profile's LEDs: (entries of the profile's
-    ``phong`` table, the report)."""
+    each light field of ``fields`` baked for the profile's LEDs: (entries of the profile's
+    ``phong`` table, the report). Each field gets its own constants (``phong.fields``);
+    the top-level ``leds`` and ``shininess`` are those of the field that fits the fitted
+    taps best (the lowest MAE of their change over their contact regions), and the
+    profile composes by change (``phong_reference.profiled``)."""
     from .calibrate import fit_led_constants
 
-    fields = bake(mesh, camera, profile.sensor_spec(spec).leds, field)
-    table, report = fit_led_constants(spec, camera, taps.ref_depth, light_vectors(fields), profile, taps, background)
-    return table, {**report, "field": field}
+    by_field, reports = {}, {}
+    for field in fields:
+        L = light_vectors(bake(mesh, camera, profile.sensor_spec(spec).leds, field))
+        by_field[field], reports[field] = fit_led_constants(spec, camera, taps.ref_depth, L, profile, taps, background)
+    best = min(fields, key=lambda f: float(np.mean(list(reports[f]["fit"]["mae"].values()))))
+    table = {**by_field[best], "field": best, "fields": by_field, "composition": "change"}
+    return table, {**reports[best], "field": best, "by_field": reports,
+                   "chosen": "the field whose constants fit the fitted taps' changes best (mean MAE over channels)"}

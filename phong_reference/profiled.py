@@ -11,7 +11,17 @@
   the unit's no-contact image, ``scenes.background_model``) times its ``phong.ambient``;
 - the LEDs' constants (k_d, k_s, colour) and the shininess are the profile's where it has
   them (``phong.leds``, ``phong.shininess``: fitted to the unit's taps,
-  ``phong_reference.calibrate``), else the spec's.
+  ``phong_reference.calibrate``; ``phong.fields.<field>`` holds those fitted with each
+  light field, and the field rendered takes its own), else the spec's;
+- a profile fitted to taps composes by change (``phong.composition = "change"``): its
+  background term is the unit's whole no-contact image and the LEDs add only what a
+  contact changes,
+
+      image = clip(B + align(sum_m (I_m - I_m,0) colour_m), 0, 1)
+
+  (I_m,0 the undeformed membrane's shading): the LED constants are fitted to contacts'
+  changes, and a light field whose light is not tangent to the membrane (``linear`` on a
+  flat pad) shades the undeformed membrane too, which the background already holds.
 """
 
 from __future__ import annotations
@@ -46,10 +56,27 @@ def profile_background(profile: Profile, camera: Camera, full: Camera | None = N
     return ambient * evaluate(table, profile.camera.image_circle, camera.shape, (full or camera).shape)
 
 
-def profile_constants(profile: Profile, unit: SensorSpec) -> SensorSpec:
+#: How a profile's fast path composes its image (module doc): the paper's sum, or by change.
+COMPOSITIONS = ("sum", "change")
+
+
+def composition(profile: Profile) -> str:
+    """The profile's ``phong.composition`` ("sum" where it has none); ValueError otherwise."""
+    value = profile.phong.get("composition", "sum")
+    if value not in COMPOSITIONS:
+        raise ValueError(f"profile phong.composition must be one of {COMPOSITIONS}, got {value!r}")
+    return value
+
+
+def profile_constants(profile: Profile, unit: SensorSpec, field: str | None = None) -> SensorSpec:
     """``unit`` with the profile's LED constants and shininess (``phong.leds``,
-    ``phong.shininess``) where it has them; ValueError naming a malformed entry."""
-    leds, shininess = profile.phong.get("leds"), profile.phong.get("shininess")
+    ``phong.shininess``, or those fitted with ``field``, ``phong.fields.<field>``) where it
+    has them; ValueError naming a malformed entry."""
+    table = profile.phong
+    by_field = table.get("fields") or {}
+    if field is not None and field in by_field:
+        table = by_field[field]
+    leds, shininess = table.get("leds"), table.get("shininess")
     if leds is not None:
         if not isinstance(leds, list) or len(leds) != len(unit.leds):
             raise ValueError(f"profile phong.leds must list {len(unit.leds)} LEDs' constants, got {leds!r}")
@@ -81,8 +108,9 @@ class ProfiledRenderer:
     """
 
     def __init__(self, spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile,
-                 layer: MembraneLayer | None = None):
-        unit = profile_constants(profile, profile.sensor_spec(spec))
+                 layer: MembraneLayer | None = None, field: str | None = None):
+        unit = profile_constants(profile, profile.sensor_spec(spec), field)
+        self.by_change = composition(profile) == "change"
         self.profile = profile
         self.camera = Camera.from_spec(unit)  # the unit's image circle
         # The membrane's shading, not yet cut by the circle (the lens cuts it after the move).
@@ -94,7 +122,8 @@ class ProfiledRenderer:
         self._mask = self.camera.mask[..., None]
         self._coords = profile.alignment.sampling(self.camera.shape, self.camera)
         moved = align_image(self._membrane.base, profile.alignment, self.camera)
-        self.base = (np.clip(moved + self.background, 0.0, 1.0) * self._mask).astype(np.float32)
+        self._moved_base = moved if self.by_change else 0.0  # subtracted from every image: only the change adds
+        self.base = (np.clip(moved - self._moved_base + self.background, 0.0, 1.0) * self._mask).astype(np.float32)
 
     def render(self, depth: np.ndarray) -> np.ndarray:
         """(H, W) float metres -> (H, W, 3) float32 in [0, 1]. Only the window where the
@@ -112,6 +141,8 @@ class ProfiledRenderer:
         moved = np.stack([ndimage.map_coordinates(membrane[..., c], coords, order=1, mode="constant")
                           for c in range(3)], axis=-1)
         image = self.base.copy()
+        if self.by_change:
+            moved = moved - self._moved_base[window]
         image[window] = np.clip(moved + self.background[window], 0.0, 1.0) * self._mask[window]
         return image
 

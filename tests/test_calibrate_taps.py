@@ -198,8 +198,7 @@ def test_real_taps_refuse_bad_arrays():
                             ({"depths": np.zeros((2, 5, 8))}, "must match"),
                             ({"ids": ["a"]}, "1 ids for 2 images"),
                             ({"depths": np.full((2, 6, 8), np.nan)}, "must be finite"),
-                            ({"images": np.zeros((11, 6, 8, 3)), "depths": np.zeros((11, 6, 8)), "ids": list("abcdefghijk")},
-                             "at most 10 taps")]:
+                            ({"discs": np.zeros((2, 2))}, r"discs must be \(2, 3\)")]:
         with pytest.raises(ValueError, match=message):
             captures.RealTaps(**{**good, **change})
 

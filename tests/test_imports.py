@@ -21,6 +21,8 @@ HEAVY = {
     "ray": {"scenes/executors.py"},
     "serial": {"rig/serial_lines.py"},
     "cv2": {"rig/camera.py", "studies/gap/effects.py", "studies/gap/inject.py"},
+    "taxim": {"studies/compare/taxim.py"},
+    "jax": {"studies/compare/taxim.py"},
 }
 
 

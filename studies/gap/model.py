@@ -151,9 +151,14 @@ class FastModel:
             from scenes.profile import profile_from_dict
 
             self.profile = profile_from_dict(renderer["profile_data"], "the simulated dataset's profile")
-            spec = profile_constants(self.profile, self.profile.sensor_spec(spec))
+            spec = profile_constants(self.profile, self.profile.sensor_spec(spec), renderer.get("field", "plane"))
             spec = spec.replace(material=replace(spec.material, ambient=1.0))  # k_a is in the profile's B
         self.spec = spec
+        # A profile fitted to taps composes by change (phong_reference.profiled): its
+        # background is the unit's whole no-contact image, the LEDs add what a contact changes.
+        from phong_reference.profiled import composition
+
+        self.by_change = self.profile is not None and composition(self.profile) == "change"
         self.factor = int(factor)
         self.full_camera, self.camera = working_cameras(spec, self.factor)
         full = self.full_camera
@@ -327,6 +332,22 @@ class FastModel:
             g = self._base_geometry(key, depth)
         if not self.spec.material.clamp_specular:  # unclamped specular, as the published code had it
             raise ValueError("the diagnosis needs clamp_specular = true in the sensor's material")
+        I, ambient, colours = self._lit(g, params)
+        if self.profile is None:
+            image = compose(I.astype(np.float32, copy=False), colours, ambient.astype(np.float32, copy=False))
+            image = image.transpose(1, 2, 0)
+        else:  # the membrane's shading moves with the unit's alignment, its background does not
+            shading = compose(I.astype(np.float32, copy=False), colours, np.zeros_like(ambient, np.float32))
+            image = self._aligned(np.clip(shading, 0.0, 1.0).transpose(1, 2, 0)) + ambient.transpose(1, 2, 0)
+            if self.by_change:  # less the undeformed membrane's shading under the same effects
+                I0, _, colours0 = self._lit(self._base_geometry(-1, self.ref), params)
+                shading0 = compose(I0.astype(np.float32, copy=False), colours0, np.zeros_like(ambient, np.float32))
+                image = image - self._aligned(np.clip(shading0, 0.0, 1.0).transpose(1, 2, 0))
+        return np.clip(image, 0.0, 1.0) * self.mask[..., None]
+
+    def _lit(self, g: dict, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(I (M, H, W), the ambient term (3, H, W), the LEDs' colours (M, 3)) of a deformed
+        surface's shading terms ``g`` with the light effects in ``params``."""
         terms = g["terms"]
         I = led_intensities(terms, self.k_d, self.k_s)  # (M, H, W), I_m of the fast path
         if "coating_gloss" in params:
@@ -360,13 +381,7 @@ class FastModel:
             p = params["core_light_leak"]
             amplitude = np.array([p[f"amplitude_{m}"] for m in range(len(self.spec.leds))], np.float32)
             I = I + amplitude[:, None, None] * self._leak(g, p["length_m"])
-        if self.profile is None:
-            image = compose(I.astype(np.float32, copy=False), colours, ambient.astype(np.float32, copy=False))
-            image = image.transpose(1, 2, 0)
-        else:  # the membrane's shading moves with the unit's alignment, its background does not
-            shading = compose(I.astype(np.float32, copy=False), colours, np.zeros_like(ambient, np.float32))
-            image = self._aligned(np.clip(shading, 0.0, 1.0).transpose(1, 2, 0)) + ambient.transpose(1, 2, 0)
-        return np.clip(image, 0.0, 1.0) * self.mask[..., None]
+        return I, ambient, colours
 
     def _aligned(self, image: np.ndarray, fill: float = 0.0) -> np.ndarray:
         """(H, W, C) membrane-frame values as the unit's camera sees them (its profile's
