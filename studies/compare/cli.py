@@ -27,7 +27,7 @@ def cmd_compare(args) -> int:
     profile = options.pop("profile", None)
     result = compare(args.capture, args.out, profile=profile, options=options, taps=args.taps, heldout=args.heldout,
                      reference_taps=args.reference_taps, fields=args.fields or METHODS, backgrounds=args.backgrounds,
-                     reference=not args.no_reference, bootstrap=args.bootstrap, seed=args.seed, workers=args.workers,
+                     reference=not args.no_reference, peers=args.peers or (), bootstrap=args.bootstrap, seed=args.seed, workers=args.workers,
                      progress=not args.quiet)
     print(report.markdown(result))
     print(f"wrote {args.out}/table.json, table.md and report.html")
@@ -51,6 +51,9 @@ def register(registry) -> None:
                    help=f"the reference's taps, spread evenly over the fast path's (default {REFERENCE_TAPS}: it "
                         "takes minutes per tap)")
     p.add_argument("--no-reference", action="store_true", help="leave the physically based reference out")
+    p.add_argument("--peers", type=_names, help="peer simulators scored beside ours (taxim: Taxim with its shipped "
+                                               "calibration and refitted on the capture's fitted half; an imported "
+                                               "set of ball presses, pip install '.[peers]')")
     p.add_argument("--fields", type=_names, help="the fast path's light fields (default all: linear, plane, geodesic, "
                                                  "transport)")
     p.add_argument("--backgrounds", type=_names,

@@ -44,6 +44,8 @@ REFERENCE = "pbr"
 #: The fast path's backgrounds: none, the renderer's solid colour, and the capture's own
 #: no-contact image (background.png), as the paper used.
 BACKGROUNDS = ("none", "solid", "real")
+#: The peer simulators a comparison can score beside ours.
+PEERS = ("taxim",)
 #: Taps the reference renders by default: it takes minutes per tap.
 REFERENCE_TAPS = 4
 #: Examples shown in the report.
@@ -127,6 +129,7 @@ def compare(
     backgrounds: Sequence[str] | None = None,
     reference: bool = True,
     reference_renderer: str = REFERENCE,
+    peers: Sequence[str] = (),
     bootstrap: int = 2000,
     seed: int = 0,
     workers: int = 1,
@@ -151,6 +154,10 @@ def compare(
         the capture allows: ``real`` needs its background.png).
     reference : False leaves the reference out.
     reference_renderer : the reference's renderer plugin (a module path in tests).
+    peers : peer simulators scored beside ours, some of PEERS ("taxim": Taxim with its
+        shipped calibration and refitted on the capture's fitted half, ``studies.compare.taxim``;
+        an imported set of ball presses). One that cannot run here is listed in the
+        result's ``peers`` with its reason.
     bootstrap, seed : bootstrap resamples of the intervals, and their seed.
     """
     from .report import write_report
@@ -223,6 +230,23 @@ def compare(
             replay(capture, where, FAST, {**fast_options, "field": field, "profile": str(profile)}, ids=ids, **common)
             add(f"fast: {field}, profile", {"method": "fast", "field": field, "background": "profile"},
                 load_images(where, ids, camera.shape), ids, no_contact_of(where, camera))
+    peer_status = {}
+    for peer in peers:
+        if peer not in PEERS:
+            raise ValueError(f"peers must be some of {PEERS}, got {peer!r}")
+        from . import taxim
+
+        fitted_ids = [sid for sid, f in zip(capture.ids, split(len(capture.ids))) if f]
+        try:
+            renders_of = taxim.peer_renders(capture, ids, fitted_ids, load_images(capture.root, fitted_ids, camera.shape),
+                                            real_bg)
+        except (ImportError, ValueError) as exc:
+            peer_status[peer] = {"ran": False, "why": str(exc)}
+            continue
+        peer_status[peer] = {"ran": True, "variants": {v: r["note"] for v, r in renders_of.items()}}
+        for variant, r in renders_of.items():
+            add(f"peer: {peer}, {variant}", {"method": "peer", "peer": peer, "variant": variant},
+                r["images"] * mask[..., None], ids, r["no_contact"] * mask[..., None])
     if reference:
         where = renders / ("reference" if profile is None else "reference_profile")
         opts = ref_options if profile is None else {**ref_options, "profile": str(profile)}
@@ -245,6 +269,7 @@ def compare(
                     "where each real tap differs from the real no-contact image (scenes.captures.contact_region)"
                     if regions is not None else "none: the capture has neither annotations nor a background.png"),
         "real_strength": None if real_strength is None else [float(v) for v in real_strength],
+        "peers": peer_status,
         "taps": ids,
         "reference_taps": ref_ids,
         "profile": None if profile is None else str(profile),

@@ -716,3 +716,73 @@ def render_presses(calib_folder, centres_px, depths_m, ball_radius_m: float, pix
     """One-off :meth:`TaximPeer.render_presses`: (N, H, W, 3) float64 RGB in [0, 1]."""
     peer = TaximPeer(calib_folder, no_contact=no_contact, with_shadow=with_shadow, dome_correction=dome_correction)
     return peer.render_presses(centres_px, depths_m, ball_radius_m, pixel_m, shape)
+
+
+#: The peer's variants a comparison renders: Taxim's shipped calibration, and one fitted
+#: on the capture's own fitted half.
+VARIANTS = ("shipped", "refit")
+
+
+def capture_presses(capture, ids) -> dict:
+    """What Taxim needs of a capture's presses ``ids``: (N, 2) annotated centres (px),
+    (N,) annotated radii (px), (N,) depths (metres: each sample's ``measured_depth``), the
+    ball's radius and the pixel's size (metres: the import's ``ball_mm`` and ``pixel_mm``).
+    ValueError saying what is missing where the capture is no imported set of ball presses."""
+    from scenes.indenters import ball_diameter
+
+    block = capture.meta.get("import") or {}
+    by_id = {r["id"]: r for r in capture.records}
+    records = [by_id[i] for i in ids]
+    objects = {r.get("object") for r in records}
+    diameters = {ball_diameter(o) for o in objects}
+    if None in diameters or len(diameters) != 1 or "pixel_mm" not in block:
+        raise ValueError("Taxim renders presses of one ball at annotated places: the capture must be an imported set "
+                         f"(tactile-sim import) of ball presses, got objects {sorted(map(str, objects))} and "
+                         f"{'an' if block else 'no'} import block")
+    if not all("contact_center_px" in r and "contact_radius_px" in r for r in records):
+        raise ValueError("Taxim needs each press's annotated centre and radius (contact_center_px, contact_radius_px)")
+    return {"centres": np.array([r["contact_center_px"] for r in records], np.float64),
+            "radii": np.array([r["contact_radius_px"] for r in records], np.float64),
+            "depths": np.array([r["measured_depth"] for r in records], np.float64),
+            "ball_radius_m": diameters.pop() / 2, "pixel_m": float(block["pixel_mm"]) * 1e-3}
+
+
+def peer_renders(capture, ids, fitted_ids, real_fitted: np.ndarray, no_contact: np.ndarray,
+                 with_shadow: bool = True) -> dict[str, dict]:
+    """Taxim's renders of a capture's presses ``ids`` with each of VARIANTS: {variant:
+    {"images": (N, H, W, 3), "no_contact": (H, W, 3), "note": str}}.
+
+    ``shipped``: the port's own calibration (another session of the Taxim set's sensor),
+    with the capture's no-contact frame as background; ``refit``: a table fitted
+    (:func:`fit_polytable`) on the presses ``fitted_ids`` (their real frames
+    ``real_fitted``, (K, H, W, 3)) and the shipped gel map and shadow table. Each peer's
+    no-contact image is its render of the gel untouched. ImportError where the port or
+    JAX is missing; ValueError where the capture is not one it can render
+    (:func:`capture_presses`).
+    """
+    presses = capture_presses(capture, ids)
+    fitted = capture_presses(capture, fitted_ids)
+    h, w = no_contact.shape[:2]
+    shipped = shipped_folder()
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="taxim_refit_") as tmp:
+        table = fit_polytable(no_contact, real_fitted, fitted["centres"], fitted["radii"], presses["pixel_m"],
+                              presses["ball_radius_m"])
+        # the shipped gel map's heights, in its own pixels (its pixmm), in the capture's
+        gel = np.load(shipped / "gelmap.npy") * (float(json.loads((shipped / "params.json").read_text())["sensor"]
+                                                       ["pixmm"]) * 1e-3 / presses["pixel_m"])
+        folders = {"shipped": shipped,
+                   "refit": write_calibration(tmp, table, no_contact, gel, presses["pixel_m"], w, h,
+                                              shadow_from=shipped if with_shadow else None)}
+        notes = {"shipped": "Taxim's shipped calibration (taxim 1.4.1's calib/gelsight: 48 presses of another session "
+                            "of this sensor design), the capture's no-contact frame as background",
+                 "refit": f"a table fitted on the capture's {len(fitted_ids)} fitted presses (their real frames), the "
+                          "shipped gel map and shadow table"}
+        for variant, folder in folders.items():
+            peer = TaximPeer(folder, no_contact=no_contact, with_shadow=with_shadow)
+            images = peer.render_presses(presses["centres"], presses["depths"], presses["ball_radius_m"],
+                                         presses["pixel_m"], (h, w))
+            rest = peer.render(np.full((h, w), 10.0), presses["pixel_m"])  # the gel untouched, 10 mm away
+            out[variant] = {"images": images.astype(np.float32), "no_contact": rest.astype(np.float32),
+                            "note": notes[variant] + ("; shadows on" if with_shadow else "")}
+    return out
