@@ -20,7 +20,7 @@ from scenes.camera import Camera, SurfaceSamples, cast_rays, reference_depth
 from scenes.geometry import mesh_digest, validate_mesh
 from scenes.spec import LED
 
-from .sources import Sources, snap_leds
+from .sources import FREE_SOURCE_TOLERANCE_M, LED_SNAP_TOLERANCE_M, Sources, snap_leds
 
 METHODS = ("linear", "plane", "geodesic", "transport")
 
@@ -99,7 +99,8 @@ def bake(
     def build() -> dict[str, np.ndarray]:
         t0 = time.perf_counter()
         samples = cast_rays(mesh, camera)
-        sources = snap_leds(mesh, leds)
+        sources = snap_leds(mesh, leds, FREE_SOURCE_TOLERANCE_M if getattr(module, "FREE_SOURCES", False)
+                            else LED_SNAP_TOLERANCE_M)
         fields, valid = bake_samples(method, mesh, samples, sources)
         out = {
             "fields": np.stack([samples.scatter(f.astype(np.float32)) for f in fields]),

@@ -16,6 +16,12 @@ The best alpha's coefficients are then put in the Phong model's form: colour_m =
 max(a_m), k_d,m = max(a_m), and k_s,m the least-squares scale of colour_m to b_m. The
 held-out taps judge that form (``scenes.captures.split``), against the spec's constants
 ("before").
+
+A field whose light leaves each LED's own place (``linear``: straight rays) depends on
+where the LEDs are, which a spec often only estimates; :func:`fit_led_places` searches
+each LED's place too (its height and its distance from the axis, on PLACE_HEIGHTS_M x
+PLACE_RADII about the spec's, one LED at a time until none moves), fitting the constants
+at every candidate on the fitted taps, and reports the places it found.
 """
 
 from __future__ import annotations
@@ -35,6 +41,16 @@ from .profiled import ProfiledRenderer
 
 #: The shininess values searched.
 SHININESS = (5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
+#: Each LED's place searched (:func:`fit_led_places`): its height moved along the camera's
+#: axis by these, metres (negative: towards the camera, under a pad's plate), and its
+#: distance from the axis scaled by these.
+PLACE_HEIGHTS_M = (0.0, -2e-3, -4e-3, -8e-3, -16e-3, -24e-3)
+PLACE_RADII = (1.0, 1.25, 1.5, 2.0)
+#: Every combination of the LEDs' candidates is tried where there are at most this many;
+#: otherwise one LED moves at a time, from each candidate shared by all, for at most
+#: PLACE_SWEEPS sweeps.
+PLACE_EXHAUSTIVE = 20000
+PLACE_SWEEPS = 4
 
 
 def _changes(spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile, depths, layer,
@@ -131,3 +147,111 @@ def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L
         "heldout_before": _scores(before[held], real[held], regions[held]),
     }
     return {"leds": leds, "shininess": float(alpha)}, report
+
+
+def _gram_nnls(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin over x >= 0 of x'Gx - 2b'x, for a Gram matrix G = X'X and b = X'y (the
+    non-negative least squares of y by X's columns, from their inner products alone)."""
+    n = len(b)
+    try:
+        R = np.linalg.cholesky(G + 1e-12 * np.trace(G) / n * np.eye(n)).T  # G = R'R
+    except np.linalg.LinAlgError:
+        R = np.linalg.cholesky(G + 1e-9 * max(np.trace(G), 1.0) * np.eye(n)).T
+    return optimize.nnls(R, np.linalg.solve(R.T, b))[0]
+
+
+def moved_leds(leds, dz: float, scale: float) -> tuple:
+    """``leds`` each moved ``dz`` metres along the camera's axis and its distance from the
+    axis scaled by ``scale`` (its azimuth kept)."""
+    return tuple(dataclasses.replace(led, position=(led.position[0] * scale, led.position[1] * scale,
+                                                    led.position[2] + dz)) for led in leds)
+
+
+def fit_led_places(spec: SensorSpec, mesh, camera: Camera, profile: Profile, taps: RealTaps, background: np.ndarray,
+                   field: str = "linear", layer: MembraneLayer | None = None) -> tuple[tuple, dict]:
+    """Each LED's place for a field whose light leaves it (module doc): (the places, (M, 3)
+    metres in the camera frame of ``profile.sensor_spec(spec)``'s LEDs, and the report).
+
+    Every candidate (PLACE_HEIGHTS_M x PLACE_RADII about the unit's place) is baked for
+    all LEDs at once (not cached) and its diffuse and specular terms rendered at the
+    spec's shininess; then, from the unit's places, one LED at a time moves to the
+    candidate whose terms, with the others', fit the fitted taps' changes best, until a
+    sweep moves none (at most PLACE_SWEEPS).
+    """
+    from .bake import bake
+    from .render import light_vectors
+
+    unit = profile.sensor_spec(spec)
+    background = np.asarray(background, np.float64)
+    inside = Camera.from_spec(unit).mask
+    real = taps.images - background
+    regions = taps.regions(background, inside)
+    fitted = split(len(taps.ids))
+    if not regions[fitted].any():
+        raise ValueError("none of the fitted taps shows a contact in the real images: the LEDs' places cannot be "
+                         "fitted")
+    alpha = spec.material.shininess
+    candidates = [(dz, r) for dz in PLACE_HEIGHTS_M for r in PLACE_RADII]
+    sub = taps.subset(fitted)
+    region, change = regions[fitted], real[fitted]
+    columns, places = [], []  # per candidate, (M, 2, N): each LED's diffuse and specular term over the regions
+    for dz, r in candidates:
+        leds = moved_leds(unit.leds, dz, r)
+        L = light_vectors(bake(mesh, camera, leds, field, use_cache=False))
+        D = _unit_terms(spec, taps.ref_depth, L, profile, sub.depths, layer, "k_d", alpha)
+        S = _unit_terms(spec, taps.ref_depth, L, profile, sub.depths, layer, "k_s", alpha)
+        columns.append(np.stack([D[:, region], S[:, region]], axis=1).astype(np.float64))
+        places.append(np.array([led.position for led in leds]))
+    M, K = len(unit.leds), len(candidates)
+    # Every term's inner products, once: a trial's least squares is then a 2M x 2M problem.
+    flat = np.concatenate(columns).reshape(K * M * 2, -1)  # row (k, m, kind)
+    y = change[region]  # (N, 3)
+    gram, cross, energy = flat @ flat.T, flat @ y, (y * y).sum(axis=0)
+
+    def loss(choice) -> float:
+        rows = np.array([(k * M + m) * 2 + kind for kind in (0, 1) for m, k in enumerate(choice)])
+        G, b = gram[np.ix_(rows, rows)], cross[rows]
+        total = 0.0
+        for c in range(3):
+            x = _gram_nnls(G, b[:, c])
+            total += float(energy[c] - 2 * x @ b[:, c] + x @ G @ x)
+        return total
+
+    start = loss([0] * M)
+    sweeps = 0
+    if K**M <= PLACE_EXHAUSTIVE:
+        import itertools
+
+        choice = list(min(itertools.product(range(K), repeat=M), key=loss))
+    else:
+        choice = None
+        for first in range(K):
+            trial_choice, value = [first] * M, loss([first] * M)
+            for sweeps in range(1, PLACE_SWEEPS + 1):
+                moved = False
+                for m in range(M):
+                    for k in range(K):
+                        trial = trial_choice[:m] + [k] + trial_choice[m + 1:]
+                        v = loss(trial)
+                        if v < value - 1e-12:
+                            value, trial_choice, moved = v, trial, True
+                if not moved:
+                    break
+            if choice is None or value < loss(choice):
+                choice = trial_choice
+    best = loss(choice)
+    positions = tuple(tuple(float(v) for v in places[k][m]) for m, k in enumerate(choice))
+    report = {
+        "what": "each LED's place for the field whose light leaves it, searched on the fitted taps: its height moved "
+                f"by {[d * 1e3 for d in PLACE_HEIGHTS_M]} mm along the camera's axis and its distance from the axis "
+                f"scaled by {list(PLACE_RADII)}, one LED at a time",
+        "field": field, "shininess_searched_at": alpha,
+        "search": "every combination" if K**M <= PLACE_EXHAUSTIVE else f"one LED at a time from each of {K} starts",
+        "fit_loss": {"at_the_units_places": start, "at_the_places_found": best},
+        "places_m": [list(p) for p in positions],
+        "moved": [{"led": led.name, "height_mm": candidates[k][0] * 1e3, "radius_scale": candidates[k][1],
+                   "on_the_grid_edge": candidates[k][0] == PLACE_HEIGHTS_M[-1] or candidates[k][1] == PLACE_RADII[-1]}
+                  for led, k in zip(unit.leds, choice)],
+        "sweeps": sweeps,
+    }
+    return positions, report

@@ -10,6 +10,8 @@ from .sources import Sources
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
+#: The light leaves the LED's own place, which need not lie on the membrane.
+FREE_SOURCES = True
 
 
 class LinearBaker:

@@ -38,13 +38,16 @@ def options_from(options: dict) -> dict:
 
 
 def unit_spec(spec: SensorSpec, opts: dict):
-    """(the spec the fields are baked for, the Profile or None) of validated options."""
+    """(the spec the fields are baked for, the Profile or None) of validated options: the
+    profile's unit, its LEDs where the profile placed them for the field."""
     if opts["profile"] is None:
         return spec, None
     from scenes.profile import load_profile
 
+    from .profiled import profile_constants
+
     profile = load_profile(opts["profile"], spec)
-    return profile.sensor_spec(spec), profile
+    return profile_constants(profile, profile.sensor_spec(spec), opts["field"]), profile
 
 
 def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
@@ -93,21 +96,56 @@ def make_renderer(spec, mesh, camera, ref_depth, options) -> PhongDatasetRendere
     return PhongDatasetRenderer(spec, mesh, camera, ref_depth, options)
 
 
+#: The published smoothing's Gaussian the calibration searches, as shares of the spec's
+#: (``Elastic.sigma_px``: how far a contact's dent spreads, the elastomer's decay length).
+SIGMA_SCALES = (0.35, 0.5, 0.7, 1.0, 1.4)
+
+
 def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background: np.ndarray,
               fields=METHODS) -> tuple[dict, dict]:
     """The fast path's LED constants from a unit's taps (``phong_reference.calibrate``), with
     each light field of ``fields`` baked for the profile's LEDs: (entries of the profile's
-    ``phong`` table, the report). Each field gets its own constants (``phong.fields``);
-    the top-level ``leds`` and ``shininess`` are those of the field that fits the fitted
-    taps best (the lowest MAE of their change over their contact regions), and the
-    profile composes by change (``phong_reference.profiled``)."""
-    from .calibrate import fit_led_constants
+    ``phong`` table, the report). Each field gets its own constants (``phong.fields``),
+    its own spread of the dent (the published smoothing's Gaussian, searched over
+    SIGMA_SCALES of the spec's: ``sigma_px``) and, for a field whose light leaves each
+    LED's own place, the LEDs' places (``positions``, ``fit_led_places``); each choice
+    is the one that fits the fitted taps best. The top-level ``leds`` and ``shininess``
+    are those of the field that fits the fitted taps best (the lowest MAE of their
+    change over their contact regions), and the profile composes by change
+    (``phong_reference.profiled``)."""
+    from . import bake as bakes
+    from .calibrate import fit_led_constants, fit_led_places
+
+    def fit_loss(report: dict) -> float:
+        return float(np.mean(list(report["fit"]["mae"].values())))
 
     by_field, reports = {}, {}
     for field in fields:
-        L = light_vectors(bake(mesh, camera, profile.sensor_spec(spec).leds, field))
-        by_field[field], reports[field] = fit_led_constants(spec, camera, taps.ref_depth, L, profile, taps, background)
-    best = min(fields, key=lambda f: float(np.mean(list(reports[f]["fit"]["mae"].values()))))
+        leds, places = profile.sensor_spec(spec).leds, None
+        if getattr(bakes.baker_module(field), "FREE_SOURCES", False):  # its light leaves each LED's own place
+            positions, places = fit_led_places(spec, mesh, camera, profile, taps, background, field)
+            leds = tuple(dataclasses.replace(led, position=p) for led, p in zip(leds, positions))
+        L = light_vectors(bake(mesh, camera, leds, field))
+        spread = {}
+        for scale in SIGMA_SCALES:
+            sigma = spec.elastic.sigma_px * scale
+            elastic = dataclasses.replace(spec.elastic, sigma_px=sigma, radius_px=max(1, int(round(3 * sigma))))
+            spread[scale] = (elastic, *fit_led_constants(spec.replace(elastic=elastic), camera, taps.ref_depth, L,
+                                                         profile, taps, background))
+        scale = min(spread, key=lambda k: fit_loss(spread[k][2]))
+        elastic, by_field[field], reports[field] = spread[scale]
+        by_field[field]["sigma_px"], by_field[field]["radius_px"] = elastic.sigma_px, elastic.radius_px
+        reports[field]["spread"] = {"sigma_px": elastic.sigma_px, "share_of_the_spec": scale,
+                                    "fit_mae_by_share": {str(k): fit_loss(v[2]) for k, v in spread.items()}}
+        if places is not None:
+            by_field[field]["positions"] = [list(p) for p in positions]
+            # the same fit with the LEDs where the unit has them, and the spec's constants there ("before")
+            unmoved = fit_led_constants(spec, camera, taps.ref_depth,
+                                        light_vectors(bake(mesh, camera, profile.sensor_spec(spec).leds, field)),
+                                        profile, taps, background)[1]
+            reports[field]["heldout_before"] = unmoved["heldout_before"]
+            reports[field]["places"] = {**places, "heldout_at_the_units_places": unmoved["heldout"]}
+    best = min(fields, key=lambda f: fit_loss(reports[f]))
     table = {**by_field[best], "field": best, "fields": by_field, "composition": "change"}
     return table, {**reports[best], "field": best, "by_field": reports,
                    "chosen": "the field whose constants fit the fitted taps' changes best (mean MAE over channels)"}

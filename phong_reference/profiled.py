@@ -71,11 +71,30 @@ def composition(profile: Profile) -> str:
 def profile_constants(profile: Profile, unit: SensorSpec, field: str | None = None) -> SensorSpec:
     """``unit`` with the profile's LED constants and shininess (``phong.leds``,
     ``phong.shininess``, or those fitted with ``field``, ``phong.fields.<field>``) where it
-    has them; ValueError naming a malformed entry."""
+    has them, the LEDs' places fitted with that field (its ``positions``, metres in the
+    unit's camera frame: ``phong_reference.calibrate.fit_led_places``) and the published
+    smoothing's Gaussian (its ``sigma_px``, ``radius_px``); ValueError naming a malformed
+    entry."""
     table = profile.phong
     by_field = table.get("fields") or {}
     if field is not None and field in by_field:
         table = by_field[field]
+    positions = table.get("positions")
+    if positions is not None:
+        array = np.asarray(positions, dtype=np.float64) if isinstance(positions, list) else None
+        if array is None or array.shape != (len(unit.leds), 3) or not np.all(np.isfinite(array)) \
+                or np.abs(array).max() > 1.0:
+            raise ValueError(f"profile phong.fields.{field}.positions must be {len(unit.leds)} places [x, y, z] in "
+                             f"metres, got {positions!r}")
+        unit = unit.replace(leds=tuple(dataclasses.replace(led, position=tuple(map(float, p)))
+                                       for led, p in zip(unit.leds, array)))
+    if table.get("sigma_px") is not None:  # the dent's spread fitted with this field
+        sigma, radius = table["sigma_px"], table.get("radius_px")
+        if not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0 and isinstance(radius, int)
+                and radius >= 1):
+            raise ValueError(f"profile phong sigma_px and radius_px must be > 0 (pixels, radius whole), got "
+                             f"{sigma!r}, {radius!r}")
+        unit = unit.replace(elastic=dataclasses.replace(unit.elastic, sigma_px=float(sigma), radius_px=radius))
     leds, shininess = table.get("leds"), table.get("shininess")
     if leds is not None:
         if not isinstance(leds, list) or len(leds) != len(unit.leds):

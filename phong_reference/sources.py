@@ -33,17 +33,25 @@ class Sources:
         return len(self.vertices)
 
 
-def snap_leds(mesh: trimesh.Trimesh, leds: tuple[LED, ...] | list[LED]) -> Sources:
-    """Snap each LED to its nearest membrane vertex; refuse LEDs off the surface."""
+#: An LED whose light a field takes straight from its own place (``linear``) may sit
+#: anywhere within this of the membrane (a sensor's size: farther is a unit mistake).
+FREE_SOURCE_TOLERANCE_M = 0.1
+
+
+def snap_leds(mesh: trimesh.Trimesh, leds: tuple[LED, ...] | list[LED],
+              tolerance: float = LED_SNAP_TOLERANCE_M) -> Sources:
+    """Snap each LED to its nearest membrane vertex; refuse LEDs farther than ``tolerance``
+    metres from the surface (the surface fields start where the LED sits on it)."""
     if len(leds) == 0:
         raise ValueError("leds must hold at least one LED")
     positions = np.array([led.position for led in leds], dtype=np.float64)
     dist, vertices = mesh.kdtree.query(positions)
     for led, d in zip(leds, dist):
-        if d > LED_SNAP_TOLERANCE_M:
+        if d > tolerance:
             raise ValueError(
                 f"LED {led.name!r} at {led.position} m is {d * 1e3:.2f} mm from the membrane mesh; "
-                f"expected within {LED_SNAP_TOLERANCE_M * 1e3:g} mm (LEDs sit at the membrane's edge)"
+                f"expected within {tolerance * 1e3:g} mm"
+                + (" (LEDs sit at the membrane's edge)" if tolerance == LED_SNAP_TOLERANCE_M else "")
             )
     normals = np.asarray(mesh.vertex_normals)[vertices]
     directions = np.array([led.direction for led in leds], dtype=np.float64)
