@@ -46,7 +46,7 @@ def cmd_diagnose(args) -> int:
     from .report import headline
 
     report = run(args.real, args.sim, args.out, heldout_fraction=args.heldout, seed=args.seed, factor=args.factor,
-                 effects=args.effects, progress=not args.quiet,
+                 effects=args.effects, progress=not args.quiet, split_by=args.split,
                  **({} if args.intervals is None else {"intervals": args.intervals}))
     for line in headline(report):
         print(line)
@@ -122,6 +122,9 @@ def register(registry) -> None:
     p.add_argument("--out", metavar="REPORT_DIR", help="where report.html, report.json and figures go")
     p.add_argument("--heldout", type=_fraction, default=0.5, help="share of samples held out (default 0.5)")
     p.add_argument("--seed", type=int, default=0, help="split seed (benchmark: case seed)")
+    p.add_argument("--split", choices=("stratified", "alternate"), default="stratified",
+                   help="stratified (default: --heldout of each object's samples at random) or alternate (the "
+                        "capture's odd samples held out, as a calibration from it holds them out)")
     p.add_argument("--factor", type=positive_int, default=2,
                    help="fits run at 1/FACTOR of the image resolution (default 2); results are measured at full size")
     p.add_argument("--effects", type=_effects, default=None, help="'all' (default) or a comma-separated subset")

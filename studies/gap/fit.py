@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from scipy import optimize
@@ -182,6 +183,8 @@ class Diagnosis:
             judged = {name: (block_mean(np.asarray(r, np.float32), self.full.factor) >= 0.5) & self.mask
                       for name, r in regions.items()}
             self.regions_h = {name: r for name, r in judged.items() if r.any()}
+        # Each held-out tap's contact region: what a tactile sensor's user looks at first.
+        self.contact_h = None if areas is not None else _contact_at(self.full, pairs, self.heldout_index)
         self.not_applicable = self.work.not_applicable(pairs)
         wanted = self.names if effects is None else tuple(effects)
         unknown = [e for e in wanted if e not in self.names]
@@ -197,7 +200,7 @@ class Diagnosis:
         self._real_w_compared = self._compared_w(self.real_w)
         self._real_h_compared = self._compared_h(self.real_h)
         self.before = metrics.per_sample(self._real_h_compared, self._compared_h(self.sim_h), self.mask,
-                                         areas=self.areas_h, regions=self.regions_h)
+                                         areas=self.areas_h, regions=self.regions_h, contact=self.contact_h)
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
 
@@ -524,7 +527,7 @@ class Diagnosis:
         measures MAE and PSNR only (no SSIM), for trials that are only compared."""
         after = metrics.per_sample(self._real_h_compared, self._compared_h(self.predict_heldout(fit.params)),
                                    self.mask, ssim=complete,
-                                   areas=self.areas_h, regions=self.regions_h)
+                                   areas=self.areas_h, regions=self.regions_h, contact=self.contact_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
         # a region of the image circle is judged on the MAE it closes only: its bootstrap
@@ -711,6 +714,28 @@ def _adds(improvement: dict, gap: float) -> bool:
 
 def _same(images: np.ndarray) -> np.ndarray:
     return images
+
+
+def _contact_at(model, pairs: Pairs, index: np.ndarray) -> np.ndarray | None:
+    """(N, h, w) bool: the samples ``index``'s contact regions at ``model``'s resolution
+    (``scenes.captures.press_regions``: the real capture's annotated discs, else where a
+    real image differs from the real no-contact image), within its image circle; None
+    where the real side has neither (then no sample has a contact scope)."""
+    from scenes.captures import press_regions
+    from scenes.dataset import read_samples
+    from scenes.images import read_rgb
+
+    real_records = {r["id"]: r for r in read_samples(pairs.real_dir)}
+    records = [real_records.get(pairs.ids[i], {}) for i in index]
+    background = Path(pairs.real_dir) / "background.png"
+    if not (records and (background.is_file() or all("contact_center_px" in r for r in records))):
+        return None
+    bg = read_rgb(background, pairs.shape) if background.is_file() else np.zeros(pairs.shape + (3,), np.float32)
+    from scenes.camera import Camera
+
+    full = press_regions(records, pairs.real[index], bg, Camera.from_spec(pairs.spec).mask)
+    regions = (block_mean(full.astype(np.float32), model.factor, (1, 2)) >= 0.5) & model.mask
+    return regions if regions.any() else None
 
 
 def _areas_at(model, areas: np.ndarray) -> np.ndarray:

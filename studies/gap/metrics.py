@@ -103,8 +103,12 @@ def per_sample(real: np.ndarray, pred: np.ndarray, mask: np.ndarray, ssim: bool 
 
 
 def mean_ci(values: np.ndarray, confidence: float = 0.95, resamples: int = 2000, seed: int = 0) -> dict:
-    """Mean of per-sample values with a percentile bootstrap interval: {mean, low, high}."""
+    """Mean of per-sample values with a percentile bootstrap interval: {mean, low, high}.
+    NaN values (a sample whose region was empty) are left out; all NaN gives NaN."""
     values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)] if np.isnan(values).any() else values
+    if len(values) == 0:
+        return {"mean": float("nan"), "low": float("nan"), "high": float("nan")}
     mean = float(values.mean())
     if len(values) < 2 or np.ptp(values) == 0:
         return {"mean": mean, "low": mean, "high": mean}
@@ -123,6 +127,8 @@ def improvement(before: np.ndarray, after: np.ndarray, metric: str, confidence: 
     only: the share of the gap closed).
     """
     before, after = np.asarray(before, np.float64), np.asarray(after, np.float64)
+    both = np.isfinite(before) & np.isfinite(after)  # a sample whose region was empty counts on neither side
+    before, after = before[both], after[both]
     gain = (after - before) if HIGHER_IS_BETTER[metric] else (before - after)
     ci = mean_ci(gain, confidence, resamples, seed)
     out = {**ci, "significant": bool(ci["low"] > 0)}

@@ -239,9 +239,11 @@ class FastModel:
         constant factor that the fitted absorption coefficient takes up.
         """
         if self._geodesic is None:
-            from phong_reference.sources import snap_leds
+            from phong_reference.sources import FREE_SOURCE_TOLERANCE_M, snap_leds
 
-            sources = np.asarray(snap_leds(self.mesh, self.spec.leds).vertices).reshape(-1)
+            # from the membrane's point nearest each LED (a calibrated unit's may sit off it,
+            # under a pad's plate: phong_reference.calibrate.fit_led_places)
+            sources = np.asarray(snap_leds(self.mesh, self.spec.leds, FREE_SOURCE_TOLERANCE_M).vertices).reshape(-1)
             self._geodesic = np.stack([self._surface_distance([v]) for v in sources])
         return self._geodesic
 

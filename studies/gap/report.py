@@ -217,6 +217,7 @@ def headline(report: dict) -> list[str]:
                          f"{fitted}) they close {share['share'] * 100:.1f}% [{share['share_low'] * 100:.1f}, "
                          f"{share['share_high'] * 100:.1f}], as much as {pair['instead_of']} "
                          f"({pair['instead_of_parameters']} parameters) alone, and more than either alone.")
+        lines += _contact_lines(report, top)
     else:
         lines.append("No effect of the catalogue closes a significant part of the held-out gap.")
     if report["selection"]:
@@ -224,7 +225,9 @@ def headline(report: dict) -> list[str]:
         by_region = _by_region(last["share_closed"])
         lines.append(f"Together, {' + '.join(last['effects'])} close {last['share_closed']['masked'] * 100:.1f}% of it "
                      f"(held-out masked MAE {_fmt(last['heldout']['after']['masked']['mae'])})"
-                     + (f"; per region: {by_region}." if by_region else "."))
+                     + (f"; per region: {by_region}" if by_region else "")
+                     + (f"; over the contacts: {last['share_closed']['contact'] * 100:.1f}%"
+                        if "contact" in last["share_closed"] else "") + ".")
     mc = report["noise"].get("monte_carlo")
     if mc is not None:
         mc = mc.get("judged", mc)  # at the resolution the held-out gap is judged at
@@ -238,6 +241,40 @@ def headline(report: dict) -> list[str]:
     if report["noise"]["std"] > 0:
         lines.append(f"Estimated sensor noise: {report['noise']['std']:.4f} (an MAE floor of about "
                      f"{report['noise']['mae_floor']:.4f} that no effect can remove).")
+    return lines
+
+
+def _disagree(improvement: dict) -> bool:
+    """Whether a candidate's share of the gap closed over the contacts and over the whole
+    image circle disagree: their 95 % intervals do not overlap."""
+    if "contact" not in improvement:
+        return False
+    c, m = improvement["contact"]["mae"], improvement["masked"]["mae"]
+    return c["share_high"] < m["share_low"] or c["share_low"] > m["share_high"]
+
+
+def _contact_lines(report: dict, top: str) -> list[str]:
+    """What the top candidate closes over the held-out taps' contact regions, beside the
+    whole image circle, and each candidate whose two shares disagree (:func:`_disagree`)."""
+    improvement = report["effects"][top]["heldout"]["improvement"]
+    if "contact" not in improvement:
+        return []
+    contact = improvement["contact"]["mae"]
+    gap = f" (the contacts' held-out MAE {_fmt(report['gap_contact']['mae'])})" if report.get("gap_contact") else ""
+    lines = [f"Over the contacts alone {top} closes {contact['share'] * 100:.1f}% [{contact['share_low'] * 100:.1f}, "
+             f"{contact['share_high'] * 100:.1f}] of the held-out gap there{gap}."]
+    disagree = []
+    for name, entry in report["effects"].items():
+        imp = entry.get("heldout", {}).get("improvement", {})
+        if name not in report.get("screened", {}) and _disagree(imp):
+            c, m = imp["contact"]["mae"], imp["masked"]["mae"]
+            disagree.append(f"{name} ({m['share'] * 100:.0f}% [{m['share_low'] * 100:.0f}, {m['share_high'] * 100:.0f}]"
+                            f" of the image circle's gap, {c['share'] * 100:.0f}% [{c['share_low'] * 100:.0f}, "
+                            f"{c['share_high'] * 100:.0f}] of the contacts')")
+    if disagree:
+        lines.append("The whole image and the contacts disagree (95% intervals apart) on " + "; ".join(disagree)
+                     + ": a candidate that closes more of the image's gap than of the contacts' mends the rest of the "
+                       "image more than what a press shows.")
     return lines
 
 
