@@ -244,6 +244,26 @@ def capture_spec(spec, width: int, height: int, pixel_m: float):
     return scaled, f"the spec's lens kept: {now * 1e3:.6g} mm a pixel where its axis meets the membrane"
 
 
+def press_tap(index: int, obj: str, spec, mesh, camera, centre_px, depth_m: float):
+    """The tap that presses ``obj`` ``depth_m`` metres into the membrane where the camera
+    sees ``centre_px`` (u, v): its point where the ray through that pixel meets the
+    membrane, aimed along the membrane's normal there (as the protocols press), its servo
+    angles those aims need. ValueError where the press would reach the glass under the
+    elastomer (or the ray misses the membrane)."""
+    from .contact import surface_point
+    from .kinematics import normal_in_sensor
+    from .protocol import Tap, _aim, max_safe_depth_m
+
+    point, normal = surface_point(mesh, camera, tuple(float(c) for c in centre_px))
+    safe = float(max_safe_depth_m(spec, point[None], mesh)[0])
+    if depth_m >= safe:
+        raise ValueError(f"a press {depth_m * 1e3:.3g} mm deep would reach the plate under the {safe * 1e3:.3g} mm "
+                         "elastomer")
+    roll, pitch = (float(a[0]) for a in _aim(normal[None]))
+    return Tap(index=index, object=obj, row=0, position=index, replica=0, sensor_roll=roll, indenter_pitch=pitch,
+               point=tuple(point), normal=tuple(normal_in_sensor(roll, pitch)), depth=float(depth_m))
+
+
 def _sha256(path: str) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
@@ -266,12 +286,11 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     A folder that holds another capture, or files but no dataset, is refused and left as
     it is; the same import again completes what an interrupted one left (resumable).
     """
-    from .geometry import membrane_mesh
-    from .contact import surface_point
-    from .indenters import ball_name, indenter
-    from .kinematics import RigLayout, normal_in_sensor, tap_pose
-    from .protocol import Protocol, Tap, _aim, max_safe_depth_m, validate
     from .camera import Camera
+    from .geometry import membrane_mesh
+    from .indenters import ball_name, indenter
+    from .kinematics import RigLayout, tap_pose
+    from .protocol import Protocol, validate
 
     if depth not in DEPTH_METHODS:
         raise ValueError(f"depth must be one of {DEPTH_METHODS}, got {depth!r}")
@@ -307,14 +326,10 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
             raise ValueError(f"{name}: {what}, {edge_px:.2f} px at {pixel_m * 1e3:g} mm a pixel: {exc}"
                              + ("; --depth profile fits the rim from the image instead" if depth == "radius" else "")
                              ) from None
-        point, normal = surface_point(mesh, camera, tuple(float(c) for c in centre))
-        safe = float(max_safe_depth_m(unit, point[None], mesh)[0])
-        if d >= safe:
-            raise ValueError(f"{name}: a press {d * 1e3:.3g} mm deep would reach the plate under the "
-                             f"{safe * 1e3:.3g} mm elastomer")
-        roll, pitch = (float(a[0]) for a in _aim(normal[None]))
-        taps.append(Tap(index=i, object=obj, row=0, position=i, replica=0, sensor_roll=roll, indenter_pitch=pitch,
-                        point=tuple(point), normal=tuple(normal_in_sensor(roll, pitch)), depth=d))
+        try:
+            taps.append(press_tap(i, obj, unit, mesh, camera, centre, d))
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from None
         fitted.append(edge_px)
     protocol = Protocol(name=f"import-{fmt}", taps=tuple(taps), seed=None)
     validate(protocol, unit, mesh)
