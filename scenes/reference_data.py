@@ -54,3 +54,25 @@ def require_reference_dir(path: Path | str | None = None) -> Path:
         where = ", ".join(str(c) for c in reference_candidates())
         raise FileNotFoundError(f"GelTip reference data not found at {where} (set ${REFERENCE_ENV} to its folder)")
     return found
+
+
+#: The public GelSight ball presses (Taxim's calibration set): their folder below a
+#: directory beside the repository, the environment variable naming it elsewhere, and
+#: the archive in it.
+TAXIM_SIBLING = Path("shared") / "data" / "real_gelsight_taxim"
+TAXIM_ENV = "REAL_GELSIGHT_TAXIM"
+TAXIM_ARCHIVE = "dataPack_small.npz"
+
+
+def require_taxim_archive() -> Path:
+    """The public GelSight presses' archive: in ``$REAL_GELSIGHT_TAXIM`` when that is set,
+    else beside the repository (as the GelTip data is looked for). FileNotFoundError naming
+    where it looked otherwise."""
+    given = os.environ.get(TAXIM_ENV)
+    candidates = [Path(given)] if given else [Path(__file__).resolve().parents[2] / TAXIM_SIBLING,
+                                              Path.cwd().parent / TAXIM_SIBLING]
+    for folder in candidates:
+        if (folder / TAXIM_ARCHIVE).is_file():
+            return folder / TAXIM_ARCHIVE
+    raise FileNotFoundError(f"the public GelSight ball presses ({TAXIM_ARCHIVE}) are not at "
+                            f"{', '.join(map(str, candidates))} (set ${TAXIM_ENV} to their folder, or pass --archive)")

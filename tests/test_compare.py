@@ -140,6 +140,21 @@ def test_compare_applies_the_captures_alignment(tmp_path, tiny_spec, session_env
     assert near < LSB and far > 5 * near, (near, far)
 
 
+def test_a_peer_that_cannot_run_says_why(tiny_capture, tmp_path):
+    """Taxim renders an imported set's ball presses: on a capture of the rig's indenters it
+    is listed with its reason, and the table is made without it."""
+    from studies.compare.run import compare
+
+    result = compare(tiny_capture, tmp_path / "t", fields=("plane",), backgrounds=("solid",), reference=False,
+                     peers=("taxim",), bootstrap=50, progress=False)
+    status = result["peers"]["taxim"]
+    assert not status["ran"] and ("imported set" in status["why"] or "pip install" in status["why"]), status
+    assert all(r["method"] != "peer" for r in result["rows"])
+    with pytest.raises(ValueError, match=r"peers must be some of \('taxim',\), got 'sapien'"):
+        compare(tiny_capture, tmp_path / "u", fields=("plane",), backgrounds=("solid",), reference=False,
+                peers=("sapien",), progress=False)
+
+
 def test_compare_refuses_bad_input(tiny_capture, tmp_path):
     from studies.compare.run import compare
 

@@ -561,3 +561,21 @@ def test_real_background_study(tmp_path, reference_dir):
     for name in ("membrane_compliance", "elastic_spread", "contact_shadow"):
         assert not plane["single"][name]["significant"]
     assert (tmp_path / "plane" / "report.html").exists() and "cannot tell" in (tmp_path / "summary.md").read_text()
+
+
+def test_the_answer_names_candidates_whose_image_and_contact_shares_disagree():
+    from studies.gap.report import _contact_lines
+
+    def imp(masked, contact):
+        return {"masked": {"mae": dict(zip(("share", "share_low", "share_high"), masked))},
+                "contact": {"mae": dict(zip(("share", "share_low", "share_high"), contact))}}
+
+    report = {"gap_contact": {"mae": {"mean": 0.05, "low": 0.04, "high": 0.06}},
+              "effects": {"camera_response": {"heldout": {"improvement": imp((0.5, 0.4, 0.6), (0.05, -0.02, 0.1))}},
+                          "blur_noise": {"heldout": {"improvement": imp((0.1, 0.05, 0.15), (0.12, 0.08, 0.2))}}}}
+    lines = _contact_lines(report, "camera_response")
+    assert lines[0].startswith("Over the contacts alone camera_response closes 5.0% [-2.0, 10.0]")
+    assert "disagree (95% intervals apart) on camera_response (50% [40, 60] of the image circle's gap, 5% [-2, 10] of " \
+           "the contacts')" in lines[1] and "blur_noise" not in lines[1]
+    report["effects"]["camera_response"]["heldout"]["improvement"] = imp((0.5, 0.4, 0.6), (0.45, 0.3, 0.6))
+    assert len(_contact_lines(report, "camera_response")) == 1  # they agree: no second line

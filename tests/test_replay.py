@@ -43,6 +43,9 @@ def test_diagnose_pairs_a_capture_with_its_replay(diagnose_report):
     report = json.loads((diagnose_report / "report.json").read_text())
     assert report["pairs"] == 4
     assert report["gap"]["all"]["masked"]["mae"]["mean"] == 0.0
+    # each held-out tap's contact region is judged too (where the real tap differs from its background)
+    assert report["gap_contact"]["mae"]["mean"] == 0.0
+    assert "contact" in report["effects"]["camera_response"]["share_closed"]
 
 
 def test_replay_sets_the_measured_pose_not_the_commanded_one(tmp_path, tiny_spec, session_env):

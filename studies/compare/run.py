@@ -168,6 +168,9 @@ def compare(
     for key in ("field", "background", "profile"):
         if key in options:
             raise ValueError(f"options must not hold {key!r}: the comparison sets it (fields, backgrounds, profile)")
+    for peer in peers:
+        if peer not in PEERS:
+            raise ValueError(f"peers must be some of {PEERS}, got {peer!r}")
     unknown = [f for f in fields if f not in METHODS]
     if unknown or not fields:
         raise ValueError(f"fields must be some of {METHODS}, got {list(fields)}")
@@ -232,8 +235,6 @@ def compare(
                 load_images(where, ids, camera.shape), ids, no_contact_of(where, camera))
     peer_status = {}
     for peer in peers:
-        if peer not in PEERS:
-            raise ValueError(f"peers must be some of {PEERS}, got {peer!r}")
         from . import taxim
 
         fitted_ids = [sid for sid, f in zip(capture.ids, split(len(capture.ids))) if f]

@@ -1,0 +1,233 @@
+"""``tactile-sim bench real``: a real capture of ball presses, end to end.
+
+One command runs what the public GelSight presses are for (issue "real contacts, end to
+end"), on the shared set by default or on another unit's set of the same layout:
+
+1. ``import``: the archive as a capture dataset (``scenes.imports``);
+2. ``calibrate``: the fast path alone on the capture's fitted half (its even presses;
+   ``--fast-only``, every press: the LED constants, places and spread per light field),
+   and the reference (its profile, from the no-contact frame and ``--reference-taps`` of
+   the presses, fitted and judged in turn);
+3. ``compare --heldout``: both renderers, uncalibrated (every light field and
+   background, the reference on ``--reference-presses`` of the held-out presses) and
+   calibrated, with Taxim beside them (``--peers taxim``: its shipped calibration and a
+   refit on the fitted half), on the held-out presses: MAE, SSIM and PSNR over the frame
+   and the contact, the contact strength;
+4. ``diagnose --split alternate``: the capture against the calibrated fast path's replay
+   of it (the reference's with ``--reference-diagnosis``, which renders for an hour here);
+5. the sim-to-real localisation study (``studies.sim2real.presses``).
+
+It writes the goals' figures (module doc of the issue): ``contact_strength.phong`` and
+``.pbr`` (the calibrated renderers' median over the held-out presses of simulated over
+real), ``contact_mae.phong``, ``.pbr`` and ``.taxim`` (the mean over them of the
+contact's MAE; ``taxim`` is the refit on the same fitted half, ``taxim_shipped`` the
+shipped table), ``localisation_mm.none``, ``.randomised`` and ``.diagnosed`` (the
+median error on the real held-out presses), and ``seconds`` (import, both calibrations
+and the comparisons together), each with its interval and what it was measured on, and
+the per-stage seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: The reference's share of the work, by default: grid points of its calibration (one:
+#: the effects' defaults), taps it fits and judges, and held-out presses it renders.
+REFERENCE_GRID = ("absorption_per_m=20", "scattering_per_m=50")
+REFERENCE_TAPS = 6
+REFERENCE_PRESSES = 8
+#: Simulated presses of the localisation study.
+LOCALISATION_PRESSES = 1200
+
+
+def _row(table: dict, method: str, **match) -> dict | None:
+    for r in table["rows"]:
+        if r["method"] == method and all(r.get(k) == v for k, v in match.items()):
+            return r
+    return None
+
+
+def _paired(a: dict, b: dict, scope: str = "contact") -> dict:
+    """Mean of per-press MAE differences a - b over the presses both rows scored, with a
+    95 % bootstrap interval (``studies.gap.metrics.mean_ci``)."""
+    from studies.gap.metrics import mean_ci
+
+    ia, ib = {i: k for k, i in enumerate(a["ids"])}, {i: k for k, i in enumerate(b["ids"])}
+    common = [i for i in a["ids"] if i in ib]
+    diff = np.array([a["per_tap"][scope]["mae"][ia[i]] - b["per_tap"][scope]["mae"][ib[i]] for i in common])
+    return {**mean_ci(diff), "presses": len(common)}
+
+
+def _figure(row: dict | None) -> dict | None:
+    if row is None:
+        return None
+    return {"label": row["label"], "presses": row["taps"], "contact_mae": row["contact"]["mae"],
+            "strength_median": row["strength"]["median"],
+            "strength_mean": {k: row["strength"][k] for k in ("mean", "low", "high")},
+            "full_mae": row["full"]["mae"]}
+
+
+def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
+        reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True) -> dict:
+    """The benchmark (module doc); writes and returns the JSON."""
+    from scenes.cli import main
+    from scenes.dataset import atomic_write_json
+    from scenes.reference_data import require_taxim_archive
+    from studies.compare.run import compare
+    from studies.gap.report import headline
+
+    archive = Path(archive) if archive is not None else require_taxim_archive()
+    keep = work is not None
+    work = Path(work) if keep else Path(tempfile.mkdtemp(prefix="bench-real-"))
+    work.mkdir(parents=True, exist_ok=True)
+    q = ["--quiet"] if quiet else []
+    seconds, t_all = {}, time.perf_counter()
+
+    def stage(name, fn):
+        t0 = time.perf_counter()
+        value = fn()
+        seconds[name] = time.perf_counter() - t0
+        return value
+
+    try:
+        capture = work / "capture"
+        flags = [*(["--spec", str(spec)] if spec else []), *(["--ball-mm", str(ball_mm)] if ball_mm else []),
+                 *(["--pixel-mm", str(pixel_mm)] if pixel_mm else [])]
+
+        def run_main(argv):
+            code = main(argv)
+            if code != 0:
+                raise RuntimeError(f"tactile-sim {' '.join(argv[:2])} failed (exit {code})")
+
+        stage("import", lambda: run_main(["import", "taxim", str(archive), "--out", str(capture), *flags]))
+        fast_profile = work / "calibrated_fast" / "profile.toml"
+        stage("calibrate_fast", lambda: run_main(["calibrate", str(capture), "--out", str(fast_profile.parent),
+                                                  "--fast-only", "--fast-taps", "0", *q]))
+        ref_profile = work / "calibrated_reference" / "profile.toml"
+        if reference:
+            grid = [a for g in REFERENCE_GRID for a in ("--grid", g)]
+            stage("calibrate_reference", lambda: main(["calibrate", str(capture), "--out", str(ref_profile.parent),
+                                                       "--taps", str(REFERENCE_TAPS), "--bootstrap", "4", *grid, *q]))
+        from scenes.profile import load_profile
+        from scenes.replay import read_capture
+
+        unit = read_capture(capture)
+        field = load_profile(fast_profile, unit.spec).phong["field"]
+        common = {"heldout": True, "bootstrap": 2000, "progress": not quiet}
+        raw = stage("compare_uncalibrated", lambda: compare(
+            capture, work / "compare_uncalibrated", reference=reference, reference_taps=REFERENCE_PRESSES,
+            peers=("taxim",), **common))
+        fast = stage("compare_calibrated_fast", lambda: compare(
+            capture, work / "compare_calibrated_fast", profile=fast_profile, reference=False, **common))
+        ref = None
+        if reference and ref_profile.is_file():
+            ref = stage("compare_calibrated_reference", lambda: compare(
+                capture, work / "compare_calibrated_reference", profile=ref_profile, fields=(field,),
+                reference=True, reference_taps=REFERENCE_PRESSES, **common))
+        core = sum(seconds.values())
+
+        from scenes.replay import replay
+        from studies.gap.diagnose import run as diagnose
+
+        replayed = work / "replay_calibrated_fast"
+        stage("replay_calibrated_fast", lambda: replay(unit, replayed, "phong", {"field": field,
+                                                                                  "profile": str(fast_profile)},
+                                                       workers=2, progress=not quiet))
+        diagnosis = stage("diagnose_fast", lambda: diagnose(capture, replayed, work / "diagnosis_fast",
+                                                           progress=not quiet, split_by="alternate"))
+        diagnosis_ref = None
+        if reference_diagnosis and ref_profile.is_file():
+            replayed_ref = work / "replay_calibrated_reference"
+            stage("replay_calibrated_reference", lambda: replay(unit, replayed_ref, "pbr",
+                                                                {"profile": str(ref_profile)}, workers=1,
+                                                                progress=not quiet))
+            diagnosis_ref = stage("diagnose_reference", lambda: diagnose(
+                capture, replayed_ref, work / "diagnosis_reference", progress=not quiet, split_by="alternate"))
+        loc = None
+        if localisation:
+            from studies.sim2real.presses import run as localise
+
+            loc = stage("localisation", lambda: localise(
+                capture, work / "localisation", fast_profile, field, work / "diagnosis_fast" / "report.json",
+                LOCALISATION_PRESSES, progress=not quiet))
+
+        fast_row = _row(fast, "fast", field=field)
+        ref_row = _row(ref, "reference") if ref is not None else None
+        taxim = _row(raw, "peer", variant="refit")
+        shipped = _row(raw, "peer", variant="shipped")
+        out = {
+            "archive": str(archive), "presses": len(unit.ids), "heldout": len(raw["taps"]),
+            "import": unit.meta.get("import"),
+            "contact_strength": {"phong": fast_row["strength"]["median"] if fast_row else None,
+                                 "pbr": ref_row["strength"]["median"] if ref_row else None},
+            "contact_mae": {"phong": fast_row["contact"]["mae"]["mean"] if fast_row else None,
+                            "pbr": ref_row["contact"]["mae"]["mean"] if ref_row else None,
+                            "taxim": taxim["contact"]["mae"]["mean"] if taxim else None,
+                            "taxim_shipped": shipped["contact"]["mae"]["mean"] if shipped else None},
+            "localisation_mm": ({k: loc["results"].get(f"filter/{k}", {}).get("real", {}).get("localisation_mm_median")
+                                 for k in ("none", "randomised", "diagnosed")} if loc else None),
+            "seconds": core,
+            "seconds_what": "import, both calibrations and the comparisons together (the goal's 20 minutes)",
+            "stage_seconds": seconds, "total_seconds": time.perf_counter() - t_all,
+            "detail": {
+                "calibrated": {"phong": _figure(fast_row), "pbr": _figure(ref_row)},
+                "uncalibrated": {"phong_best": _figure(min((r for r in raw["rows"] if r["method"] == "fast"),
+                                                          key=lambda r: r["contact"]["mae"]["mean"])),
+                                 "pbr": _figure(_row(raw, "reference"))},
+                "taxim": {"refit": _figure(taxim), "shipped": _figure(shipped), "peers": raw.get("peers")},
+                "phong_minus_taxim_contact_mae": _paired(fast_row, taxim) if fast_row and taxim else None,
+                "pbr_minus_taxim_contact_mae": _paired(ref_row, taxim) if ref_row and taxim else None,
+                "field": field,
+                "reference_presses": ref["reference_taps"] if ref else [],
+                "diagnosis_fast": {"answer": headline(diagnosis),
+                                   "explained": diagnosis["explained"]},
+                "diagnosis_reference": None if diagnosis_ref is None else {
+                    "answer": headline(diagnosis_ref),
+                    "explained": diagnosis_ref["explained"]},
+                "localisation": None if loc is None else {k: {"real": v.get("real", {}).get("localisation_mm_median"),
+                                                              "depth": v.get("real", {}).get("depth_error_mm_median_abs"),
+                                                              "sim": v.get("sim", {}).get("localisation_mm_median")}
+                                                          for k, v in loc["results"].items()},
+            },
+            "work": str(work) if keep else None,
+        }
+        atomic_write_json(Path(json_path), out)
+        return out
+    finally:
+        if not keep:
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def cmd_bench_real(args) -> int:
+    out = run(args.json, args.archive, args.spec, args.ball_mm, args.pixel_mm, args.work,
+              reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
+              localisation=not args.no_localisation, quiet=args.quiet)
+    print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm", "seconds")}, indent=1))
+    print(f"wrote {args.json}")
+    return 0
+
+
+def register(registry) -> None:
+    from scenes.commands import add_quiet_argument
+
+    p = registry.bench("real", cmd_bench_real, "a real capture of ball presses end to end: import, both calibrations, "
+                       "compare with Taxim, the diagnosis and sim-to-real localisation on the held-out presses")
+    p.add_argument("--archive", metavar="A", help="the archive (default: the public GelSight set, "
+                                                  "../shared/data/real_gelsight_taxim)")
+    p.add_argument("--spec", metavar="TOML", help="the unit's sensor spec (default: the set's, gelsight.toml)")
+    p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (default the set's, 4)")
+    p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the gel, mm (default the set's, "
+                                                                "0.1245)")
+    p.add_argument("--work", metavar="DIR", help="keep every dataset, profile and report here (default: a temporary "
+                                                 "folder, removed)")
+    p.add_argument("--no-reference", action="store_true", help="leave the physically based reference out")
+    p.add_argument("--reference-diagnosis", action="store_true",
+                   help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
+    p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")
+    add_quiet_argument(p)
