@@ -117,6 +117,14 @@ def _real(options: dict, name: str, minimum: float, strict: bool) -> float:
     return float(value)
 
 
+def default_film(camera: Camera) -> list[int]:
+    """The film a camera renders at by default: DEFAULTS' height (240 rows: half the
+    GelTip's), or the camera's own where it has fewer, at the camera's aspect ratio."""
+    height = min(camera.height, DEFAULTS["film"][1])
+    width = camera.width * height // camera.height
+    return [width, height] if width * camera.height == height * camera.width else [camera.width, camera.height]
+
+
 def _film(value, camera: Camera) -> tuple[int, int]:
     expected = (f"option film must be [width, height] in pixels with the camera's aspect ratio, at most "
                 f"{camera.width}x{camera.height} (e.g. [{camera.width // 2}, {camera.height // 2}])")
@@ -146,7 +154,7 @@ def options_from(options: dict, camera: Camera) -> dict:
         "camera_spp": _whole(given, "camera_spp", 1),
         "kernel_radius_mm": _real(given, "kernel_radius_mm", 0.0, strict=False),
         "no_contact_runs": _whole(given, "no_contact_runs", 0),
-        "film": _film(given["film"], camera),
+        "film": _film(given["film"] if "film" in options else default_film(camera), camera),
         "seed": _whole(given, "seed", 0),
     }
     estimator = given["estimator"]

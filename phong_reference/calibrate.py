@@ -20,8 +20,8 @@ held-out taps judge that form (``scenes.captures.split``), against the spec's co
 A field whose light leaves each LED's own place (``linear``: straight rays) depends on
 where the LEDs are, which a spec often only estimates; :func:`fit_led_places` searches
 each LED's place too (its height and its distance from the axis, on PLACE_HEIGHTS_M x
-PLACE_RADII about the spec's, one LED at a time until none moves), fitting the constants
-at every candidate on the fitted taps, and reports the places it found.
+PLACE_RADII about the spec's, then refined off the grid in halving steps), fitting the
+constants at every candidate on the fitted taps, and reports the places it found.
 """
 
 from __future__ import annotations
@@ -51,6 +51,10 @@ PLACE_RADII = (1.0, 1.25, 1.5, 2.0)
 #: PLACE_SWEEPS sweeps.
 PLACE_EXHAUSTIVE = 20000
 PLACE_SWEEPS = 4
+#: Then each LED's place is refined off the grid: its height by these metres and its
+#: distance's scale by these, halved each round.
+PLACE_REFINE_STEPS = (1e-3, 0.125)
+PLACE_REFINE_ROUNDS = 3
 
 
 def _changes(spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile, depths, layer,
@@ -239,19 +243,53 @@ def fit_led_places(spec: SensorSpec, mesh, camera: Camera, profile: Profile, tap
                     break
             if choice is None or value < loss(choice):
                 choice = trial_choice
-    best = loss(choice)
-    positions = tuple(tuple(float(v) for v in places[k][m]) for m, k in enumerate(choice))
+    grid_loss = best = loss(choice)
+    # Refined off the grid: each LED's height and distance moved by half the grid's finest
+    # steps, then by half that, one LED at a time, a move kept where it lowers the loss.
+    offsets = [[candidates[k][0], candidates[k][1]] for k in choice]
+    chosen = {m: (columns[k][m], places[k][m]) for m, k in enumerate(choice)}
+
+    def refined_loss(cols) -> float:
+        X = np.concatenate([np.stack([cols[m][0] for m in range(M)]), np.stack([cols[m][1] for m in range(M)])]).T
+        return float(sum(optimize.nnls(X, y[:, c])[1] ** 2 for c in range(3)))
+
+    best = refined_loss({m: chosen[m][0] for m in range(M)})
+    dz, dr = PLACE_REFINE_STEPS
+    for _ in range(PLACE_REFINE_ROUNDS):
+        moves = [(dz, 0.0), (-dz, 0.0), (0.0, dr), (0.0, -dr)]
+        trial_cols, trial_places = [], []
+        for mz, mr in moves:  # every LED moved the same way in one bake: each LED's terms are its own
+            leds = tuple(moved_leds((led,), offsets[m][0] + mz, offsets[m][1] + mr)[0]
+                         for m, led in enumerate(unit.leds))
+            L = light_vectors(bake(mesh, camera, leds, field, use_cache=False))
+            D = _unit_terms(spec, taps.ref_depth, L, profile, sub.depths, layer, "k_d", alpha)
+            S = _unit_terms(spec, taps.ref_depth, L, profile, sub.depths, layer, "k_s", alpha)
+            trial_cols.append(np.stack([D[:, region], S[:, region]], axis=1).astype(np.float64))
+            trial_places.append(np.array([led.position for led in leds]))
+        for m in range(M):
+            for j, (mz, mr) in enumerate(moves):
+                if offsets[m][1] + mr <= 0:
+                    continue
+                cols = {i: chosen[i][0] for i in range(M)}
+                cols[m] = trial_cols[j][m]
+                value = refined_loss(cols)
+                if value < best - 1e-12:
+                    best, chosen[m] = value, (trial_cols[j][m], trial_places[j][m])
+                    offsets[m] = [offsets[m][0] + mz, offsets[m][1] + mr]
+        dz, dr = dz / 2, dr / 2
+    positions = tuple(tuple(float(v) for v in chosen[m][1]) for m in range(M))
     report = {
         "what": "each LED's place for the field whose light leaves it, searched on the fitted taps: its height moved "
                 f"by {[d * 1e3 for d in PLACE_HEIGHTS_M]} mm along the camera's axis and its distance from the axis "
                 f"scaled by {list(PLACE_RADII)}, one LED at a time",
         "field": field, "shininess_searched_at": alpha,
         "search": "every combination" if K**M <= PLACE_EXHAUSTIVE else f"one LED at a time from each of {K} starts",
-        "fit_loss": {"at_the_units_places": start, "at_the_places_found": best},
+        "fit_loss": {"at_the_units_places": start, "on_the_grid": grid_loss, "at_the_places_found": best},
         "places_m": [list(p) for p in positions],
-        "moved": [{"led": led.name, "height_mm": candidates[k][0] * 1e3, "radius_scale": candidates[k][1],
+        "moved": [{"led": led.name, "height_mm": offsets[m][0] * 1e3, "radius_scale": offsets[m][1],
+                   "grid_height_mm": candidates[k][0] * 1e3, "grid_radius_scale": candidates[k][1],
                    "on_the_grid_edge": candidates[k][0] == PLACE_HEIGHTS_M[-1] or candidates[k][1] == PLACE_RADII[-1]}
-                  for led, k in zip(unit.leds, choice)],
+                  for m, (led, k) in enumerate(zip(unit.leds, choice))],
         "sweeps": sweeps,
     }
     return positions, report

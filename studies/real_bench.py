@@ -41,7 +41,7 @@ import numpy as np
 #: the effects' defaults), taps it fits and judges, and held-out presses it renders.
 REFERENCE_GRID = ("absorption_per_m=20", "scattering_per_m=50")
 REFERENCE_TAPS = 6
-REFERENCE_PRESSES = 8
+REFERENCE_PRESSES = 4
 #: Simulated presses of the localisation study.
 LOCALISATION_PRESSES = 1200
 

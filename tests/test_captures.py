@@ -78,3 +78,26 @@ def test_real_taps_regions_scale_their_discs_to_a_film():
     assert sub.ids == ["b"] and np.isnan(sub.discs).all()
     with pytest.raises(ValueError, match=r"discs must be \(2, 3\) \(u, v, radius px\)"):
         captures.RealTaps(images, np.zeros((2, 40, 60)), np.zeros((40, 60)), ["a", "b"], np.zeros((2, 2)))
+
+
+def test_the_public_presses_are_found_where_the_environment_says(tmp_path, monkeypatch):
+    from scenes.reference_data import TAXIM_ARCHIVE, TAXIM_ENV, require_taxim_archive
+
+    (tmp_path / TAXIM_ARCHIVE).write_bytes(b"")
+    monkeypatch.setenv(TAXIM_ENV, str(tmp_path))
+    assert require_taxim_archive() == tmp_path / TAXIM_ARCHIVE
+    monkeypatch.setenv(TAXIM_ENV, str(tmp_path / "elsewhere"))
+    with pytest.raises(FileNotFoundError, match=r"the public GelSight ball presses \(dataPack_small\.npz\) are not at "
+                                                r".*elsewhere \(set \$REAL_GELSIGHT_TAXIM"):
+        require_taxim_archive()
+
+
+def test_the_references_default_film_fits_a_small_camera():
+    from pbr_tactile.plugin import default_film
+    from scenes.camera import Camera
+    from scenes.spec import default_spec
+
+    camera = Camera.from_spec(default_spec())
+    assert default_film(camera) == [320, 240]
+    assert default_film(camera.scaled(160, 120)) == [160, 120]
+    assert default_film(camera.scaled(80, 60)) == [80, 60]
