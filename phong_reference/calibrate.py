@@ -55,6 +55,9 @@ PLACE_SWEEPS = 4
 #: distance's scale by these, halved each round.
 PLACE_REFINE_STEPS = (1e-3, 0.125)
 PLACE_REFINE_ROUNDS = 3
+#: A refining move is kept where it lowers the loss by more than this share of the
+#: change's energy (less is the renders' rounding).
+PLACE_REFINE_GAIN = 1e-6
 
 
 def _changes(spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile, depths, layer,
@@ -273,7 +276,7 @@ def fit_led_places(spec: SensorSpec, mesh, camera: Camera, profile: Profile, tap
                 cols = {i: chosen[i][0] for i in range(M)}
                 cols[m] = trial_cols[j][m]
                 value = refined_loss(cols)
-                if value < best - 1e-12:
+                if value < best - PLACE_REFINE_GAIN * float(energy.sum()):  # more than rounding
                     best, chosen[m] = value, (trial_cols[j][m], trial_places[j][m])
                     offsets[m] = [offsets[m][0] + mz, offsets[m][1] + mr]
         dz, dr = dz / 2, dr / 2

@@ -119,20 +119,31 @@ def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background:
     def fit_loss(report: dict) -> float:
         return float(np.mean(list(report["fit"]["mae"].values())))
 
-    by_field, reports = {}, {}
-    for field in fields:
-        leds, places = profile.sensor_spec(spec).leds, None
-        if getattr(bakes.baker_module(field), "FREE_SOURCES", False):  # its light leaves each LED's own place
-            positions, places = fit_led_places(spec, mesh, camera, profile, taps, background, field)
-            leds = tuple(dataclasses.replace(led, position=p) for led, p in zip(leds, positions))
-        L = light_vectors(bake(mesh, camera, leds, field))
-        spread = {}
+    def spreads(L):
+        out = {}
         for scale in SIGMA_SCALES:
             sigma = spec.elastic.sigma_px * scale
             elastic = dataclasses.replace(spec.elastic, sigma_px=sigma, radius_px=max(1, int(round(3 * sigma))))
-            spread[scale] = (elastic, *fit_led_constants(spec.replace(elastic=elastic), camera, taps.ref_depth, L,
-                                                         profile, taps, background))
+            out[scale] = (elastic, *fit_led_constants(spec.replace(elastic=elastic), camera, taps.ref_depth, L,
+                                                      profile, taps, background))
+        return out
+
+    by_field, reports = {}, {}
+    for field in fields:
+        leds, places = profile.sensor_spec(spec).leds, None
+        free = getattr(bakes.baker_module(field), "FREE_SOURCES", False)  # its light leaves each LED's own place
+        if free:
+            positions, places = fit_led_places(spec, mesh, camera, profile, taps, background, field)
+            leds = tuple(dataclasses.replace(led, position=p) for led, p in zip(leds, positions))
+        spread = spreads(light_vectors(bake(mesh, camera, leds, field)))
         scale = min(spread, key=lambda k: fit_loss(spread[k][2]))
+        if free and scale != 1.0:  # the places again, with the dent's spread they fit best with
+            positions, places = fit_led_places(spec.replace(elastic=spread[scale][0]), mesh, camera, profile, taps,
+                                               background, field)
+            leds = tuple(dataclasses.replace(led, position=p) for led, p in zip(profile.sensor_spec(spec).leds,
+                                                                                  positions))
+            spread = spreads(light_vectors(bake(mesh, camera, leds, field)))
+            scale = min(spread, key=lambda k: fit_loss(spread[k][2]))
         elastic, by_field[field], reports[field] = spread[scale]
         by_field[field]["sigma_px"], by_field[field]["radius_px"] = elastic.sigma_px, elastic.radius_px
         reports[field]["spread"] = {"sigma_px": elastic.sigma_px, "share_of_the_spec": scale,
