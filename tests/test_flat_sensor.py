@@ -4,6 +4,7 @@ indenter, the protocols and the rig on it, and the fast path's demo."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +19,6 @@ TOL_M = 1e-6
 
 @pytest.fixture(scope="module")
 def gelsight():
-    from pathlib import Path
-
     return load_spec(Path(__file__).resolve().parents[1] / GELSIGHT)
 
 
@@ -187,3 +186,11 @@ def test_the_layer_holds_the_pads_rim_so_a_press_near_it_builds_a_closed_solid(g
     rim = base_loop(layer.mesh)
     assert result.displacement.max() == pytest.approx(1.2e-3, abs=0.05e-3)
     assert np.all(result.displacement[rim] == 0.0)
+
+
+def test_the_demo_renders_the_flat_sensor(tmp_path, session_env, capsys):
+    from scenes.cli import main
+
+    assert main(["demo", "--spec", str(Path(__file__).resolve().parents[1] / GELSIGHT), "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "contact_sheet.png").stat().st_size > 10_000
+    assert len(list((tmp_path / "images").glob("linear_*.png"))) == 8  # 4 contacts x 2 backgrounds
