@@ -197,7 +197,7 @@ def cmd_calibrate(args) -> int:
         cal.report["seconds"] = time.perf_counter() - t0
         paths = write_outputs(cal, Path(args.out), what + ", the fast path alone")
         fast = cal.report["fast_path"]["taps"]
-        print(f"fast path: background held-out R^2 " + ", ".join(f"{ch} {cal.report['heldout_r2'][ch]:.3f}" for ch
+        print("fast path: background held-out R^2 " + ", ".join(f"{ch} {cal.report['heldout_r2'][ch]:.3f}" for ch
                                                                   in "rgb")
               + f"; LED constants of the {fast['field']} field, held-out change R^2 "
               + ", ".join(f"{ch} {fast['heldout']['change_r2'][ch]:.3f}" for ch in "rgb")

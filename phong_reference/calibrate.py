@@ -108,6 +108,18 @@ def _scores(pred: np.ndarray, real: np.ndarray, regions: np.ndarray) -> dict:
     return out
 
 
+def _changes_to_fit(spec: SensorSpec, profile: Profile, taps: RealTaps, background: np.ndarray, what: str):
+    """(the taps' real changes (T, H, W, 3), their contact regions (T, H, W) within the
+    unit's image circle, which taps are fitted (T,)); ValueError where no fitted tap shows
+    a contact, naming ``what`` cannot be fitted."""
+    real = taps.images - background
+    regions = taps.regions(background, Camera.from_spec(profile.sensor_spec(spec)).mask)
+    fitted = split(len(taps.ids))
+    if not regions[fitted].any():
+        raise ValueError(f"none of the fitted taps shows a contact in the real images: {what} cannot be fitted")
+    return real, regions, fitted
+
+
 def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L: np.ndarray, profile: Profile,
                       taps: RealTaps, background: np.ndarray, layer: MembraneLayer | None = None,
                       shininess=SHININESS) -> tuple[dict, dict]:
@@ -120,13 +132,7 @@ def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L
     if background.shape != (camera.height, camera.width, 3) or taps.images.shape[1:] != background.shape:
         raise ValueError(f"taps and background must be {camera.width}x{camera.height} RGB, got "
                          f"{taps.images.shape[1:]} and {background.shape}")
-    inside = Camera.from_spec(profile.sensor_spec(spec)).mask
-    real = taps.images - background
-    regions = taps.regions(background, inside)
-    fitted = split(len(taps.ids))
-    if not regions[fitted].any():
-        raise ValueError("none of the fitted taps shows a contact in the real images: the fast path's LED constants "
-                         "cannot be fitted")
+    real, regions, fitted = _changes_to_fit(spec, profile, taps, background, "the fast path's LED constants")
     best = None
     D = _unit_terms(spec, ref_depth, L, profile, taps.depths, layer, "k_d", spec.material.shininess)
     for alpha in shininess:
@@ -189,14 +195,8 @@ def fit_led_places(spec: SensorSpec, mesh, camera: Camera, profile: Profile, tap
     from .render import light_vectors
 
     unit = profile.sensor_spec(spec)
-    background = np.asarray(background, np.float64)
-    inside = Camera.from_spec(unit).mask
-    real = taps.images - background
-    regions = taps.regions(background, inside)
-    fitted = split(len(taps.ids))
-    if not regions[fitted].any():
-        raise ValueError("none of the fitted taps shows a contact in the real images: the LEDs' places cannot be "
-                         "fitted")
+    real, regions, fitted = _changes_to_fit(spec, profile, taps, np.asarray(background, np.float64),
+                                            "the LEDs' places")
     alpha = spec.material.shininess
     candidates = [(dz, r) for dz in PLACE_HEIGHTS_M for r in PLACE_RADII]
     sub = taps.subset(fitted)

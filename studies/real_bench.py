@@ -190,10 +190,12 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                 "diagnosis_reference": None if diagnosis_ref is None else {
                     "answer": headline(diagnosis_ref),
                     "explained": diagnosis_ref["explained"]},
-                "localisation": None if loc is None else {k: {"real": v.get("real", {}).get("localisation_mm_median"),
-                                                              "depth": v.get("real", {}).get("depth_error_mm_median_abs"),
-                                                              "sim": v.get("sim", {}).get("localisation_mm_median")}
-                                                          for k, v in loc["results"].items()},
+                "localisation": None if loc is None else {
+                    **{k: {"real": v.get("real", {}).get("localisation_mm_median_ci"),
+                           "real_mean": v.get("real", {}).get("localisation_mm_mean"),
+                           "depth": v.get("real", {}).get("depth_error_mm_median_abs"),
+                           "sim": v.get("sim", {}).get("localisation_mm_median"), "chosen": v.get("chosen")}
+                       for k, v in loc["results"].items()}, "paired": loc.get("paired")},
             },
             "work": str(work) if keep else None,
         }

@@ -365,14 +365,37 @@ def trained_on(training: str, sim: Presses, augmenter: Augmenter | None, params:
     return Presses(images, frames, centres, sim.depths, sim.indentation)
 
 
+#: Bootstrap resamples of the presses behind the medians' intervals.
+RESAMPLES = 4000
+
+
+def median_ci(values, seed: int = 0) -> dict:
+    """The median of per-press values with a 95 % percentile bootstrap interval (presses
+    resampled, seeded): {median, low, high}."""
+    values = np.asarray(values, np.float64)
+    rng = np.random.default_rng(seed)
+    draws = np.median(values[rng.integers(0, len(values), (RESAMPLES, len(values)))], axis=1)
+    low, high = np.percentile(draws, [2.5, 97.5])
+    return {"median": float(np.median(values)), "low": float(low), "high": float(high)}
+
+
 def errors(model, presses: Presses, pixel_m: float) -> dict:
     """Per press: the localisation error (mm) and the depth error (mm, signed: predicted
-    less labelled) of ``model`` on ``presses``."""
+    less labelled) of ``model`` on ``presses``; their medians, the localisation's with its
+    interval, and its mean."""
     centres, depths = model.predict(presses.differences())
     loc = np.linalg.norm(centres - presses.centres, axis=1) * pixel_m * 1e3
     return {"localisation_mm": loc.tolist(), "depth_error_mm": ((depths - presses.depths) * 1e3).tolist(),
-            "localisation_mm_median": float(np.median(loc)),
+            "localisation_mm_median": float(np.median(loc)), "localisation_mm_median_ci": median_ci(loc),
+            "localisation_mm_mean": float(np.mean(loc)),
             "depth_error_mm_median_abs": float(np.median(np.abs(depths - presses.depths)) * 1e3)}
+
+
+def paired(a: dict, b: dict) -> dict:
+    """Two trainings' localisation on the same real presses, press by press: the median of
+    a - b (mm) with its interval, and the share of presses a localises better."""
+    d = np.asarray(a["real"]["localisation_mm"]) - np.asarray(b["real"]["localisation_mm"])
+    return {**median_ci(d), "a_better_share": float(np.mean(d < 0))}
 
 
 def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, count: int = SIM_PRESSES,
@@ -448,8 +471,16 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
                                           "by": "the median localisation error on the real fitted half",
                                           "scores_mm": {f"sigma {k[0]:g}, ridge {k[1]:g}": v for k, v in
                                                         scores.items()}}
+    comparisons = {}
+    for model_name in models:
+        runs = {t: results.get(f"{model_name}/{t}", {}) for t in trainings}
+        if runs.get("diagnosed", {}).get("ran"):
+            for other in ("randomised", "none"):
+                if runs.get(other, {}).get("ran"):
+                    comparisons[f"{model_name}: diagnosed - {other}"] = paired(runs["diagnosed"], runs[other])
     summary = {
-        "capture": str(capture.root.resolve()), "profile": None if profile is None else str(profile), "field": field,
+        "capture": str(capture.root.resolve()),
+        "paired": comparisons, "profile": None if profile is None else str(profile), "field": field,
         "diagnosed_effects": params, "simulated_presses": count, "sim_heldout": int(held.sum()),
         "fitted_real": fit_ids, "tested_real": test_ids, "pixel_mm": pixel_m * 1e3,
         "centres_box_px": [centres.min(axis=0).tolist(), centres.max(axis=0).tolist()],
@@ -466,15 +497,21 @@ def table(summary: dict) -> str:
     """table.md: medians per model and training."""
     lines = [f"# Sim-to-real localisation of real presses ({len(summary['tested_real'])} held-out real presses)", "",
              f"Trained on {summary['simulated_presses'] - summary['sim_heldout']} simulated presses (the calibrated fast "
-             f"path, field {summary['field']}); Sim2Sim on {summary['sim_heldout']} more. Median over presses.", "",
-             "| model | training | localisation, real (mm) | depth error, real (mm) | localisation, sim (mm) |",
-             "|---|---|---|---|---|"]
+             f"path, field {summary['field']}); Sim2Sim on {summary['sim_heldout']} more. Median over presses "
+             "[95 % bootstrap interval]; the mean beside it.", "",
+             "| model | training | localisation, real (mm) | mean (mm) | depth error, real (mm) | localisation, sim (mm) |",
+             "|---|---|---|---|---|---|"]
     for key, r in summary["results"].items():
         if not r.get("ran"):
-            lines.append(f"| {key.split('/')[0]} | {key.split('/')[1]} | not run: {r['why']} | | |")
+            lines.append(f"| {key.split('/')[0]} | {key.split('/')[1]} | not run: {r['why']} | | | |")
             continue
-        lines.append(f"| {r['model']} | {r['training']} | {r['real']['localisation_mm_median']:.3f} | "
-                     f"{r['real']['depth_error_mm_median_abs']:.3f} | {r['sim']['localisation_mm_median']:.3f} |")
+        ci = r["real"]["localisation_mm_median_ci"]
+        lines.append(f"| {r['model']} | {r['training']} | {ci['median']:.3f} [{ci['low']:.3f}, {ci['high']:.3f}] | "
+                     f"{r['real']['localisation_mm_mean']:.3f} | {r['real']['depth_error_mm_median_abs']:.3f} | "
+                     f"{r['sim']['localisation_mm_median']:.3f} |")
+    for name, c in summary.get("paired", {}).items():
+        lines.append(f"\n{name}, press by press: median {c['median']:+.3f} mm [{c['low']:+.3f}, {c['high']:+.3f}]; "
+                     f"the first better on {c['a_better_share']:.0%} of the presses.")
     return "\n".join(lines) + "\n"
 
 
