@@ -189,3 +189,40 @@ def test_sampled_presses_stay_in_the_fitted_box_and_range():
                                   sample_presses(centres, depths, 5, 3, (120, 160))[0])
     with pytest.raises(ValueError, match=r"count must be >= 1"):
         sample_presses(centres, depths, 0, 0, (120, 160))
+
+
+def test_errors_give_the_mean_offset_and_the_error_without_it():
+    from studies.sim2real.presses import Presses, errors
+
+    class Shifted:  # predicts every press 2 px right and 1 px up of its label, and its depth exactly
+        def predict(self, diffs):
+            return labels + [2.0, -1.0], depths
+
+    labels = np.array([[10.0, 10.0], [20.0, 30.0], [40.0, 15.0]])
+    depths = np.array([1e-3, 0.8e-3, 1.2e-3])
+    blank = np.zeros((3, 8, 8, 3), np.uint8)
+    out = errors(Shifted(), Presses(blank, blank, labels, depths), 1e-4)
+    np.testing.assert_allclose(out["bias_px"], [2.0, -1.0])
+    np.testing.assert_allclose(out["localisation_mm_median"], np.hypot(2.0, 1.0) * 0.1)
+    assert out["localisation_mm_median_unbiased"] == pytest.approx(0.0, abs=1e-9)
+    assert out["depth_error_mm_median_abs"] == pytest.approx(0.0)
+
+
+def test_real2real_and_ring_radii_on_drawn_presses():
+    from studies.sim2real.presses import Presses, appearance, real2real, ring_radii
+
+    rng = np.random.default_rng(4)
+    fit, test = rng.uniform([14, 14], [66, 46], (60, 2)), rng.uniform([14, 14], [66, 46], (12, 2))
+
+    def presses(centres, radius, seed):
+        diffs = rings(centres, radius=radius, seed=seed)
+        frames = np.full(diffs.shape, 128, np.uint8)
+        images = np.clip(np.rint(128 + 255 * diffs), 0, 255).astype(np.uint8)
+        return Presses(images, frames, centres, np.full(len(centres), 1e-3))
+
+    found = real2real(presses(fit, 6.0, 0), presses(test, 6.0, 1), 1e-4)
+    assert found["real"]["localisation_mm_median"] < 0.03  # well under a pixel (0.1 mm)
+    radii = ring_radii(presses(test, 6.0, 1), 8.0)
+    assert np.all(np.abs(radii - 6.0) < 0.75)
+    a = appearance(presses(test, 6.0, 1), presses(test, 4.5, 2), 8.0)
+    assert a["sim_over_real"] == pytest.approx(4.5 / 6.0, abs=0.08) and a["found"] == {"real": 12, "sim": 12}

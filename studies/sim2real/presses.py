@@ -33,6 +33,13 @@ Models (:data:`MODELS`):
 - ``cnn``: the study's small CNN (``learn``, torch: ``pip install '.[sim2real]'``) regressing
   the centre and depth, trained as published (MSE, Adadelta, batches of 64).
 
+Beside them, what bounds the result: ``real2real``, the same filter trained on the real
+fitted half (:func:`real2real`), which measures how consistently the annotations place
+the presses' own images; each training's mean error vector (``bias_px``), a systematic
+offset between where the simulated and the real images put a press; and ``appearance``,
+the radius at which the change peaks round the centre in the real and the simulated
+presses (:func:`appearance`).
+
 Scores: each held-out real press's localisation error, the distance from the predicted
 centre to the annotated one in millimetres (the import's pixel size); the depth error
 against the imported depth (itself an estimate: ``scenes.imports``); the same on
@@ -385,10 +392,53 @@ def errors(model, presses: Presses, pixel_m: float) -> dict:
     interval, and its mean."""
     centres, depths = model.predict(presses.differences())
     loc = np.linalg.norm(centres - presses.centres, axis=1) * pixel_m * 1e3
+    bias = np.mean(centres - presses.centres, axis=0)
     return {"localisation_mm": loc.tolist(), "depth_error_mm": ((depths - presses.depths) * 1e3).tolist(),
             "localisation_mm_median": float(np.median(loc)), "localisation_mm_median_ci": median_ci(loc),
             "localisation_mm_mean": float(np.mean(loc)),
+            "bias_px": bias.tolist(),
+            "localisation_mm_median_unbiased": float(np.median(np.linalg.norm(centres - presses.centres - bias, axis=1))
+                                                     * pixel_m * 1e3),
             "depth_error_mm_median_abs": float(np.median(np.abs(depths - presses.depths)) * 1e3)}
+
+
+#: The Real2Real reference's filter: the default width and this ridge, fixed, since the
+#: real fitted half it trains on cannot also choose them.
+REAL2REAL_RIDGE = 1.0
+
+
+def real2real(fit_real: Presses, real: Presses, pixel_m: float) -> dict:
+    """The filter trained on the capture's real fitted half and tested on its held-out
+    presses (``errors``): how consistently the annotations place the presses' own images,
+    a floor the simulated trainings are measured against, not a sim-to-real result."""
+    model = CorrelationLocator(REAL2REAL_RIDGE, SIGMA_PX).fit(fit_real.differences(), fit_real.centres,
+                                                              fit_real.depths)
+    return {"sigma_px": SIGMA_PX, "ridge": REAL2REAL_RIDGE, "real": errors(model, real, pixel_m)}
+
+
+def ring_radii(presses: Presses, ball_radius_px: float) -> np.ndarray:
+    """(N,) px: where each press's change, averaged round its labelled centre, peaks
+    (``scenes.imports.contact_edge_px``, the import's rim); NaN where no rim is found."""
+    from scenes.imports import contact_edge_px
+
+    out = np.full(len(presses.images), np.nan)
+    for k in range(len(out)):
+        try:
+            out[k] = contact_edge_px(presses.images[k], presses.frames[k], presses.centres[k], ball_radius_px)
+        except ValueError:
+            pass
+    return out
+
+
+def appearance(real: Presses, sim: Presses, ball_radius_px: float) -> dict:
+    """How the simulated presses' images differ from the real ones in size: the median
+    radius at which each press's change peaks round its centre (``ring_radii``), real and
+    simulated, and their ratio (a simulated dent smaller than the real one teaches a
+    localiser a template of the wrong size)."""
+    r_real, r_sim = ring_radii(real, ball_radius_px), ring_radii(sim, ball_radius_px)
+    med_real, med_sim = float(np.nanmedian(r_real)), float(np.nanmedian(r_sim))
+    return {"ring_px_real": med_real, "ring_px_sim": med_sim, "sim_over_real": med_sim / med_real,
+            "found": {"real": int(np.isfinite(r_real).sum()), "sim": int(np.isfinite(r_sim).sum())}}
 
 
 def paired(a: dict, b: dict) -> dict:
@@ -471,6 +521,11 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
                                           "by": "the median localisation error on the real fitted half",
                                           "scores_mm": {f"sigma {k[0]:g}, ridge {k[1]:g}": v for k, v in
                                                         scores.items()}}
+    ball_px = float(block["ball_mm"]) * 0.5e-3 / pixel_m
+    everything = Presses(*(np.concatenate([a, b]) for a, b in (
+        (fit_real.images, real.images), (fit_real.frames, real.frames), (fit_real.centres, real.centres),
+        (fit_real.depths, real.depths))))
+    floor = {"real2real": real2real(fit_real, real, pixel_m), "appearance": appearance(everything, sim, ball_px)}
     comparisons = {}
     for model_name in models:
         runs = {t: results.get(f"{model_name}/{t}", {}) for t in trainings}
@@ -486,7 +541,7 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
         "centres_box_px": [centres.min(axis=0).tolist(), centres.max(axis=0).tolist()],
         "depths_mm": [float(depths.min() * 1e3), float(depths.max() * 1e3)],
         "labels": "real centres: the annotated ones; real depths: the import's (scenes.imports), themselves estimates",
-        "results": results, "seconds": {"simulate": sim_seconds, "total": time.perf_counter() - t0},
+        "results": results, **floor, "seconds": {"simulate": sim_seconds, "total": time.perf_counter() - t0},
     }
     atomic_write_json(out / "results.json", summary)
     atomic_write_bytes(out / "table.md", table(summary).encode())
@@ -509,6 +564,21 @@ def table(summary: dict) -> str:
         lines.append(f"| {r['model']} | {r['training']} | {ci['median']:.3f} [{ci['low']:.3f}, {ci['high']:.3f}] | "
                      f"{r['real']['localisation_mm_mean']:.3f} | {r['real']['depth_error_mm_median_abs']:.3f} | "
                      f"{r['sim']['localisation_mm_median']:.3f} |")
+    if "real2real" in summary:
+        r = summary["real2real"]["real"]
+        ci = r["localisation_mm_median_ci"]
+        lines.append(f"| filter | real (Real2Real: the real fitted half) | {ci['median']:.3f} [{ci['low']:.3f}, "
+                     f"{ci['high']:.3f}] | {r['localisation_mm_mean']:.3f} | {r['depth_error_mm_median_abs']:.3f} | |")
+    lines += ["", "Mean error (predicted less annotated, u and v px) on the real held-out presses, and the median "
+              "error with that mean taken off (mm):", ""]
+    for key, r in summary["results"].items():
+        if r.get("ran"):
+            b = r["real"]["bias_px"]
+            lines.append(f"- {key}: ({b[0]:+.2f}, {b[1]:+.2f}) px; {r['real']['localisation_mm_median_unbiased']:.3f} mm")
+    if "appearance" in summary:
+        a = summary["appearance"]
+        lines.append(f"\nThe change peaks {a['ring_px_real']:.1f} px from the centre in the real presses (median) and "
+                     f"{a['ring_px_sim']:.1f} px in the simulated ones ({a['sim_over_real']:.2f} of the real).")
     for name, c in summary.get("paired", {}).items():
         lines.append(f"\n{name}, press by press: median {c['median']:+.3f} mm [{c['low']:+.3f}, {c['high']:+.3f}]; "
                      f"the first better on {c['a_better_share']:.0%} of the presses.")
