@@ -194,8 +194,12 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                     **{k: {"real": v.get("real", {}).get("localisation_mm_median_ci"),
                            "real_mean": v.get("real", {}).get("localisation_mm_mean"),
                            "depth": v.get("real", {}).get("depth_error_mm_median_abs"),
-                           "sim": v.get("sim", {}).get("localisation_mm_median"), "chosen": v.get("chosen")}
-                       for k, v in loc["results"].items()}, "paired": loc.get("paired")},
+                           "sim": v.get("sim", {}).get("localisation_mm_median"), "chosen": v.get("chosen"),
+                           "bias_px": v.get("real", {}).get("bias_px"),
+                           "real_unbiased": v.get("real", {}).get("localisation_mm_median_unbiased")}
+                       for k, v in loc["results"].items()}, "paired": loc.get("paired"),
+                    "real2real": (loc.get("real2real") or {}).get("real", {}).get("localisation_mm_median_ci"),
+                    "appearance": loc.get("appearance")},
             },
             "work": str(work) if keep else None,
         }
