@@ -161,10 +161,14 @@ def cmd_import(args) -> int:
     ball = defaults["ball_m"] if args.ball_mm is None else args.ball_mm * 1e-3
     pixel = defaults["pixel_m"] if args.pixel_mm is None else args.pixel_mm * 1e-3
     archive = FORMATS[args.format](args.archive)
-    summary = import_capture(archive, args.out, spec, ball, pixel, depth=args.depth, fmt=args.format)
+    summary = import_capture(archive, args.out, spec, ball, pixel, depth=args.depth, fmt=args.format,
+                             rim_share=args.rim_share)
     d = summary["depth_mm"]
+    rims = (f", rims at {summary['rim_share']:g} of the contact's radius, {summary['rims_capped']} capped at the ball's"
+            if summary["rim_share"] != 1.0 else "")
     print(f"{summary['presses']} presses of {args.archive} in {args.out} ({summary['object']}, depth by "
-          f"{summary['depth']}: median {d['median']:.3f} mm, {d['min']:.3f} to {d['max']:.3f} mm; {summary['camera']})")
+          f"{summary['depth']}{rims}: median {d['median']:.3f} mm, {d['min']:.3f} to {d['max']:.3f} mm; "
+          f"{summary['camera']})")
     return 0
 
 
@@ -480,6 +484,9 @@ def register(registry) -> None:
     p.add_argument("--depth", choices=DEPTH_METHODS, default="profile",
                    help="each press's depth from its contact rim fitted to the image (profile, default) or from "
                         "its annotated radius (radius)")
+    p.add_argument("--rim-share", type=float, default=1.0, metavar="K",
+                   help="with --depth profile: the share of the contact's radius at which a press's change peaks "
+                        "(default 1: at the rim); the contact's radius is the peak's over K, at most the ball's")
 
     p = registry.bench("dataset", cmd_bench_dataset, "frames per second of base-protocol dataset generation")
     p.add_argument("--spec", metavar="TOML")

@@ -21,7 +21,11 @@ is the same for every format (:func:`import_capture`):
   has radius a. With ``depth="profile"`` (the default) a is fitted from the image: the
   radius at which the press's change from the no-contact frame, averaged round the
   annotated centre, peaks (:func:`contact_edge_px`): a ball's rim is where the membrane is
-  steepest, and a lit membrane's change grows with its slope. With ``depth="radius"`` a is
+  steepest, and a lit membrane's change grows with its slope. ``rim_share`` k (default 1)
+  says the change peaks at k of the contact's radius instead, a = peak / k: the project's
+  renderers peak inside their own balls' rims (at 0.73 to 0.84 of them on this set), and
+  a rim past the ball's radius is then set to RIM_CAP of it, its record saying so
+  (``contact_radius_capped``). With ``depth="radius"`` a is
   the annotated radius, which a published annotation may draw round the visible ring
   instead (the Taxim set's 17 px circles are 2.1 mm at 0.1245 mm a pixel, wider than its
   2 mm ball: that mode refuses them).
@@ -58,6 +62,8 @@ DEPTH_METHODS = ("profile", "radius")
 #: ball's radius in pixels, at least and at most.
 PROFILE_BIN_PX = 0.5
 PROFILE_SEARCH = (0.3, 1.5)
+#: A rim that ``rim_share`` puts past the ball's radius is set to this share of it.
+RIM_CAP = 0.995
 #: A profile bin needs this many pixels to count (bins near the centre hold few).
 PROFILE_MIN_PIXELS = 4
 #: The apex's pixel may differ from ``pixel_m`` by this share for a lens that cannot be
@@ -273,14 +279,15 @@ def _sha256(path: str) -> str:
 
 
 def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel_m: float,
-                   depth: str = "profile", fmt: str = TAXIM, layout=None) -> dict:
+                   depth: str = "profile", fmt: str = TAXIM, layout=None, rim_share: float = 1.0) -> dict:
     """Write ``archive`` as a capture dataset in ``out`` (module doc); returns a summary.
 
     Parameters
     ----------
     spec : the unit's ``SensorSpec`` (its camera is put at the frames' size and pixel).
     ball_m : the ball's diameter, metres. pixel_m : a pixel's size on the membrane, metres.
-    depth : "profile" or "radius" (module doc).
+    depth : "profile" or "radius" (module doc). rim_share : the share of the contact's
+        radius at which a press's change peaks, in (0, 1] (module doc; profile only).
     layout : the rig's ``RigLayout`` the poses are for (default: the project's rig).
 
     A folder that holds another capture, or files but no dataset, is refused and left as
@@ -294,6 +301,12 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
 
     if depth not in DEPTH_METHODS:
         raise ValueError(f"depth must be one of {DEPTH_METHODS}, got {depth!r}")
+    rim_share = float(rim_share)
+    if not 0.0 < rim_share <= 1.0:
+        raise ValueError(f"rim_share must be in (0, 1], the share of the contact's radius at which its change "
+                         f"peaks, got {rim_share:g}")
+    if rim_share != 1.0 and depth != "profile":
+        raise ValueError(f"rim_share applies to the rim fitted to the image (depth 'profile'), not to {depth!r}")
     layout = layout or RigLayout()
     check_archive(archive)
     out = Path(out)
@@ -309,7 +322,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     camera = Camera.from_spec(unit)
     mesh = membrane_mesh(unit)
 
-    taps, fitted = [], []
+    taps, fitted, capped = [], [], []
     for i, (centre, radius) in enumerate(zip(archive.centres_px, archive.radii_px)):
         name = f"archive {archive.path}: press {i} ({archive.names[i]})"
         if depth == "radius":
@@ -319,8 +332,12 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
                 edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
+        contact_px = edge_px / rim_share
+        capped.append(bool(rim_share != 1.0 and contact_px > RIM_CAP * R / pixel_m))
+        if capped[-1]:
+            contact_px = RIM_CAP * R / pixel_m
         try:
-            d = ball_depth(edge_px * pixel_m, R)
+            d = ball_depth(contact_px * pixel_m, R)
         except ValueError as exc:
             what = "its annotated radius" if depth == "radius" else "the rim fitted to its image"
             raise ValueError(f"{name}: {what}, {edge_px:.2f} px at {pixel_m * 1e3:g} mm a pixel: {exc}"
@@ -346,7 +363,8 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
                                                       **archive.notes}},
         "rig": {"layout": layout.to_dict(), "virtual": False, "printer": None, "servos": None},
         "import": {"format": fmt, "archive": archive.path, "sha256": digest, "ball_mm": ball_m * 1e3,
-                   "pixel_mm": pixel_m * 1e3, "depth": depth, "camera": camera_note,
+                   "pixel_mm": pixel_m * 1e3, "depth": depth, "rim_share": rim_share,
+                   "rims_capped": int(sum(capped)), "camera": camera_note,
                    "poses": "each press's measured_pose is the rig's pose that presses the ball as annotated: on the "
                             "membrane where the camera sees the annotated centre, along its normal, to the depth "
                             "the depth method gives"},
@@ -357,18 +375,21 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     vertices = np.asarray(indenter(obj).vertices, np.float64)
     from .generate import tap_fields
 
-    for tap, edge_px, centre, radius, name in zip(taps, fitted, archive.centres_px, archive.radii_px, archive.names):
+    for tap, edge_px, cap, centre, radius, name in zip(taps, fitted, capped, archive.centres_px, archive.radii_px,
+                                                       archive.names):
         sid = sample_id(tap.index, tap.object)
         if sid in writer.done:
             continue
         pose = tap_pose(tap, vertices, layout)
         record = {**tap_fields(tap), "commanded_pose": pose, "measured_pose": pose, "measured_depth": tap.depth,
                   "contact_center_px": [float(c) for c in centre], "contact_radius_px": float(radius),
-                  "contact_edge_px": edge_px, "source_name": name}
+                  "contact_edge_px": edge_px, "source_name": name,
+                  **({"contact_radius_capped": cap} if rim_share != 1.0 else {})}
         files = write_sample_files(out, sid, archive.frames[tap.index], None)
         writer.append({**record, **files})
     depths = np.array([t.depth for t in taps])
     return {"out": str(out), "presses": len(read_samples(out)), "object": obj, "depth": depth,
+            "rim_share": rim_share, "rims_capped": int(sum(capped)),
             "depth_mm": {"median": float(np.median(depths) * 1e3), "min": float(depths.min() * 1e3),
                          "max": float(depths.max() * 1e3)},
             "camera": camera_note}

@@ -74,7 +74,8 @@ def _figure(row: dict | None) -> dict | None:
 
 
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
-        reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True) -> dict:
+        reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
+        rim_share: float | None = None) -> dict:
     """The benchmark (module doc); writes and returns the JSON."""
     from scenes.cli import main
     from scenes.dataset import atomic_write_json
@@ -98,7 +99,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     try:
         capture = work / "capture"
         flags = [*(["--spec", str(spec)] if spec else []), *(["--ball-mm", str(ball_mm)] if ball_mm else []),
-                 *(["--pixel-mm", str(pixel_mm)] if pixel_mm else [])]
+                 *(["--pixel-mm", str(pixel_mm)] if pixel_mm else []),
+                 *(["--rim-share", str(rim_share)] if rim_share else [])]
 
         def run_main(argv):
             code = main(argv)
@@ -213,7 +215,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
 def cmd_bench_real(args) -> int:
     out = run(args.json, args.archive, args.spec, args.ball_mm, args.pixel_mm, args.work,
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
-              localisation=not args.no_localisation, quiet=args.quiet)
+              localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm", "seconds")}, indent=1))
     print(f"wrote {args.json}")
     return 0
@@ -230,6 +232,8 @@ def register(registry) -> None:
     p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (default the set's, 4)")
     p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the gel, mm (default the set's, "
                                                                 "0.1245)")
+    p.add_argument("--rim-share", type=float, metavar="K", help="the import's share of a contact's radius at which "
+                   "its change peaks (default 1: tactile-sim import's --rim-share)")
     p.add_argument("--work", metavar="DIR", help="keep every dataset, profile and report here (default: a temporary "
                                                  "folder, removed)")
     p.add_argument("--no-reference", action="store_true", help="leave the physically based reference out")

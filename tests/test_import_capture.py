@@ -174,6 +174,36 @@ def test_bad_archives_are_refused_by_name(tmp_path):
         run_import(tmp_path, write_pack(tmp_path / "dataPack_r.npz"), out="radius", depth="radius")
 
 
+def test_a_rim_share_puts_the_contact_rim_outside_the_peak_and_caps_it_at_the_ball(tmp_path):
+    from scenes.dataset import read_meta, read_samples
+
+    pack = write_pack(tmp_path / "dataPack.npz")  # rings peaking 13.5 px from their centres
+    R = imports.DEFAULTS["taxim"]["ball_m"] / 2
+    pixel = imports.DEFAULTS["taxim"]["pixel_m"]
+    run_import(tmp_path, pack, out="plain")
+    plain = {r["id"]: r for r in read_samples(tmp_path / "plain")}
+    share = 0.9
+    summary = run_import(tmp_path, pack, out="inside", rim_share=share)
+    assert summary["rim_share"] == share and summary["rims_capped"] == 0
+    for r in read_samples(tmp_path / "inside"):
+        edge = plain[r["id"]]["contact_edge_px"]
+        assert r["contact_edge_px"] == pytest.approx(edge)  # the peak, as found
+        assert r["measured_depth"] == pytest.approx(imports.ball_depth(edge / share * pixel, R), rel=1e-9)
+        assert r["measured_depth"] > plain[r["id"]]["measured_depth"] and r["contact_radius_capped"] is False
+    assert read_meta(tmp_path / "inside")["import"]["rim_share"] == share
+    summary = run_import(tmp_path, pack, out="capped", rim_share=0.8)  # 13.5 / 0.8 px is past the 16.1 px ball
+    assert summary["rims_capped"] == 3
+    for r in read_samples(tmp_path / "capped"):
+        assert r["contact_radius_capped"] is True
+        assert r["measured_depth"] == pytest.approx(imports.ball_depth(imports.RIM_CAP * R, R), rel=1e-9)
+    for value, match in ((0.0, r"rim_share must be in \(0, 1\]"), (1.2, r"rim_share must be in \(0, 1\]")):
+        with pytest.raises(ValueError, match=match):
+            run_import(tmp_path, pack, out="bad", rim_share=value)
+    with pytest.raises(ValueError, match=r"rim_share applies to the rim fitted to the image"):
+        run_import(tmp_path, pack, out="bad", depth="radius", rim_share=0.9)
+    assert not (tmp_path / "bad").exists()
+
+
 def test_the_import_command_prints_and_refuses(tmp_path, capsys):
     from scenes.cli import main
 
