@@ -100,7 +100,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         capture = work / "capture"
         flags = [*(["--spec", str(spec)] if spec else []), *(["--ball-mm", str(ball_mm)] if ball_mm else []),
                  *(["--pixel-mm", str(pixel_mm)] if pixel_mm else []),
-                 *(["--rim-share", str(rim_share)] if rim_share else [])]
+                 *(["--rim-share", str(rim_share)] if rim_share is not None else [])]
 
         def run_main(argv):
             code = main(argv)

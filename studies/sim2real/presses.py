@@ -522,10 +522,8 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
                                           "scores_mm": {f"sigma {k[0]:g}, ridge {k[1]:g}": v for k, v in
                                                         scores.items()}}
     ball_px = float(block["ball_mm"]) * 0.5e-3 / pixel_m
-    everything = Presses(*(np.concatenate([a, b]) for a, b in (
-        (fit_real.images, real.images), (fit_real.frames, real.frames), (fit_real.centres, real.centres),
-        (fit_real.depths, real.depths))))
-    floor = {"real2real": real2real(fit_real, real, pixel_m), "appearance": appearance(everything, sim, ball_px)}
+    floor = {"real2real": real2real(fit_real, real, pixel_m),
+             "appearance": appearance(real_presses(capture, capture.ids), sim, ball_px)}
     comparisons = {}
     for model_name in models:
         runs = {t: results.get(f"{model_name}/{t}", {}) for t in trainings}
