@@ -301,6 +301,7 @@ def test_train_refuses_bad_input():
 
 # --- the pipeline on a slice ---------------------------------------------------------------
 
+@pytest.mark.slow  # 155 s on 2 cores: a fifth of the not-slow suite's time on its own
 @needs_sklearn
 def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
     """A virtual-rig capture (the fast path's twin, with a camera of its own: gains and a
