@@ -22,7 +22,8 @@ It writes the goals' figures (module doc of the issue): ``contact_strength.phong
 real), ``contact_mae.phong``, ``.pbr`` and ``.taxim`` (the mean over them of the
 contact's MAE; ``taxim`` is the refit on the same fitted half, ``taxim_shipped`` the
 shipped table), ``localisation_mm.none``, ``.randomised`` and ``.diagnosed`` (the
-median error on the real held-out presses), and ``seconds`` (import, both calibrations
+median error on the real held-out presses, each model calibrated by its constant offset
+on the real fitted half; ``localisation_mm_no_offset`` the same without it), and ``seconds`` (import, both calibrations
 and the comparisons together), each with its interval and what it was measured on, and
 the per-stage seconds.
 """
@@ -174,6 +175,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                             "taxim_shipped": shipped["contact"]["mae"]["mean"] if shipped else None},
             "localisation_mm": ({k: loc["results"].get(f"filter/{k}", {}).get("real", {}).get("localisation_mm_median")
                                  for k in ("none", "randomised", "diagnosed")} if loc else None),
+            "localisation_mm_no_offset": ({k: loc["results"].get(f"filter/{k}", {}).get("real_no_offset", {}).get(
+                "localisation_mm_median") for k in ("none", "randomised", "diagnosed")} if loc else None),
             "seconds": core,
             "seconds_what": "import, both calibrations and the comparisons together (the goal's 20 minutes)",
             "stage_seconds": seconds, "total_seconds": time.perf_counter() - t_all,
@@ -197,7 +200,9 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                            "real_mean": v.get("real", {}).get("localisation_mm_mean"),
                            "depth": v.get("real", {}).get("depth_error_mm_median_abs"),
                            "sim": v.get("sim", {}).get("localisation_mm_median"), "chosen": v.get("chosen"),
-                           "bias_px": v.get("real", {}).get("bias_px"),
+                           "bias_px": v.get("real", {}).get("bias_px"), "offset_px": v.get("offset_px"),
+                           "real_no_offset": v.get("real_no_offset", {}).get("localisation_mm_median_ci"),
+                           "bias_px_no_offset": v.get("real_no_offset", {}).get("bias_px"),
                            "real_unbiased": v.get("real", {}).get("localisation_mm_median_unbiased")}
                        for k, v in loc["results"].items()}, "paired": loc.get("paired"),
                     "real2real": (loc.get("real2real") or {}).get("real", {}).get("localisation_mm_median_ci"),
@@ -216,7 +221,8 @@ def cmd_bench_real(args) -> int:
     out = run(args.json, args.archive, args.spec, args.ball_mm, args.pixel_mm, args.work,
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share)
-    print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm", "seconds")}, indent=1))
+    print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
+                                          "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
     return 0
 

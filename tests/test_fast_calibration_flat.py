@@ -226,3 +226,23 @@ def test_real2real_and_ring_radii_on_drawn_presses():
     assert np.all(np.abs(radii - 6.0) < 0.75)
     a = appearance(presses(test, 6.0, 1), presses(test, 4.5, 2), 8.0)
     assert a["sim_over_real"] == pytest.approx(4.5 / 6.0, abs=0.08) and a["found"] == {"real": 12, "sim": 12}
+
+
+def test_offset_takes_the_fitted_presses_mean_error_off_the_centres():
+    from studies.sim2real.presses import Offset, Presses, errors
+
+    class Shifted:  # predicts every press 2 px right and 1 px up of where its image puts it
+        def predict(self, diffs):
+            return np.rint(diffs[:, 0, 0, :2] * 255.0) + [2.0, -1.0], np.full(len(diffs), 1e-3)
+
+    def presses(centres):
+        images = np.zeros((len(centres), 4, 4, 3), np.uint8)
+        images[:, 0, 0, :2] = centres  # the model reads where the "image" puts the press off its first pixel
+        return Presses(images, np.zeros_like(images), np.asarray(centres, np.float64), np.full(len(centres), 1e-3))
+
+    fit, test = presses([[10, 10], [20, 30], [40, 15]]), presses([[50, 60], [70, 20]])
+    model = Offset.fitted(Shifted(), fit)
+    np.testing.assert_allclose(model.offset_px, [2.0, -1.0])
+    assert errors(model, test, 1e-4)["localisation_mm_median"] == pytest.approx(0.0, abs=1e-9)
+    assert errors(Offset(Shifted()), test, 1e-4)["localisation_mm_median"] == pytest.approx(np.hypot(2, 1) * 0.1)
+    np.testing.assert_allclose(model.predict(test.differences())[1], 1e-3)  # the depth is the model's own
