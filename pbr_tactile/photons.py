@@ -59,6 +59,23 @@ MAX_SPLIT = 8
 #: Split photons restart this far inside the coating, along its inward normal, m.
 SPAWN_OFFSET_M = 1e-7
 
+#: The events a photon's path is tagged with by ``deposits(classes=True)``, one bit each:
+#: transmitted through a glass surface (a dielectric interface: the elastomer's face on
+#: the glass, the glass's face on the air), reflected at one (Fresnel or total internal
+#: reflection), scattered in the elastomer, reflected by the paint. A deposit is
+#: counted in the class of the events before it: class 0 is light straight from an LED.
+PATH_EVENTS = ("glass", "interface_reflection", "scattered", "paint")
+GLASS, REFLECTED, SCATTERED, PAINTED = (1 << k for k in range(len(PATH_EVENTS)))
+#: The number of path classes, all combinations of PATH_EVENTS.
+PATH_CLASSES = 1 << len(PATH_EVENTS)
+
+
+def path_class_events(path_class: int) -> tuple[str, ...]:
+    """The events (PATH_EVENTS) of a path class's bitmask; () for light straight from an LED."""
+    if not 0 <= int(path_class) < PATH_CLASSES:
+        raise ValueError(f"a path class must be in [0, {PATH_CLASSES}), got {path_class}")
+    return tuple(e for k, e in enumerate(PATH_EVENTS) if int(path_class) >> k & 1)
+
 
 @dataclass(frozen=True)
 class Source:
@@ -301,11 +318,12 @@ def _sample_dielectric(mi, dr, d, n, eta, u):
 
 def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: dict, sampler, photons: int,
                       sigma_t: float, albedo: float, coating_albedo: float, may_split: bool, grid=None,
-                      track=None) -> dict:
+                      track=None, classes: int = 1) -> dict:
     """Trace one generation of photons from ``start``, depositing into ``acc`` (and, with a
     ``grid`` (``pbr_tactile.fluence.FluenceGrid``), their tracks in the elastomer into
     ``track``); returns the queue of photons the weight window split (slot per lane, k = 0
-    where none)."""
+    where none). With ``classes`` = PATH_CLASSES, ``acc`` holds one block of vertices per
+    source and path class, and each deposit goes to its path's class (PATH_EVENTS)."""
     import drjit as dr
 
     n_vertices = len(c.vertex_area)
@@ -316,13 +334,13 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
     queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
                                                    ("nx", mi.Float), ("ny", mi.Float), ("nz", mi.Float),
                                                    ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32),
-                                                   ("k", mi.UInt32), ("id", mi.UInt64))}
+                                                   ("k", mi.UInt32), ("id", mi.UInt64), ("tag", mi.UInt32))}
     lane_index = dr.arange(mi.UInt32, n_lanes)
 
-    def cond(ray, weight, in_el, active, depth, sampler):
+    def cond(ray, weight, in_el, active, depth, sampler, tag):
         return active
 
-    def body(ray, weight, in_el, active, depth, sampler):
+    def body(ray, weight, in_el, active, depth, sampler, tag):
         pi = scene.ray_intersect_preliminary(ray, False, active)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
         scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
@@ -336,14 +354,20 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
         surface = active & ~scatter & si.is_valid()
         hit_coating = surface & (si.shape == c.coating)
         corners, bary = _corners(mi, c.faces, pi, hit_coating)
+        into = offset if classes == 1 else (s * classes + tag) * n_vertices
         for i, b in zip(corners, bary):
-            dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, offset + i, hit_coating,
+            dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, into + i, hit_coating,
                               mode=dr.ReduceMode.Expand)
         inward = -si.n
         diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
         refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
         in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
+        if classes > 1:
+            tag = tag | dr.select(dielectric & transmitted, mi.UInt32(GLASS), mi.UInt32(0)) \
+                | dr.select(dielectric & ~transmitted, mi.UInt32(REFLECTED), mi.UInt32(0)) \
+                | dr.select(scatter, mi.UInt32(SCATTERED), mi.UInt32(0)) \
+                | dr.select(hit_coating, mi.UInt32(PAINTED), mi.UInt32(0))
         scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
         weight = dr.select(hit_coating, weight * coating_albedo, weight)
         weight = dr.select(scatter, weight * albedo, weight)
@@ -369,21 +393,21 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
                 slot = lane_index
                 for key, value in (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x),
                                    ("ny", inward.y), ("nz", inward.z), ("w", weight / mi.Float(k)),
-                                   ("s", s), ("depth", depth + 1), ("k", k), ("id", start["id"])):
+                                   ("s", s), ("depth", depth + 1), ("k", k), ("id", start["id"]), ("tag", tag)):
                     dr.scatter(queue[key], value, slot, heavy)
                 alive &= ~heavy
         depth += 1
         active &= alive & (depth < PHOTON_MAX_DEPTH)
-        return ray, weight, in_el, active, depth, sampler
+        return ray, weight, in_el, active, depth, sampler, tag
 
-    dr.while_loop(state=(ray, start["w"], start["in_el"], mi.Bool(True), start["depth"], sampler), cond=cond,
-                  body=body, labels=("ray", "weight", "in_el", "active", "depth", "sampler"),
+    dr.while_loop(state=(ray, start["w"], start["in_el"], mi.Bool(True), start["depth"], sampler, start["tag"]),
+                  cond=cond, body=body, labels=("ray", "weight", "in_el", "active", "depth", "sampler", "tag"),
                   label="photons")
     return queue
 
 
 def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-             photons: int, seed: int = 0, window: np.ndarray | None = None, grid=None):
+             photons: int, seed: int = 0, window: np.ndarray | None = None, grid=None, classes: bool = False):
     """Per source, the flux each coating vertex receives, per unit flux emitted.
 
     All sources' photons are traced in one wavefront, as one symbolic Dr.Jit loop (one
@@ -400,6 +424,10 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         number of deposits. Without a window, plain Russian roulette after RR_DEPTH.
     grid : a ``pbr_tactile.fluence.FluenceGrid``: the photons' tracks in the elastomer
         are summed per voxel too (``FluenceGrid.fluence`` makes them the fluence).
+    classes : split each source's flux by the class of the path that brought it
+        (PATH_EVENTS: the events before the deposit); the flux is then (S, PATH_CLASSES,
+        V), its sum over the classes the flux without them. Tagging draws no random
+        numbers, so a seed's walks are the same either way.
     Returns (S, V) float64, V the coating mesh's vertex count; with a grid, that and the
     (S, N) tracks, N the grid's voxels (m per unit flux emitted).
     """
@@ -409,7 +437,8 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     n_vertices = len(c.vertex_area)
     n_src = len(sources)
     interfaces = _interfaces(mi, scene)
-    acc = dr.zeros(mi.Float, n_src * n_vertices)
+    n_classes = PATH_CLASSES if classes else 1
+    acc = dr.zeros(mi.Float, n_src * n_classes * n_vertices)
     track = None if grid is None else dr.zeros(mi.Float, n_src * grid.size)
     target = None if window is None else _owned(mi.Float, np.asarray(window, dtype=np.float64).ravel())
 
@@ -430,13 +459,14 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     cones = [math.cos(src.cone_half_angle_rad) if src.directional else _LAMBERTIAN for src in sources]
     start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
              "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
-             "depth": mi.UInt32(0), "id": _owned(mi.UInt64, identity), "cone": dr.gather(mi.Float, mi.Float(cones), s)}
+             "depth": mi.UInt32(0), "id": _owned(mi.UInt64, identity), "cone": dr.gather(mi.Float, mi.Float(cones), s),
+             "tag": dr.zeros(mi.UInt32, n_src * photons)}
     for generation in range(MAX_GENERATIONS):
         if generation > 0:
             sampler = _Rng(mi, identity)
         queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
                                   coating_albedo, target is not None and generation < MAX_GENERATIONS - 1,
-                                  grid, track)
+                                  grid, track, n_classes)
         if target is None:
             break
         if track is None:
@@ -460,8 +490,8 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
                  "n": mi.Vector3f(*[_owned(mi.Float, nrm[:, k]) for k in range(3)]), "w": _owned(mi.Float, rep["w"]),
                  "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": _owned(mi.UInt32, rep["s"]),
                  "depth": _owned(mi.UInt32, rep["depth"]), "id": _owned(mi.UInt64, identity),
-                 "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"]))}
-    flux = np.asarray(acc, dtype=np.float64).reshape(n_src, n_vertices)
+                 "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"])), "tag": _owned(mi.UInt32, rep["tag"])}
+    flux = np.asarray(acc, dtype=np.float64).reshape((n_src, n_classes, n_vertices) if classes else (n_src, n_vertices))
     return flux if track is None else (flux, np.asarray(track, dtype=np.float64).reshape(n_src, grid.size))
 
 

@@ -39,6 +39,24 @@ def mujoco_gl():
 
 
 @pytest.fixture(scope="session")
+def photon_mi():
+    """Mitsuba on a vectorised variant (llvm_ or cuda_), which the photon pass needs, or skip."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile.variant import VariantError, choose_variant
+
+    try:
+        variant = choose_variant().variant()
+    except VariantError as exc:
+        pytest.skip(str(exc))
+    if not variant.startswith(("llvm_", "cuda_")):
+        pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
+    import mitsuba as mi
+
+    mi.set_variant(variant)
+    return mi
+
+
+@pytest.fixture(scope="session")
 def spec():
     return default_spec()
 

@@ -85,24 +85,8 @@ def test_the_volpath_scene_refuses_the_directional_leak(mesh, spec, camera):
                   estimator="volpath", spp=1, passes=1, width=8, height=6)
 
 
-def _vectorised():
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
-    from pbr_tactile.variant import VariantError, choose_variant
-
-    try:
-        variant = choose_variant().variant()
-    except VariantError as exc:
-        pytest.skip(str(exc))
-    if not variant.startswith(("llvm_", "cuda_")):
-        pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
-    import mitsuba as mi
-
-    mi.set_variant(variant)
-    return mi
-
-
-def test_photons_leave_within_the_cone_uniformly_and_lambertian_ones_by_cosine():
-    mi = _vectorised()
+def test_photons_leave_within_the_cone_uniformly_and_lambertian_ones_by_cosine(photon_mi):
+    mi = photon_mi
     import drjit as dr
 
     from pbr_tactile.photons import _LAMBERTIAN, _start_direction
@@ -123,10 +107,10 @@ def test_photons_leave_within_the_cone_uniformly_and_lambertian_ones_by_cosine()
     assert cos.min() >= -1e-6 and cos.mean() == pytest.approx(2 / 3, abs=3e-3)
 
 
-def test_the_guided_leak_lights_the_tip_more_than_the_lambertian_one(mesh, spec, camera):
+def test_the_guided_leak_lights_the_tip_more_than_the_lambertian_one(mesh, spec, camera, photon_mi):
     """Photon deposits of each leak on the no-contact coating: aimed up the wall inside
     its guiding cone, far more of its flux lands on the dome than a Lambertian leak's."""
-    mi = _vectorised()
+    mi = photon_mi
     from pbr_tactile.membrane import ElastomerBuilder
     from pbr_tactile.photons import coating_vertices, deposits, sources_from
     from pbr_tactile.render import load
@@ -163,12 +147,11 @@ def test_a_directional_leds_radiance_is_seen_only_inside_its_cone():
     assert narrow == pytest.approx(lambertian * 4 * math.pi / (2 * math.pi * (1 - math.cos(0.3))))
 
 
-def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh):
+def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh, photon_mi):
     """Rendered: an LED in the tube 5 mm in front of the camera, its 30 deg beam aimed at the
     lens or away from it. Facing it, the LED outshines the membrane in the pixel it sits
     in; turned away, that pixel is the membrane's (the camera pass used to leave every
     beam LED dark, so a real unit's LEDs never showed in the glass' reflections)."""
-    _vectorised()
     from pbr_tactile.render import reference
     from scenes.camera import Camera
     from scenes.spec import LED
@@ -186,13 +169,12 @@ def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh):
     assert pixel["facing"] > 10 * pixel["away"] > 0
 
 
-def test_a_beam_led_whose_axis_holds_a_negative_zero_renders_as_the_positive_one(spec, mesh):
+def test_a_beam_led_whose_axis_holds_a_negative_zero_renders_as_the_positive_one(spec, mesh, photon_mi):
     """A turned LED's axis can carry -0.0 (scenes.profile.turn_leds). Dr.Jit 1.5 can
     broadcast a literal vector holding -0.0 in place when it is multiplied by a wider array
     (not every such vector is: the shipped 2023 spec's axes hold -0.0 and render), so the
     camera pass' cone axis, kept across the first hit and the walk (twice as wide), broke
     the render ("operands have incompatible sizes"). Same seed: the image of +0.0."""
-    _vectorised()
     from pbr_tactile.render import reference
     from pbr_tactile.scene import led_sources
     from scenes.camera import Camera
