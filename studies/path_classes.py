@@ -32,7 +32,11 @@ signal.
 Light the camera sees scattered in the elastomer before it reaches the paint is not on
 the paint and not counted here.
 
-    python -m studies.path_classes --out classes [--sensors geltip,gelsight --photons 262144 --seeds 4]
+    python -m studies.path_classes --out classes [--sensors geltip,gelsight --photons 262144 --seeds 4
+        --set coating_albedo=0.5 ...]
+
+``--set`` measures the same with another physical setting (``Effects.with_settings``), so
+that a candidate physics is judged by where its contrast comes from.
 """
 
 from __future__ import annotations
@@ -139,8 +143,9 @@ def _summary(values) -> dict:
 
 
 def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=None, variant: str | None = None,
-            progress: bool = True) -> dict:
-    """The sensor's figures (module doc): {contact: {...}}."""
+            progress: bool = True, settings: list[str] = ()) -> dict:
+    """The sensor's figures (module doc): {contact: {...}}, at the default physics or with
+    ``settings`` (``Effects.with_settings``: NAME=VALUE, e.g. coating_albedo=0.5)."""
     import trimesh
 
     from pbr_tactile.effects import Effects
@@ -156,11 +161,13 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
 
     if photons < 1 or seeds < 1:
         raise ValueError(f"photons and seeds must be >= 1, got {photons} and {seeds}")
+    effects = Effects().with_settings(list(settings))
+    if effects.coating_gloss > 0:
+        raise ValueError("the photon pass needs a diffuse paint (coating_gloss = 0)")
     spec = default_spec() if spec_path is None else load_spec(spec_path)
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
     ref, _ = reference_depth(mesh, camera)
-    effects = Effects()
     build = ElastomerBuilder(mesh, spec, camera)
     srcs = sources_from(led_sources(spec, effects))
     pixels = contact_pixels(spec, camera, ref)
@@ -236,7 +243,7 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
                 floor = entry.get("noise_of_the_mean", {}).get("contrast", float("nan"))
                 print(f"{spec.name} {name}: contrast of the runs' mean {pooled['contrast']:.4f} (noise {floor:.4f}), "
                       f"net {figures['net']['mean']:+.4f} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    return {"sensor": spec.name, "spec": spec_path, "photons": photons, "seeds": seeds,
+    return {"sensor": spec.name, "spec": spec_path, "photons": photons, "seeds": seeds, "settings": list(settings),
             "classes": PATH_CLASSES, "contacts": out}
 
 
@@ -254,7 +261,8 @@ def table(results: dict, top: int = 6) -> str:
 
     lines = ["# Path classes of the light on the paint", ""]
     for sensor in results["sensors"].values():
-        lines.append(f"## {sensor['sensor']} ({sensor['photons']} photons per LED, {sensor['seeds']} runs)")
+        lines.append(f"## {sensor['sensor']} ({sensor['photons']} photons per LED, {sensor['seeds']} runs; physics: "
+                     f"{', '.join(sensor.get('settings') or []) or 'the defaults'})")
         for name, c in sensor["contacts"].items():
             m, noise = c["of_the_mean"], c.get("noise_of_the_mean", {})
             lines += ["", f"### {name}: contrast {m['contrast']:.4f} (photon noise {noise.get('contrast', np.nan):.4f}), "
@@ -282,6 +290,8 @@ def main(argv=None) -> int:
     p.add_argument("--sensors", default=",".join(SENSORS), help=f"some of {', '.join(SENSORS)}")
     p.add_argument("--photons", type=int, default=PHOTONS, help=f"photons per LED per run (default {PHOTONS})")
     p.add_argument("--seeds", type=int, default=SEEDS, help=f"independent runs (default {SEEDS})")
+    p.add_argument("--set", action="append", default=[], metavar="EFFECT=VALUE",
+                   help="a physical setting instead of its default (pbr_tactile.effects.Effects; repeatable)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     names = [s for s in args.sensors.split(",") if s]
@@ -292,7 +302,8 @@ def main(argv=None) -> int:
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {"sensors": {s: measure(SENSORS[s], args.photons, args.seeds, progress=not args.quiet) for s in names}}
+    results = {"sensors": {s: measure(SENSORS[s], args.photons, args.seeds, progress=not args.quiet,
+                                      settings=args.set) for s in names}}
     atomic_write_json(out / "results.json", results)
     atomic_write_bytes(out / "table.md", table(results).encode())
     print(table(results))

@@ -114,3 +114,12 @@ def test_the_geltip_contacts_sit_on_its_tip_dome_and_body(spec, camera, mesh):
     z = {k: back_project(ref, camera)[int(round(v)), int(round(u)), 2] for k, (u, v) in pixels.items()}
     junction = spec.membrane.base_z + spec.membrane.cylinder_length
     assert z["tip"] > z["dome"] > junction > z["body"]
+
+
+def test_a_bad_setting_is_refused_by_name_before_any_trace():
+    from studies.path_classes import measure
+
+    with pytest.raises(ValueError, match=r"effect setting 'paint_albedo=0.5': expected NAME=VALUE"):
+        measure(photons=8, seeds=1, settings=["paint_albedo=0.5"])
+    with pytest.raises(ValueError, match=r"needs a diffuse paint"):
+        measure(photons=8, seeds=1, settings=["coating_gloss=0.5"])
