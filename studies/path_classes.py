@@ -50,6 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
+from scenes.imports import DEFAULTS as IMPORT_DEFAULTS, TAXIM
+
 #: The indenter: a sphere of this radius (m), pressed this deep (m) along the normal.
 SPHERE_RADIUS_M = 2e-3
 CONTACT_DEPTH_M = 1e-3
@@ -58,8 +60,9 @@ REGION_SCALE = 1.5
 #: Photons per LED per run, and independent runs.
 PHOTONS = 1 << 18
 SEEDS = 4
-#: The sensors measured: name -> spec path (None: the default GelTip).
-SENSORS = {"geltip": None, "gelsight": "scenes/sensors/gelsight.toml"}
+#: The sensors measured: name -> spec path (None: the default GelTip; the flat GelSight is
+#: the spec of the public presses' sensor, wherever the command runs from).
+SENSORS = {"geltip": None, "gelsight": str(IMPORT_DEFAULTS[TAXIM]["spec"])}
 #: The GelTip's contacts: name -> height along its axis above the glass junction, as a
 #: share of the membrane's radius (the tip is the image centre).
 GELTIP_PLACES = {"tip": None, "dome": 0.5, "body": -1.0}
