@@ -527,6 +527,7 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
     rng = np.random.default_rng(seed)
     held = rng.permutation(count) < int(round(SIM_HELDOUT * count))
     augmenter = Augmenter(capture.spec, renderer, 1) if set(trainings) - {"none"} else None
+    calibrated = Offset.fitted if offset else (lambda m, _presses: Offset(m))
     results = {}
     for training in trainings:
         shown = trained_on(training, sim, augmenter, params, seed)
@@ -540,7 +541,6 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
                 continue
             t_fit = time.perf_counter()
             chosen = None
-            calibrated = Offset.fitted if offset else (lambda m, _presses: Offset(m))
             if model_name == "filter":  # its width and ridge (and offset), chosen on the real fitted half alone
                 trials = {(sigma, ridge): calibrated(CorrelationLocator(ridge, sigma).fit(
                     train_set.differences(), train_set.centres, train_set.depths), fit_real)
