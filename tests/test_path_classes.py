@@ -55,7 +55,7 @@ def test_the_classes_add_up_to_the_untagged_pass_walk_for_walk(paint):
     plain_w = deposits(*args, seed=4, window=window)
     tagged_w = deposits(*args, seed=4, window=window, classes=True)
     np.testing.assert_allclose(tagged_w.sum(axis=1), plain_w, rtol=1e-4, atol=1e-9 * plain_w.max())
-    # a split photon restarts on the paint: it and its copies only ever deposit as painted light
+    # every class's flux is a sum of deposits, and some light arrives straight from an LED
     totals = tagged_w.sum(axis=(0, 2))
     assert totals[0] > 0 and all(totals[k] >= 0 for k in range(PATH_CLASSES))
 
