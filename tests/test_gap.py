@@ -452,6 +452,7 @@ def test_diagnosis_names_a_hidden_effect(tmp_path, spec, injector, contacts, sim
         assert (tmp_path / "report" / name).stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_diagnosis_without_a_gap_ranks_nothing(tmp_path, sim_dir):
     code = main(["diagnose", str(sim_dir), str(sim_dir), "--out", str(tmp_path / "same"), "--quiet",
                  "--effects", "camera_response,vignetting,led_spectrum"])

@@ -467,6 +467,7 @@ def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_
     assert not (tmp_path / "b.json").exists()
 
 
+@pytest.mark.slow
 def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec, scene, stub, monkeypatch):
     """Judging a re-rendered candidate renders every held-out tap: only the best
     ``JUDGED_RENDERS`` of them on the training taps are; the rest are screened out, say
