@@ -123,3 +123,14 @@ def test_a_bad_setting_is_refused_by_name_before_any_trace():
         measure(photons=8, seeds=1, settings=["paint_albedo=0.5"])
     with pytest.raises(ValueError, match=r"needs a diffuse paint"):
         measure(photons=8, seeds=1, settings=["coating_gloss=0.5"])
+
+
+def test_bad_counts_and_sensors_are_refused_by_name(tmp_path, capsys):
+    from studies.path_classes import main, measure
+
+    with pytest.raises(ValueError, match=r"photons and seeds must be >= 1, got 0 and 2"):
+        measure(photons=0, seeds=2)
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--sensors", "geltip,paw"])
+    assert "--sensors must be some of geltip, gelsight, got paw" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
