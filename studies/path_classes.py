@@ -18,7 +18,14 @@ body; on the GelSight at the centre), at the reference's default physics
   contact's Hertzian radius sqrt(2 R d - d^2) of the pressed point);
 - over that region, each class's change of the irradiance: net (signed) and absolute,
   over the region's no-contact light and over the class's own (``class_shares``); and
-  the contrast the paint shows, the mean |dE| over the mean E0.
+  the contrast the paint shows, the mean |dE| over the mean E0, the sources summed;
+- ``source_contrast``: the same contrast of each source's own light (``source_contrasts``),
+  and each class's share of a source's region light and its relative change, averaged
+  over the sources. This is what the camera sees where each LED has its own colour (the
+  GelTip's and the GelSight's do): a contact's strength is the mean over the channels of
+  each one's change (``scenes.captures.contact_strength``), and LEDs on opposite sides
+  brighten opposite flanks of a dent, so their summed change hides most of it (on the
+  GelSight's centre at the defaults, 0.03 summed against 0.29 per source).
 
 The contact and the no-contact paint are traced with the same seeds and one weight
 window (the undeformed membrane's pilot, as ``render_photons`` sets it), so the two
@@ -123,6 +130,25 @@ def class_shares(e_0: np.ndarray, e_c: np.ndarray, area: np.ndarray, region: np.
             "contrast": float(np.abs(d.sum(axis=0)).sum() / base), "net": float(d.sum() / base)}
 
 
+def source_contrasts(e_0: np.ndarray, e_c: np.ndarray, area: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """(S,) each source's contrast over the region, <|dE_s|> / <E0_s>, from the no-contact
+    and the contact's irradiance per source (S, V) (its classes summed).
+
+    The camera sees each LED in its own colour channel where, as on the GelTip and the
+    GelSight, each LED has its own colour, and a contact's strength is the mean over the
+    channels of each channel's change (``scenes.captures.contact_strength``). LEDs on
+    opposite sides brighten opposite flanks of a dent, so the sources' summed change
+    (``class_shares``' contrast) cancels much of what each channel shows."""
+    e_0, e_c = np.asarray(e_0, np.float64), np.asarray(e_c, np.float64)
+    if e_0.shape != e_c.shape or e_0.ndim != 2 or e_0.shape[1] != len(area) or region.shape != area.shape:
+        raise ValueError(f"e_0 and e_c must be (S, V) with V = {len(area)} vertex areas and region flags, got "
+                         f"{e_0.shape}, {e_c.shape} and {region.shape}")
+    a = area[region]
+    base = (e_0[:, region] * a).sum(axis=1)
+    change = (np.abs(e_c - e_0)[:, region] * a).sum(axis=1)
+    return np.divide(change, base, out=np.full(len(e_0), np.nan), where=base > 0)
+
+
 def event_shares(per_class: np.ndarray) -> dict[str, float]:
     """(K,) a figure per path class -> per event (PATH_EVENTS), its sum over the classes
     whose paths have that event, and ``none`` (class 0, light straight from an LED)."""
@@ -205,10 +231,18 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
         pilot_flux = trace(flat, max(1, photons // 8), 7919).sum(axis=1)
         window = weight_window(irradiance((kernel_0 @ pilot_flux.T).T, kernel_0 @ area_0, kernel_0), area_0, photons)
 
+        def per_source(flux, area, kernel):  # (S, K, V) flux -> (S, K, V) irradiance
+            S, K, V = flux.shape
+            return irradiance(flux.reshape(S * K, V), area, kernel).reshape(S, K, V)
+
         def maps(flux, area, kernel):  # (S, K, V) flux -> (K, V) irradiance, the sources summed
             return irradiance(flux.sum(axis=0), area, kernel)
 
-        no_contact = [maps(trace(flat, photons, seed, window), area_0, kernel_0) for seed in range(seeds)]
+        no_contact, no_contact_s = [], []
+        for seed in range(seeds):
+            flux = trace(flat, photons, seed, window)
+            no_contact.append(maps(flux, area_0, kernel_0))
+            no_contact_s.append(per_source(flux, area_0, kernel_0))
         for name, pixel in pixels.items():
             t0 = time.perf_counter()
             depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=SPHERE_RADIUS_M), pixel,
@@ -221,7 +255,11 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             area_c = coating_areas(dented)
             at = points[int(round(pixel[1])), int(round(pixel[0]))]
             region = np.linalg.norm(vertices_0 - at, axis=1) <= REGION_SCALE * hertz
-            contact = [maps(trace(dented, photons, seed, window), area_c, kernel_c) for seed in range(seeds)]
+            contact, contact_s = [], []
+            for seed in range(seeds):
+                flux = trace(dented, photons, seed, window)
+                contact.append(maps(flux, area_c, kernel_c))
+                contact_s.append(per_source(flux, area_c, kernel_c))
             runs = [class_shares(e0, ec, area_0, region) for e0, ec in zip(no_contact, contact)]
             e0, change = np.mean(no_contact, axis=0), np.mean(contact, axis=0) - np.mean(no_contact, axis=0)
             pooled = class_shares(e0, e0 + change, area_0, region)
@@ -230,7 +268,24 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             entry = {"pixel": list(pixel), "point_m": at.tolist(), "region_vertices": int(region.sum()),
                      "region_radius_m": REGION_SCALE * hertz, **figures,
                      "of_the_mean": {k: np.asarray(pooled[k]).tolist() for k in ("absolute", "relative", "contrast")}}
+            s0, sc = np.mean(no_contact_s, axis=0), np.mean(contact_s, axis=0)  # (S, K, V)
+            by_source = source_contrasts(s0.sum(axis=1), sc.sum(axis=1), area_0, region)
+            # each class of each source: its share of the source's region light and its own relative change
+            share_sk = np.stack([class_shares(s0[m], sc[m], area_0, region)["region"] for m in range(len(srcs))])
+            rel_sk = np.stack([class_shares(s0[m], sc[m], area_0, region)["relative"] for m in range(len(srcs))])
+            with warnings.catch_warnings():  # a class no source's photons took is NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                relative = np.nanmean(np.where(share_sk > 0, rel_sk, np.nan), axis=0)
+            entry["source_contrast"] = {"per_source": by_source.tolist(), "mean": float(np.nanmean(by_source)),
+                                        "sources": [src.name for src in srcs],
+                                        "class_share": share_sk.mean(axis=0).tolist(),
+                                        "class_relative": relative.tolist()}
             if seeds > 1:
+                half_s = [np.mean([contact_s[k] - no_contact_s[k] for k in range(h, seeds, 2)], axis=0).sum(axis=1)
+                          for h in (0, 1)]
+                floor_s = source_contrasts(s0.sum(axis=1), s0.sum(axis=1) + (half_s[0] - half_s[1]) / 2, area_0,
+                                           region)
+                entry["source_contrast"]["noise"] = float(np.nanmean(floor_s))
                 # The mean change's photon noise, from the two halves of the runs: half their difference
                 # has the noise of the whole mean and none of its signal.
                 half = [np.mean([contact[k] - no_contact[k] for k in range(h, seeds, 2)], axis=0) for h in (0, 1)]
@@ -244,7 +299,9 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             out[name] = entry
             if progress:
                 floor = entry.get("noise_of_the_mean", {}).get("contrast", float("nan"))
+                sc = entry["source_contrast"]
                 print(f"{spec.name} {name}: contrast of the runs' mean {pooled['contrast']:.4f} (noise {floor:.4f}), "
+                      f"per source {sc['mean']:.4f} (noise {sc.get('noise', float('nan')):.4f}), "
                       f"net {figures['net']['mean']:+.4f} ({time.perf_counter() - t0:.0f} s)", flush=True)
     return {"sensor": spec.name, "spec": spec_path, "photons": photons, "seeds": seeds, "settings": list(settings),
             "classes": PATH_CLASSES, "contacts": out}
@@ -268,8 +325,16 @@ def table(results: dict, top: int = 6) -> str:
                      f"{', '.join(sensor.get('settings') or []) or 'the defaults'})")
         for name, c in sensor["contacts"].items():
             m, noise = c["of_the_mean"], c.get("noise_of_the_mean", {})
-            lines += ["", f"### {name}: contrast {m['contrast']:.4f} (photon noise {noise.get('contrast', np.nan):.4f}), "
-                      f"net change {c['net']['mean']:+.4f} +/- {c['net']['se']:.4f}", "",
+            sc = c["source_contrast"]
+            lines += ["", f"### {name}: contrast per source {sc['mean']:.4f} (photon noise {sc.get('noise', np.nan):.4f}; "
+                      f"{', '.join(f'{v:.4f}' for v in sc['per_source'])}), sources summed {m['contrast']:.4f} "
+                      f"(noise {noise.get('contrast', np.nan):.4f}), net change {c['net']['mean']:+.4f} +/- "
+                      f"{c['net']['se']:.4f}", "",
+                      "| class (per source) | share of a source's region light | its relative change |", "|---|---|---|"]
+            share, rel = np.asarray(sc["class_share"]), np.asarray(sc["class_relative"])
+            for k in np.argsort(-share)[:top]:
+                lines.append(f"| {_label(int(k))} | {share[k]:.3f} | {rel[k]:.4f} |")
+            lines += ["", "Sources summed:", "",
                       "| paths with | share of the region's light | its contrast, <abs dE_k> / <E0> | noise |",
                       "|---|---|---|---|"]
             for event in ("none",) + PATH_EVENTS:
@@ -295,17 +360,22 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, default=SEEDS, help=f"independent runs (default {SEEDS})")
     p.add_argument("--set", action="append", default=[], metavar="EFFECT=VALUE",
                    help="a physical setting instead of its default (pbr_tactile.effects.Effects; repeatable)")
+    p.add_argument("--spec", metavar="PATH", help="measure this sensor file instead of the one sensor of --sensors "
+                   "(its contacts are that sensor's: a capsule's tip, dome and body, a pad's centre)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     names = [s for s in args.sensors.split(",") if s]
     unknown = [s for s in names if s not in SENSORS]
     if unknown:
         p.error(f"--sensors must be some of {', '.join(SENSORS)}, got {', '.join(unknown)}")
+    if args.spec is not None and len(names) != 1:
+        p.error("--spec replaces the spec of one sensor: give --sensors with one name")
+    specs = {s: args.spec if args.spec is not None else SENSORS[s] for s in names}
     from scenes.dataset import atomic_write_bytes, atomic_write_json
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = {"sensors": {s: measure(SENSORS[s], args.photons, args.seeds, progress=not args.quiet,
+    results = {"sensors": {s: measure(specs[s], args.photons, args.seeds, progress=not args.quiet,
                                       settings=args.set) for s in names}}
     atomic_write_json(out / "results.json", results)
     atomic_write_bytes(out / "table.md", table(results).encode())

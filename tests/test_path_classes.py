@@ -134,3 +134,25 @@ def test_bad_counts_and_sensors_are_refused_by_name(tmp_path, capsys):
         main(["--out", str(tmp_path), "--sensors", "geltip,paw"])
     assert "--sensors must be some of geltip, gelsight, got paw" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_source_contrasts_by_hand():
+    """Two LEDs brighten opposite vertices of a region: each source's own contrast is
+    large while their summed change cancels, as two coloured channels would show it."""
+    from studies.path_classes import class_shares, source_contrasts
+
+    area = np.array([1.0, 1.0, 2.0])
+    region = np.array([True, True, False])
+    e_0 = np.array([[1.0, 1.0, 5.0], [2.0, 2.0, 5.0]])
+    e_c = np.array([[1.5, 0.5, 9.0], [1.0, 3.0, 5.0]])
+    got = source_contrasts(e_0, e_c, area, region)
+    # source 0: |+0.5| + |-0.5| over 2; source 1: |+1| + |-1| over 4; the vertex outside is not counted
+    np.testing.assert_allclose(got, [0.5, 0.5])
+    summed = class_shares(e_0, e_c, area, region)  # the two sources as two classes of one light
+    # summed, vertex 0 changes by +0.5 - 1 and vertex 1 by -0.5 + 1: a third of either source's
+    assert summed["contrast"] == pytest.approx((abs(0.5 - 1) + abs(-0.5 + 1)) / 6)
+    one = source_contrasts(e_0[:1], e_0[:1] + np.array([[0.0, 0.0, 1.0]]), area, region)
+    assert one[0] == 0.0
+    assert np.isnan(source_contrasts(np.zeros((1, 3)), np.ones((1, 3)), area, region)[0])
+    with pytest.raises(ValueError, match=r"e_0 and e_c must be \(S, V\)"):
+        source_contrasts(e_0, e_c[:, :2], area, region)
