@@ -134,22 +134,53 @@ def contact_strength(images: np.ndarray, no_contact: np.ndarray, regions: np.nda
     images : (N, H, W, 3); no_contact : (H, W, 3), or (N, H, W, 3) one per image;
     regions : (N, H, W) bool, or (H, W) for all. A press with an empty region is NaN.
     """
+    return contact_contrast(images, no_contact, regions)["change"].mean(axis=1)
+
+
+def contact_contrast(images: np.ndarray, no_contact: np.ndarray, regions: np.ndarray) -> dict[str, np.ndarray]:
+    """Each press's contact strength (``contact_strength``) in its two factors, per channel:
+    ``level`` (N, 3), the no-contact image's mean over the region; ``change`` (N, 3), the
+    mean |image - no_contact| there; and ``relative`` (N, 3), change over level.
+
+    A simulator's strength over the real is its level ratio times its relative-change
+    ratio: the first is the camera's (exposure, gains, offset, response), the second the
+    light's (how strongly the contact changes the light on the paint, less what the
+    camera's offset and response dilute). Same arguments as ``contact_strength``; NaN where
+    a region is empty or its level is 0."""
     images = np.asarray(images, np.float64)
     if images.ndim != 4 or images.shape[-1] != 3:
         raise ValueError(f"images must be (N, H, W, 3), got shape {images.shape}")
-    no_contact = np.asarray(no_contact, np.float64)
-    if no_contact.shape not in (images.shape, images.shape[1:]):
+    no_contact = np.broadcast_to(np.asarray(no_contact, np.float64), images.shape) \
+        if np.shape(no_contact) == images.shape[1:] else np.asarray(no_contact, np.float64)
+    if no_contact.shape != images.shape:
         raise ValueError(f"no_contact must be (H, W, 3) or (N, H, W, 3) like images {images.shape}, got "
-                         f"{no_contact.shape}")
+                         f"{np.shape(no_contact)}")
     regions = np.broadcast_to(np.asarray(regions, bool), images.shape[:3]) if np.ndim(regions) == 2 \
         else np.asarray(regions, bool)
     if regions.shape != images.shape[:3]:
         raise ValueError(f"regions must be (N, H, W) or (H, W) bool like images {images.shape[:3]}, got "
                          f"{regions.shape}")
-    change = np.abs(images - no_contact).mean(axis=3)
-    count = regions.sum(axis=(1, 2))
+    count = regions.sum(axis=(1, 2))[:, None]
+    w = regions[..., None]
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(count > 0, (change * regions).sum(axis=(1, 2)) / count, np.nan)
+        level = np.where(count > 0, (no_contact * w).sum(axis=(1, 2)) / count, np.nan)
+        change = np.where(count > 0, (np.abs(images - no_contact) * w).sum(axis=(1, 2)) / count, np.nan)
+        relative = np.where(level > 0, change / level, np.nan)
+    return {"level": level, "change": change, "relative": relative}
+
+
+def dynamic_range(image: np.ndarray, inside: np.ndarray, low: float = 5.0, high: float = 95.0) -> np.ndarray:
+    """(3,) each channel's ``high`` over its ``low`` percentile inside ``inside`` (H, W): how
+    unevenly the LEDs light a no-contact image (NaN where the low percentile is 0)."""
+    image = np.asarray(image, np.float64)
+    inside = np.asarray(inside, bool)
+    if image.ndim != 3 or image.shape[-1] != 3 or inside.shape != image.shape[:2]:
+        raise ValueError(f"image must be (H, W, 3) and inside (H, W) like it, got {image.shape} and {inside.shape}")
+    if not inside.any():
+        raise ValueError("inside selects no pixel")
+    lo, hi = np.percentile(image[inside], [low, high], axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(lo > 0, hi / lo, np.nan)
 
 
 def halves(count: int, limit: int) -> np.ndarray:

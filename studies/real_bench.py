@@ -25,7 +25,10 @@ shipped table), ``localisation_mm.none``, ``.randomised`` and ``.diagnosed`` (th
 median error on the real held-out presses, each model calibrated by its constant offset
 on the real fitted half; ``localisation_mm_no_offset`` the same without it), and ``seconds`` (import, both calibrations
 and the comparisons together), each with its interval and what it was measured on, and
-the per-stage seconds.
+the per-stage seconds. Each renderer's figure in ``detail`` carries its ``contrast``
+(``studies.compare.run.contrast_budget``): its strength split per channel into the
+camera's share (the level ratio) and the light's (the relative-change ratio), with the
+no-contact images' dynamic ranges.
 """
 
 from __future__ import annotations
@@ -71,7 +74,7 @@ def _figure(row: dict | None) -> dict | None:
     return {"label": row["label"], "presses": row["taps"], "contact_mae": row["contact"]["mae"],
             "strength_median": row["strength"]["median"],
             "strength_mean": {k: row["strength"][k] for k in ("mean", "low", "high")},
-            "full_mae": row["full"]["mae"]}
+            "full_mae": row["full"]["mae"], "contrast": row.get("contrast")}
 
 
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,

@@ -40,6 +40,42 @@ def test_contact_strength_refuses_bad_shapes(args, match):
         captures.contact_strength(*args)
 
 
+def test_contact_contrast_splits_the_strength_into_level_and_relative_change():
+    no_contact = np.full((6, 8, 3), [0.2, 0.4, 0.5])
+    regions = np.zeros((2, 6, 8), bool)
+    regions[0, 1:3, 2:6] = True  # region 1 stays empty
+    images = np.repeat(no_contact[None], 2, axis=0)
+    images[0][regions[0]] += [0.1, -0.1, 0.0]
+    got = captures.contact_contrast(images, no_contact, regions)
+    np.testing.assert_allclose(got["level"][0], [0.2, 0.4, 0.5])
+    np.testing.assert_allclose(got["change"][0], [0.1, 0.1, 0.0], atol=1e-12)
+    np.testing.assert_allclose(got["relative"][0], [0.5, 0.25, 0.0], atol=1e-12)
+    assert np.isnan(got["level"][1]).all() and np.isnan(got["relative"][1]).all()
+    # the strength is the channels' mean change, and a camera that doubles every value
+    # doubles the level, not the relative change
+    assert captures.contact_strength(images, no_contact, regions)[0] == pytest.approx(0.2 / 3)
+    doubled = captures.contact_contrast(2 * images, 2 * no_contact, regions)
+    np.testing.assert_allclose(doubled["relative"][0], got["relative"][0], atol=1e-12)
+    # an offset (a pedestal) raises the level and dilutes the relative change
+    lifted = captures.contact_contrast(images + 0.3, no_contact + 0.3, regions)
+    np.testing.assert_allclose(lifted["relative"][0], [0.1 / 0.5, 0.1 / 0.7, 0.0], atol=1e-12)
+
+
+def test_dynamic_range_is_a_high_over_a_low_percentile_inside():
+    image = np.ones((10, 10, 3))
+    image[:, :5, 0] = 3.0  # half the red channel three times brighter
+    image[0, 0] = 100.0  # outside: not counted
+    inside = np.ones((10, 10), bool)
+    inside[0, 0] = False
+    got = captures.dynamic_range(image, inside)
+    assert got[0] == pytest.approx(3.0) and got[1] == got[2] == 1.0
+    assert np.isnan(captures.dynamic_range(np.zeros((4, 4, 3)), np.ones((4, 4), bool))).all()
+    with pytest.raises(ValueError, match=r"image must be \(H, W, 3\) and inside \(H, W\)"):
+        captures.dynamic_range(image, inside[:5])
+    with pytest.raises(ValueError, match="inside selects no pixel"):
+        captures.dynamic_range(image, np.zeros((10, 10), bool))
+
+
 def test_press_regions_take_an_annotated_disc_else_the_change():
     background = np.full((20, 30, 3), 0.5)
     images = np.repeat(background[None], 2, axis=0)

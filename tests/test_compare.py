@@ -89,6 +89,13 @@ def test_compare_finds_the_settings_the_capture_was_made_with(compare_result):
     # its contacts, where the real taps differ from the real no-contact image, as strong as the capture's
     assert own["contact"]["mae"]["high"] < 2 * LSB and own["strength"]["median"] == pytest.approx(1.0, abs=0.02)
     assert result["contact"].startswith("where each real tap differs") and len(result["real_strength"]) == 4
+    # its strength splits into a level and a relative change each as the capture's, and its
+    # no-contact image is as uneven as the capture's
+    budget = own["contrast"]
+    assert budget["level_ratio"] == pytest.approx([1.0] * 3, abs=0.02)
+    assert budget["relative_ratio"] == pytest.approx([1.0] * 3, abs=0.05)
+    assert budget["dynamic_range"] == pytest.approx(budget["real_dynamic_range"], rel=0.02)
+    assert rows["fast: plane, background none"]["contrast"]["level_ratio"][0] < 0.9  # the capture has a background
     for label, r in rows.items():
         if label != own["label"]:
             assert r["masked"]["mae"]["mean"] > 10 * own["masked"]["mae"]["mean"], label

@@ -30,7 +30,7 @@ from phong_reference.bake import METHODS
 from phong_reference.plugin import OPTIONS as FAST_OPTIONS
 from phong_reference.render import finish
 from scenes.camera import Camera
-from scenes.captures import contact_strength, press_regions, split
+from scenes.captures import contact_contrast, contact_strength, dynamic_range, press_regions, split
 from scenes.dataset import load_sample, read_samples
 from scenes.images import read_rgb
 from scenes.profile import Alignment, align_image, load_profile
@@ -117,6 +117,25 @@ def _backgrounds(capture: Capture, camera: Camera, wanted: Sequence[str] | None)
     return {b: make_background(capture.root / "background.png" if b == "real" else b, camera) for b in names}
 
 
+def contrast_budget(sim: dict, real: dict, sim_range: np.ndarray, real_range: np.ndarray) -> dict:
+    """Where a method's contact strength against the real one comes from, per channel
+    (``scenes.captures.contact_contrast`` of its taps and of the real ones): the medians over
+    the taps of its level over the real level (the camera's share) and of its relative
+    change over the real one (the light's share, less what the camera's offset and
+    response dilute), their relative changes themselves, and each no-contact image's
+    dynamic range (``scenes.captures.dynamic_range``: how unevenly its LEDs light it)."""
+    def median(x):
+        x = np.asarray(x, np.float64)
+        return [float(np.nanmedian(x[:, c])) if np.isfinite(x[:, c]).any() else float("nan") for c in range(3)]
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return {"level_ratio": median(sim["level"] / real["level"]),
+                "relative_ratio": median(sim["relative"] / real["relative"]),
+                "relative": median(sim["relative"]), "real_relative": median(real["relative"]),
+                "dynamic_range": [float(v) for v in sim_range], "real_dynamic_range": [float(v) for v in real_range],
+                "channels": "rgb"}
+
+
 def compare(
     capture_dir: str | Path,
     out: str | Path,
@@ -195,6 +214,7 @@ def compare(
     regions = None if real_bg is None and not annotated else press_regions(
         [by_id[i] for i in ids], real, real_bg if real_bg is not None else np.zeros_like(real[0]), mask)
     real_strength = None if regions is None or real_bg is None else contact_strength(real, real_bg, regions)
+    real_contrast = None if real_strength is None else contact_contrast(real, real_bg, regions)
     fast_options = {k: v for k, v in options.items() if k in FAST_OPTIONS}
     ref_options = {k: v for k, v in options.items() if k not in FAST_OPTIONS}
     common = {"workers": workers, "progress": progress}
@@ -214,6 +234,10 @@ def compare(
         if real_strength is not None and no_contact is not None:
             strength = contact_strength(stack, no_contact, region) / real_strength[pick]
         rows.append(table.row(label, method, values, which, bootstrap, seed, strength=strength))
+        if strength is not None:
+            rows[-1]["contrast"] = contrast_budget(contact_contrast(stack, no_contact, region),
+                                                   {k: v[pick] for k, v in real_contrast.items()},
+                                                   dynamic_range(no_contact, mask), dynamic_range(real_bg, mask))
         examples["mean_abs"][label] = np.abs(stack - real[pick]).mean(axis=(0, 3))
         examples["images"][label] = stack[[which.index(i) for i in shown]]
 
