@@ -169,9 +169,15 @@ def contact_contrast(images: np.ndarray, no_contact: np.ndarray, regions: np.nda
     return {"level": level, "change": change, "relative": relative}
 
 
-def dynamic_range(image: np.ndarray, inside: np.ndarray, low: float = 5.0, high: float = 95.0) -> np.ndarray:
-    """(3,) each channel's ``high`` over its ``low`` percentile inside ``inside`` (H, W): how
-    unevenly the LEDs light a no-contact image (NaN where the low percentile is 0)."""
+def frame_spread(image: np.ndarray, inside: np.ndarray, low: float = 5.0, high: float = 95.0) -> dict[str, np.ndarray]:
+    """How unevenly the LEDs light a no-contact image (H, W, 3) inside ``inside`` (H, W),
+    per channel (3,): its ``low`` and ``high`` percentiles, their difference ``spread`` and
+    their ratio ``range`` (NaN where the low percentile is 0).
+
+    A contact's mean change over the frame's spread is unchanged by any gain and offset
+    of the camera, and to first order by its response curve: a camera fitted to the
+    no-contact image cannot make a contact stronger against the frame's unevenness than
+    the light made it (``studies.compare.run.contrast_budget``)."""
     image = np.asarray(image, np.float64)
     inside = np.asarray(inside, bool)
     if image.ndim != 3 or image.shape[-1] != 3 or inside.shape != image.shape[:2]:
@@ -180,7 +186,7 @@ def dynamic_range(image: np.ndarray, inside: np.ndarray, low: float = 5.0, high:
         raise ValueError("inside selects no pixel")
     lo, hi = np.percentile(image[inside], [low, high], axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(lo > 0, hi / lo, np.nan)
+        return {"low": lo, "high": hi, "spread": hi - lo, "range": np.where(lo > 0, hi / lo, np.nan)}
 
 
 def halves(count: int, limit: int) -> np.ndarray:

@@ -27,8 +27,8 @@ on the real fitted half; ``localisation_mm_no_offset`` the same without it), and
 and the comparisons together), each with its interval and what it was measured on, and
 the per-stage seconds. Each renderer's figure in ``detail`` carries its ``contrast``
 (``studies.compare.run.contrast_budget``): its strength split per channel into the
-camera's share (the level ratio) and the light's (the relative-change ratio), with the
-no-contact images' dynamic ranges.
+camera's share (the level ratio), the light's (the relative-change ratio) and what no
+camera fitted to the no-contact image can change (the change over the frame's spread).
 """
 
 from __future__ import annotations

@@ -61,19 +61,24 @@ def test_contact_contrast_splits_the_strength_into_level_and_relative_change():
     np.testing.assert_allclose(lifted["relative"][0], [0.1 / 0.5, 0.1 / 0.7, 0.0], atol=1e-12)
 
 
-def test_dynamic_range_is_a_high_over_a_low_percentile_inside():
+def test_frame_spread_is_a_low_and_a_high_percentile_inside():
     image = np.ones((10, 10, 3))
     image[:, :5, 0] = 3.0  # half the red channel three times brighter
     image[0, 0] = 100.0  # outside: not counted
     inside = np.ones((10, 10), bool)
     inside[0, 0] = False
-    got = captures.dynamic_range(image, inside)
-    assert got[0] == pytest.approx(3.0) and got[1] == got[2] == 1.0
-    assert np.isnan(captures.dynamic_range(np.zeros((4, 4, 3)), np.ones((4, 4), bool))).all()
+    got = captures.frame_spread(image, inside)
+    assert got["range"][0] == pytest.approx(3.0) and got["spread"][0] == pytest.approx(2.0)
+    assert got["range"][1] == got["range"][2] == 1.0 and got["spread"][1] == 0.0
+    # a camera's gain and offset leave a change over the spread as it was
+    change = 0.5
+    moved = captures.frame_spread(2.0 * image + 0.3, inside)
+    assert 2.0 * change / moved["spread"][0] == pytest.approx(change / got["spread"][0])
+    assert np.isnan(captures.frame_spread(np.zeros((4, 4, 3)), np.ones((4, 4), bool))["range"]).all()
     with pytest.raises(ValueError, match=r"image must be \(H, W, 3\) and inside \(H, W\)"):
-        captures.dynamic_range(image, inside[:5])
+        captures.frame_spread(image, inside[:5])
     with pytest.raises(ValueError, match="inside selects no pixel"):
-        captures.dynamic_range(image, np.zeros((10, 10), bool))
+        captures.frame_spread(image, np.zeros((10, 10), bool))
 
 
 def test_press_regions_take_an_annotated_disc_else_the_change():

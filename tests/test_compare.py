@@ -94,7 +94,8 @@ def test_compare_finds_the_settings_the_capture_was_made_with(compare_result):
     budget = own["contrast"]
     assert budget["level_ratio"] == pytest.approx([1.0] * 3, abs=0.02)
     assert budget["relative_ratio"] == pytest.approx([1.0] * 3, abs=0.05)
-    assert budget["dynamic_range"] == pytest.approx(budget["real_dynamic_range"], rel=0.02)
+    assert budget["spread_ratio"] == pytest.approx([1.0] * 3, abs=0.05)
+    assert budget["range"] == pytest.approx(budget["real_range"], rel=0.02)
     assert rows["fast: plane, background none"]["contrast"]["level_ratio"][0] < 0.9  # the capture has a background
     for label, r in rows.items():
         if label != own["label"]:

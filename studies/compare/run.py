@@ -30,7 +30,7 @@ from phong_reference.bake import METHODS
 from phong_reference.plugin import OPTIONS as FAST_OPTIONS
 from phong_reference.render import finish
 from scenes.camera import Camera
-from scenes.captures import contact_contrast, contact_strength, dynamic_range, press_regions, split
+from scenes.captures import contact_contrast, contact_strength, frame_spread, press_regions, split
 from scenes.dataset import load_sample, read_samples
 from scenes.images import read_rgb
 from scenes.profile import Alignment, align_image, load_profile
@@ -117,22 +117,31 @@ def _backgrounds(capture: Capture, camera: Camera, wanted: Sequence[str] | None)
     return {b: make_background(capture.root / "background.png" if b == "real" else b, camera) for b in names}
 
 
-def contrast_budget(sim: dict, real: dict, sim_range: np.ndarray, real_range: np.ndarray) -> dict:
-    """Where a method's contact strength against the real one comes from, per channel
-    (``scenes.captures.contact_contrast`` of its taps and of the real ones): the medians over
-    the taps of its level over the real level (the camera's share) and of its relative
-    change over the real one (the light's share, less what the camera's offset and
-    response dilute), their relative changes themselves, and each no-contact image's
-    dynamic range (``scenes.captures.dynamic_range``: how unevenly its LEDs light it)."""
+def contrast_budget(sim: dict, real: dict, sim_frame: dict, real_frame: dict) -> dict:
+    """Where a method's contact strength against the real one comes from, per channel,
+    from ``scenes.captures.contact_contrast`` of its taps and of the real ones and
+    ``frame_spread`` of each no-contact image: the medians over the taps of
+
+    - ``level_ratio``, its level over the real level: the camera's share (exposure, gains);
+    - ``relative_ratio``, its relative change over the real one: the light's share, less
+      what the camera's offset and response dilute (``relative``, ``real_relative``);
+    - ``spread_ratio``, its change over its frame's spread against the real one's: what no
+      gain, offset or response of a camera fitted to the no-contact image changes, so
+      below 1 the light itself makes the contact too weak for how unevenly it lights the
+      frame, and a calibration that evens the frame weakens the contact by as much;
+
+    and each frame's ``range`` (high over low percentile) beside the real one's."""
     def median(x):
         x = np.asarray(x, np.float64)
         return [float(np.nanmedian(x[:, c])) if np.isfinite(x[:, c]).any() else float("nan") for c in range(3)]
 
     with np.errstate(invalid="ignore", divide="ignore"):
+        spread = (sim["change"] / sim_frame["spread"]) / (real["change"] / real_frame["spread"])
         return {"level_ratio": median(sim["level"] / real["level"]),
                 "relative_ratio": median(sim["relative"] / real["relative"]),
+                "spread_ratio": median(spread),
                 "relative": median(sim["relative"]), "real_relative": median(real["relative"]),
-                "dynamic_range": [float(v) for v in sim_range], "real_dynamic_range": [float(v) for v in real_range],
+                "range": [float(v) for v in sim_frame["range"]], "real_range": [float(v) for v in real_frame["range"]],
                 "channels": "rgb"}
 
 
@@ -237,7 +246,7 @@ def compare(
         if strength is not None:
             rows[-1]["contrast"] = contrast_budget(contact_contrast(stack, no_contact, region),
                                                    {k: v[pick] for k, v in real_contrast.items()},
-                                                   dynamic_range(no_contact, mask), dynamic_range(real_bg, mask))
+                                                   frame_spread(no_contact, mask), frame_spread(real_bg, mask))
         examples["mean_abs"][label] = np.abs(stack - real[pick]).mean(axis=(0, 3))
         examples["images"][label] = stack[[which.index(i) for i in shown]]
 
