@@ -235,14 +235,9 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             S, K, V = flux.shape
             return irradiance(flux.reshape(S * K, V), area, kernel).reshape(S, K, V)
 
-        def maps(flux, area, kernel):  # (S, K, V) flux -> (K, V) irradiance, the sources summed
-            return irradiance(flux.sum(axis=0), area, kernel)
-
-        no_contact, no_contact_s = [], []
-        for seed in range(seeds):
-            flux = trace(flat, photons, seed, window)
-            no_contact.append(maps(flux, area_0, kernel_0))
-            no_contact_s.append(per_source(flux, area_0, kernel_0))
+        # irradiance is linear in the flux: the sources' summed map (K, V) is their maps' sum
+        no_contact_s = [per_source(trace(flat, photons, seed, window), area_0, kernel_0) for seed in range(seeds)]
+        no_contact = [e.sum(axis=0) for e in no_contact_s]
         for name, pixel in pixels.items():
             t0 = time.perf_counter()
             depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=SPHERE_RADIUS_M), pixel,
@@ -255,11 +250,8 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             area_c = coating_areas(dented)
             at = points[int(round(pixel[1])), int(round(pixel[0]))]
             region = np.linalg.norm(vertices_0 - at, axis=1) <= REGION_SCALE * hertz
-            contact, contact_s = [], []
-            for seed in range(seeds):
-                flux = trace(dented, photons, seed, window)
-                contact.append(maps(flux, area_c, kernel_c))
-                contact_s.append(per_source(flux, area_c, kernel_c))
+            contact_s = [per_source(trace(dented, photons, seed, window), area_c, kernel_c) for seed in range(seeds)]
+            contact = [e.sum(axis=0) for e in contact_s]
             runs = [class_shares(e0, ec, area_0, region) for e0, ec in zip(no_contact, contact)]
             e0, change = np.mean(no_contact, axis=0), np.mean(contact, axis=0) - np.mean(no_contact, axis=0)
             pooled = class_shares(e0, e0 + change, area_0, region)
@@ -271,8 +263,8 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             s0, sc = np.mean(no_contact_s, axis=0), np.mean(contact_s, axis=0)  # (S, K, V)
             by_source = source_contrasts(s0.sum(axis=1), sc.sum(axis=1), area_0, region)
             # each class of each source: its share of the source's region light and its own relative change
-            share_sk = np.stack([class_shares(s0[m], sc[m], area_0, region)["region"] for m in range(len(srcs))])
-            rel_sk = np.stack([class_shares(s0[m], sc[m], area_0, region)["relative"] for m in range(len(srcs))])
+            per = [class_shares(s0[m], sc[m], area_0, region) for m in range(len(srcs))]
+            share_sk, rel_sk = np.stack([f["region"] for f in per]), np.stack([f["relative"] for f in per])
             with warnings.catch_warnings():  # a class no source's photons took is NaN
                 warnings.simplefilter("ignore", RuntimeWarning)
                 relative = np.nanmean(np.where(share_sk > 0, rel_sk, np.nan), axis=0)
