@@ -133,6 +133,9 @@ def test_bad_counts_and_sensors_are_refused_by_name(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path), "--sensors", "geltip,paw"])
     assert "--sensors must be some of geltip, gelsight, got paw" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--out", str(tmp_path), "--sensors", "geltip,gelsight", "--spec", "any.toml"])
+    assert "--spec replaces the spec of one sensor" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
 
 
