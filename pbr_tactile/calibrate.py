@@ -77,7 +77,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                          grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
                          seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
                          progress=None, taps=None, fast_path_fit=None, image_variance=None,
-                         fast_taps=None) -> Calibration:
+                         fast_taps=None, camera_known: bool = False) -> Calibration:
     """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1], and to
     its sensor's taps if given.
 
@@ -126,7 +126,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     for i, point in enumerate(points):
         effects = dataclasses.replace(base, **point)
         basis = emitter_basis(rendered, mesh, wide, effects, film, photons, spp, passes, seed, use_cache)
-        model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans, rendered=wide, lens=True)
+        model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans, rendered=wide,
+                           lens=not camera_known, known_alignment=camera_known)
         train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
         fit = ImageFitter(model, r, train, leak=leak).search()
         fits.append((debiased(fit, model, basis, [train]), point, basis, model))
@@ -168,7 +169,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         standard_errors = tied_errors(fit.nl, ImageFitter(model, r, train, leak=leak).covariance(fit.nl, noise))
     r2_interval = {ch: heldout_interval(after[..., c], r[..., c], judged[ch], sector, seed) for c, ch in enumerate("rgb")}
     fast_table, fast_path = fit_fast_background(r, circle, camera, train, test, clipped, judged, sector, seed)
-    nl = fit.nl.tied() if taps is None else dataclasses.replace(
+    tie = taps is None and not camera_known  # a held rotation is reported as held
+    nl = fit.nl.tied() if tie else dataclasses.replace(
         fit.nl, rotation_rad=math.remainder(fit.nl.rotation_rad, 2 * math.pi))
     data = "one no-contact image" if taps is None else f"one no-contact image and {len(taps.ids)} taps"
     # each LED's own values: its unit's, and its turn from where the spec has it
@@ -185,7 +187,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                    "photons": photons,
                    "spp": spp, "passes": passes, "seed": seed},
         phong={"ambient": 1.0, "background": fast_table},
-        fit={"data": data, "converged": fit.converged, "heldout_r2": heldout,
+        fit={"data": data, "converged": fit.converged, "heldout_r2": heldout, "camera_known": camera_known,
              "phong_heldout_r2": fast_path["heldout_r2"], "camera": fitted_camera(nl, camera)})
     report = {
         "converged": fit.converged, "loss": fit.loss, "start_loss": fit.start_loss, "evaluations": fit.evaluations,
@@ -194,7 +196,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "image_circle": circle, "film": [width, height], "sectors": SECTORS,
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "noise": f.noise, "converged": f.converged} for f, p, _, _ in fits],
-        "best_effects": point, "parameters": _parameters(fit, tie=taps is None, spec=spec), "intervals": intervals,
+        "best_effects": point, "parameters": _parameters(fit, tie=tie, spec=spec), "intervals": intervals,
         "standard_errors": standard_errors,
         "camera": fitted_camera(nl, camera), "on_bound": on_bound(fit.nl, model, leak),
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,
@@ -299,7 +301,7 @@ def _bootstrap(fit: ImageFit, model: ImageModel, r: np.ndarray, sector: np.ndarr
         views = [dataclasses.replace(view, weight=float(n)) for view, n in zip(taps, times)]
         refit = ImageFitter(model, r, weight > 0, weight=weight, leak=leak, taps=views,
                             common_turn=bool(taps)).fit(fit.nl, max_evaluations=300)
-        for name, value in _parameters(refit, tie=not taps).items():
+        for name, value in _parameters(refit, tie=not taps and not model.known_alignment).items():
             samples.setdefault(name, []).append(np.asarray(value, np.float64))
     return {name: np.apply_along_axis(interval, 0, np.stack(values)).tolist() for name, values in samples.items()}
 

@@ -206,7 +206,7 @@ def cmd_calibrate(args) -> int:
     cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
                                grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
                                bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps,
-                               fast_path_fit=fast_path_fit(), fast_taps=fast_taps)
+                               fast_path_fit=fast_path_fit(), fast_taps=fast_taps, camera_known=args.camera_known)
     bar.close()
     cal.report["seconds"] = time.perf_counter() - t0
     paths = write_outputs(cal, Path(args.out), what)
@@ -309,6 +309,10 @@ def register(registry) -> None:
                    help="effects searched and their values (repeatable; default absorption_per_m and "
                         "scattering_per_m on 3 values each)")
     p.add_argument("--no-leak", action="store_true", help="no light into the glass core (the leak fixed at 0)")
+    p.add_argument("--camera-known", action="store_true",
+                   help="the real camera is the spec's (a spec written from the unit's own camera record, as "
+                        "gelsight.toml): hold the membrane's rotation, scale, shift and lens there instead of "
+                        "searching them (pbr_tactile.image_model)")
     p.add_argument("--taps", type=int, help="taps of REAL used, spread over it (default and at most 10; 0: its "
                                            "no-contact image only); with REAL = benchmark: virtual taps per sensor "
                                            "(default 0)")

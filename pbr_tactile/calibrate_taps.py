@@ -37,7 +37,8 @@ The fit starts from the no-contact fit. That fit pins each LED's whole turn only
 sensor a whole turn 0.47 rad off cost 0.5 % of the loss), so the starts keep its tied
 values (the azimuths' spread, the camera, the leaks) and scan the membrane's rotation
 round the whole circle in SCAN_STEP_RAD steps; the best few are refined by the same
-bounded least squares.
+bounded least squares. With a known alignment (``ImageModel.known_alignment``) there is
+nothing to scan: the fit starts from the no-contact fit itself.
 """
 
 from __future__ import annotations
@@ -156,6 +157,8 @@ def fit_with_taps(model: ImageModel, real: np.ndarray, train: np.ndarray, views:
     azimuth free, where the data can tell them apart (not so on the reference's own images:
     see ``calibrate.NOT_IDENTIFIABLE_WITH_TAPS``)."""
     fitter = ImageFitter(model, real, train, leak=leak, taps=views, common_turn=common_turn)
+    if model.known_alignment:
+        return fitter.fit(start.nl, max_evaluations)
     screened = sorted(starts(start), key=lambda nl: fitter.loss(nl.vector()))[:keep]
     return min((fitter.fit(nl, max_evaluations) for nl in screened), key=lambda f: f.loss)
 

@@ -30,6 +30,16 @@ is modelled as
 The nonlinear parameters (theta, phi_m, the leaks, scale, shift, a1, a2, gamma, the
 groups' spans and k1) are searched by bounded least squares from several rotations
 (``ImageFitter``); the physical ones on the calibration's grid.
+
+Where the real camera is known to be the spec's (``ImageModel(known_alignment=True)``: a
+unit whose spec was written from its own camera's record, as the public GelSight's), the
+membrane's alignment is held there: theta 0, scale 1, no shift, the spec's k1, searched
+from one start. Then only the LEDs' own azimuths (within AZIMUTH_BOUND_RAD of the spec's),
+leaks, fall-off, response and gains are fitted. Why: with three LEDs 120 deg apart and a
+free gain per LED and channel, a turn of a third of the circle that swaps the LEDs'
+colours costs a no-contact image almost nothing. On the GelSight's presses the free
+search took it (2.19 rad) and left the taps' held-out change R^2 negative; held at the
+camera, it was 0.50 / 0.17 / 0.44.
 """
 
 from __future__ import annotations
@@ -160,13 +170,18 @@ class ImageModel:
     """The image model of the module doc at a film's resolution, for one basis."""
 
     def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None,
-                 arcs: list | None = None, spans: tuple = (), rendered: Camera | None = None, lens: bool = False):
+                 arcs: list | None = None, spans: tuple = (), rendered: Camera | None = None, lens: bool = False,
+                 known_alignment: bool = False):
         """basis (h, w, S) per unit flux of sources ``names``, taken with the camera
         ``rendered`` (default: ``camera``, the spec's; ``basis_camera`` sees wider, so the
         fitted lens may too); ``arcs`` and ``spans`` (``basis_layout``): each unit's LEDs
         along its arc as shares of its span (Nonlinear.span_rad, which starts at
         ``spans``), its source rendered at the arc's centre; None: each unit is one LED.
-        ``lens``: the lens' k1 is fitted (else held at the spec's)."""
+        ``lens``: the lens' k1 is fitted (else held at the spec's). ``known_alignment``:
+        the real camera is the spec's (module doc): the rotation, scale, shift and k1 are
+        held there (``lens`` must be False)."""
+        if known_alignment and lens:
+            raise ValueError("ImageModel: a known alignment holds the lens at the spec's; lens=True fits it")
         self.A = np.asarray(basis, np.float64)
         self.h, self.w, self.S = self.A.shape
         self.led = led_of_source(names)
@@ -176,6 +191,7 @@ class ImageModel:
         self.rendered = camera if rendered is None else rendered
         self._lens_rays: tuple = (None, None)  # (the real lens, its rays at the film): ``moved``
         self.lens = lens
+        self.known_alignment = bool(known_alignment)
         r = circle_radius(circle, (self.h, self.w), (camera.height, camera.width))
         self.inside = r <= 1.0 if circle is not None else np.ones(r.shape, bool)
         self.r = np.minimum(r, 1.0)
@@ -195,8 +211,14 @@ class ImageModel:
         return Nonlinear.start(self.leds, rotation_rad, leak, self.spans, self.camera.k1)
 
     def bounds(self, leak: bool) -> list[tuple[float, float]]:
-        """The search's bounds (``_bounds``) for this model's units and lens."""
-        return _bounds(self.leds, leak, self.arcs, None if self.lens else self.camera.k1)
+        """The search's bounds (``_bounds``) for this model's units and lens; with a known
+        alignment, the rotation, scale and shift held at the camera's."""
+        bounds = _bounds(self.leds, leak, self.arcs, None if self.lens else self.camera.k1)
+        if self.known_alignment:
+            n = self.leds
+            for i in (0, 1 + 2 * n, 2 + 2 * n, 3 + 2 * n):  # rotation_rad, log_scale, shift_u, shift_v
+                bounds[i] = (0.0, 0.0)
+        return bounds
 
     def moved(self, image: np.ndarray, nl: Nonlinear, turn: float, variance: bool = False) -> np.ndarray:
         """(h, w) ``image`` turned by ``turn`` rad (an LED's azimuth; 0 for the membrane)
@@ -496,6 +518,7 @@ class ImageFitter:
         evaluations first (SCREEN_EVALUATIONS; 0: each start's gains alone), then the
         ``keep`` best refined in full."""
         leak = 0.3 if self.leak and self.model.has_leak.any() else 0.0
+        rotations = 1 if self.model.known_alignment else rotations
         starts = [self.model.start(2 * math.pi * k / rotations, leak) for k in range(rotations)]
         if screen <= 0:
             screened = [(nl, None) for nl in sorted(starts, key=lambda nl: self.loss(nl.vector()))[:keep]]

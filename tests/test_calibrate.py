@@ -179,6 +179,44 @@ def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
     np.testing.assert_allclose(np.roll(fit.nl.leak, shift), truth.leak, atol=0.08)
 
 
+def test_a_known_alignment_is_held_and_keeps_each_leds_name(camera):
+    """A sensor whose camera is the spec's (rotation 0, scale 1, no shift): held there,
+    the fit moves none of them, recovers each LED's own azimuth and gains under its own
+    name (a free search may rename the LEDs by a third of a turn, as above), and is
+    refused with a fitted lens."""
+    A, names = _synthetic_basis(camera=camera)
+    circle = (321.0, 241.0, 236.0)
+    model = im.ImageModel(A, names, camera, circle, known_alignment=True)
+    n = model.leds
+    bounds = model.bounds(True)
+    for i in (0, 1 + 2 * n, 2 + 2 * n, 3 + 2 * n, len(bounds) - 1):
+        assert bounds[i][0] == bounds[i][1], i
+    assert bounds[1] == (-im.AZIMUTH_BOUND_RAD, im.AZIMUTH_BOUND_RAD)
+    truth = im.Nonlinear(rotation_rad=0.0, led_azimuth_rad=(0.12, -0.08, 0.2), leak=(0.3, 0.5, 0.2), scale=1.0,
+                          shift_px=(0.0, 0.0), vignetting=(-0.4, 0.0), gamma=1.8)
+    gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
+    real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, 1.0))
+    sector = ri.sector_index(real.shape[:2], (40, 30))
+    train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
+    fit = im.ImageFitter(model, real, train).search()
+    assert fit.converged
+    assert fit.nl.rotation_rad == 0.0 and fit.nl.scale == 1.0 and fit.nl.shift_px == (0.0, 0.0)
+    np.testing.assert_allclose(fit.nl.led_azimuth_rad, truth.led_azimuth_rad, atol=0.02)
+    np.testing.assert_allclose(fit.gains, gains, rtol=0.05, atol=0.01)
+    pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
+    assert min(ri.r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
+    # a camera turned 1 rad from the spec's is not the spec's: held (the LEDs' azimuths
+    # free only within AZIMUTH_BOUND_RAD), the fit cannot reach it (what --camera-known
+    # asserts), and leaves a gap a free search closes
+    turned = model.render(dataclasses.replace(truth, rotation_rad=1.0, led_azimuth_rad=(0.0, 0.0, 0.0)), gains,
+                          (0.01, 0.02, 0.0), (1.0, 1.0, 1.0))
+    held = im.ImageFitter(model, turned, train).search()
+    free = im.ImageFitter(im.ImageModel(A, names, camera, circle), turned, train).search(rotations=6)
+    assert held.loss > 10 * free.loss
+    with pytest.raises(ValueError, match="known alignment"):
+        im.ImageModel(A, names, camera, circle, lens=True, known_alignment=True)
+
+
 def test_the_alignments_lens_is_the_cameras_lens(spec):
     """Another mechanism: an image of the membrane rendered by a camera with a barrel lens,
     a wider field and a moved principal point (``lens_resample`` of a pinhole's view) is
