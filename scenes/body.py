@@ -38,7 +38,8 @@ import numpy as np
 import trimesh
 from scipy import spatial
 
-from .camera import Camera, unseen, view_angle
+from .camera import Camera, cast_rays, unseen, view_angle
+from .pad import PAD
 from .geometry import base_loop, crossing_faces, load_mesh, membrane_mesh, mesh_digest, validate_mesh
 from .spec import SensorSpec
 
@@ -47,8 +48,12 @@ NEAREST_FACES = 8
 #: A face of the derived core whose normal turns this far from the membrane's has folded.
 MAX_CORE_TURN_RAD = math.radians(60.0)
 #: The least share of the membrane's area the camera must see (the GelTip's published
-#: camera, a 90 deg pinhole 10 mm above the base, sees 61 %).
+#: camera, a 90 deg pinhole 10 mm above the base, sees 61 %). Not for a pad: a flat
+#: sensor's gel reaches past the view, to the LEDs at its edge, and its camera must see
+#: gel in every pixel instead (:func:`check_covers`).
 MIN_SEEN_SHARE = 0.5
+#: Pixels across the frame at which :func:`check_covers` casts its rays.
+COVER_CHECK_WIDTH = 64
 #: Bodies :func:`sensor_body` keeps, the most recently used.
 KEPT_BODIES = 4
 #: Version of the thickness kept on disk: bump it when _derived or _given change.
@@ -209,7 +214,8 @@ def _check_thickness(thickness: np.ndarray, bounds: tuple[float, float], membran
                              f"{what}), outside thickness_bounds [{lo * 1e3:.3g}, {hi * 1e3:.3g}] mm")
 
 
-def check_seen(membrane: trimesh.Trimesh, camera: Camera, name: str = "membrane") -> float:
+def check_seen(membrane: trimesh.Trimesh, camera: Camera, name: str = "membrane",
+               min_share: float = MIN_SEEN_SHARE) -> float:
     """Refuse a membrane the camera cannot see whole; return the share of its area seen.
 
     The camera sits inside the tube, so it cannot see a band above the base: the part
@@ -219,7 +225,7 @@ def check_seen(membrane: trimesh.Trimesh, camera: Camera, name: str = "membrane"
     - any part hidden behind another part of the membrane (a bend, a fold);
     - any part out of view above that band (outside the image circle, past the lens'
       field of view);
-    - a camera that sees less than MIN_SEEN_SHARE of the membrane's area.
+    - a camera that sees less than ``min_share`` of the membrane's area.
     """
     out, hidden = unseen(membrane, camera)
     V = np.asarray(membrane.vertices)
@@ -237,10 +243,23 @@ def check_seen(membrane: trimesh.Trimesh, camera: Camera, name: str = "membrane"
     area = np.asarray(membrane.area_faces)
     seen = ~(out | hidden)[np.asarray(membrane.faces)].any(axis=1)
     share = float(area[seen].sum() / area.sum())
-    if share < MIN_SEEN_SHARE:
-        raise ValueError(f"{name}: the camera sees {share:.0%} of the membrane's area, under {MIN_SEEN_SHARE:.0%}: "
+    if share < min_share:
+        raise ValueError(f"{name}: the camera sees {share:.0%} of the membrane's area, under {min_share:.0%}: "
                          "widen the lens (camera.fov_y, camera.projection) or lower the camera")
     return share
+
+
+def check_covers(membrane: trimesh.Trimesh, camera: Camera, name: str = "membrane") -> None:
+    """Refuse a membrane that leaves a pixel of the image circle without gel: every ray of
+    the camera (scaled to COVER_CHECK_WIDTH pixels across) must meet it. A pad's check in
+    place of MIN_SEEN_SHARE (a flat sensor's frame sees gel everywhere)."""
+    small = camera.scaled(COVER_CHECK_WIDTH, max(1, round(COVER_CHECK_WIDTH * camera.height / camera.width)))
+    hit = cast_rays(membrane, small)
+    missed = int(small.mask.sum()) - len(hit.pixels)
+    if missed > 0:
+        raise ValueError(f"{name}: {missed} of {int(small.mask.sum())} rays of the camera (at {small.width}x"
+                         f"{small.height}) miss the membrane: the image would show no gel there; widen the pad "
+                         "(membrane.params.radius) or narrow the lens (camera.fov_y)")
 
 
 def _check_leds(spec: SensorSpec, body: SensorBody, name: str) -> None:
@@ -301,7 +320,10 @@ def sensor_body(spec: SensorSpec, membrane: trimesh.Trimesh | None = None) -> Se
         thickness = _kept_thickness("derived", [mesh_digest(membrane), m.thickness, MAX_CORE_TURN_RAD],
                                     lambda: _derived(membrane, m.thickness, name))
     _check_thickness(thickness, m.thickness_bounds, membrane, name)
-    body = SensorBody(membrane, thickness, check_seen(membrane, camera, name))
+    pad = m.shape == PAD
+    body = SensorBody(membrane, thickness, check_seen(membrane, camera, name, 0.0 if pad else MIN_SEEN_SHARE))
+    if pad:
+        check_covers(membrane, camera, name)
     if m.shape != "capsule":
         _check_leds(spec, body, name)
     _bodies[key] = body

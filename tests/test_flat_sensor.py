@@ -90,6 +90,38 @@ def test_gelsight_spec_body_and_camera(gelsight):
     assert len(gelsight.leds) == 3 and [led.name for led in gelsight.leds] == ["red", "green", "blue"]
 
 
+def _pad_spec(tmp_path, radius_m):
+    """The GelSight with its pad's rim at ``radius_m``, the rim plane moved so the apex
+    stays where the camera's scale puts it, the LEDs 1 mm outside the rim."""
+    import dataclasses
+
+    from scenes.spec import LED
+
+    spec = load_spec(Path(__file__).resolve().parents[1] / GELSIGHT)
+    params = dict(spec.membrane.params)
+    apex = spec.membrane.base_z + pad.sag(params)
+    params["radius"] = radius_m
+    base_z = apex - pad.sag(params)
+    leds = tuple(dataclasses.replace(led, position=tuple(np.r_[np.asarray(led.position[:2]) / np.linalg.norm(
+        led.position[:2]) * (radius_m + 1e-3), base_z - 1e-3])) for led in spec.leds if isinstance(led, LED))
+    membrane = dataclasses.replace(spec.membrane, params=tuple(params.items()) if isinstance(
+        spec.membrane.params, tuple) else params, base_z=base_z)
+    return dataclasses.replace(spec, membrane=membrane, leds=leds)
+
+
+def test_a_pad_may_reach_past_the_view_but_must_cover_it(tmp_path):
+    """A flat sensor's gel reaches past what its camera sees, to the LEDs at its edge: a
+    22 mm pad, of which the camera sees 17 %, is a body (no MIN_SEEN_SHARE for pads); a
+    pad that leaves the frame's corners without gel is refused, naming the rays."""
+    from scenes.body import MIN_SEEN_SHARE, sensor_body
+
+    wide = sensor_body(_pad_spec(tmp_path, 0.022))
+    assert 0.1 < wide.seen_share < MIN_SEEN_SHARE
+    with pytest.raises(ValueError, match=r"rays of the camera \(at 64x48\) miss the membrane: the image would show "
+                                         r"no gel there; widen the pad"):
+        sensor_body(_pad_spec(tmp_path, 0.009))
+
+
 def test_spec_at_a_resolution_scales_the_camera_and_the_smoothing(gelsight):
     from scenes.camera import Camera
 
