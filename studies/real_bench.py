@@ -41,9 +41,12 @@ from pathlib import Path
 
 import numpy as np
 
-#: The reference's share of the work, by default: grid points of its calibration (one:
-#: the effects' defaults), taps it fits and judges, and held-out presses it renders.
-REFERENCE_GRID = ("absorption_per_m=20", "scattering_per_m=50")
+#: The reference's share of the work, by default: grid points of its calibration (one),
+#: taps it fits and judges, and held-out presses it renders. The grid's point is a clear
+#: elastomer: GelSights cast clear silicone under their paint (Yuan et al. 2017), and
+#: Agarwal et al.'s physically based GelSight has no scattering medium; the default
+#: effects' 50 /m of scattering is the GelTip's estimate. The absorption is the default's.
+REFERENCE_GRID = ("absorption_per_m=20", "scattering_per_m=0")
 REFERENCE_TAPS = 6
 REFERENCE_PRESSES = 4
 #: Simulated presses of the localisation study.
@@ -79,8 +82,11 @@ def _figure(row: dict | None) -> dict | None:
 
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
-        rim_share: float | None = None) -> dict:
-    """The benchmark (module doc); writes and returns the JSON."""
+        rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True) -> dict:
+    """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
+    calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
+    spec's camera (``calibrate --camera-known``: the public set's spec is written from its
+    camera's record), else searched."""
     from scenes.cli import main
     from scenes.dataset import atomic_write_json
     from scenes.reference_data import require_taxim_archive
@@ -117,9 +123,11 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                                                   "--fast-only", "--fast-taps", "0", *q]))
         ref_profile = work / "calibrated_reference" / "profile.toml"
         if reference:
-            grid = [a for g in REFERENCE_GRID for a in ("--grid", g)]
+            grid_args = [a for g in grid for a in ("--grid", g)]
+            held = ["--camera-known"] if camera_known else []
             stage("calibrate_reference", lambda: main(["calibrate", str(capture), "--out", str(ref_profile.parent),
-                                                       "--taps", str(REFERENCE_TAPS), "--bootstrap", "4", *grid, *q]))
+                                                       "--taps", str(REFERENCE_TAPS), "--bootstrap", "4", *grid_args,
+                                                       *held, *q]))
         from scenes.profile import load_profile
         from scenes.replay import read_capture
 
@@ -169,6 +177,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         shipped = _row(raw, "peer", variant="shipped")
         out = {
             "archive": str(archive), "presses": len(unit.ids), "heldout": len(raw["taps"]),
+            "reference_calibration": {"grid": list(grid), "camera_known": camera_known} if reference else None,
             "import": unit.meta.get("import"),
             "contact_strength": {"phong": fast_row["strength"]["median"] if fast_row else None,
                                  "pbr": ref_row["strength"]["median"] if ref_row else None},
@@ -223,7 +232,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
 def cmd_bench_real(args) -> int:
     out = run(args.json, args.archive, args.spec, args.ball_mm, args.pixel_mm, args.work,
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
-              localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share)
+              localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share,
+              grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -246,6 +256,13 @@ def register(registry) -> None:
     p.add_argument("--work", metavar="DIR", help="keep every dataset, profile and report here (default: a temporary "
                                                  "folder, removed)")
     p.add_argument("--no-reference", action="store_true", help="leave the physically based reference out")
+    p.add_argument("--grid", action="append", metavar="NAME=V1,V2,...",
+                   help="the reference calibration's grid (calibrate --grid; default "
+                        + " ".join(REFERENCE_GRID) + ")")
+    p.add_argument("--search-alignment", action="store_true",
+                   help="search the reference's alignment to the camera (rotation, scale, shift, lens) instead of "
+                        "holding it at the spec's (calibrate --camera-known; the public set's spec is written from "
+                        "its camera's record): for a unit whose spec's camera is an estimate")
     p.add_argument("--reference-diagnosis", action="store_true",
                    help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
     p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")
