@@ -56,6 +56,23 @@ def require_reference_dir(path: Path | str | None = None) -> Path:
     return found
 
 
+#: The real GelTip contacts cut from the paper's figure, below the published data's folder.
+REAL_CONTACTS = "real_contacts"
+
+
+def require_real_contacts_dir(path: Path | str | None = None) -> Path:
+    """The folder of the figure's real contacts (``real_contacts/README.md``): ``path``
+    checked, or (None) ``real_contacts`` in the published data's folder.
+
+    Raises FileNotFoundError naming the path that is not a folder, or where the published
+    data was looked for.
+    """
+    folder = Path(path) if path is not None else require_reference_dir() / REAL_CONTACTS
+    if not folder.is_dir():
+        raise FileNotFoundError(f"the GelTip figure's real contacts are not at {folder} (no such folder)")
+    return folder
+
+
 #: The public GelSight ball presses (Taxim's calibration set): their folder below a
 #: directory beside the repository, the environment variable naming it elsewhere, and
 #: the archive in it.
