@@ -779,9 +779,11 @@ def _by_renderer(scores: dict, key: str) -> dict:
 
 
 def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] | None = None,
-        reference: bool = True, photons: int = PHOTONS, quiet: bool = True) -> dict:
+        reference: bool = True, photons: int = PHOTONS, quiet: bool = True, effects: tuple[str, ...] = ()) -> dict:
     """The benchmark (module doc): every column of ``tiles_dir`` recovered and scored;
-    writes ``json_path`` atomically and returns what it wrote.
+    writes ``json_path`` atomically and returns what it wrote. ``effects``: the
+    reference's effects as NAME=VALUE settings (``pbr_tactile.effects.Effects``; none:
+    its defaults), to judge a change of its physics on the real tiles.
 
     Besides the recovered tap, each column is scored with the tap moved by the offset
     between the real tile's contact patch and the published tile's (``at_real_place``:
@@ -827,7 +829,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     phong = renderer_plugin("phong")
     phong.prepare(spec, mesh, camera, {})
     renderers["phong"] = make_renderer(phong, spec, mesh, camera, ours[0], {})
-    pbr_options = {"photons": int(photons)}
+    pbr_options = {"photons": int(photons), **({"effects": list(effects)} if effects else {})}
     pbr_settings = None
     if reference:
         pbr = renderer_plugin("pbr")
@@ -905,7 +907,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         }
     pbr_info = None
     if pbr_settings is not None:
-        pbr_info = {"options": pbr_options, "effects": "defaults", "film": pbr_settings["film"],
+        pbr_info = {"options": pbr_options, "effects": list(effects) or "defaults", "film": pbr_settings["film"],
                     "passes": [pbr_settings["min_passes"], pbr_settings["max_passes"]],
                     "target_rse": pbr_settings["target_rse"], "variant": pbr_settings["variant"]}
     out = {
@@ -939,7 +941,7 @@ def parse_objects(items) -> dict[int, str]:
 
 def cmd_bench_tiles(args) -> int:
     out = run(args.json, args.tiles, objects=parse_objects(args.object), reference=not args.no_reference,
-              photons=args.photons, quiet=args.quiet)
+              photons=args.photons, quiet=args.quiet, effects=tuple(args.effects or ()))
     keys = ("object", "depth_mm", "strength_ratio", "shape_corr")
     summary = {k: {key: t[key] for key in keys} for k, t in out["tiles"].items()}
     print(__import__("json").dumps(summary, indent=1))
@@ -960,4 +962,7 @@ def register(registry) -> None:
     p.add_argument("--no-reference", action="store_true", help="the fast path only (no physically based reference)")
     p.add_argument("--photons", type=int, default=PHOTONS, metavar="N",
                    help=f"the reference's photons per pass (default {PHOTONS})")
+    p.add_argument("--effects", action="append", metavar="NAME=V",
+                   help="a reference effect (pbr_tactile.effects.Effects; repeatable; default: its defaults), e.g. "
+                        "coating_albedo=0.4")
     add_quiet_argument(p)
