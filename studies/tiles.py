@@ -77,6 +77,11 @@ renders them with our reference and our fast path, against the real tile.
    kept: a translation of the pixel, not a fit to the real tile. Measured on the shared
    tiles: 6 frame px for column 0, but 72 (column 2) and 91 (column 4) frame px farther
    from the image's centre in the real tile than in the published simulation.
+6. **Located on the real tile** (``at_real_place.located``): from that place, the fast
+   path's render of the contact (its depth held) is moved, and rolled where the object is
+   not round, until the magnitude of its change correlates best with the real tile's
+   (:func:`locate`), and both renderers are scored there. This fits the place to the
+   real tile, never the depth or the strength.
 
 Run ``tactile-sim bench tiles --json PATH`` (``register``), or :func:`run`.
 """
@@ -774,6 +779,50 @@ def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real
     return scores, seconds
 
 
+#: The real place's search (``locate``): how far from its start, frame px, and renders.
+LOCATE_BOUND_PX = 30.0
+LOCATE_EVALUATIONS = 80
+
+
+def locate(contact: Contact, renderer, shape, spec_inputs: tuple, real: np.ndarray, real_nc: np.ndarray,
+           alignment: Alignment, inside: np.ndarray, period: float | None = None) -> tuple[Contact, float]:
+    """The place (and roll, for an object that is not round) at which ``renderer`` (the
+    fast path) shows the contact whose change best correlates with the real tile's, its
+    depth held: Pearson correlation of the change's magnitudes (mean |image - no-contact|
+    over channels, unsigned: the real sensor's shading is not the model's) over
+    ``inside``, by bounded Nelder-Mead within LOCATE_BOUND_PX of ``contact``. Returns
+    (contact there, its correlation)."""
+    from scenes.generate import render_sample
+
+    ref_depth, camera, mesh = spec_inputs
+    shape_hw = real.shape[:2]
+    real_change = change(real, real_nc)[inside]
+    nc_tile = to_tile(renderer.no_contact, shape_hw, alignment)
+
+    def at(x) -> Contact:
+        return Contact(contact.u + x[0], contact.v + x[1], contact.depth_m,
+                       contact.roll_rad + (x[2] if period is not None else 0.0))
+
+    def loss(x) -> float:
+        try:
+            depth = at(x).depth_map(ref_depth, camera, mesh, shape)
+        except ValueError:
+            return 1.0
+        sim = change(to_tile(render_sample(renderer, depth)["image"], shape_hw, alignment), nc_tile)[inside]
+        if sim.std() == 0:
+            return 1.0
+        return -float(np.corrcoef(sim, real_change)[0, 1])
+
+    b = LOCATE_BOUND_PX
+    x0 = np.zeros(3 if period is not None else 2)
+    bounds = [(-b, b), (-b, b)] + ([(-period / 2, period / 2)] if period is not None else [])
+    simplex = np.vstack([x0] + [x0 + np.eye(len(x0))[i] * (6.0 if i < 2 else period / 8) for i in range(len(x0))])
+    res = optimize.minimize(loss, x0, method="Nelder-Mead", bounds=bounds,
+                            options={"initial_simplex": simplex, "xatol": 0.25, "fatol": 1e-4,
+                                     "maxfev": LOCATE_EVALUATIONS})
+    return at(res.x), -float(res.fun)
+
+
 def _by_renderer(scores: dict, key: str) -> dict:
     return {name: scores.get(name, {}).get(key) for name in ("pbr", "phong")}
 
@@ -880,6 +929,18 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
                      "seconds": {f"render_{n}": v for n, v in moved_seconds.items()}}
             say(f"  at the real contact's place (moved {offset[0]:+.0f}, {offset[1]:+.0f} px): strength ratio "
                 f"{moved['strength_ratio']}, shape corr {moved['shape_corr']}")
+            inside = tile_inside(real.shape[:2], align_real, camera)
+            found, corr = locate(there, renderers["phong"], shape, ours, real, real_nc, align_real, inside, period)
+            found_scores, found_seconds = simulated(found, renderers, shape, ours, real, real_nc, align_real, region)
+            moved["located"] = {"u_px": found.u, "v_px": found.v, "moved_px": [found.u - there.u, found.v - there.v],
+                                "bound_px": LOCATE_BOUND_PX, "roll_deg": None if period is None else
+                                math.degrees(found.roll_rad), "phong_change_corr": corr,
+                                "strength_ratio": _by_renderer(found_scores, "strength_ratio"),
+                                "shape_corr": _by_renderer(found_scores, "shape_corr"),
+                                "strength": _by_renderer(found_scores, "strength")}
+            say(f"  located on the real tile at ({found.u:.0f}, {found.v:.0f}) px (phong's change correlates "
+                f"{corr:.2f}): strength ratio {moved['located']['strength_ratio']}, shape corr "
+                f"{moved['located']['shape_corr']}")
         out_tiles[k] = {
             "object": name,
             "object_from": "--object" if objects and k in objects else "caption",
