@@ -215,9 +215,8 @@ class ImageModel:
         alignment, the rotation, scale and shift held at the camera's."""
         bounds = _bounds(self.leds, leak, self.arcs, None if self.lens else self.camera.k1)
         if self.known_alignment:
-            n = self.leds
-            for i in (0, 1 + 2 * n, 2 + 2 * n, 3 + 2 * n):  # rotation_rad, log_scale, shift_u, shift_v
-                bounds[i] = (0.0, 0.0)
+            held = ("rotation_rad", "log_scale", "shift_u", "shift_v")
+            bounds = [(0.0, 0.0) if name in held else b for name, b in zip(self.start().names(), bounds)]
         return bounds
 
     def moved(self, image: np.ndarray, nl: Nonlinear, turn: float, variance: bool = False) -> np.ndarray:
