@@ -808,10 +808,9 @@ def locate(contact: Contact, renderer, shape, spec_inputs: tuple, real: np.ndarr
             depth = at(x).depth_map(ref_depth, camera, mesh, shape)
         except ValueError:
             return 1.0
-        sim = change(to_tile(render_sample(renderer, depth)["image"], shape_hw, alignment), nc_tile)[inside]
-        if sim.std() == 0:
-            return 1.0
-        return -float(np.corrcoef(sim, real_change)[0, 1])
+        corr = pearson(change(to_tile(render_sample(renderer, depth)["image"], shape_hw, alignment), nc_tile)[inside],
+                       real_change)
+        return 1.0 if corr is None else -corr
 
     b = LOCATE_BOUND_PX
     x0 = np.zeros(3 if period is not None else 2)
@@ -848,6 +847,11 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     from scenes.reference_data import require_real_contacts_dir, require_reference_dir
     from scenes.spec import default_spec
 
+    from pbr_tactile.effects import Effects
+
+    if effects and not reference:
+        raise TileError("--effects sets the reference's physics; it has no use with --no-reference")
+    Effects().with_settings(list(effects))  # a bad setting is named before any work
     t_all = time.perf_counter()
 
     def say(text):
@@ -907,7 +911,8 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
             f"{fields[MATCH_FIELD]['no_contact_mae_contact']:.4f}), {rec.evaluations} renders, {t_recover:.0f} s")
 
         real, real_nc, align_real = reals[k], no_contacts[k], alignments[k]
-        region = changed_region(real, real_nc, tile_inside(real.shape[:2], align_real, camera))
+        inside = tile_inside(real.shape[:2], align_real, camera)
+        region = changed_region(real, real_nc, inside)
         real_strength = float(contact_strength(real[None], real_nc, region[None])[0])
         scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region)
         for rname, sc in scores.items():
@@ -929,7 +934,6 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
                      "seconds": {f"render_{n}": v for n, v in moved_seconds.items()}}
             say(f"  at the real contact's place (moved {offset[0]:+.0f}, {offset[1]:+.0f} px): strength ratio "
                 f"{moved['strength_ratio']}, shape corr {moved['shape_corr']}")
-            inside = tile_inside(real.shape[:2], align_real, camera)
             found, corr = locate(there, renderers["phong"], shape, ours, real, real_nc, align_real, inside, period)
             found_scores, found_seconds = simulated(found, renderers, shape, ours, real, real_nc, align_real, region)
             moved["located"] = {"u_px": found.u, "v_px": found.v, "moved_px": [found.u - there.u, found.v - there.v],

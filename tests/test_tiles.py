@@ -267,6 +267,16 @@ def test_the_command_names_a_bad_tiles_folder(tmp_path, capsys):
     assert code == 1 and f"{tmp_path / 'missing'}" in capsys.readouterr().err
 
 
+def test_bad_reference_effects_are_refused_before_any_work(tmp_path):
+    with pytest.raises(ValueError, match="effect setting 'nonsense=1': expected NAME=VALUE"):
+        T.run(tmp_path / "out.json", tmp_path / "missing", effects=("nonsense=1",))
+    with pytest.raises(ValueError, match=r"Effects\.coating_albedo must be in \[0, 1\], got 2\.0"):
+        T.run(tmp_path / "out.json", tmp_path / "missing", effects=("coating_albedo=2",))
+    with pytest.raises(T.TileError, match="--effects sets the reference's physics; it has no use with --no-reference"):
+        T.run(tmp_path / "out.json", tmp_path / "missing", reference=False, effects=("coating_albedo=0.4",))
+    assert not (tmp_path / "out.json").exists()
+
+
 def test_the_real_contacts_folder_is_looked_for_in_the_published_data(tmp_path, monkeypatch):
     from scenes import reference_data as rd
 
