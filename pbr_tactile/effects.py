@@ -17,6 +17,7 @@ RANGES = {
     "absorption_per_m": (0.0, math.inf),
     "scattering_per_m": (0.0, math.inf),
     "coating_gloss": (0.0, 1.0),
+    "coating_roughness": (1e-3, 1.0),
     "coating_albedo": (0.0, 1.0),
     "vignetting": (0.0, 1.0),
     "lens_distortion": (-math.inf, math.inf),
@@ -51,8 +52,12 @@ class Effects:
     absorption_per_m: float = 20.0
     #: Scattering coefficient sigma_s of the elastomer, 1/m (0: off).
     scattering_per_m: float = 50.0
-    #: Gloss of the coating, 0 (matte, diffuse) to 1 (mirror-like binder).
+    #: Share of the coating's reflectance in a specular flake lobe (``pbr_tactile.paint``):
+    #: 0 matte (aluminium powder), towards 1 semi-specular (metal flake).
     coating_gloss: float = 0.0
+    #: GGX roughness alpha of that lobe (``pbr_tactile.paint.DEFAULT_ROUGHNESS``, an
+    #: estimate); unused while coating_gloss is 0.
+    coating_roughness: float = 0.3
     #: Diffuse reflectance (albedo) of the coating, 0-1.
     coating_albedo: float = 0.85
     #: The indentation shadows and redirects the LEDs' light (off: light paths see the

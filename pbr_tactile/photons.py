@@ -26,8 +26,18 @@ dielectric core. Here:
 The transport is wavelength independent (constant refractive indices, grey medium and
 coating, as in ``pbr_tactile.scene``), so one scalar map and one scalar image per LED carry
 every wavelength, and the film's response to each LED's spectrum is applied exactly
-(``pbr_tactile.spectra.film_response``), with no wavelength sampling noise. The coating
-must be diffuse (``coating_gloss = 0``). Beyond Monte Carlo noise, the approximations are
+(``pbr_tactile.spectra.film_response``), with no wavelength sampling noise.
+
+A glossy paint (``pbr_tactile.paint``: a diffuse base and a GGX flake lobe) is carried by
+a second map. Photons reflect off the paint by either lobe (picked by its share), so the
+maps hold the flux that arrives and the diffuse lobe's radiance is (1 - g) (rho / pi) e_m.
+The camera is fixed, so each coating vertex is seen from one direction along the view path
+through the tube (``camera_views``); every arrival also deposits its flux weighted by the
+flake lobe's BRDF from its own direction towards that one (``GlossyView``), and the same
+density estimate makes the lobe's radiance g l_m (photon mapping's radiance estimate, read
+per vertex). Lanes that reach the paint another way (the tube's reflection, after
+scattering) read the same map, so their view direction is the vertex's, not their own.
+Beyond Monte Carlo noise, the approximations are
 the kernel's blur and the piecewise-linear reconstruction on the coating mesh (edges of
 ``REFINED_EDGE_M``); the camera pass uses geometric normals at the interfaces.
 """
@@ -41,6 +51,8 @@ import typing
 from dataclasses import dataclass
 
 import numpy as np
+
+from .paint import Paint
 
 #: Russian roulette starts after this many bounces of a photon.
 RR_DEPTH = 8
@@ -316,9 +328,43 @@ def _sample_dielectric(mi, dr, d, n, eta, u):
     return dr.select(transmitted, refracted, reflected), transmitted, F, eta_ti
 
 
+def _facing_shading_normal(mi, dr, si, towards):
+    """The hit's shading normal (interpolated where the mesh has vertex normals), turned
+    to the side of the unit direction ``towards`` (as ``twosided`` mirrors a BSDF)."""
+    n = si.sh_frame.n
+    return dr.select(dr.dot(n, towards) >= 0, n, -n)
+
+
+def _paint_direction(mi, dr, paint, sampler, diffuse_dir, normal, wi, active):
+    """A photon's direction off the paint and the weight factor beyond rho: the diffuse
+    lobe (``diffuse_dir``, factor 1) or, with probability g, the flake lobe (factor G1)."""
+    glossy_dir, factor = paint.sample_glossy(mi, dr, normal, wi, sampler.next_2d(active))
+    pick = sampler.next_1d(active) < paint.gloss
+    beyond = factor / paint.albedo if paint.albedo > 0 else 0.0
+    return dr.select(pick, glossy_dir, diffuse_dir), dr.select(pick, beyond, 1.0)
+
+
+class GlossyView:
+    """Where the camera sees each coating vertex from, for a glossy paint's map
+    (``deposits(glossy=)``): ``toward`` (V, 3) the unit direction from the vertex back along
+    the camera's view path, ``normal`` (V, 3) its unit normal on the elastomer's side
+    (``camera_views``). After ``deposits``, ``flux`` (S, V) is each vertex's share of
+    sum_p Phi_p f(w_p, toward; normal) over the photons' arrivals p (the flake lobe's BRDF
+    from the arrival's direction), which ``irradiance`` makes the lobe's radiance per unit
+    flux emitted."""
+
+    def __init__(self, toward: np.ndarray, normal: np.ndarray):
+        self.toward = np.asarray(toward, np.float64)
+        self.normal = np.asarray(normal, np.float64)
+        if self.toward.shape != self.normal.shape or self.toward.ndim != 2 or self.toward.shape[1] != 3:
+            raise ValueError(f"a glossy view needs (V, 3) directions and normals, got {self.toward.shape} and "
+                             f"{self.normal.shape}")
+        self.flux: np.ndarray | None = None
+
+
 def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: dict, sampler, photons: int,
-                      sigma_t: float, albedo: float, coating_albedo: float, may_split: bool, grid=None,
-                      track=None, classes: int = 1) -> dict:
+                      sigma_t: float, albedo: float, paint, may_split: bool, grid=None,
+                      track=None, classes: int = 1, lobe=None) -> dict:
     """Trace one generation of photons from ``start``, depositing into ``acc`` (and, with a
     ``grid`` (``pbr_tactile.fluence.FluenceGrid``), their tracks in the elastomer into
     ``track``); returns the queue of photons the weight window split (slot per lane, k = 0
@@ -328,21 +374,30 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
 
     n_vertices = len(c.vertex_area)
     n_lanes = dr.width(start["s"])
+    glossy = paint.glossy
     d = _start_direction(mi, dr, start["n"], start["cone"], sampler.next_2d())
+    start_weight = start["w"]
+    if glossy and "wi" in start:
+        # Split photons restart on the paint: each copy draws its own lobe and direction.
+        d, factor = _paint_direction(mi, dr, paint, sampler, d, start["shading"], start["wi"], True)
+        start_weight = start_weight * factor
     ray = mi.Ray3f(start["p"], d)
     s, offset = start["s"], start["s"] * n_vertices
-    queue = {k: dr.zeros(t, n_lanes) for k, t in (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float),
-                                                   ("nx", mi.Float), ("ny", mi.Float), ("nz", mi.Float),
-                                                   ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32),
-                                                   ("k", mi.UInt32), ("id", mi.UInt64), ("tag", mi.UInt32))}
+    keys = (("px", mi.Float), ("py", mi.Float), ("pz", mi.Float), ("nx", mi.Float), ("ny", mi.Float),
+            ("nz", mi.Float), ("w", mi.Float), ("s", mi.UInt32), ("depth", mi.UInt32), ("k", mi.UInt32),
+            ("id", mi.UInt64), ("tag", mi.UInt32))
+    if glossy:  # where the photon came from and the shading normal, for the copies' lobes
+        keys += tuple((k, mi.Float) for k in ("wx", "wy", "wz", "sx", "sy", "sz"))
+    queue = {k: dr.zeros(t, n_lanes) for k, t in keys}
     lane_index = dr.arange(mi.UInt32, n_lanes)
+    flags = mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame if glossy else mi.RayFlags.Minimal
 
     def cond(ray, weight, in_el, active, depth, sampler, tag):
         return active
 
     def body(ray, weight, in_el, active, depth, sampler, tag):
         pi = scene.ray_intersect_preliminary(ray, False, active)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+        si = pi.compute_surface_interaction(ray, flags, active)
         scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
         if grid is not None:
             # Track length: the segment's w l, at one point drawn uniformly along it.
@@ -358,8 +413,21 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
         for i, b in zip(corners, bary):
             dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, into + i, hit_coating,
                               mode=dr.ReduceMode.Expand)
+        if lobe is not None:  # (acc, toward, normal): the lobe's BRDF from here towards each corner's view
+            acc_g, toward, normal = lobe
+            for i, b in zip(corners, bary):
+                n_i = dr.gather(mi.Vector3f, normal, i, hit_coating)
+                f_cos = paint.glossy_cos(mi, dr, n_i, dr.gather(mi.Vector3f, toward, i, hit_coating), -ray.d)
+                cos_in = dr.dot(n_i, -ray.d)
+                f = dr.select(cos_in > 1e-6, f_cos / dr.maximum(cos_in, 1e-6), 0.0)
+                dr.scatter_reduce(dr.ReduceOp.Add, acc_g, weight * b * f, offset + i, hit_coating,
+                                  mode=dr.ReduceMode.Expand)
         inward = -si.n
         diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
+        if glossy:
+            wi = -ray.d
+            shading = _facing_shading_normal(mi, dr, si, wi)
+            diffuse_dir, factor = _paint_direction(mi, dr, paint, sampler, diffuse_dir, shading, wi, hit_coating)
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
         refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
         in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
@@ -369,7 +437,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
                 | dr.select(scatter, mi.UInt32(SCATTERED), mi.UInt32(0)) \
                 | dr.select(hit_coating, mi.UInt32(PAINTED), mi.UInt32(0))
         scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
-        weight = dr.select(hit_coating, weight * coating_albedo, weight)
+        weight = dr.select(hit_coating, weight * paint.albedo, weight)
         weight = dr.select(scatter, weight * albedo, weight)
         nxt = si.spawn_ray(dr.select(hit_coating, diffuse_dir, refr_dir))
         ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
@@ -391,28 +459,38 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
                 k = mi.UInt32(dr.minimum(dr.round(weight / goal), MAX_SPLIT))
                 # A lane splits at most once (it retires): its own slot in the queue.
                 slot = lane_index
-                for key, value in (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x),
-                                   ("ny", inward.y), ("nz", inward.z), ("w", weight / mi.Float(k)),
-                                   ("s", s), ("depth", depth + 1), ("k", k), ("id", start["id"]), ("tag", tag)):
+                stored = (("px", si.p.x), ("py", si.p.y), ("pz", si.p.z), ("nx", inward.x), ("ny", inward.y),
+                          ("nz", inward.z), ("w", weight / mi.Float(k)), ("s", s), ("depth", depth + 1), ("k", k),
+                          ("id", start["id"]), ("tag", tag))
+                if glossy:
+                    stored += (("wx", wi.x), ("wy", wi.y), ("wz", wi.z), ("sx", shading.x), ("sy", shading.y),
+                               ("sz", shading.z))
+                for key, value in stored:
                     dr.scatter(queue[key], value, slot, heavy)
                 alive &= ~heavy
+        if glossy:  # the lobe's factor beyond rho, after the window (the copies draw their own)
+            weight = dr.select(hit_coating, weight * factor, weight)
+            alive &= weight > 0
         depth += 1
         active &= alive & (depth < PHOTON_MAX_DEPTH)
         return ray, weight, in_el, active, depth, sampler, tag
 
-    dr.while_loop(state=(ray, start["w"], start["in_el"], mi.Bool(True), start["depth"], sampler, start["tag"]),
+    dr.while_loop(state=(ray, start_weight, start["in_el"], mi.Bool(True), start["depth"], sampler, start["tag"]),
                   cond=cond, body=body, labels=("ray", "weight", "in_el", "active", "depth", "sampler", "tag"),
                   label="photons")
     return queue
 
 
 def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
-             photons: int, seed: int = 0, window: np.ndarray | None = None, grid=None, classes: bool = False):
+             photons: int, seed: int = 0, window: np.ndarray | None = None, grid=None, classes: bool = False,
+             glossy: GlossyView | None = None):
     """Per source, the flux each coating vertex receives, per unit flux emitted.
 
     All sources' photons are traced in one wavefront, as one symbolic Dr.Jit loop (one
     kernel: a photon's lane retires when its walk ends, with no per-bounce launches).
     A hit's flux is shared among its face's vertices with barycentric weights.
+    ``coating_albedo`` is the paint's albedo, or a ``pbr_tactile.paint.Paint`` (a glossy
+    one reflects photons by either lobe).
 
     window : optional (S, V) target photon weight at each coating vertex (a weight
         window, see ``weight_window``). After each coating deposit a photon lighter than
@@ -428,17 +506,27 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         (PATH_EVENTS: the events before the deposit); the flux is then (S, PATH_CLASSES,
         V), its sum over the classes the flux without them. Tagging draws no random
         numbers, so a seed's walks are the same either way.
+    glossy : a ``GlossyView`` (a glossy paint): its ``flux`` gets, per source and vertex,
+        the arrivals' flux weighted by the flake lobe's BRDF towards the vertex's view. It
+        draws no random numbers.
     Returns (S, V) float64, V the coating mesh's vertex count; with a grid, that and the
     (S, N) tracks, N the grid's voxels (m per unit flux emitted).
     """
     import drjit as dr
 
+    paint = Paint.of(coating_albedo)
     c = _coating(mi, scene)
     n_vertices = len(c.vertex_area)
     n_src = len(sources)
     interfaces = _interfaces(mi, scene)
     n_classes = PATH_CLASSES if classes else 1
     acc = dr.zeros(mi.Float, n_src * n_classes * n_vertices)
+    lobe = None
+    if glossy is not None:
+        if glossy.toward.shape != (n_vertices, 3):
+            raise ValueError(f"the glossy view has {len(glossy.toward)} vertices, the coating {n_vertices}")
+        lobe = (dr.zeros(mi.Float, n_src * n_vertices),
+                *(mi.Vector3f(*[_owned(mi.Float, a[:, k]) for k in range(3)]) for a in (glossy.toward, glossy.normal)))
     track = None if grid is None else dr.zeros(mi.Float, n_src * grid.size)
     target = None if window is None else _owned(mi.Float, np.asarray(window, dtype=np.float64).ravel())
 
@@ -465,14 +553,15 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         if generation > 0:
             sampler = _Rng(mi, identity)
         queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
-                                  coating_albedo, target is not None and generation < MAX_GENERATIONS - 1,
-                                  grid, track, n_classes)
+                                  paint, target is not None and generation < MAX_GENERATIONS - 1,
+                                  grid, track, n_classes, lobe)
+        logged = () if lobe is None else (lobe[0],)
         if target is None:
             break
         if track is None:
-            dr.eval(acc, queue)
+            dr.eval(acc, queue, *logged)
         else:
-            dr.eval(acc, track, queue)
+            dr.eval(acc, track, queue, *logged)
         split = np.asarray(queue["k"]) > 0
         if not split.any():
             break
@@ -491,6 +580,11 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
                  "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": _owned(mi.UInt32, rep["s"]),
                  "depth": _owned(mi.UInt32, rep["depth"]), "id": _owned(mi.UInt64, identity),
                  "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"])), "tag": _owned(mi.UInt32, rep["tag"])}
+        if paint.glossy:
+            start["wi"], start["shading"] = (mi.Vector3f(*[_owned(mi.Float, rep[k]) for k in names])
+                                             for names in (("wx", "wy", "wz"), ("sx", "sy", "sz")))
+    if lobe is not None:
+        glossy.flux = np.asarray(lobe[0], dtype=np.float64).reshape(n_src, n_vertices)
     flux = np.asarray(acc, dtype=np.float64).reshape((n_src, n_classes, n_vertices) if classes else (n_src, n_vertices))
     return flux if track is None else (flux, np.asarray(track, dtype=np.float64).reshape(n_src, grid.size))
 
@@ -609,9 +703,73 @@ def irradiance(flux: np.ndarray, vertex_area: np.ndarray, kernel) -> np.ndarray:
 CAMERA_PASS_VERSION = 3
 
 
+#: The fewest rays ``camera_views`` traces over the film (a 640x480 grid's).
+VIEW_RAYS = 640 * 480
+
+
+def camera_views(mi, scene) -> GlossyView:
+    """Where the scene's camera sees each coating vertex from, for a glossy paint's map.
+
+    Rays on a grid over the film (at least VIEW_RAYS of them, so that every face in view
+    is met whatever the film's size) are followed along their view paths, refracted at
+    every interface (reflected only where it cannot cross), to the paint; each vertex takes
+    the mean, weighted by the hits' barycentric weights, of the directions back along the
+    rays that meet its faces (a vertex no ray meets: its normal). The normals are the
+    mesh's own vertex normals (Mitsuba's, else trimesh's), turned to the elastomer's side.
+    """
+    import drjit as dr
+    import trimesh
+
+    c = _coating(mi, scene)
+    coating = _shape(scene, "coating")
+    interfaces = _interfaces(mi, scene)
+    n_vertices = len(c.vertex_area)
+    sensor = scene.sensors()[0]
+    width, height = (int(v) for v in sensor.film().crop_size())
+    per = max(1, math.ceil(math.sqrt(VIEW_RAYS / (width * height))))
+    width, height = width * per, height * per
+    index = dr.arange(mi.UInt32, width * height)
+    position = (mi.Point2f(mi.Float(index % width), mi.Float(index // width)) + 0.5) / mi.ScalarVector2f(width, height)
+    ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
+    acc = dr.zeros(mi.Float, 4 * n_vertices)  # per vertex: sum b w (3), sum b
+
+    def cond(ray, active, depth):
+        return active
+
+    def body(ray, active, depth):
+        pi = scene.ray_intersect_preliminary(ray, False, active)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+        surface = active & si.is_valid()
+        hit = surface & (si.shape == c.coating)
+        corners, bary = _corners(mi, c.faces, pi, hit)
+        for i, b in zip(corners, bary):
+            for k, part in enumerate((-ray.d.x, -ray.d.y, -ray.d.z, mi.Float(1.0))):
+                dr.scatter_reduce(dr.ReduceOp.Add, acc, b * part, 4 * i + k, hit, mode=dr.ReduceMode.Expand)
+        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
+        F, _, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
+        ray = si.spawn_ray(dr.select(F < 1, refracted, reflected))
+        depth += 1
+        return ray, dielectric & (depth < CAMERA_MAX_DEPTH), depth
+
+    dr.while_loop(state=(mi.Ray3f(ray.o, ray.d), dr.full(mi.Bool, True, width * height),
+                         dr.zeros(mi.UInt32, width * height)), cond=cond, body=body, label="camera_views")
+    sums = np.asarray(acc, np.float64).reshape(n_vertices, 4)
+    positions = np.asarray(coating.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+    if coating.has_vertex_normals():
+        outward = np.asarray(coating.vertex_normals_buffer(), np.float64).reshape(-1, 3)
+    else:
+        faces = np.asarray(coating.faces_buffer()).reshape(-1, 3)
+        outward = trimesh.Trimesh(positions, faces, process=False).vertex_normals
+    normal = -outward / np.linalg.norm(outward, axis=1, keepdims=True)  # coating normals point out of the elastomer
+    seen = sums[:, 3] > 0
+    toward = normal.copy()
+    toward[seen] = sums[seen, :3] / np.linalg.norm(sums[seen, :3], axis=1, keepdims=True)
+    return GlossyView(toward, normal)
+
+
 def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
                 coating_albedo: float, spp: int, seed: int = 0, batch: int = 1 << 21,
-                scatter_split: int = SCATTER_SPLIT, fluence=None) -> np.ndarray:
+                scatter_split: int = SCATTER_SPLIT, fluence=None, glossy_maps: np.ndarray | None = None) -> np.ndarray:
     """Per pixel and source, the radiance reaching the camera per unit emitted flux.
 
     Camera rays (the scene's sensor, spp per pixel, one in each cell of a jittered grid
@@ -628,6 +786,12 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
     with a 1/scatter_split share. In-scattered light is the whole camera-side noise
     (without the medium the contact region's noise is 0.36 % at 48 spp; with it, 2.5 %),
     so that is where the samples go.
+
+    coating_albedo : the paint's albedo, or a ``pbr_tactile.paint.Paint``. A glossy paint's
+        diffuse lobe is read from the maps, (1 - g) (rho / pi) e_m, and its flake lobe
+        from ``glossy_maps``, g l_m.
+    glossy_maps : (S, V) the flake lobe's radiance per unit flux towards each vertex's view
+        (``GlossyView``'s flux through ``irradiance``), needed by a glossy paint.
 
     fluence : (grid, phi): a ``pbr_tactile.fluence.FluenceGrid`` and the (S, N) fluence
         per unit flux of each source in its voxels (``FluenceGrid.fluence`` of the photons'
@@ -651,9 +815,20 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
             raise ValueError(f"fluence must be (sources, voxels) = ({len(sources)}, {grid.size}), got {phi.shape}")
         lookup = (grid, _owned(mi.Float, phi.ravel()))
         scatter_split = 1
+    paint = Paint.of(coating_albedo)
+    scale = 1.0 if paint.glossy else paint.albedo / math.pi
+    if paint.glossy and glossy_maps is None:
+        raise ValueError("a glossy paint's camera pass needs glossy_maps: the flake lobe's radiance per vertex, "
+                         "from deposits(glossy=GlossyView(...))")
     c = _coating(mi, scene)
     interfaces = _interfaces(mi, scene)
     E = [_owned(mi.Float, m) for m in maps]
+    if paint.glossy:
+        glossy_maps = np.asarray(glossy_maps)
+        if glossy_maps.shape != np.shape(maps):
+            raise ValueError(f"glossy_maps must be shaped as the maps, {np.shape(maps)}, got {glossy_maps.shape}")
+        # One map per source: (1 - g) (rho / pi) e_m + g l_m, read as the diffuse maps are.
+        E = [_owned(mi.Float, (paint.diffuse / math.pi) * m + paint.gloss * l) for m, l in zip(maps, glossy_maps)]
     emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
     # each source's radiance where seen, and the cone it shines into (Source.seen_radiance).
     # The axis is a scalar vector, copied into each expression: Dr.Jit 1.5 can broadcast a
@@ -685,7 +860,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         # First hit: both Fresnel branches, as two lanes per camera sample.
         pi = scene.ray_intersect_preliminary(ray, False)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
-        T = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, si.is_valid(), mi.Float(1.0), coating_albedo,
+        T = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, si.is_valid(), mi.Float(1.0), scale,
                         direction=ray.d)
         dielectric, eta = _dielectric(mi, dr, si, si.is_valid(), interfaces)
         F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
@@ -702,7 +877,7 @@ def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: flo
         in_el = both(dielectric & enters, dr.zeros(mi.Bool, n))
         walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, led_radiance, interfaces,
                                  sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
-                                 coating_albedo=coating_albedo, fluence=lookup)
+                                 scale=scale, fluence=lookup)
         T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
         # One kernel for every source's output (converting them one by one would trace
         # the walk once per source).
@@ -727,10 +902,11 @@ def _concat(mi, dr, a, b):
     return dr.select(first, dr.gather(type(a), a, index, first), dr.gather(type(a), b, index - n, ~first))
 
 
-def _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, coating_albedo, count_leds=True,
+def _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, scale, count_leds=True,
                 direction=None, first=True):
-    """Radiance per unit flux of each source, seen at a hit: the coating's (rho/pi) e_m
-    interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``led_radiance``
+    """Radiance per unit flux of each source, seen at a hit: the coating's map times
+    ``scale`` (rho / pi times the irradiance e_m; a glossy paint's maps are already its
+    radiance, scale 1) interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``led_radiance``
     holds it and, for a directional source, its cone's axis and cosine) where
     ``count_leds``, a directional one's only where ``direction`` (the ray's) leaves it
     inside its cone, and only on a ray's ``first`` segment past the camera's first hit
@@ -742,7 +918,7 @@ def _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, coa
     out = []
     for e, emitter, (radiance, cone) in zip(E, emitters, led_radiance):
         irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
-        t = dr.select(hit_coating, beta * irr * (coating_albedo / math.pi), 0.0)
+        t = dr.select(hit_coating, beta * irr * scale, 0.0)
         lit = surface & count_leds & (si.shape == emitter)
         if cone is not None:
             lit = lit & first & (dr.dot(-direction, cone[0]) >= cone[1])
@@ -772,7 +948,7 @@ def _led_nee(mi, dr, scene, leds, emitters, led_radiance, point, beta, sampler, 
 
 
 def _camera_walk(mi, dr, scene, c, E, leds, emitters, led_radiance, interfaces, sampler, ray, beta, in_el,
-                 sigma_s: float, sigma_a: float, coating_albedo: float, stop_at_scatter: bool = False,
+                 sigma_s: float, sigma_a: float, scale: float, stop_at_scatter: bool = False,
                  after_scatter=None, fluence=None):
     """Follow camera rays (one symbolic loop) until they end on the coating, an LED or
     nothing. At a scattering event the LEDs' direct light comes by next-event estimation
@@ -800,7 +976,7 @@ def _camera_walk(mi, dr, scene, c, E, leds, emitters, led_radiance, interfaces, 
             travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
             beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
         surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, coating_albedo, ~after, ray.d,
+        seen = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, scale, ~after, ray.d,
                            depth == 0)
         T = [t + dt for t, dt in zip(T, seen)]
         dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)

@@ -172,9 +172,6 @@ def options_from(options: dict, camera: Camera) -> dict:
         effects = Effects().with_settings(list(settings))
     except ValueError as exc:
         raise ValueError(f"option effects: {exc}") from None
-    if estimator == "photons" and effects.coating_gloss > 0:
-        raise ValueError("option effects: coating_gloss > 0 needs estimator volpath (the photon estimator needs a "
-                         "diffuse coating)")
     if estimator == "volpath" and not effects.contact_shadow:
         raise ValueError("option effects: contact_shadow=false needs estimator photons")
     opts["effects"] = effects

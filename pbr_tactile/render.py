@@ -29,6 +29,7 @@ from scenes.spec import SensorSpec
 from .effects import Effects
 from .fluence import INSCATTER
 from .membrane import ElastomerBuilder, _kept, shared_builder
+from .paint import Paint
 from .scene import geltip_scene, led_sources, write_meshes
 from .variant import choose_variant
 
@@ -358,8 +359,10 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     response to that source's spectrum (pbr_tactile.spectra.film_response).
     """
     from .photons import (
+        GlossyView,
         _seed,
         camera_pass,
+        camera_views,
         coating_areas,
         coating_vertices,
         density_kernel,
@@ -368,8 +371,6 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         sources_from,
         weight_window,
     )
-    if effects.coating_gloss > 0:
-        raise ValueError("the photon estimator needs a diffuse coating (coating_gloss = 0); use volpath")
     check_passes(passes, target_rse, max_passes)
     if kernel_radius < 0:
         raise ValueError(f"kernel_radius must be >= 0 m, got {kernel_radius}")
@@ -405,6 +406,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     srcs = sources_from(sources)
     response = np.eye(len(sources)) if per_source else source_response(sources, effects)
     sigma_t, albedo = effects.sigma_t, effects.albedo
+    paint = Paint.from_effects(effects)
     area = coating_areas(lit)
     # A pilot pass (an eighth of the photons) sets the weight window that spreads the
     # deposits evenly over the coating. Its density is the kernel applied twice (about
@@ -425,13 +427,13 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         from .nocontact import NoContact
 
         no_contact = NoContact(mi, pilot_lit, [[s.key() for s in srcs],
-                                               sigma_t, albedo, effects.coating_albedo, photons],
+                                               sigma_t, albedo, *paint.key(), photons],
                                no_contact_runs, use_cache, no_contact_memo, grid_pilot)
     pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
 
-    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None):
-        return deposits(mi, in_scene, srcs, sigma_t, albedo, effects.coating_albedo, count, run_seed, window_,
-                        grid)
+    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None, glossy=None):
+        return deposits(mi, in_scene, srcs, sigma_t, albedo, paint, count, run_seed, window_,
+                        grid, glossy=glossy)
 
     def trace_pilot():
         return trace(pilot_lit, max(1, photons // 8), pilot_seed)
@@ -440,15 +442,18 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)["flux"]
     pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
-    traced = no_contact is None or lit is not pilot_lit  # else E_c = E_0: the map is G
+    # Else E_c = E_0: the map is G. A glossy paint's lobe map is this pass's own photons'.
+    traced = no_contact is None or lit is not pilot_lit or paint.glossy
+    view = camera_views(mi, loaded) if paint.glossy else None
 
     parts = ("flux",) if grid_lit is None else ("flux", "track")
 
     def one_pass(k: int) -> np.ndarray:
         pass_seed = seed * 7919 + k
         phi = None
+        lobe = None if view is None else GlossyView(view.toward, view.normal)
         if traced:
-            flux = trace(lit, photons, pass_seed, window, grid_lit)
+            flux = trace(lit, photons, pass_seed, window, grid_lit, lobe)
             if grid_lit is not None:
                 flux, track = flux
                 phi = grid_lit.fluence(track)
@@ -463,13 +468,14 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
             if grid_pilot is not None:
                 phi = grid_pilot.fluence(runs["track"]) + (phi - grid_pilot.fluence(same["track"]) if traced else 0.0)
         fluence = None if phi is None else (grid_lit, phi)
-        image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, spp, pass_seed,
-                            fluence=fluence) @ response
+        gathered = None if lobe is None else irradiance(lobe.flux, area, kernel)
+        image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, paint, spp, pass_seed,
+                            fluence=fluence, glossy_maps=gathered) @ response
         if not control_spp:
             return image
         as_traced.append(image)
-        more = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, effects.coating_albedo, control_spp,
-                           _seed(pass_seed, CONTROL_STREAM), fluence=fluence) @ response
+        more = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, paint, control_spp,
+                           _seed(pass_seed, CONTROL_STREAM), fluence=fluence, glossy_maps=gathered) @ response
         return (spp * image + control_spp * more) / (spp + control_spp)
 
     as_traced: list[np.ndarray] = []

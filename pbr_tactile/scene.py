@@ -26,6 +26,7 @@ from scenes.spec import GLASS_IOR, GLASS_WALL_M, LED, SensorSpec
 
 from .effects import Effects
 from .membrane import Elastomer
+from .paint import Paint
 from .spectra import CAMERA_BANDS_NM, gaussian, led_spectrum, mitsuba_spectrum
 
 #: Refractive indices (dimensionless): silicone elastomer, glass core, air.
@@ -96,18 +97,8 @@ def _medium(effects: Effects) -> dict | None:
 
 
 def _coating(effects: Effects) -> dict:
-    """The paint, seen from either side (``diffuse`` alone is one-sided)."""
-    if effects.coating_gloss > 0:
-        inner = {
-            "type": "roughplastic",
-            "diffuse_reflectance": {"type": "rgb", "value": [effects.coating_albedo] * 3},
-            "alpha": max(1e-3, 0.5 * (1.0 - effects.coating_gloss)),
-            "int_ior": 1.5,
-            "ext_ior": IOR_SILICONE,
-        }
-    else:
-        inner = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [effects.coating_albedo] * 3}}
-    return {"type": "twosided", "material": inner}
+    """The paint, seen from either side (``pbr_tactile.paint``)."""
+    return Paint.from_effects(effects).mitsuba()
 
 
 def _film(camera: Camera, effects: Effects, width: int, height: int) -> dict:

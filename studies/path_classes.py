@@ -179,6 +179,7 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
 
     from pbr_tactile.effects import Effects
     from pbr_tactile.membrane import ElastomerBuilder
+    from pbr_tactile.paint import Paint
     from pbr_tactile.photons import (PATH_CLASSES, coating_areas, coating_vertices, density_kernel, deposits,
                                      irradiance, sources_from, weight_window)
     from pbr_tactile.render import KERNEL_RADIUS_M, load
@@ -191,8 +192,6 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
     if photons < 1 or seeds < 1:
         raise ValueError(f"photons and seeds must be >= 1, got {photons} and {seeds}")
     effects = Effects().with_settings(list(settings))
-    if effects.coating_gloss > 0:
-        raise ValueError("the photon pass needs a diffuse paint (coating_gloss = 0)")
     spec = default_spec() if spec_path is None else load_spec(spec_path)
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
@@ -220,7 +219,7 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
             raise ValueError(f"the photon pass needs a vectorised (llvm_ or cuda_) variant, got {mi.variant()}")
 
         def trace(scene, count, seed, window=None):
-            return deposits(mi, scene, srcs, effects.sigma_t, effects.albedo, effects.coating_albedo, count, seed,
+            return deposits(mi, scene, srcs, effects.sigma_t, effects.albedo, Paint.from_effects(effects), count, seed,
                             window, classes=True)
 
         area_0 = coating_areas(flat)

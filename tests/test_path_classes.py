@@ -121,8 +121,8 @@ def test_a_bad_setting_is_refused_by_name_before_any_trace():
 
     with pytest.raises(ValueError, match=r"effect setting 'paint_albedo=0.5': expected NAME=VALUE"):
         measure(photons=8, seeds=1, settings=["paint_albedo=0.5"])
-    with pytest.raises(ValueError, match=r"needs a diffuse paint"):
-        measure(photons=8, seeds=1, settings=["coating_gloss=0.5"])
+    with pytest.raises(ValueError, match=r"Effects.coating_gloss must be in \[0, 1\], got 1.5"):
+        measure(photons=8, seeds=1, settings=["coating_gloss=1.5"])
 
 
 def test_bad_counts_and_sensors_are_refused_by_name(tmp_path, capsys):

@@ -284,7 +284,7 @@ def test_resuming_with_other_settings_is_refused(monkeypatch, tmp_path, prepared
         ({"effects": ["banana=1"]}, "option effects: effect setting 'banana=1': expected NAME=VALUE"),
         ({"effects": ["vignetting=2"]}, r"option effects: Effects.vignetting must be in \[0, 1\], got 2.0"),
         ({"effects": "vignetting=0.2"}, "option effects must be a list of NAME=VALUE strings"),
-        ({"effects": ["coating_gloss=0.5"]}, "coating_gloss > 0 needs estimator volpath"),
+        ({"effects": ["coating_roughness=0"]}, r"option effects: Effects.coating_roughness must be in \[0.001, 1\], got 0.0"),
         ({"estimator": "volpath", "effects": ["contact_shadow=off"]}, "contact_shadow=false needs estimator photons"),
         ({"estimator": "magic"}, "option estimator must be 'photons' or 'volpath', got 'magic'"),
         ({"film": [320, 200]}, r"option film must be \[width, height\] .* the camera's aspect .* got 320x200"),

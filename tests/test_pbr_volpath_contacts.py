@@ -31,14 +31,16 @@ VOLPATH_PASSES = 64
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("paint", ["matte", "glossy"])
 @pytest.mark.parametrize("name", INDENTERS)
-def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera, ref, name):
+def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera, ref, name,
+                                                                         paint):
     """A per-pixel z-test, as the no-contact one in test_pbr (z = difference over the root
     of both estimates' variances of the mean, each from its own independent passes), on the
     contact of each of the paper's indenters, with the photon estimator as a contact is
     rendered (the undeformed membrane's pilot, the contact's own photons)."""
     pytest.importorskip("manifold3d", reason="building indenters needs the manifold boolean engine")
-    from test_pbr import _vectorised
+    from test_pbr import PAINTS, _vectorised
 
     from pbr_tactile.membrane import ElastomerBuilder
     from pbr_tactile.fluence import INSCATTER
@@ -46,7 +48,8 @@ def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_pat
     from pbr_tactile.scene import geltip_scene, led_sources, write_meshes
     from scenes.indenters import make_indenter
 
-    effects = Effects()
+    settings, spp = PAINTS[paint]
+    effects = Effects().with_settings(list(settings))
     depth = press(ref, camera, mesh, make_indenter(name), PIXEL, DEPTH)
     build = ElastomerBuilder(mesh, spec, camera, edge=0.5e-3)
     width, height = FILM
@@ -66,12 +69,12 @@ def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_pat
     assert volpath.mean.shape[:2] == (height, width)
     z_of = {}
     for inscatter in INSCATTER:
-        photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=4, passes=8,
+        photons = render_photons(scene, led_sources(spec, effects), effects, photons=1 << 16, spp=spp, passes=8,
                                  seed=1, pilot_scene=flat, fluence_grids=grids if inscatter == "fluence" else None)
         lit = (photons.mean > 1e-5) & (volpath.mean > 0)
         z = ((photons.mean - volpath.mean) / np.sqrt(photons.variance + volpath.variance))[lit]
         z_of[inscatter] = z, photons.mean[lit].sum() / volpath.mean[lit].sum()
-        print(f"{name}, {inscatter}: per-pixel z over {z.size} px: median |z| {np.median(np.abs(z)):.2f}, "
+        print(f"{name}, {paint}, {inscatter}: per-pixel z over {z.size} px: median |z| {np.median(np.abs(z)):.2f}, "
               f"mean {z.mean():.2f}, |z|>3 {np.mean(np.abs(z) > 3):.3f}; aggregate {z_of[inscatter][1] - 1:+.3f}")
     for z, ratio in z_of.values():
         assert z.size > 100
