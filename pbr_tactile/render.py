@@ -420,62 +420,76 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         flat = coating_vertices(pilot_lit)
         pilot_kernel, pilot_area = density_kernel(flat, kernel_radius), coating_areas(pilot_lit)
         kernel = density_kernel(coating_vertices(lit), kernel_radius, like=(flat, pilot_kernel))
+    # A glossy paint's lobe map weighs each arrival towards where the camera sees its
+    # vertex from: the contact's camera scene's views, and the undeformed scene's for the
+    # no-contact runs (they differ only where the dent moved).
+    view = view_0 = None
+    if paint.glossy:
+        view = camera_views(mi, loaded)
+        view_0 = view if pilot_lit is loaded else camera_views(mi, pilot_lit)
     no_contact = None
     if no_contact_runs:
         if pilot_scene is None:
             raise ValueError("no_contact_runs needs pilot_scene, the undeformed membrane's scene")
         from .nocontact import NoContact
 
+        # The views to 3 decimals: the last bits of their atomic sums vary from run to run.
+        viewed = [] if view_0 is None else [np.round(view_0.toward, 3), np.round(view_0.normal, 3)]
         no_contact = NoContact(mi, pilot_lit, [[s.key() for s in srcs],
-                                               sigma_t, albedo, *paint.key(), photons],
+                                               sigma_t, albedo, *paint.key(), photons, *viewed],
                                no_contact_runs, use_cache, no_contact_memo, grid_pilot)
     pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
+    parts = ("flux",) + (() if grid_lit is None else ("track",)) + (() if view is None else ("lobe",))
 
-    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None, glossy=None):
-        return deposits(mi, in_scene, srcs, sigma_t, albedo, paint, count, run_seed, window_,
-                        grid, glossy=glossy)
+    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None, seen=None):
+        """The deposits' parts: flux, the tracks with a grid, the lobe's flux with a view."""
+        lobe = None if seen is None else GlossyView(seen.toward, seen.normal)
+        out = deposits(mi, in_scene, srcs, sigma_t, albedo, paint, count, run_seed, window_, grid, glossy=lobe)
+        out = (out,) if grid is None else tuple(out)
+        return out + (() if lobe is None else (lobe.flux,))
 
     def trace_pilot():
-        return trace(pilot_lit, max(1, photons // 8), pilot_seed)
+        return trace(pilot_lit, max(1, photons // 8), pilot_seed)[0]
 
     # With the no-contact cache, the pilot is cached too: it is a no-contact run.
     pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)["flux"]
     pilot = irradiance((pilot_kernel @ pilot_flux.T).T, pilot_kernel @ pilot_area, pilot_kernel)
     window = weight_window(pilot, area, photons)
-    # Else E_c = E_0: the map is G. A glossy paint's lobe map is this pass's own photons'.
-    traced = no_contact is None or lit is not pilot_lit or paint.glossy
-    view = camera_views(mi, loaded) if paint.glossy else None
+    traced = no_contact is None or lit is not pilot_lit  # else E_c = E_0: the map is G
 
-    parts = ("flux",) if grid_lit is None else ("flux", "track")
+    def no_contact_run(run_seed: int):
+        """A no-contact run's parts, as NoContact takes them (one array where there is one)."""
+        out = trace(pilot_lit, photons, run_seed, window, grid_pilot, view_0)
+        return out[0] if len(out) == 1 else out
 
     def one_pass(k: int) -> np.ndarray:
         pass_seed = seed * 7919 + k
-        phi = None
-        lobe = None if view is None else GlossyView(view.toward, view.normal)
+        phi = lobe_map = None
         if traced:
-            flux = trace(lit, photons, pass_seed, window, grid_lit, lobe)
+            got = dict(zip(parts, trace(lit, photons, pass_seed, window, grid_lit, view)))
+            maps = irradiance(got["flux"], area, kernel)
             if grid_lit is not None:
-                flux, track = flux
-                phi = grid_lit.fluence(track)
-            maps = irradiance(flux, area, kernel)
+                phi = grid_lit.fluence(got["track"])
+            if view is not None:
+                lobe_map = irradiance(got["lobe"], area, kernel)
         if no_contact is not None:
-            same, runs = no_contact.pass_flux(pass_seed, pilot_seed,
-                                              lambda run_seed: trace(pilot_lit, photons, run_seed, window,
-                                                                     grid_pilot), parts)
+            same, runs = no_contact.pass_flux(pass_seed, pilot_seed, no_contact_run, parts)
             no_contact_map = irradiance(runs["flux"], pilot_area, pilot_kernel)
             # G plus the contact's change, with the same random numbers.
             maps = no_contact_map + (maps - irradiance(same["flux"], pilot_area, pilot_kernel) if traced else 0.0)
             if grid_pilot is not None:
                 phi = grid_pilot.fluence(runs["track"]) + (phi - grid_pilot.fluence(same["track"]) if traced else 0.0)
+            if view is not None:
+                lobe_map = irradiance(runs["lobe"], pilot_area, pilot_kernel) + (
+                    lobe_map - irradiance(same["lobe"], pilot_area, pilot_kernel) if traced else 0.0)
         fluence = None if phi is None else (grid_lit, phi)
-        gathered = None if lobe is None else irradiance(lobe.flux, area, kernel)
         image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, paint, spp, pass_seed,
-                            fluence=fluence, glossy_maps=gathered) @ response
+                            fluence=fluence, glossy_maps=lobe_map) @ response
         if not control_spp:
             return image
         as_traced.append(image)
         more = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, paint, control_spp,
-                           _seed(pass_seed, CONTROL_STREAM), fluence=fluence, glossy_maps=gathered) @ response
+                           _seed(pass_seed, CONTROL_STREAM), fluence=fluence, glossy_maps=lobe_map) @ response
         return (spp * image + control_spp * more) / (spp + control_spp)
 
     as_traced: list[np.ndarray] = []

@@ -169,3 +169,33 @@ def test_a_glossy_paint_needs_its_lobe_maps(lit):
     with pytest.raises(ValueError, match=r"glossy_maps must be shaped as the maps, \(3, 8\), got \(3, 7\)"):
         camera_pass(mi, scene, srcs, maps, fx.sigma_t, fx.albedo, Paint(0.8, 0.5), spp=1,
                     glossy_maps=np.zeros((3, 7)))
+
+
+def test_a_glossy_contact_takes_its_lobe_map_from_the_no_contact_runs_too(mesh, spec, camera, ref, tmp_path, photon_mi):
+    """The no-contact control variate carries the lobe map as it does the irradiance:
+    the runs' deposits hold a lobe part beside the flux, and a render from the memo
+    they fill is the same render."""
+    from pbr_tactile.membrane import ElastomerBuilder
+    from pbr_tactile.render import render_photons
+    from pbr_tactile.scene import geltip_scene, led_sources, write_meshes
+    from scenes.contact import press
+    from scenes.indenters import make_indenter
+
+    pytest.importorskip("manifold3d", reason="building indenters needs the manifold boolean engine")
+    effects = Effects(coating_gloss=0.5)
+    depth = press(ref, camera, mesh, make_indenter("sphere"), (320, 150), 1.5e-3)
+    build = ElastomerBuilder(mesh, spec, camera, 1e-3)
+
+    def scene_of(solid, name):
+        return geltip_scene(write_meshes(solid, tmp_path / name), spec, camera, effects, 8, 6, spp=1)
+
+    scene, flat = scene_of(build(depth, ref), "contact"), scene_of(build(), "flat")
+    memo: dict = {}
+    kwargs = dict(photons=1 << 10, spp=1, passes=2, seed=3, pilot_scene=flat, no_contact_runs=1, use_cache=False)
+    first = render_photons(scene, led_sources(spec, effects), effects, no_contact_memo=memo, **kwargs)
+    matte_memo: dict = {}
+    render_photons(scene, led_sources(spec, Effects()), Effects(), no_contact_memo=matte_memo, **kwargs)
+    assert len(memo) > len(matte_memo) > 0  # a lobe part beside each run's flux
+    again = render_photons(scene, led_sources(spec, effects), effects, no_contact_memo=memo, **kwargs)
+    np.testing.assert_allclose(again.mean, first.mean, rtol=1e-4, atol=1e-6 * first.mean.max())
+    assert np.all(np.isfinite(first.mean)) and first.mean.max() > 0

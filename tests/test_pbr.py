@@ -254,11 +254,13 @@ def _vectorised(scene: dict):
     return mi, loaded
 
 
-#: The paints the photon estimator is checked on against volpath: the default matte one,
-#: and a semi-specular one (half its reflectance in a GGX flake lobe, ``pbr_tactile.paint``),
-#: whose lobe the camera gathers by continuing its paths (more samples per pixel: their
-#: rare walks to an LED through the glass are a heavy tail).
-PAINTS = {"matte": ((), 4), "glossy": (("coating_gloss=0.5", "coating_roughness=0.3"), 64)}
+#: The paints the photon estimator is checked on against volpath, with the camera's
+#: samples per pixel: the default matte one, and a semi-specular one (half its reflectance
+#: in a GGX flake lobe, ``pbr_tactile.paint``, carried by the lobe map). Measured here on
+#: the no-contact scene (split, 16 spp, volpath at 64 passes): median |z| 0.86, mean z
+#: -0.54, |z| > 3 on 2.8 % of the pixels, aggregate -3.5 % (matte at the same budget: 0.73,
+#: -0.45, 0 %, -2.3 %).
+PAINTS = {"matte": ((), 4), "glossy": (("coating_gloss=0.5", "coating_roughness=0.3"), 16)}
 
 
 @pytest.mark.slow
