@@ -9,7 +9,7 @@ dielectric core. Here:
    in one symbolic Dr.Jit loop: free flights and isotropic scattering in the elastomer
    (sigma_t, albedo), Fresnel reflection or refraction at the smooth dielectric
    interfaces (the core and the tube, with their IORs read from the scene's BSDFs), and
-   the diffuse coating, where each hit deposits its flux on the hit face's vertices with
+   the coating (``pbr_tactile.paint``), where each hit deposits its flux on the hit face's vertices with
    barycentric weights before reflecting back inside. A weight window set by a pilot
    pass (``weight_window``) splits photons heading for the dim tip and rouletted ones in
    the bright LED end, so every part of the coating gets about as many deposits.

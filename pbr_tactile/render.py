@@ -535,7 +535,7 @@ def reference(
     target_rse : add passes of the same size until the RMS relative standard error over
         the contact region (``contact_region``: the dent and its rim; without contact
         the image circle) is at most this, or ``max_passes`` are done (``run_passes``).
-    estimator : "photons" (two-pass, converges fast; diffuse coating) or "volpath"
+    estimator : "photons" (two-pass, converges fast; matte or glossy paint) or "volpath"
         (Mitsuba's brute-force volumetric path tracer).
     photons : photons per LED per pass, for the photon estimator.
     kernel_radius : the photon density estimate's radius, m (bias ~ radius^2).

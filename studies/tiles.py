@@ -88,6 +88,7 @@ Run ``tactile-sim bench tiles --json PATH`` (``register``), or :func:`run`.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import sys
@@ -1009,7 +1010,7 @@ def cmd_bench_tiles(args) -> int:
               photons=args.photons, quiet=args.quiet, effects=tuple(args.effects or ()))
     keys = ("object", "depth_mm", "strength_ratio", "shape_corr")
     summary = {k: {key: t[key] for key in keys} for k, t in out["tiles"].items()}
-    print(__import__("json").dumps(summary, indent=1))
+    print(json.dumps(summary, indent=1))
     print(f"wrote {args.json}")
     return 0
 
