@@ -69,7 +69,13 @@ renders them with our reference and our fast path, against the real tile.
    circle less a px. ``strength_ratio`` is ``scenes.captures.contact_strength`` of the
    simulation over the real tile's, over that region; ``shape_corr`` the Pearson
    correlation of the change images (each minus its own no-contact frame, signed, all
-   channels) inside it.
+   channels) inside it. Both renderers are uncalibrated, so the ratio holds their
+   exposure too: ``contrast`` splits it per channel into the level ratio (the no-contact
+   images over the region: the camera's) and the relative-change ratio (the light's),
+   and ``strength_ratio_exposed`` is the simulation seen through the real camera's
+   exposure (:func:`exposure`: a gain per channel fitted on the no-contact tiles outside
+   the contact region; a channel the real camera clipped over most of the tile, the
+   GelTip's blue, is not judged).
 5. **At the real contact's place** (``at_real_place``): the figure's real and simulated
    contacts of one column need not sit at one place in the frame, so each column is
    scored again with the recovered tap moved by the offset from the published tile's
@@ -724,18 +730,66 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float | None:
     return float(np.corrcoef(a, b)[0, 1])
 
 
+def _ratio(a: float, b: float) -> float | None:
+    return a / b if b > 0 and math.isfinite(a) and math.isfinite(b) else None
+
+
+def exposure(sim_no_contact: np.ndarray, real_nc: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's exposure that one no-contact image pins down, per channel: (gains (3,),
+    judged (3,) bool). Each gain brings the simulation's no-contact tile to the real one's
+    by least squares over the pixels of ``where`` (h, w) that the real camera did not clip
+    (below ``pbr_tactile.real_image.CLIP_LEVEL``). A channel clipped over more than
+    ``SATURATED_SHARE`` of ``where`` shows no contact and is not judged (as the
+    calibration censors it); a channel the simulation leaves dark is not judged either."""
+    from pbr_tactile.real_image import CLIP_LEVEL, SATURATED_SHARE
+
+    gains, judged = np.zeros(3), np.zeros(3, bool)
+    for c in range(3):
+        s, r = sim_no_contact[..., c][where], real_nc[..., c][where]
+        ok = r < CLIP_LEVEL
+        if not ok.any():
+            continue
+        ss = float(np.sum(s[ok] ** 2))
+        gains[c] = float(np.sum(s[ok] * r[ok])) / ss if ss > 0 else 0.0
+        judged[c] = (1.0 - ok.mean()) <= SATURATED_SHARE and gains[c] > 0
+    return gains, judged
+
+
 def score(sim: np.ndarray, sim_no_contact: np.ndarray, real: np.ndarray, real_nc: np.ndarray,
-          region: np.ndarray) -> dict:
+          region: np.ndarray, inside: np.ndarray | None = None) -> dict:
     """A simulated tile (h, w, 3) against the real one over the contact region (h, w):
     ``strength`` (``scenes.captures.contact_strength``), ``strength_ratio`` (sim over real)
-    and ``shape_corr`` (Pearson of the signed change images there, all channels)."""
-    from scenes.captures import contact_strength
+    and ``shape_corr`` (Pearson of the signed change images there, all channels).
+
+    With ``inside`` (the tile's image circle), also the strength's two factors per channel
+    (``contrast``: ``level_ratio``, the no-contact images' means over the region, sim over
+    real, which is the camera's; ``relative_ratio``, the change over the level, which is
+    the light's; ``scenes.captures.contact_contrast``), and ``exposed``: the simulation
+    seen through the real camera's exposure (``exposure``, fitted on ``inside`` less the
+    region, so never on the contact), its strength, ratio and shape over the judged
+    (unsaturated) channels."""
+    from scenes.captures import contact_contrast, contact_strength
 
     s_sim = float(contact_strength(sim[None], sim_no_contact, region[None])[0])
     s_real = float(contact_strength(real[None], real_nc, region[None])[0])
-    ratio = s_sim / s_real if s_real > 0 and math.isfinite(s_real) and math.isfinite(s_sim) else None
     corr = pearson((sim - sim_no_contact)[region], (real - real_nc)[region]) if region.any() else None
-    return {"strength": s_sim if math.isfinite(s_sim) else None, "strength_ratio": ratio, "shape_corr": corr}
+    out = {"strength": s_sim if math.isfinite(s_sim) else None, "strength_ratio": _ratio(s_sim, s_real),
+           "shape_corr": corr}
+    if inside is None or not region.any():
+        return out
+    cs = contact_contrast(sim[None], sim_no_contact, region[None])
+    cr = contact_contrast(real[None], real_nc, region[None])
+    out["contrast"] = {key: [_ratio(float(a), float(b)) for a, b in zip(cs[name][0], cr[name][0])]
+                       for key, name in (("level_ratio", "level"), ("relative_ratio", "relative"))}
+    gains, judged = exposure(sim_no_contact, real_nc, inside & ~region)
+    if judged.any():
+        e_sim = float(np.mean(gains[judged] * cs["change"][0][judged]))
+        e_real = float(np.mean(cr["change"][0][judged]))
+        out["exposed"] = {
+            "gains": gains.tolist(), "channels": "".join(ch for ch, j in zip("rgb", judged) if j),
+            "strength": e_sim, "strength_real": e_real, "strength_ratio": _ratio(e_sim, e_real),
+            "shape_corr": pearson(((sim - sim_no_contact) * gains)[region][:, judged], (real - real_nc)[region][:, judged])}
+    return out
 
 
 # --------------------------------------------------------------------------------------
@@ -756,10 +810,11 @@ def _clean(obj):
 
 
 def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real: np.ndarray, real_nc: np.ndarray,
-              alignment: Alignment, region: np.ndarray) -> tuple[dict, dict]:
+              alignment: Alignment, region: np.ndarray, inside: np.ndarray | None = None) -> tuple[dict, dict]:
     """Each renderer's tile of a contact pressed on our membrane (``spec_inputs``: D_ref,
-    camera, mesh), scored against the real tile (``score``, with the renderer's record:
-    the reference's passes and contact RSE): ({name: score}, {name: s})."""
+    camera, mesh), scored against the real tile (``score``, over ``inside`` for its
+    exposure, with the renderer's record: the reference's passes and contact RSE):
+    ({name: score}, {name: s})."""
     from scenes.generate import render_sample
 
     ref_depth, camera, mesh = spec_inputs
@@ -775,7 +830,7 @@ def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real
         out = render_sample(r, depth)
         seconds[name] = time.perf_counter() - t0
         scores[name] = {**score(to_tile(out["image"], shape_hw, alignment), to_tile(r.no_contact, shape_hw, alignment),
-                                real, real_nc, region),
+                                real, real_nc, region, inside),
                         **{k: v for k, v in out["record"].items() if k in ("passes", "contact_rse")}}
     return scores, seconds
 
@@ -825,6 +880,14 @@ def locate(contact: Contact, renderer, shape, spec_inputs: tuple, real: np.ndarr
 
 def _by_renderer(scores: dict, key: str) -> dict:
     return {name: scores.get(name, {}).get(key) for name in ("pbr", "phong")}
+
+
+def _factors(scores: dict) -> dict:
+    """A place's scores beyond the plain strength (``score``): each renderer's ``contrast``
+    and ``exposed`` blocks, and ``strength_ratio_exposed`` on its own."""
+    exposed = _by_renderer(scores, "exposed")
+    return {"strength_ratio_exposed": {n: (e or {}).get("strength_ratio") for n, e in exposed.items()},
+            "contrast": _by_renderer(scores, "contrast"), "exposed": exposed}
 
 
 def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] | None = None,
@@ -915,7 +978,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         inside = tile_inside(real.shape[:2], align_real, camera)
         region = changed_region(real, real_nc, inside)
         real_strength = float(contact_strength(real[None], real_nc, region[None])[0])
-        scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region)
+        scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region, inside)
         for rname, sc in scores.items():
             say(f"  {rname}: strength ratio {sc['strength_ratio']}, shape corr {sc['shape_corr']} "
                 f"({seconds.get(rname, 0):.0f} s)")
@@ -927,22 +990,24 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         if real_centre is not None:
             offset = (real_centre[0] - rec.centroid[0], real_centre[1] - rec.centroid[1])
             there = Contact(c.u + offset[0], c.v + offset[1], c.depth_m, c.roll_rad)
-            moved_scores, moved_seconds = simulated(there, renderers, shape, ours, real, real_nc, align_real, region)
+            moved_scores, moved_seconds = simulated(there, renderers, shape, ours, real, real_nc, align_real, region,
+                                                         inside)
             moved = {"offset_px": list(offset), "u_px": there.u, "v_px": there.v,
                      "strength_ratio": _by_renderer(moved_scores, "strength_ratio"),
                      "shape_corr": _by_renderer(moved_scores, "shape_corr"),
-                     "strength": _by_renderer(moved_scores, "strength"),
+                     "strength": _by_renderer(moved_scores, "strength"), **_factors(moved_scores),
                      "seconds": {f"render_{n}": v for n, v in moved_seconds.items()}}
             say(f"  at the real contact's place (moved {offset[0]:+.0f}, {offset[1]:+.0f} px): strength ratio "
                 f"{moved['strength_ratio']}, shape corr {moved['shape_corr']}")
             found, corr = locate(there, renderers["phong"], shape, ours, real, real_nc, align_real, inside, period)
-            found_scores, found_seconds = simulated(found, renderers, shape, ours, real, real_nc, align_real, region)
+            found_scores, found_seconds = simulated(found, renderers, shape, ours, real, real_nc, align_real, region,
+                                                         inside)
             moved["located"] = {"u_px": found.u, "v_px": found.v, "moved_px": [found.u - there.u, found.v - there.v],
                                 "bound_px": LOCATE_BOUND_PX, "roll_deg": None if period is None else
                                 math.degrees(found.roll_rad), "phong_change_corr": corr,
                                 "strength_ratio": _by_renderer(found_scores, "strength_ratio"),
                                 "shape_corr": _by_renderer(found_scores, "shape_corr"),
-                                "strength": _by_renderer(found_scores, "strength")}
+                                "strength": _by_renderer(found_scores, "strength"), **_factors(found_scores)}
             say(f"  located on the real tile at ({found.u:.0f}, {found.v:.0f}) px (phong's change correlates "
                 f"{corr:.2f}): strength ratio {moved['located']['strength_ratio']}, shape corr "
                 f"{moved['located']['shape_corr']}")
@@ -962,6 +1027,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
             "strength_ratio": _by_renderer(scores, "strength_ratio"),
             "shape_corr": _by_renderer(scores, "shape_corr"),
             "strength": {"real": real_strength, **_by_renderer(scores, "strength")},
+            **_factors(scores),
             "reference_noise": ({"passes": scores["pbr"].get("passes"), "contact_rse": scores["pbr"].get("contact_rse")}
                                 if "pbr" in scores else None),
             "real": {"tile": col.real.name, "region_px": int(region.sum()), "alignment": align_real.to_dict(),

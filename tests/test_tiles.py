@@ -189,6 +189,44 @@ def test_scores_of_a_known_change():
     assert none["strength_ratio"] is None and none["shape_corr"] is None
 
 
+
+def test_a_dim_simulation_is_seen_through_the_real_cameras_exposure_and_a_clipped_channel_is_not_judged():
+    # The real tile: a no-contact level per channel, blue clipped nearly everywhere, and a
+    # contact that changes red and green by 10 % of their level (blue cannot show it).
+    rng = np.random.default_rng(2)
+    h = w = 30
+    inside = np.ones((h, w), bool)
+    region = np.zeros((h, w), bool)
+    region[10:20, 10:20] = True
+    level = np.array([0.6, 0.4, 1.0])
+    real_nc = np.broadcast_to(level, (h, w, 3)).copy()
+    real_nc[..., 2][:2] = 0.9  # a few unclipped blue pixels
+    bump = np.where(region, 0.1 + 0.02 * rng.standard_normal((h, w)), 0.0)
+    real = real_nc * (1 + bump[..., None])
+    real[..., 2] = np.minimum(real[..., 2], 1.0)
+    # The simulation: the same relative change, but a quarter of the light in red and
+    # a half in green, and blue not clipped.
+    dim = np.array([0.25, 0.5, 0.3])
+    sim_nc = real_nc * dim
+    sim = real * dim
+    sim[..., 2] = sim_nc[..., 2] * (1 + bump)
+    sc = T.score(sim, sim_nc, real, real_nc, region, inside)
+    assert sc["contrast"]["level_ratio"][:2] == pytest.approx([0.25, 0.5])
+    assert sc["contrast"]["relative_ratio"][:2] == pytest.approx([1.0, 1.0])
+    e = sc["exposed"]
+    assert e["channels"] == "rg" and e["gains"][:2] == pytest.approx([4.0, 2.0])
+    assert e["strength_ratio"] == pytest.approx(1.0) and e["shape_corr"] == pytest.approx(1.0)
+    # uncalibrated, the dim red and green and the unclipped blue's change make another ratio
+    assert abs(sc["strength_ratio"] - 1.0) > 0.2
+    # a simulation with half the relative change reads half through the same exposure
+    half = sim_nc + 0.5 * (sim - sim_nc)
+    assert T.score(half, sim_nc, real, real_nc, region, inside)["exposed"]["strength_ratio"] == pytest.approx(0.5)
+    # the exposure is fitted off the contact: a region that covers the tile leaves nothing to fit
+    gains, judged = T.exposure(sim_nc, real_nc, inside & ~region)
+    assert gains[:2] == pytest.approx([4.0, 2.0]) and list(judged) == [True, True, False]
+    assert not T.exposure(sim_nc, real_nc, np.zeros((h, w), bool))[1].any()
+
+
 # --- Bad input ------------------------------------------------------------------------
 
 
