@@ -740,8 +740,10 @@ def exposure(sim_no_contact: np.ndarray, real_nc: np.ndarray, where: np.ndarray)
     by least squares over the pixels of ``where`` (h, w) that the real camera did not clip
     (below ``pbr_tactile.real_image.CLIP_LEVEL``). A channel clipped over more than
     ``SATURATED_SHARE`` of ``where`` shows no contact and is not judged (as the
-    calibration censors it); a channel the simulation leaves dark is not judged either."""
-    from pbr_tactile.real_image import CLIP_LEVEL, SATURATED_SHARE
+    calibration censors it); nor is a channel the simulation leaves dark (its mean there
+    below ``CIRCLE_THRESHOLD``, an unlit pixel's level: a fast path without its background
+    term), whose gain would be its noise's."""
+    from pbr_tactile.real_image import CIRCLE_THRESHOLD, CLIP_LEVEL, SATURATED_SHARE
 
     gains, judged = np.zeros(3), np.zeros(3, bool)
     for c in range(3):
@@ -751,7 +753,7 @@ def exposure(sim_no_contact: np.ndarray, real_nc: np.ndarray, where: np.ndarray)
             continue
         ss = float(np.sum(s[ok] ** 2))
         gains[c] = float(np.sum(s[ok] * r[ok])) / ss if ss > 0 else 0.0
-        judged[c] = (1.0 - ok.mean()) <= SATURATED_SHARE and gains[c] > 0
+        judged[c] = (1.0 - ok.mean()) <= SATURATED_SHARE and gains[c] > 0 and s.mean() >= CIRCLE_THRESHOLD
     return gains, judged
 
 

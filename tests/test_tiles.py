@@ -225,6 +225,9 @@ def test_a_dim_simulation_is_seen_through_the_real_cameras_exposure_and_a_clippe
     gains, judged = T.exposure(sim_nc, real_nc, inside & ~region)
     assert gains[:2] == pytest.approx([4.0, 2.0]) and list(judged) == [True, True, False]
     assert not T.exposure(sim_nc, real_nc, np.zeros((h, w), bool))[1].any()
+    # a simulation without its background (a dark no-contact frame) is not seen through an exposure
+    dark = T.score(real - real_nc, np.zeros_like(real_nc), real, real_nc, region, inside)
+    assert "exposed" not in dark and dark["strength_ratio"] is not None
 
 
 # --- Bad input ------------------------------------------------------------------------
