@@ -75,7 +75,9 @@ renders them with our reference and our fast path, against the real tile.
    and ``strength_ratio_exposed`` is the simulation seen through the real camera's
    exposure (:func:`exposure`: a gain per channel fitted on the no-contact tiles outside
    the contact region; a channel the real camera clipped over most of the tile, the
-   GelTip's blue, is not judged).
+   GelTip's blue, is not judged). ``noise_strength`` is what the render's own Monte
+   Carlo noise alone reads as strength there (:func:`noise_floor`), to tell a faint
+   contact from noise.
 5. **At the real contact's place** (``at_real_place``): the figure's real and simulated
    contacts of one column need not sit at one place in the frame, so each column is
    scored again with the recovered tap moved by the offset from the published tile's
@@ -831,10 +833,44 @@ def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real
         t0 = time.perf_counter()
         out = render_sample(r, depth)
         seconds[name] = time.perf_counter() - t0
-        scores[name] = {**score(to_tile(out["image"], shape_hw, alignment), to_tile(r.no_contact, shape_hw, alignment),
-                                real, real_nc, region, inside),
-                        **{k: v for k, v in out["record"].items() if k in ("passes", "contact_rse")}}
+        sc = score(to_tile(out["image"], shape_hw, alignment), to_tile(r.no_contact, shape_hw, alignment),
+                   real, real_nc, region, inside)
+        noise = image_noise(r, out)
+        if noise is not None and region.any():
+            sc.update(noise_floor(to_tile(noise, shape_hw, alignment), region, sc))
+        scores[name] = {**sc, **{k: v for k, v in out["record"].items() if k in ("passes", "contact_rse")}}
     return scores, seconds
+
+
+def image_noise(renderer, out: dict) -> np.ndarray | None:
+    """(H, W, 3) the standard error of a Monte Carlo render's image (its variance of the
+    mean, ``arrays["variance"]``, at the renderer's exposure ``gain`` and image circle),
+    or None for a renderer without one (the fast path) or with a profile's image model."""
+    variance = out["arrays"].get("variance")
+    gain = getattr(renderer, "gain", None)
+    if variance is None or gain is None or getattr(renderer, "profile", None) is not None:
+        return None
+    mask = renderer.camera.mask[..., None]
+    return gain * np.sqrt(np.maximum(np.asarray(variance, np.float64), 0.0)) * mask
+
+
+#: E|x| of a zero-mean Gaussian over its standard deviation.
+HALF_NORMAL_MEAN = math.sqrt(2.0 / math.pi)
+
+
+def noise_floor(noise_tile: np.ndarray, region: np.ndarray, sc: dict) -> dict:
+    """What a render's own noise alone reads as contact strength over the region: the
+    mean |change| of a zero-mean Gaussian of the render's standard error (``image_noise``
+    brought to the tile; the tile's anti-aliasing averages the noise, so this bounds it
+    from above), all channels (``noise_strength``) and, through the exposure, the judged
+    ones (``exposed.noise_strength``). A strength within a few of these is noise's."""
+    per_channel = HALF_NORMAL_MEAN * noise_tile[region].mean(axis=0)
+    out = {"noise_strength": float(per_channel.mean())}
+    e = sc.get("exposed")
+    if e is not None:
+        judged = np.array([ch in e["channels"] for ch in "rgb"])
+        e["noise_strength"] = float(np.mean(np.asarray(e["gains"])[judged] * per_channel[judged]))
+    return out
 
 
 #: The real place's search (``locate``): how far from its start, frame px, and renders.
@@ -886,10 +922,12 @@ def _by_renderer(scores: dict, key: str) -> dict:
 
 def _factors(scores: dict) -> dict:
     """A place's scores beyond the plain strength (``score``): each renderer's ``contrast``
-    and ``exposed`` blocks, and ``strength_ratio_exposed`` on its own."""
+    and ``exposed`` blocks, ``strength_ratio_exposed`` on its own, and what its noise alone
+    reads as strength (``noise_strength``, ``noise_floor``)."""
     exposed = _by_renderer(scores, "exposed")
     return {"strength_ratio_exposed": {n: (e or {}).get("strength_ratio") for n, e in exposed.items()},
-            "contrast": _by_renderer(scores, "contrast"), "exposed": exposed}
+            "contrast": _by_renderer(scores, "contrast"), "exposed": exposed,
+            "noise_strength": _by_renderer(scores, "noise_strength")}
 
 
 def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] | None = None,
@@ -982,7 +1020,8 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         real_strength = float(contact_strength(real[None], real_nc, region[None])[0])
         scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region, inside)
         for rname, sc in scores.items():
-            say(f"  {rname}: strength ratio {sc['strength_ratio']}, shape corr {sc['shape_corr']} "
+            say(f"  {rname}: strength ratio {sc['strength_ratio']} (exposed {(sc.get('exposed') or {}).get('strength_ratio')}"
+                f", noise alone {sc.get('noise_strength')}), shape corr {sc['shape_corr']} "
                 f"({seconds.get(rname, 0):.0f} s)")
         try:
             real_centre = contact_centroid(real, real_nc, align_real, camera, str(col.real))

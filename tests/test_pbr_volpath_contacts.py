@@ -42,7 +42,8 @@ GLOSSY_SPLIT = ("split camera paths read the lobe map from the camera's direct v
 
 @pytest.mark.slow
 @pytest.mark.parametrize("paint", ["matte", pytest.param("glossy", marks=pytest.mark.xfail(reason=GLOSSY_SPLIT,
-                                                                                            strict=False))])
+                                                                                            strict=False)),
+                                   "clear_glossy"])
 @pytest.mark.parametrize("name", INDENTERS)
 def test_a_contact_by_the_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera, ref, name,
                                                                          paint):

@@ -230,6 +230,33 @@ def test_a_dim_simulation_is_seen_through_the_real_cameras_exposure_and_a_clippe
     assert "exposed" not in dark and dark["strength_ratio"] is not None
 
 
+
+def test_the_noise_floor_is_what_pure_noise_reads_as_strength():
+    # A "contact" that is only Gaussian noise of a known standard error reads, as strength,
+    # what noise_floor says, through the exposure too.
+    rng = np.random.default_rng(3)
+    h = w = 200
+    sigma = np.array([0.01, 0.02, 0.005])
+    real_nc = np.full((h, w, 3), 0.4)
+    region = np.zeros((h, w), bool)
+    region[50:150, 50:150] = True
+    real = real_nc + np.where(region[..., None], 0.1, 0.0)
+    sim_nc = np.full((h, w, 3), 0.2)
+    sim = sim_nc + sigma * rng.standard_normal((h, w, 3))
+    sc = T.score(sim, sim_nc, real, real_nc, region, np.ones((h, w), bool))
+    floor = T.noise_floor(np.broadcast_to(sigma, (h, w, 3)), region, sc)
+    assert sc["strength"] == pytest.approx(floor["noise_strength"], rel=0.03)
+    assert sc["exposed"]["strength"] == pytest.approx(sc["exposed"]["noise_strength"], rel=0.03)
+
+    class Renderer:  # the reference's renderer as image_noise reads it
+        gain, profile = 2.0, None
+        camera = type("Cam", (), {"mask": np.ones((h, w), bool)})()
+
+    out = {"arrays": {"variance": np.broadcast_to(sigma ** 2, (h, w, 3))}}
+    assert T.image_noise(Renderer(), out)[0, 0] == pytest.approx(2 * sigma)
+    assert T.image_noise(object(), out) is None and T.image_noise(Renderer(), {"arrays": {}}) is None
+
+
 # --- Bad input ------------------------------------------------------------------------
 
 
