@@ -837,34 +837,43 @@ def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real
                    real, real_nc, region, inside)
         noise = image_noise(r, out)
         if noise is not None and region.any():
-            sc.update(noise_floor(to_tile(noise, shape_hw, alignment), region, sc))
+            sc.update(noise_floor([to_tile(n, shape_hw, alignment) for n in noise], region, sc))
         scores[name] = {**sc, **{k: v for k, v in out["record"].items() if k in ("passes", "contact_rse")}}
     return scores, seconds
 
 
-def image_noise(renderer, out: dict) -> np.ndarray | None:
-    """(H, W, 3) the standard error of a Monte Carlo render's image (its variance of the
-    mean, ``arrays["variance"]``, at the renderer's exposure ``gain`` and image circle),
-    or None for a renderer without one (the fast path) or with a profile's image model."""
+#: Noise images drawn per render to read what its noise alone shows (``noise_floor``).
+NOISE_DRAWS = 4
+
+
+def image_noise(renderer, out: dict, draws: int = NOISE_DRAWS, seed: int = 0) -> list[np.ndarray] | None:
+    """``draws`` (H, W, 3) images of a Monte Carlo render's noise alone: zero-mean Gaussian
+    film pixels of the render's standard error (its variance of the mean,
+    ``arrays["variance"]``, block-averaged back to the film), brought to the camera's size
+    as the render's image is (the renderer's ``_camera_size``) and seen at its exposure
+    ``gain`` in its image circle; None for a renderer without a variance (the fast path) or
+    with a profile's image model."""
     variance = out["arrays"].get("variance")
     gain = getattr(renderer, "gain", None)
     if variance is None or gain is None or getattr(renderer, "profile", None) is not None:
         return None
+    from scenes.images import block_mean
+
+    variance = np.maximum(np.asarray(variance, np.float64), 0.0)
+    factor = variance.shape[1] // renderer.opts["film"][0]
+    sigma = np.sqrt(block_mean(variance, factor) if factor > 1 else variance)
+    rng = np.random.default_rng(seed)
     mask = renderer.camera.mask[..., None]
-    return gain * np.sqrt(np.maximum(np.asarray(variance, np.float64), 0.0)) * mask
+    return [gain * np.asarray(renderer._camera_size(sigma * rng.standard_normal(sigma.shape)), np.float64) * mask
+            for _ in range(draws)]
 
 
-#: E|x| of a zero-mean Gaussian over its standard deviation.
-HALF_NORMAL_MEAN = math.sqrt(2.0 / math.pi)
-
-
-def noise_floor(noise_tile: np.ndarray, region: np.ndarray, sc: dict) -> dict:
+def noise_floor(noise_tiles: list[np.ndarray], region: np.ndarray, sc: dict) -> dict:
     """What a render's own noise alone reads as contact strength over the region: the
-    mean |change| of a zero-mean Gaussian of the render's standard error (``image_noise``
-    brought to the tile; the tile's anti-aliasing averages the noise, so this bounds it
-    from above), all channels (``noise_strength``) and, through the exposure, the judged
-    ones (``exposed.noise_strength``). A strength within a few of these is noise's."""
-    per_channel = HALF_NORMAL_MEAN * noise_tile[region].mean(axis=0)
+    mean |change| of its noise images (``image_noise``, brought to the tile), all channels
+    (``noise_strength``) and, through the exposure, the judged ones
+    (``exposed.noise_strength``). A strength within a few of these is noise's."""
+    per_channel = np.mean([np.abs(t[region]).mean(axis=0) for t in noise_tiles], axis=0)
     out = {"noise_strength": float(per_channel.mean())}
     e = sc.get("exposed")
     if e is not None:

@@ -233,7 +233,7 @@ def test_a_dim_simulation_is_seen_through_the_real_cameras_exposure_and_a_clippe
 
 def test_the_noise_floor_is_what_pure_noise_reads_as_strength():
     # A "contact" that is only Gaussian noise of a known standard error reads, as strength,
-    # what noise_floor says, through the exposure too.
+    # what noise_floor gives from other draws of that noise, through the exposure too.
     rng = np.random.default_rng(3)
     h = w = 200
     sigma = np.array([0.01, 0.02, 0.005])
@@ -244,18 +244,24 @@ def test_the_noise_floor_is_what_pure_noise_reads_as_strength():
     sim_nc = np.full((h, w, 3), 0.2)
     sim = sim_nc + sigma * rng.standard_normal((h, w, 3))
     sc = T.score(sim, sim_nc, real, real_nc, region, np.ones((h, w), bool))
-    floor = T.noise_floor(np.broadcast_to(sigma, (h, w, 3)), region, sc)
+    draws = [sigma * rng.standard_normal((h, w, 3)) for _ in range(2)]
+    floor = T.noise_floor(draws, region, sc)
     assert sc["strength"] == pytest.approx(floor["noise_strength"], rel=0.03)
     assert sc["exposed"]["strength"] == pytest.approx(sc["exposed"]["noise_strength"], rel=0.03)
 
-    class Renderer:  # the reference's renderer as image_noise reads it
-        gain, profile = 2.0, None
+    class Renderer:  # the reference's renderer as image_noise reads it: a film half the camera's size
+        gain, profile, opts = 2.0, None, {"film": (w // 2, h // 2)}
         camera = type("Cam", (), {"mask": np.ones((h, w), bool)})()
 
-    out = {"arrays": {"variance": np.broadcast_to(sigma ** 2, (h, w, 3))}}
-    assert T.image_noise(Renderer(), out)[0, 0] == pytest.approx(2 * sigma)
-    assert T.image_noise(object(), out) is None and T.image_noise(Renderer(), {"arrays": {}}) is None
+        def _camera_size(self, image):
+            return np.repeat(np.repeat(image, 2, axis=0), 2, axis=1)
 
+    out = {"arrays": {"variance": np.broadcast_to(sigma ** 2, (h, w, 3))}}
+    noise = T.image_noise(Renderer(), out, draws=3)
+    assert len(noise) == 3 and noise[0].shape == (h, w, 3)
+    assert noise[0].reshape(-1, 3).std(axis=0) == pytest.approx(2 * sigma, rel=0.05)
+    assert not np.allclose(noise[0], noise[1])
+    assert T.image_noise(object(), out) is None and T.image_noise(Renderer(), {"arrays": {}}) is None
 
 # --- Bad input ------------------------------------------------------------------------
 
