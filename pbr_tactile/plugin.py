@@ -358,7 +358,7 @@ class PbrDatasetRenderer:
         self._control = None if inputs["control"] is None else Control(**inputs["control"])
         self._solids = shared_builder(mesh, spec, camera)  # refined and checked once per process
 
-    def _camera_size(self, image: np.ndarray) -> np.ndarray:
+    def camera_size(self, image: np.ndarray) -> np.ndarray:
         """A film-sized (h, w, 3) image at the camera's (H, W, 3), float32 (see RESAMPLING)."""
         if image.shape[:2] == self.camera.shape:
             return np.asarray(image, np.float32)
@@ -378,7 +378,7 @@ class PbrDatasetRenderer:
     @property
     def no_contact(self) -> np.ndarray:
         """(H, W, 3) float32 in [0, 1]: the no-contact frame, at the dataset's exposure."""
-        return self._image(self._camera_size(self._frame.mean))
+        return self._image(self.camera_size(self._frame.mean))
 
     def render_sample(self, depth: np.ndarray) -> dict:
         """A contact depth map (H, W) float, metres -> image, arrays and record (see
@@ -399,11 +399,11 @@ class PbrDatasetRenderer:
                             target_rse=opts["target_rse"], max_passes=opts["max_passes"], no_contact_memo=self._memo,
                             solids=self._solids, control=self._control, per_source=self.profile is not None,
                             led_power=self.led_power, inscatter=opts["inscatter"])
-        linear = self._camera_size(est.mean)
+        linear = self.camera_size(est.mean)
         rse = est.rse if est.rse is not None and math.isfinite(est.rse) else None
         return {
             "image": self._image(linear),
-            "arrays": {"linear": linear, "variance": self._camera_size(est.variance)},
+            "arrays": {"linear": linear, "variance": self.camera_size(est.variance)},
             "record": {"contact_rse": rse, "passes": int(est.passes), "spp": int(est.spp),
                        "seconds": time.perf_counter() - t0},
         }

@@ -850,7 +850,7 @@ def image_noise(renderer, out: dict, draws: int = NOISE_DRAWS, seed: int = 0) ->
     """``draws`` (H, W, 3) images of a Monte Carlo render's noise alone: zero-mean Gaussian
     film pixels of the render's standard error (its variance of the mean,
     ``arrays["variance"]``, block-averaged back to the film), brought to the camera's size
-    as the render's image is (the renderer's ``_camera_size``) and seen at its exposure
+    as the render's image is (the renderer's ``camera_size``) and seen at its exposure
     ``gain`` in its image circle; None for a renderer without a variance (the fast path) or
     with a profile's image model."""
     variance = out["arrays"].get("variance")
@@ -864,7 +864,7 @@ def image_noise(renderer, out: dict, draws: int = NOISE_DRAWS, seed: int = 0) ->
     sigma = np.sqrt(block_mean(variance, factor) if factor > 1 else variance)
     rng = np.random.default_rng(seed)
     mask = renderer.camera.mask[..., None]
-    return [gain * np.asarray(renderer._camera_size(sigma * rng.standard_normal(sigma.shape)), np.float64) * mask
+    return [gain * np.asarray(renderer.camera_size(sigma * rng.standard_normal(sigma.shape)), np.float64) * mask
             for _ in range(draws)]
 
 

@@ -236,7 +236,7 @@ def test_a_contact_reaches_a_loose_target_from_shared_deposits(monkeypatch, tmp_
     film = camera.scaled(*settings["film"]).mask  # the exposure is set at the film's size
     level = np.percentile(shared["no_contact"]["mean"][film], 99.5)
     assert settings["exposure_gain"] * level == pytest.approx(0.8, rel=0.005)  # the gain has 3 digits
-    frame_mean, frame_variance = (renderer._camera_size(shared["no_contact"][k]) for k in ("mean", "variance"))
+    frame_mean, frame_variance = (renderer.camera_size(shared["no_contact"][k]) for k in ("mean", "variance"))
     far = ~contact_region(pressed, ref, camera) & camera.mask
     z = (linear - frame_mean)[far] / np.sqrt(variance + frame_variance)[far]
     assert np.median(np.abs(z)) < 1.0

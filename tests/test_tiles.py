@@ -253,7 +253,7 @@ def test_the_noise_floor_is_what_pure_noise_reads_as_strength():
         gain, profile, opts = 2.0, None, {"film": (w // 2, h // 2)}
         camera = type("Cam", (), {"mask": np.ones((h, w), bool)})()
 
-        def _camera_size(self, image):
+        def camera_size(self, image):
             return np.repeat(np.repeat(image, 2, axis=0), 2, axis=1)
 
     out = {"arrays": {"variance": np.broadcast_to(sigma ** 2, (h, w, 3))}}
