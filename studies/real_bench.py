@@ -82,11 +82,17 @@ def _figure(row: dict | None) -> dict | None:
 
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
-        rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True) -> dict:
+        rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
+        reference_presses: int = REFERENCE_PRESSES) -> dict:
     """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
     calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
     spec's camera (``calibrate --camera-known``: the public set's spec is written from its
-    camera's record), else searched."""
+    camera's record), else searched; ``reference_presses``: the held-out presses the
+    reference renders, spread evenly over them (all when it is at least their count), so
+    that a strength near a goal's bound can be confirmed on more than the default's few."""
+    if isinstance(reference_presses, bool) or not isinstance(reference_presses, (int, np.integer)) \
+            or reference_presses < 1:
+        raise ValueError(f"reference_presses must be a whole number >= 1, got {reference_presses!r}")
     from scenes.cli import main
     from scenes.dataset import atomic_write_json
     from scenes.reference_data import require_taxim_archive
@@ -135,7 +141,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         field = load_profile(fast_profile, unit.spec).phong["field"]
         common = {"heldout": True, "bootstrap": 2000, "progress": not quiet}
         raw = stage("compare_uncalibrated", lambda: compare(
-            capture, work / "compare_uncalibrated", reference=reference, reference_taps=REFERENCE_PRESSES,
+            capture, work / "compare_uncalibrated", reference=reference, reference_taps=int(reference_presses),
             peers=("taxim",), **common))
         fast = stage("compare_calibrated_fast", lambda: compare(
             capture, work / "compare_calibrated_fast", profile=fast_profile, reference=False, **common))
@@ -143,7 +149,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         if reference and ref_profile.is_file():
             ref = stage("compare_calibrated_reference", lambda: compare(
                 capture, work / "compare_calibrated_reference", profile=ref_profile, fields=(field,),
-                reference=True, reference_taps=REFERENCE_PRESSES, **common))
+                reference=True, reference_taps=int(reference_presses), **common))
         core = sum(seconds.values())
 
         from scenes.replay import replay
@@ -233,7 +239,8 @@ def cmd_bench_real(args) -> int:
     out = run(args.json, args.archive, args.spec, args.ball_mm, args.pixel_mm, args.work,
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share,
-              grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment)
+              grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
+              reference_presses=args.reference_presses)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -241,7 +248,7 @@ def cmd_bench_real(args) -> int:
 
 
 def register(registry) -> None:
-    from scenes.commands import add_quiet_argument
+    from scenes.commands import add_quiet_argument, positive_int
 
     p = registry.bench("real", cmd_bench_real, "a real capture of ball presses end to end: import, both calibrations, "
                        "compare with Taxim, the diagnosis and sim-to-real localisation on the held-out presses")
@@ -263,6 +270,10 @@ def register(registry) -> None:
                    help="search the reference's alignment to the camera (rotation, scale, shift, lens) instead of "
                         "holding it at the spec's (calibrate --camera-known; the public set's spec is written from "
                         "its camera's record): for a unit whose spec's camera is an estimate")
+    p.add_argument("--reference-presses", type=positive_int, default=REFERENCE_PRESSES, metavar="N",
+                   help=f"held-out presses the reference renders, spread evenly over them (default "
+                        f"{REFERENCE_PRESSES}; each takes about a minute and a half here; all when N is at least "
+                        "their count)")
     p.add_argument("--reference-diagnosis", action="store_true",
                    help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
     p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")

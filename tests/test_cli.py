@@ -148,3 +148,26 @@ def test_every_command_with_progress_bars_takes_quiet(argv):
     parser = build_parser()
     assert parser.parse_args(argv).quiet is False
     assert parser.parse_args([*argv, "--quiet"]).quiet is True
+
+
+@pytest.mark.parametrize("count", ["0", "-2", "1.5"])
+def test_bench_real_refuses_a_count_of_reference_presses_that_is_not_a_whole_positive_number(count, tmp_path,
+                                                                                              capsys):
+    out = tmp_path / "real.json"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["bench", "real", "--json", str(out), "--reference-presses", count])
+    assert exit_info.value.code == 2
+    assert "--reference-presses" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_bench_real_takes_the_reference_presses_and_refuses_a_bad_count_before_any_work(tmp_path):
+    from scenes.cli import build_parser
+    from studies.real_bench import REFERENCE_PRESSES, run
+
+    parser = build_parser()
+    assert parser.parse_args(["bench", "real", "--json", "J"]).reference_presses == REFERENCE_PRESSES
+    assert parser.parse_args(["bench", "real", "--json", "J", "--reference-presses", "24"]).reference_presses == 24
+    with pytest.raises(ValueError, match="reference_presses must be a whole number >= 1, got 0"):
+        run(tmp_path / "real.json", work=tmp_path / "work", reference_presses=0)
+    assert not (tmp_path / "work").exists() and not (tmp_path / "real.json").exists()
