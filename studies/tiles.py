@@ -75,7 +75,9 @@ renders them with our reference and our fast path, against the real tile.
    and ``strength_ratio_exposed`` is the simulation seen through the real camera's
    exposure (:func:`exposure`: a gain per channel fitted on the no-contact tiles outside
    the contact region; a channel the real camera clipped over most of the tile, the
-   GelTip's blue, is not judged). ``noise_strength`` is what the render's own Monte
+   GelTip's blue, is not judged); ``signed_ratio_exposed`` (:func:`signed_change`) is
+   whether that change brightens or darkens the region as the real one does, which a
+   strength (a mean of |change|) cannot tell. ``noise_strength`` is what the render's own Monte
    Carlo noise alone reads as strength there (:func:`noise_floor`), to tell a faint
    contact from noise.
 5. **At the real contact's place** (``at_real_place``): the figure's real and simulated
@@ -792,8 +794,24 @@ def score(sim: np.ndarray, sim_no_contact: np.ndarray, real: np.ndarray, real_nc
         out["exposed"] = {
             "gains": gains.tolist(), "channels": "".join(ch for ch, j in zip("rgb", judged) if j),
             "strength": e_sim, "strength_real": e_real, "strength_ratio": _ratio(e_sim, e_real),
-            "shape_corr": pearson(((sim - sim_no_contact) * gains)[region][:, judged], (real - real_nc)[region][:, judged])}
+            "shape_corr": pearson(((sim - sim_no_contact) * gains)[region][:, judged], (real - real_nc)[region][:, judged]),
+            **signed_change(((sim - sim_no_contact) * gains)[region][:, judged], (real - real_nc)[region][:, judged])}
     return out
+
+
+def signed_change(sim_change: np.ndarray, real_change: np.ndarray) -> dict:
+    """Whether a contact brightens or darkens the region as the real one does, which the
+    strength (a mean of |change|) cannot tell: ``signed``, the mean signed change per
+    channel over the region's pixels (N, C) of each, and ``signed_ratio``, the
+    simulation's mean change projected on the real's, (m_sim . m_real) / |m_real|^2: 1
+    when it changes the region's colour by as much and the same way, 0 when not along it,
+    negative when it darkens what the real contact brightens. None where the real
+    change's mean is 0."""
+    m_sim = np.asarray(sim_change, np.float64).reshape(-1, np.shape(real_change)[-1]).mean(axis=0)
+    m_real = np.asarray(real_change, np.float64).reshape(-1, np.shape(real_change)[-1]).mean(axis=0)
+    norm = float(m_real @ m_real)
+    return {"signed": {"sim": m_sim.tolist(), "real": m_real.tolist()},
+            "signed_ratio": float(m_sim @ m_real) / norm if norm > 0 and np.isfinite(norm) else None}
 
 
 # --------------------------------------------------------------------------------------
@@ -931,10 +949,12 @@ def _by_renderer(scores: dict, key: str) -> dict:
 
 def _factors(scores: dict) -> dict:
     """A place's scores beyond the plain strength (``score``): each renderer's ``contrast``
-    and ``exposed`` blocks, ``strength_ratio_exposed`` on its own, and what its noise alone
-    reads as strength (``noise_strength``, ``noise_floor``)."""
+    and ``exposed`` blocks, ``strength_ratio_exposed`` and ``signed_ratio_exposed``
+    (``signed_change``) on their own, and what its noise alone reads as strength
+    (``noise_strength``, ``noise_floor``)."""
     exposed = _by_renderer(scores, "exposed")
     return {"strength_ratio_exposed": {n: (e or {}).get("strength_ratio") for n, e in exposed.items()},
+            "signed_ratio_exposed": {n: (e or {}).get("signed_ratio") for n, e in exposed.items()},
             "contrast": _by_renderer(scores, "contrast"), "exposed": exposed,
             "noise_strength": _by_renderer(scores, "noise_strength")}
 
@@ -1030,7 +1050,8 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region, inside)
         for rname, sc in scores.items():
             say(f"  {rname}: strength ratio {sc['strength_ratio']} (exposed {(sc.get('exposed') or {}).get('strength_ratio')}"
-                f", noise alone {sc.get('noise_strength')}), shape corr {sc['shape_corr']} "
+                f", signed {(sc.get('exposed') or {}).get('signed_ratio')}, noise alone {sc.get('noise_strength')}), "
+                f"shape corr {sc['shape_corr']} "
                 f"({seconds.get(rname, 0):.0f} s)")
         try:
             real_centre = contact_centroid(real, real_nc, align_real, camera, str(col.real))

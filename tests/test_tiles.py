@@ -228,6 +228,22 @@ def test_a_dim_simulation_is_seen_through_the_real_cameras_exposure_and_a_clippe
     # a simulation without its background (a dark no-contact frame) is not seen through an exposure
     dark = T.score(real - real_nc, np.zeros_like(real_nc), real, real_nc, region, inside)
     assert "exposed" not in dark and dark["strength_ratio"] is not None
+    # the same change and half of it read 1 and 0.5 signed; the inverted change reads the
+    # same strength but a signed ratio of -1 (it darkens what the real contact brightens)
+    assert e["signed_ratio"] == pytest.approx(1.0)
+    assert T.score(half, sim_nc, real, real_nc, region, inside)["exposed"]["signed_ratio"] == pytest.approx(0.5)
+    inverted = T.score(2 * sim_nc - sim, sim_nc, real, real_nc, region, inside)["exposed"]
+    assert inverted["strength_ratio"] == pytest.approx(1.0) and inverted["signed_ratio"] == pytest.approx(-1.0)
+
+
+def test_the_signed_change_is_the_simulations_mean_change_along_the_reals():
+    real = np.array([[0.1, 0.0], [0.3, 0.0]])  # mean (0.2, 0)
+    sim = np.array([[0.0, 0.5], [0.0, -0.1]])  # mean (0, 0.2): no part along the real's
+    out = T.signed_change(sim, real)
+    assert out["signed"]["real"] == pytest.approx([0.2, 0.0]) and out["signed"]["sim"] == pytest.approx([0.0, 0.2])
+    assert out["signed_ratio"] == pytest.approx(0.0)
+    assert T.signed_change(-3 * real, real)["signed_ratio"] == pytest.approx(-3.0)
+    assert T.signed_change(sim, np.zeros_like(real))["signed_ratio"] is None
 
 
 
