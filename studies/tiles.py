@@ -77,9 +77,9 @@ renders them with our reference and our fast path, against the real tile.
    the contact region; a channel the real camera clipped over most of the tile, the
    GelTip's blue, is not judged); ``signed_ratio_exposed`` (:func:`signed_change`) is
    whether that change brightens or darkens the region as the real one does, which a
-   strength (a mean of |change|) cannot tell. ``noise_strength`` is what the render's own Monte
-   Carlo noise alone reads as strength there (:func:`noise_floor`), to tell a faint
-   contact from noise.
+   strength (a mean of |change|) cannot tell. ``noise_strength`` is what the render's
+   own Monte Carlo noise alone reads as strength there (:func:`noise_floor`), to tell a
+   faint contact from noise.
 5. **At the real contact's place** (``at_real_place``): the figure's real and simulated
    contacts of one column need not sit at one place in the frame, so each column is
    scored again with the recovered tap moved by the offset from the published tile's
@@ -791,11 +791,12 @@ def score(sim: np.ndarray, sim_no_contact: np.ndarray, real: np.ndarray, real_nc
     if judged.any():
         e_sim = float(np.mean(gains[judged] * cs["change"][0][judged]))
         e_real = float(np.mean(cr["change"][0][judged]))
+        d_sim = ((sim - sim_no_contact) * gains)[region][:, judged]
+        d_real = (real - real_nc)[region][:, judged]
         out["exposed"] = {
             "gains": gains.tolist(), "channels": "".join(ch for ch, j in zip("rgb", judged) if j),
             "strength": e_sim, "strength_real": e_real, "strength_ratio": _ratio(e_sim, e_real),
-            "shape_corr": pearson(((sim - sim_no_contact) * gains)[region][:, judged], (real - real_nc)[region][:, judged]),
-            **signed_change(((sim - sim_no_contact) * gains)[region][:, judged], (real - real_nc)[region][:, judged])}
+            "shape_corr": pearson(d_sim, d_real), **signed_change(d_sim, d_real)}
     return out
 
 
@@ -806,9 +807,12 @@ def signed_change(sim_change: np.ndarray, real_change: np.ndarray) -> dict:
     simulation's mean change projected on the real's, (m_sim . m_real) / |m_real|^2: 1
     when it changes the region's colour by as much and the same way, 0 when not along it,
     negative when it darkens what the real contact brightens. None where the real
-    change's mean is 0."""
-    m_sim = np.asarray(sim_change, np.float64).reshape(-1, np.shape(real_change)[-1]).mean(axis=0)
-    m_real = np.asarray(real_change, np.float64).reshape(-1, np.shape(real_change)[-1]).mean(axis=0)
+    change's mean is 0. A ValueError where the two are not of one (N, C) shape."""
+    sim_change, real_change = np.asarray(sim_change, np.float64), np.asarray(real_change, np.float64)
+    if real_change.ndim != 2 or sim_change.shape != real_change.shape:
+        raise ValueError(f"sim_change and real_change must be (N, C) pixels by channels of one shape, got "
+                         f"{sim_change.shape} and {real_change.shape}")
+    m_sim, m_real = sim_change.mean(axis=0), real_change.mean(axis=0)
     norm = float(m_real @ m_real)
     return {"signed": {"sim": m_sim.tolist(), "real": m_real.tolist()},
             "signed_ratio": float(m_sim @ m_real) / norm if norm > 0 and np.isfinite(norm) else None}

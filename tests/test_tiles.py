@@ -244,6 +244,10 @@ def test_the_signed_change_is_the_simulations_mean_change_along_the_reals():
     assert out["signed_ratio"] == pytest.approx(0.0)
     assert T.signed_change(-3 * real, real)["signed_ratio"] == pytest.approx(-3.0)
     assert T.signed_change(sim, np.zeros_like(real))["signed_ratio"] is None
+    with pytest.raises(ValueError, match="sim_change and real_change"):
+        T.signed_change(sim[:1], real)
+    with pytest.raises(ValueError, match=r"\(N, C\)"):
+        T.signed_change(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)))
 
 
 
