@@ -818,6 +818,39 @@ def signed_change(sim_change: np.ndarray, real_change: np.ndarray) -> dict:
             "signed_ratio": float(m_sim @ m_real) / norm if norm > 0 and np.isfinite(norm) else None}
 
 
+#: A change image is shown as 0.5 + CHANGE_VIEW_GAIN * change: mid grey where nothing
+#: changes, brighter where the contact brightens the tile (``change_figure``).
+CHANGE_VIEW_GAIN = 2.0
+
+
+def change_figure(real: np.ndarray, real_nc: np.ndarray, region: np.ndarray, sims: dict) -> np.ndarray:
+    """A column's contacts to judge by eye, one row (h, W, 3) in [0, 1]: the real tile,
+    its change (0.5 + CHANGE_VIEW_GAIN * (real - no-contact)) and its contact region
+    (white), then for each renderer of ``sims`` ({name: (tile, no-contact tile, gains
+    (3,))}) its no-contact tile and its change, each times the gains (the real camera's
+    exposure, ``exposure``), so the sign and shape of both changes read on one scale. A
+    ValueError names a tile whose shape is not the real tile's (h, w, 3)."""
+    real, real_nc = np.asarray(real, np.float64), np.asarray(real_nc, np.float64)
+    if real.ndim != 3 or real.shape[2] != 3 or real_nc.shape != real.shape:
+        raise ValueError(f"real and real_nc must be (h, w, 3) tiles of one shape, got {real.shape} and "
+                         f"{real_nc.shape}")
+    if np.shape(region) != real.shape[:2]:
+        raise ValueError(f"region must be the tile's (h, w) {real.shape[:2]}, got {np.shape(region)}")
+
+    def view(change):
+        return 0.5 + CHANGE_VIEW_GAIN * change
+
+    panels = [real, view(real - real_nc), np.repeat(np.asarray(region, np.float64)[..., None], 3, axis=2)]
+    for name, (sim, sim_nc, gains) in sims.items():
+        sim, sim_nc = np.asarray(sim, np.float64), np.asarray(sim_nc, np.float64)
+        if sim.shape != real.shape or sim_nc.shape != real.shape:
+            raise ValueError(f"{name}: its tile and no-contact tile must be the real tile's {real.shape}, got "
+                             f"{sim.shape} and {sim_nc.shape}")
+        g = np.asarray(gains, np.float64).reshape(3)
+        panels += [sim_nc * g, view((sim - sim_nc) * g)]
+    return np.clip(np.concatenate(panels, axis=1), 0.0, 1.0)
+
+
 # --------------------------------------------------------------------------------------
 # The benchmark.
 
@@ -836,11 +869,13 @@ def _clean(obj):
 
 
 def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real: np.ndarray, real_nc: np.ndarray,
-              alignment: Alignment, region: np.ndarray, inside: np.ndarray | None = None) -> tuple[dict, dict]:
+              alignment: Alignment, region: np.ndarray, inside: np.ndarray | None = None,
+              keep: dict | None = None) -> tuple[dict, dict]:
     """Each renderer's tile of a contact pressed on our membrane (``spec_inputs``: D_ref,
     camera, mesh), scored against the real tile (``score``, over ``inside`` for its
     exposure, with the renderer's record: the reference's passes and contact RSE):
-    ({name: score}, {name: s})."""
+    ({name: score}, {name: s}). ``keep``, a dict: each renderer's (tile, no-contact tile,
+    exposure gains) put in it, for ``change_figure``."""
     from scenes.generate import render_sample
 
     ref_depth, camera, mesh = spec_inputs
@@ -855,8 +890,10 @@ def simulated(contact: Contact, renderers: dict, shape, spec_inputs: tuple, real
         t0 = time.perf_counter()
         out = render_sample(r, depth)
         seconds[name] = time.perf_counter() - t0
-        sc = score(to_tile(out["image"], shape_hw, alignment), to_tile(r.no_contact, shape_hw, alignment),
-                   real, real_nc, region, inside)
+        tile, nc_tile = to_tile(out["image"], shape_hw, alignment), to_tile(r.no_contact, shape_hw, alignment)
+        sc = score(tile, nc_tile, real, real_nc, region, inside)
+        if keep is not None:
+            keep[name] = (tile, nc_tile, (sc.get("exposed") or {}).get("gains", [1.0, 1.0, 1.0]))
         noise = image_noise(r, out)
         if noise is not None and region.any():
             sc.update(noise_floor([to_tile(n, shape_hw, alignment) for n in noise], region, sc))
@@ -964,11 +1001,14 @@ def _factors(scores: dict) -> dict:
 
 
 def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] | None = None,
-        reference: bool = True, photons: int = PHOTONS, quiet: bool = True, effects: tuple[str, ...] = ()) -> dict:
+        reference: bool = True, photons: int = PHOTONS, quiet: bool = True, effects: tuple[str, ...] = (),
+        images_dir=None) -> dict:
     """The benchmark (module doc): every column of ``tiles_dir`` recovered and scored;
     writes ``json_path`` atomically and returns what it wrote. ``effects``: the
     reference's effects as NAME=VALUE settings (``pbr_tactile.effects.Effects``; none:
-    its defaults), to judge a change of its physics on the real tiles.
+    its defaults), to judge a change of its physics on the real tiles. ``images_dir``:
+    each column's ``change_figure`` written there, ``colK_recovered.png`` and
+    ``colK_at_real_place.png``, and their paths in ``tiles.K.images``.
 
     Besides the recovered tap, each column is scored with the tap moved by the offset
     between the real tile's contact patch and the published tile's (``at_real_place``:
@@ -979,7 +1019,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     from scenes.dataset import atomic_write_json
     from scenes.generate import make_renderer, renderer_plugin
     from scenes.geometry import membrane_mesh
-    from scenes.images import read_rgb
+    from scenes.images import read_rgb, write_rgb
     from scenes.indenters import indenter, is_indenter
     from scenes.reference_data import require_real_contacts_dir, require_reference_dir
     from scenes.spec import default_spec
@@ -1051,7 +1091,11 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         inside = tile_inside(real.shape[:2], align_real, camera)
         region = changed_region(real, real_nc, inside)
         real_strength = float(contact_strength(real[None], real_nc, region[None])[0])
-        scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region, inside)
+        kept, figures = {}, {}
+        scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region, inside, kept)
+        if images_dir is not None and kept:
+            figures["recovered"] = str(write_rgb(Path(images_dir) / f"col{k}_recovered.png",
+                                                 change_figure(real, real_nc, region, kept)))
         for rname, sc in scores.items():
             say(f"  {rname}: strength ratio {sc['strength_ratio']} (exposed {(sc.get('exposed') or {}).get('strength_ratio')}"
                 f", signed {(sc.get('exposed') or {}).get('signed_ratio')}, noise alone {sc.get('noise_strength')}), "
@@ -1065,8 +1109,12 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         if real_centre is not None:
             offset = (real_centre[0] - rec.centroid[0], real_centre[1] - rec.centroid[1])
             there = Contact(c.u + offset[0], c.v + offset[1], c.depth_m, c.roll_rad)
+            kept = {}
             moved_scores, moved_seconds = simulated(there, renderers, shape, ours, real, real_nc, align_real, region,
-                                                         inside)
+                                                    inside, kept)
+            if images_dir is not None and kept:
+                figures["at_real_place"] = str(write_rgb(Path(images_dir) / f"col{k}_at_real_place.png",
+                                                         change_figure(real, real_nc, region, kept)))
             moved = {"offset_px": list(offset), "u_px": there.u, "v_px": there.v,
                      "strength_ratio": _by_renderer(moved_scores, "strength_ratio"),
                      "shape_corr": _by_renderer(moved_scores, "shape_corr"),
@@ -1109,6 +1157,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
                      "patch_u_px": None if real_centre is None else real_centre[0],
                      "patch_v_px": None if real_centre is None else real_centre[1]},
             "at_real_place": moved,
+            "images": figures or None,
             "seconds": {"recover": t_recover, **{f"render_{n}": v for n, v in seconds.items()},
                         "total": time.perf_counter() - t_col},
         }
@@ -1148,7 +1197,7 @@ def parse_objects(items) -> dict[int, str]:
 
 def cmd_bench_tiles(args) -> int:
     out = run(args.json, args.tiles, objects=parse_objects(args.object), reference=not args.no_reference,
-              photons=args.photons, quiet=args.quiet, effects=tuple(args.effects or ()))
+              photons=args.photons, quiet=args.quiet, effects=tuple(args.effects or ()), images_dir=args.images)
     keys = ("object", "depth_mm", "strength_ratio", "shape_corr")
     summary = {k: {key: t[key] for key in keys} for k, t in out["tiles"].items()}
     print(json.dumps(summary, indent=1))
@@ -1172,4 +1221,8 @@ def register(registry) -> None:
     p.add_argument("--effects", action="append", metavar="NAME=V",
                    help="a reference effect (pbr_tactile.effects.Effects; repeatable; default: its defaults), e.g. "
                         "coating_albedo=0.4")
+    p.add_argument("--images", metavar="DIR",
+                   help="write each column's real and simulated changes side by side there (colK_recovered.png, "
+                        "colK_at_real_place.png: real tile, its change, region, then per renderer its no-contact "
+                        "tile and change through the real camera's exposure; grey is no change)")
     add_quiet_argument(p)

@@ -251,6 +251,31 @@ def test_the_signed_change_is_the_simulations_mean_change_along_the_reals():
 
 
 
+def test_the_change_figure_shows_each_change_on_the_real_cameras_scale():
+    h, w = 6, 8
+    real_nc = np.full((h, w, 3), 0.4)
+    real = real_nc.copy()
+    real[2, 3] += [0.1, 0.05, 0.0]
+    region = np.zeros((h, w), bool)
+    region[2, 3] = True
+    sim_nc = np.full((h, w, 3), 0.2)
+    sim = sim_nc.copy()
+    sim[2, 3] -= [0.05, 0.0, 0.0]  # darkens what the real contact brightens
+    fig = T.change_figure(real, real_nc, region, {"pbr": (sim, sim_nc, [2.0, 2.0, 2.0])})
+    assert fig.shape == (h, 5 * w, 3)
+    panels = [fig[:, i * w:(i + 1) * w] for i in range(5)]
+    assert np.allclose(panels[0], real)
+    g = T.CHANGE_VIEW_GAIN
+    assert np.allclose(panels[1][2, 3], 0.5 + g * np.array([0.1, 0.05, 0.0])) and np.allclose(panels[1][0, 0], 0.5)
+    assert panels[2][2, 3].tolist() == [1.0, 1.0, 1.0] and panels[2][0, 0].tolist() == [0.0, 0.0, 0.0]
+    assert np.allclose(panels[3], 0.4)  # the no-contact tile through the exposure: the real's level
+    assert np.allclose(panels[4][2, 3], [0.5 - g * 0.1, 0.5, 0.5]) and np.allclose(panels[4][0, 0], 0.5)
+    with pytest.raises(ValueError, match="pbr"):
+        T.change_figure(real, real_nc, region, {"pbr": (sim[:-1], sim_nc, [1, 1, 1])})
+    with pytest.raises(ValueError, match="region"):
+        T.change_figure(real, real_nc, region[:-1], {})
+
+
 def test_the_noise_floor_is_what_pure_noise_reads_as_strength():
     # A "contact" that is only Gaussian noise of a known standard error reads, as strength,
     # what noise_floor gives from other draws of that noise, through the exposure too.
@@ -460,10 +485,15 @@ def test_the_bench_runs_end_to_end_on_one_column_with_the_reference(real_contact
         shutil.copy(path, tiles / path.name)
     out = tmp_path / "tiles.json"
     assert main(["bench", "tiles", "--tiles", str(tiles), "--json", str(out), "--photons", str(1 << 14),
-                 "--quiet"]) == 0
+                 "--images", str(tmp_path / "figs"), "--quiet"]) == 0
     result = json.loads(out.read_text())
     assert result["columns"] == [0] and "as 2 more" in result["real_no_contact"]
     t0 = result["tiles"]["0"]
     assert t0["object"] == "sphere" and 1.0 < t0["depth_mm"] < 3.0
     assert t0["strength_ratio"]["pbr"] > 0 and t0["strength_ratio"]["phong"] > 0
     assert t0["shape_corr"]["pbr"] is not None
+    from scenes.images import read_rgb
+
+    for key in ("recovered", "at_real_place"):
+        # the real tile, its change and region, then each renderer's no-contact tile and change
+        assert read_rgb(t0["images"][key]).shape == (171, 7 * 230, 3)
