@@ -1091,11 +1091,16 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         inside = tile_inside(real.shape[:2], align_real, camera)
         region = changed_region(real, real_nc, inside)
         real_strength = float(contact_strength(real[None], real_nc, region[None])[0])
-        kept, figures = {}, {}
+        figures = {}
+
+        def figure(key: str, kept: dict | None) -> None:
+            if kept:
+                figures[key] = str(write_rgb(Path(images_dir) / f"col{k}_{key}.png",
+                                             change_figure(real, real_nc, region, kept)))
+
+        kept = {} if images_dir is not None else None
         scores, seconds = simulated(c, renderers, shape, ours, real, real_nc, align_real, region, inside, kept)
-        if images_dir is not None and kept:
-            figures["recovered"] = str(write_rgb(Path(images_dir) / f"col{k}_recovered.png",
-                                                 change_figure(real, real_nc, region, kept)))
+        figure("recovered", kept)
         for rname, sc in scores.items():
             say(f"  {rname}: strength ratio {sc['strength_ratio']} (exposed {(sc.get('exposed') or {}).get('strength_ratio')}"
                 f", signed {(sc.get('exposed') or {}).get('signed_ratio')}, noise alone {sc.get('noise_strength')}), "
@@ -1109,12 +1114,10 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         if real_centre is not None:
             offset = (real_centre[0] - rec.centroid[0], real_centre[1] - rec.centroid[1])
             there = Contact(c.u + offset[0], c.v + offset[1], c.depth_m, c.roll_rad)
-            kept = {}
+            kept = {} if images_dir is not None else None
             moved_scores, moved_seconds = simulated(there, renderers, shape, ours, real, real_nc, align_real, region,
                                                     inside, kept)
-            if images_dir is not None and kept:
-                figures["at_real_place"] = str(write_rgb(Path(images_dir) / f"col{k}_at_real_place.png",
-                                                         change_figure(real, real_nc, region, kept)))
+            figure("at_real_place", kept)
             moved = {"offset_px": list(offset), "u_px": there.u, "v_px": there.v,
                      "strength_ratio": _by_renderer(moved_scores, "strength_ratio"),
                      "shape_corr": _by_renderer(moved_scores, "shape_corr"),
