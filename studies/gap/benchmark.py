@@ -20,6 +20,12 @@ strength, then each mechanism written unlike the catalogue's formulas
 (``studies.gap.unlike``) on its background, and scores each cell (``per_cell``) and the
 worst cell's share closed (``min_cell_shrink``), leaving out the cells whose gap is mostly
 sensor noise, which no prediction can remove (``noise_cells``).
+
+``described=True`` runs the third source instead: each mechanism of
+``studies.gap.described``, written from a prose description of a physical effect by a hand
+that had not read the catalogue's formulas, on its own background, at strengths spread
+over [0, 1] (``described_cases``); it is scored as the others are (top-1 against the
+catalogue effect the mechanism stands for, and the held-out shrink).
 """
 
 from __future__ import annotations
@@ -122,13 +128,37 @@ def _draw_stratified(case: int, case_seed: int, n_available: int, pairs: int, st
             "mechanism": mechanism}
 
 
+def described_cases(cases: int) -> list[tuple[str, float]]:
+    """(mechanism, strength) of a described run's ``cases`` cases: the mechanisms of
+    ``studies.gap.described`` in turn, each round at another strength (0.5, then 0, 1,
+    0.25, 0.75, ...), so that a run of one case per mechanism is at the middle strength."""
+    from .described import MECHANISMS
+
+    names = list(MECHANISMS)
+    strengths = (0.5, 0.0, 1.0, 0.25, 0.75)
+    return [(names[k % len(names)], strengths[(k // len(names)) % len(strengths)]) for k in range(cases)]
+
+
+def _draw_described(case: int, case_seed: int, n_available: int, pairs: int) -> dict:
+    from .described import BACKGROUNDS as DESCRIBED_BACKGROUNDS
+    from .described import MECHANISMS
+
+    mechanism, strength = described_cases(case + 1)[case]
+    rng = np.random.default_rng(case_seed)
+    chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
+    return {"hidden": [MECHANISMS[mechanism]], "samples": chosen, "background": DESCRIBED_BACKGROUNDS[mechanism],
+            "rng": rng, "strength": strength, "described": mechanism}
+
+
 def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, pairs: int,
-              stratified_strength: float | None = None) -> dict:
+              stratified_strength: float | None = None, described: bool = False) -> dict:
     """Write one case's real and simulated datasets; returns what was hidden.
 
     stratified_strength : None, a random case (``_draw``); else the case-th cell of
         ``stratified_cells`` with its effect at this strength (for a cell written unlike
         the catalogue: the plain fast path, then its mechanism at this strength).
+    described : the case-th of ``described_cases`` (the plain fast path, then a mechanism
+        of ``studies.gap.described``); ``stratified_strength`` is then ignored.
     """
     from .inject import Injector
     from .unlike import Unlike
@@ -137,13 +167,24 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
     meta = read_meta(base)
     records = read_samples(base)
     case_seed = seed * 100_003 + case
-    draw = (_draw(case_seed, len(records), pairs) if stratified_strength is None
-            else _draw_stratified(case, case_seed, len(records), pairs, stratified_strength))
+    if described:
+        draw = _draw_described(case, case_seed, len(records), pairs)
+    elif stratified_strength is None:
+        draw = _draw(case_seed, len(records), pairs)
+    else:
+        draw = _draw_stratified(case, case_seed, len(records), pairs, stratified_strength)
     rng = draw["rng"]
     background = str(real_background()) if draw["background"] == "real" else draw["background"]
     injector = Injector(spec, field="plane", background=background)
     mechanism = draw.get("mechanism")
-    if mechanism is None:
+    written_by = draw.get("described")
+    if written_by is not None:  # the plain fast path, then the mechanism written from prose
+        from .described import Described
+        from .described import sample_params as described_params
+
+        injections, prose = [], Described(spec, injector.ref_depth)
+        written = described_params(written_by, draw["strength"], rng)
+    elif mechanism is None:
         injections = [injector.sample(effect, rng, draw["strength"]) for effect in draw["hidden"]]
     else:  # the plain fast path, then the mechanism written unlike the catalogue
         injections, unlike = [], Unlike(spec, injector.ref_depth)
@@ -159,6 +200,9 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
 
         def one(record: dict, source=source, root=root) -> dict:
             depth = np.load(base / record["depth"])
+            if source == "real" and written_by is not None:
+                image = prose.apply(injector.render(depth), written_by, written, depth=depth, render=injector.render)
+                return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
             if source == "real" and mechanism is not None:
                 image = unlike.apply(injector.render(depth), mechanism, written)
                 return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
@@ -178,6 +222,8 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
            "injections": [dataclasses.asdict(i) for i in injections], "pairs": len(chosen)}
     if mechanism is not None:
         out.update(mechanism=mechanism, mechanism_params=written)
+    if written_by is not None:
+        out.update(described=written_by, strength=draw["strength"], mechanism_params=written)
     return out
 
 
@@ -196,7 +242,7 @@ def score(hidden: list[str], report: dict) -> dict:
 def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None, pairs: int = 48,
                   progress: bool = True, spec: SensorSpec | None = None, factor: int = 2,
                   stratified: bool = False, strength: float = STRATIFIED_STRENGTH,
-                  hidden: tuple[str, ...] | None = None) -> dict:
+                  hidden: tuple[str, ...] | None = None, described: bool = False) -> dict:
     """Build ``cases`` blind cases, diagnose each, and score them.
 
     stratified : cover every (effect, background) cell of ``stratified_cells`` in turn, each
@@ -204,6 +250,8 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
         case per cell.
     hidden : stratified only: run just the cases whose cell hides one of these effects
         (None: all). A case keeps its index, so its data and seed are those of the full run.
+    described : the cases are ``described_cases`` (the mechanisms written from prose);
+        not with ``stratified``.
     """
     from tqdm import tqdm
 
@@ -217,6 +265,10 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
             raise ValueError(f"strength must be in [0, 1], got {strength}")
         real_background()  # fail now, naming where it looked, rather than at the first real case
         cases = max(int(cases or 0), len(stratified_cells()))
+    if described and stratified:
+        raise ValueError("described and stratified are separate benchmarks; give one")
+    if described:
+        real_background()
     if hidden is not None and not stratified:
         raise ValueError(f"hidden selects stratified cells and needs stratified=True, got hidden={hidden!r}")
     todo = stratified_cases(cases, hidden) if stratified else list(range(cases))
@@ -228,8 +280,8 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
         results = []
         bar = tqdm(todo, desc="benchmark cases", unit="case", disable=not progress)
         for case in bar:
-            folder = root / f"case_{seed}_{case:03d}"
-            truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None)
+            folder = root / (f"described_{seed}_{case:03d}" if described else f"case_{seed}_{case:03d}")
+            truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None, described)
             t_case = time.perf_counter()
             report, _ = diagnose(load_pairs(folder / "real", folder / "sim"), seed=seed, factor=factor, intervals=0)
             write_json(folder / "report.json", report)
@@ -241,7 +293,25 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
     out["factor"] = factor
     if stratified:
         out.update(stratify(results, strength))
+    if described:
+        out.update(described=True, per_mechanism=per_mechanism(results))
     return out
+
+
+def per_mechanism(results: list[dict]) -> dict:
+    """Per mechanism of a described run: its cases' strengths, top-1 share and mean share closed."""
+    out: dict[str, dict] = {}
+    for r in results:
+        m = out.setdefault(r["described"], {"stands_for": r["hidden"][0], "strengths": [], "top1": [], "shrink": [],
+                                            "ranked_first": []})
+        m["strengths"].append(r["strength"])
+        m["top1"].append(float(r["top1"]))
+        m["shrink"].append(float(r["shrink"]))
+        m["ranked_first"].append(r["ranking"][0] if r["ranking"] else None)
+    for m in out.values():
+        m["top1"] = float(np.mean(m["top1"]))
+        m["mean_shrink"] = float(np.mean(m.pop("shrink")))
+    return dict(sorted(out.items()))
 
 
 def stratify(results: list[dict], strength: float) -> dict:

@@ -61,6 +61,10 @@ def cmd_benchmark(args) -> int:
     if args.hidden is not None and not args.stratified:
         print("tactile-sim diagnose benchmark: error: --hidden needs --stratified", file=sys.stderr)
         return 2
+    if args.described and (args.stratified or args.physical):
+        print("tactile-sim diagnose benchmark: error: --described is a benchmark of its own, not with --stratified "
+              "or --physical", file=sys.stderr)
+        return 2
     if args.pairing != "reference" and not args.physical:
         print("tactile-sim diagnose benchmark: error: --pairing needs --physical", file=sys.stderr)
         return 2
@@ -86,13 +90,13 @@ def cmd_benchmark(args) -> int:
 
     result = run_benchmark(cases=args.cases, seed=args.seed, work=args.work, pairs=args.pairs,
                            progress=not args.quiet, factor=args.factor, stratified=args.stratified,
-                           hidden=args.hidden)
+                           hidden=args.hidden, described=args.described)
     from pathlib import Path
 
     from .report import write_json
 
     write_json(Path(args.json), result)
-    keys = ("cases", "top1", "top3", "mean_heldout_shrink") + (
+    keys = ("cases", "top1", "top3", "mean_heldout_shrink") + (("per_mechanism",) if args.described else ()) + (
         ("min_cell_shrink", "min_cell", "noise_cells") if args.stratified else ())
     print(json.dumps({k: result[k] for k in keys}, indent=1))
     if result["failed"]:
@@ -140,6 +144,10 @@ def register(registry) -> None:
                    help="benchmark: every effect alone on every background (none, solid, real) at strength 0.5, "
                         "then each mechanism written unlike the catalogue (studies/gap/unlike.py) on its background, "
                         "at least one case per cell (--cases below 39 means 39); adds per_cell and min_cell_shrink")
+    p.add_argument("--described", action="store_true",
+                   help="benchmark: the mechanisms written from prose descriptions by a hand that had not read the "
+                        "catalogue (studies/gap/described.py), each on its background, in turn at strengths 0.5, 0, "
+                        "1, 0.25, 0.75; adds per_mechanism")
     p.add_argument("--physical", action="store_true",
                    help="benchmark: hide physical effects in the reference (the virtual rig's camera) and diagnose "
                         "them against the reference's replay (studies/gap/physical_benchmark.py)")
