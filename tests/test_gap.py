@@ -352,28 +352,57 @@ def test_an_auto_exposed_capture_fits_every_candidate_with_its_exposure(spec, si
 
 
 def test_path_attenuation_of_the_background_dims_it_along_the_sensor(spec):
-    """No contact on a solid background: the image is the background term k_a B. Its own
-    coefficient mu_a makes it keep exp(-mu_a d), d the path from the LEDs' ring: on the
-    cylinder the height above the LEDs, on the tip that plus the arc to it; without it
-    only the LEDs' light fades and the background stays. The tip dims most."""
+    """No contact on a solid background: the image is the background term k_a B. Its
+    weight makes it keep exp(-w tau(d)), d the path from the LEDs' ring (on the cylinder
+    the height above the LEDs, on the tip that plus the arc to it) or the height along the
+    axis; without it only the LEDs' light fades and the background stays. The tip dims most."""
     model = FastModel(spec, {"field": "plane", "background": "solid"}, factor=4)
     m = spec.membrane
     apex = m.base_z + m.cylinder_length + 0.5 * math.pi * m.radius  # the LEDs are at z = 0
     # Paths along the edges of near-equilateral triangles zigzag: up to 2 / sqrt(3) times the
-    # true geodesic (a constant factor along the axis, which the fitted mu takes up), from
+    # true geodesic (a constant factor along the axis, which the fitted depths take up), from
     # a ring of vertices up to one edge below the LEDs.
     zigzag = 2 / math.sqrt(3)
     assert apex < model.base_distance[60, 80] < zigzag * (apex + m.mesh_edge)  # the apex, on the axis
     side = (60, 25)  # the cylinder, near its visible end
     height = float(model.ref[side] * model.rays[2][side])
     assert height < model.base_distance[side] < zigzag * (height + m.mesh_edge)
+    assert model.axial[side] == pytest.approx(height, abs=1e-6)  # the LEDs sit at z = 0
+    assert model.fade_length == pytest.approx(max(model.base_distance.max(), model.axial.max()))
     plain = model.physical(model.ref, {})
-    for mu_a in (0.0, 10.0, 30.0):
-        faded = model.physical(model.ref, {"path_attenuation": {"mu_per_m": 30.0, "ambient_mu_per_m": mu_a}})
-        for pixel in ((60, 80), side):
-            kept = math.exp(-mu_a * model.base_distance[pixel])
-            assert (faded[pixel] / plain[pixel]).tolist() == pytest.approx([kept] * 3, rel=1e-3)
-    assert faded[60, 80].sum() / plain[60, 80].sum() < 0.8 * faded[side].sum() / plain[side].sum()
+    depths = {f"depth_{k}": 0.1 * (k + 1) for k in range(fx.FADE_KNOTS)}
+    length, knots = model.fade_length, fx.FADE_KNOTS
+    for weight in (0.0, 0.5, 1.0):
+        for share in (0.0, 1.0):
+            p = {**depths, "axial_share": share, "led_weight": 1.0, "ambient_weight": weight}
+            faded = model.physical(model.ref, {"path_attenuation": p})
+            for pixel in ((60, 80), side):
+                d = (model.axial if share else model.base_distance)[pixel]
+                # tau by hand: the whole stretches below d, and the share of the one it ends in
+                k, rest = int(d * knots / length), d * knots / length % 1.0
+                tau = sum(0.1 * (j + 1) for j in range(min(k, knots))) + (0.1 * (k + 1) * rest if k < knots else 0.0)
+                kept = math.exp(-weight * tau)
+                assert (faded[pixel] / plain[pixel]).tolist() == pytest.approx([kept] * 3, rel=1e-3)
+            if weight:
+                assert faded[60, 80].sum() / plain[60, 80].sum() < 0.8 * faded[side].sum() / plain[side].sum()
+
+
+def test_the_fade_profile_is_monotone_and_beer_lambert_when_even():
+    """tau(d) is piecewise linear through its stretches' depths, never falls as d grows,
+    stops growing past the last knot, and is mu d (Beer-Lambert) where every depth is alike."""
+    length, knots = 0.06, fx.FADE_KNOTS
+    d = np.linspace(0.0, 0.08, 161)
+    ramps = fx.fade_ramps(d, length)
+    assert ramps.shape == (knots, d.size)
+    rng = np.random.default_rng(0)
+    kept = fx.fade(ramps, rng.uniform(0.0, 2.0, knots))
+    assert kept[0] == 1.0 and np.all(np.diff(kept) <= 0.0)
+    assert np.all(kept[d >= length] == kept[-1])
+    mu = 40.0  # per metre: each stretch of length / knots metres has depth mu length / knots
+    even = fx.fade(ramps, [mu * length / knots] * knots)
+    inside = d <= length
+    assert even[inside] == pytest.approx(np.exp(-mu * d[inside]), rel=1e-5)
+    assert fx.fade_distances(np.array(2.0), np.array(4.0), 0.25) == pytest.approx(2.5)
 
 
 # --- bad input -----------------------------------------------------------------------------
@@ -580,3 +609,52 @@ def test_the_answer_names_candidates_whose_image_and_contact_shares_disagree():
            "the contacts')" in lines[1] and "blur_noise" not in lines[1]
     report["effects"]["camera_response"]["heldout"]["improvement"] = imp((0.5, 0.4, 0.6), (0.45, 0.3, 0.6))
     assert len(_contact_lines(report, "camera_response")) == 1  # they agree: no second line
+
+
+def test_a_sure_but_tiny_closure_explains_nothing_and_the_answer_says_so():
+    """A candidate whose held-out improvement is significant but closes 0.2 % of the gap
+    is not named as a cause; with nothing ranked, the Answer says that nothing explains
+    the gap, gives the closest candidates' shares and where the gap lies."""
+    from studies.gap.fit import MIN_RANK_SHARE, Judged
+    from studies.gap.report import headline
+
+    def judged(share: float, significant: bool) -> Judged:
+        mae = {"significant": significant, "mean": share * 0.1, "share": share, "share_low": share / 2,
+               "share_high": share * 2}
+        return Judged(fit=None, after={}, improvement={"masked": {"mae": mae}})
+
+    assert not judged(0.002, True).explains
+    assert not judged(0.4, False).explains
+    assert judged(MIN_RANK_SHARE, True).explains and judged(0.4, True).explains
+    mae = {"mean": 0.05, "low": 0.04, "high": 0.06}
+    effect = {"heldout": {"improvement": {"masked": {"mae": {"share": 0.002, "share_low": 0.001,
+                                                              "share_high": 0.003}}}}}
+    report = {"gap": {"heldout": {"masked": {"mae": mae, "ssim": mae, "psnr": mae}, "full": {"mae": mae}}},
+              "where": {"regions": {"tip": {"samples": 4, "mae": {**mae, "mean": 0.09}},
+                                    "body": {"samples": 4, "mae": mae}},
+                        "channels": {"r": {"mae": mae}}},
+              "ranking": [], "selection": [], "effects": {"misalignment": effect},
+              "noise": {"std": 0.0, "mae_floor": 0.0}}
+    text = " ".join(headline(report))
+    assert "No candidate explains the gap" in text
+    assert "misalignment closes 0.2%" in text
+    assert text.index("tip MAE") < text.index("body MAE")  # the worst region first
+
+
+def test_described_cases_take_each_mechanism_in_turn_at_spread_strengths(tmp_path, sim_dir, capsys):
+    """The benchmark of mechanisms written from prose: every mechanism once at strength
+    0.5 before any comes again, then at 0 and 1; a case keeps its mechanism and strength
+    whatever the run's length; and it is a benchmark of its own."""
+    from studies.gap.benchmark import described_cases, run_benchmark
+    from studies.gap.described import MECHANISMS
+
+    n = len(MECHANISMS)
+    cases = described_cases(3 * n)
+    assert [m for m, _ in cases[:n]] == list(MECHANISMS) == [m for m, _ in cases[n:2 * n]]
+    assert {s for _, s in cases[:n]} == {0.5} and {s for _, s in cases[n:2 * n]} == {0.0}
+    assert {s for _, s in cases[2 * n:]} == {1.0}
+    assert described_cases(n + 2)[:n + 1] == described_cases(n + 1)
+    with pytest.raises(ValueError, match="separate benchmarks"):
+        run_benchmark(cases=1, stratified=True, described=True, progress=False)
+    assert main(["diagnose", "benchmark", "--described", "--stratified", "--json", str(tmp_path / "b.json")]) == 2
+    assert "--described" in capsys.readouterr().err

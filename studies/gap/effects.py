@@ -7,9 +7,11 @@ The functions here are pure array functions, in the simulator's order:
 
 1. membrane: ``membrane_compliance`` (the imprint is shallower than commanded),
    ``elastic_spread`` (another width of the elastic smoothing);
-2. light and paint, per LED m: ``path_attenuation`` (absorption along the geodesic
-   path from the LED, I_m exp(-mu g_m), and of the guided light the background term
-   stands for, along its path from the LEDs' ring), ``contact_shadow`` (the imprint,
+2. light and paint, per LED m: ``path_attenuation`` (light fading by a monotone,
+   piecewise-linear optical depth tau(d) of a distance the data choose: its path over
+   the membrane, from each LED for I_m and from the LEDs' ring for the guided light the
+   background term stands for, or its height along the sensor's axis, or a blend;
+   I_m exp(-w_led tau(d_m)), k_a B exp(-w_ambient tau(d_B))), ``contact_shadow`` (the imprint,
    pushed into the sensor, hides the light arriving low along the field, from the LED's
    own term and the background it stands for; a march towards the light over the depth map),
    ``coating_gloss`` (an extra specular lobe k_g (R_m . V)^alpha_g), ``core_light_leak``
@@ -69,6 +71,14 @@ class Effect:
         return {p.name: p.identity for p in self.params}
 
 
+#: path_attenuation: the fade's optical depth is piecewise linear in the distance, over
+#: this many equal stretches from 0 to the longest distance the image circle holds (a
+#: continuous profile with a kink at each knot; past the last, the light fades no more).
+FADE_KNOTS = 6
+#: path_attenuation: bound of each stretch's optical depth (exp(-3) = 5 % of the light
+#: left over one stretch).
+FADE_DEPTH_MAX = 3.0
+
 #: Colour channels, in image order.
 CHANNELS = ("r", "g", "b")
 #: camera_response: the colour matrix's off-diagonal entries, (output, input) channel.
@@ -108,13 +118,20 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
             [Param(f"amplitude_{m}", 0.0, 3.0, 0.0, "-", f"LED {m}'s light reaching the membrane through the core")
              for m in leds] + [Param("length_m", 0.002, 0.06, 0.015, "m", "distance at which it falls to half")]),
             "light from the LEDs travelling straight through the glass core and lighting the membrane from inside"),
-        Effect("path_attenuation", "light", (
-            Param("mu_per_m", 0.0, 250.0, 0.0, "1/m", "absorption coefficient along the geodesic path"),
-            Param("ambient_mu_per_m", 0.0, 40.0, 0.0, "1/m",
-                  "absorption coefficient of the guided light the background term stands for, along its path from "
-                  "the LEDs' ring (0: only the LEDs' own terms fade)")),
-            "absorption along the light's path in the elastomer, of the LEDs' own terms (geodesic distance from "
-            "each LED) and of the guided light the background stands for (distance from the LEDs' ring)"),
+        Effect("path_attenuation", "light", tuple(
+            [Param(f"depth_{k}", 0.0, FADE_DEPTH_MAX, 0.0, "-",
+                   f"optical depth the light gains over stretch {k} of {FADE_KNOTS} equal stretches of its distance "
+                   "(from 0 to the longest distance the image circle holds)") for k in range(FADE_KNOTS)]
+            + [Param("axial_share", 0.0, 1.0, 0.0, "-",
+                     "which distance the light fades with: 0 its path over the membrane (from each LED for the LEDs' "
+                     "own terms, from the LEDs' ring for the background), 1 the height along the sensor's axis above "
+                     "the LEDs, in between a blend"),
+               Param("led_weight", 0.0, 1.0, 1.0, "-", "share of the optical depth the LEDs' own terms take"),
+               Param("ambient_weight", 0.0, 1.0, 1.0, "-",
+                     "share of the optical depth the background term (the guided light it stands for) takes")]),
+            "light fading along its way, by a monotone profile of a distance chosen by the data (over the membrane "
+            "from the LEDs, or along the sensor's axis): absorption in the elastomer, or anything else that dims the "
+            "light the farther it goes, on the LEDs' own terms and on the background as the data say"),
         Effect("membrane_compliance", "membrane", (
             Param("scale", 0.1, 1.3, 1.0, "-", "imprint depth / commanded depth"),),
             "the membrane and sensor yield under force, so imprints are weaker than commanded"),
@@ -187,9 +204,25 @@ def elastic_deform(depth: np.ndarray, ref: np.ndarray, sigma_px: float, truncate
 
 # --- light ----------------------------------------------------------------------------
 
-def attenuation(geodesic_m: np.ndarray, mu_per_m: float) -> np.ndarray:
-    """exp(-mu g): the share of an LED's light left after a geodesic path of g metres."""
-    return np.exp(-mu_per_m * geodesic_m)
+def fade_ramps(distance_m: np.ndarray, length_m: float, knots: int = FADE_KNOTS) -> np.ndarray:
+    """(K, ...) float32 the share of each of ``knots`` equal stretches of [0, length_m]
+    that a distance covers: clip((d - t_k) / (t_{k+1} - t_k), 0, 1), t_k = k length / K."""
+    d = np.asarray(distance_m, np.float32) * np.float32(knots / length_m)
+    return np.stack([np.clip(d - k, 0.0, 1.0) for k in range(knots)])
+
+
+def fade(ramps: np.ndarray, depths) -> np.ndarray:
+    """exp(-tau(d)), tau = sum_k depth_k ramp_k(d): the light left after a distance whose
+    ``fade_ramps`` are ``ramps`` (K, ...), with each stretch's optical depth ``depths``
+    (K,) >= 0; monotone in d, and tau linear in d where every depth is equal (Beer-Lambert,
+    mu = depth K / length)."""
+    depths = np.asarray(depths, np.float32)
+    return np.exp(-np.tensordot(depths, ramps, axes=1))
+
+
+def fade_distances(path_m: np.ndarray, axial_m: np.ndarray, axial_share: float) -> np.ndarray:
+    """(1 - s) path + s axial: the distance the light fades with (``path_attenuation``)."""
+    return (1.0 - axial_share) * path_m + axial_share * axial_m
 
 
 def leak_kernel(P: np.ndarray, N: np.ndarray, led_position, length_m: float) -> np.ndarray:

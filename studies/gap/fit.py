@@ -56,10 +56,13 @@ PROBE_STEP = 0.05
 PROBE_ROUNDS = 3
 #: Gammas at which a closed-form colour matrix starts camera_response fits.
 START_GAMMAS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5)
-#: path_attenuation starts from every pair of these absorption coefficients (1/m) of
-#: the LEDs' light and of the background's.
-ATTENUATION_STARTS_PER_M = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 65.0, 85.0)
-AMBIENT_ATTENUATION_STARTS_PER_M = (0.0, 2.0, 5.0, 10.0, 20.0)
+#: path_attenuation: closed-form starts at these shares of the axial distance, and a
+#: Beer-Lambert start (every stretch's optical depth alike) at each of these depths.
+FADE_START_SHARES = (0.0, 0.5, 1.0)
+FADE_UNIFORM_STARTS = (0.1, 0.3, 0.6, 1.0)
+#: path_attenuation's closed form bins the training pixels by distance into this many
+#: bins and fits each bin's median log ratio (the median: the fitted loss is an MAE).
+FADE_BINS = 120
 #: Weight of the pull of camera_response's closed-form colour matrix towards the white
 #: balance, relative to the mean diagonal of its normal equations.
 RESPONSE_RIDGE = 3e-3
@@ -70,6 +73,10 @@ FTOL = 1e-4
 MAX_FIT_SAMPLES = 32
 #: A forward-selection step must also close at least this share of the original gap.
 MIN_STEP_SHARE = 0.01
+#: A single effect is ranked (named as a cause) only if it also closes at least this share
+#: of the held-out gap: a candidate that closes 0.2 % of it, however surely, explains
+#: nothing, and the Answer then says that nothing does.
+MIN_RANK_SHARE = 0.05
 #: A reference model's candidate that closes the held-out gap to within this share of it
 #: of the best one's ties with it for the first place (``Diagnosis.rank``). A re-rendered
 #: candidate's prediction carries the basis' Monte Carlo noise, and camera_gains' none:
@@ -128,6 +135,16 @@ class Judged:
     @property
     def gain(self) -> float:
         return self.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
+
+    @property
+    def share(self) -> float:
+        """The share of the held-out gap it closes (``RANK_BY``)."""
+        return self.improvement[RANK_BY[0]][RANK_BY[1]]["share"]
+
+    @property
+    def explains(self) -> bool:
+        """Whether it is named as a cause: significant, and closing at least ``MIN_RANK_SHARE``."""
+        return self.significant and self.share >= MIN_RANK_SHARE
 
 
 class Diagnosis:
@@ -259,18 +276,14 @@ class Diagnosis:
             name = self.work.aliases[name]  # a fast image model under the model's own name
         # Start just off the identity where the identity is a flat spot of the loss.
         nudges = {"core_light_leak": {k: 0.1 for k in base if k.startswith("amplitude")},
-                  "path_attenuation": {"mu_per_m": 20.0}, "coating_gloss": {"k_g": 0.2},
+                  "coating_gloss": {"k_g": 0.2},
                   "contact_shadow": {"darkness": 0.5}, "vignetting": {"a": 0.2},
                   "blur_noise": {"sigma_px": 1.0}}
         base.update(nudges.get(name, {}))
         if name == "misalignment":
             return self._misalignment_starts(base, effect.name)
         if name == "path_attenuation":
-            # A grid: the background's coefficient dims most of the image and the LEDs'
-            # only their light, so the loss is far stiffer along the first, and L-BFGS-B,
-            # whose steps the stiff direction sets, barely moves along the other.
-            return [{**base, "mu_per_m": mu, "ambient_mu_per_m": a} for mu in ATTENUATION_STARTS_PER_M
-                    for a in AMBIENT_ATTENUATION_STARTS_PER_M if mu or a]
+            return self._fade_starts(base)
         if name == "lens_distortion":
             return [{**base, "k1": k} for k in (-0.2, -0.1, 0.0, 0.1, 0.2)]
         if name == "membrane_compliance":
@@ -333,6 +346,48 @@ class Diagnosis:
                         name = f"gain_{co}" if o == i else f"mix_{co}{ci}"
                         start[name] = float(np.clip(matrix[o, i], *bounds[name]))
                 out.append(start)
+        return out
+
+    def _fade_starts(self, base: dict) -> list[dict]:
+        """path_attenuation's starts. In closed form per share of the axial distance
+        (``FADE_START_SHARES``): where every light fades alike, log(real / sim) = -tau(d)
+        is linear in the stretches' optical depths, solved with them >= 0 (scipy's
+        lsq_linear) over the median log ratio of the training pixels in each of
+        ``FADE_BINS`` bins of the background's distance, then the same depths on the LEDs'
+        own terms alone and on the background alone; and Beer-Lambert ones, every stretch
+        alike (``FADE_UNIFORM_STARTS``), along the membrane and along the axis, of every
+        light and of the LEDs' own terms alone."""
+        model = self.work
+        params = {p.name: p for p in self.catalogue["path_attenuation"].params}
+        knots = fx.FADE_KNOTS
+        rows, cols = self._box
+        inside = self._box_mask[..., 0] > 0
+        sim = self.sim_w[:, rows, cols].mean(axis=-1)
+        real = self.real_w[:, rows, cols].mean(axis=-1)
+        keep = inside & (sim > 0.02) & (real > 0.02) & (sim < 0.99) & (real < 0.99)
+        ratio = np.log(real[keep]) - np.log(sim[keep])
+
+        def start(depths, share: float, led: float = 1.0, ambient: float = 1.0) -> dict:
+            return {**base, **{f"depth_{k}": float(v) for k, v in enumerate(depths)}, "axial_share": share,
+                    "led_weight": led, "ambient_weight": ambient}
+
+        out = [start([d] * knots, s, ambient=a) for d in FADE_UNIFORM_STARTS for s in (0.0, 1.0) for a in (0.0, 1.0)]
+        if ratio.size < 16:
+            return out
+        for share in FADE_START_SHARES:
+            d = fx.fade_distances(model.base_distance, model.axial, share)[rows, cols]
+            d = np.broadcast_to(d, keep.shape)[keep] / model.fade_length
+            bins = np.minimum((d * FADE_BINS).astype(int), FADE_BINS - 1)
+            order = np.argsort(bins, kind="stable")
+            edges = np.searchsorted(bins[order], np.arange(FADE_BINS + 1))
+            filled = [(b, edges[b], edges[b + 1]) for b in range(FADE_BINS) if edges[b + 1] > edges[b]]
+            centres = np.array([np.median(d[order[a:z]]) for _, a, z in filled])
+            target = np.array([-np.median(ratio[order[a:z]]) for _, a, z in filled])
+            weight = np.sqrt([z - a for _, a, z in filled])
+            A = fx.fade_ramps(centres * model.fade_length, model.fade_length).T.astype(np.float64)
+            solved = optimize.lsq_linear(A * weight[:, None], target * weight,
+                                         bounds=(0.0, params["depth_0"].high)).x
+            out += [start(solved, share), start(solved, share, ambient=0.0), start(solved, share, led=0.0)]
         return out
 
     def _vignetting_start(self, base: dict) -> dict:
@@ -438,6 +493,9 @@ class Diagnosis:
                   "start_loss": scored[0][0] * scale, "moved": moved, "stopped_at_start": False, "retried": False}
         if moved < STUCK_MOVE and value > STUCK_LEFT and len(x):
             x, value, status = self._unstick(loss, x, value, bounds, max_iterations, status)
+        if value > scored[0][0]:  # never worse than its best start (closed-form ones included)
+            x, value = z0, scored[0][0]
+            status["note"] = "the search ended above its best start, which is reported instead"
         params, train_loss = {**fixed, **to_params(x)}, value * scale
         if train_loss > self.train_loss_before:  # never worse than leaving the effects out
             params = {n: dict(self.catalogue[n].identity) for n in names}
@@ -578,7 +636,8 @@ class Diagnosis:
         return sum(p.name != "exposure" for p in self.catalogue[name].params)
 
     def rank(self, singles: dict[str, Judged]) -> list[str]:
-        """The significant single effects, best held-out MAE improvement first. A
+        """The single effects that explain part of the gap (``Judged.explains``: significant
+        and closing at least ``MIN_RANK_SHARE`` of it), best held-out MAE improvement first. A
         reference model's candidates are ranked by that too, except that the first is the
         one with the fewest parameters among those the best does not beat significantly
         (paired held-out MAE) or beats by at most ``RANK_TIE_SHARE`` of the gap: its
@@ -590,7 +649,7 @@ class Diagnosis:
         its camera_response then beat a hidden absorption's path_attenuation by 1.7 % of the
         gap. A pair with fewer parameters than that first one may take the first two
         places (``_pair``)."""
-        ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+        ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.explains]
         self.first_pair = None
         if not self.work.ties_to_simplest or len(ranked) < 2:
             return ranked

@@ -197,6 +197,8 @@ class FastModel:
             self.catalogue = fx.with_exposure(self.catalogue)
         self._geodesic = None
         self._base_distance = None
+        self._fade_length = None
+        self._fade_cache = None  # (parameters, fades) of the last path_attenuation asked for
         self._samples = None  # where the camera's rays meet the membrane (scenes.camera.cast_rays)
         self._cache: dict[int, dict] = {}
 
@@ -262,6 +264,39 @@ class FastModel:
                 below = np.flatnonzero(z <= z.min() + self.spec.membrane.mesh_edge)
             self._base_distance = self._surface_distance(below)
         return self._base_distance
+
+    @property
+    def axial(self) -> np.ndarray:
+        """(H, W) float32 the undeformed membrane's height along the sensor's axis (the
+        camera's z) above the LEDs' plane, metres, >= 0; 0 off the image circle."""
+        plane = float(np.mean([led.position[2] for led in self.spec.leds]))
+        return (np.maximum(self.ref - plane, 0.0) * self.mask).astype(np.float32)
+
+    @property
+    def fade_length(self) -> float:
+        """The longest distance the image circle holds, over the membrane from the LEDs'
+        ring or along the axis, metres: ``path_attenuation``'s profile spans [0, this]."""
+        if self._fade_length is None:
+            self._fade_length = max(float(self.base_distance.max()), float(self.axial.max()), 1e-3)
+        return self._fade_length
+
+    def fades(self, p: dict) -> tuple[np.ndarray, np.ndarray]:
+        """``path_attenuation`` at parameters ``p``: the light left of each LED's own term
+        (M, H, W) and of the background term (H, W) (``effects.fade``); the last is kept,
+        since every sample of one evaluation asks for the same."""
+        key = tuple(sorted(p.items()))
+        cached = self._fade_cache
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        depths = [p[f"depth_{k}"] for k in range(fx.FADE_KNOTS)]
+        s, axial, length = p["axial_share"], self.axial, self.fade_length
+        own = fx.fade(fx.fade_ramps(fx.fade_distances(self.geodesic, axial[None], s), length),
+                      np.float32(p["led_weight"]) * np.asarray(depths, np.float32))
+        background = fx.fade(fx.fade_ramps(fx.fade_distances(self.base_distance, axial, s), length),
+                             np.float32(p["ambient_weight"]) * np.asarray(depths, np.float32))
+        out = (own.astype(np.float32), background.astype(np.float32))
+        self._fade_cache = (key, out)
+        return out
 
     def _surface_distance(self, sources) -> np.ndarray:
         """(H, W) float32 shortest path along the mesh's edges from the nearest of the
@@ -366,11 +401,10 @@ class FastModel:
             share = np.tensordot(weight.T, kept, axes=1) / np.maximum(weight.sum(axis=0), 1e-12)[:, None, None]
             ambient = ambient * self._aligned(share.transpose(1, 2, 0), fill=1.0).transpose(2, 0, 1)
         if "path_attenuation" in params:
-            p = params["path_attenuation"]
-            I = I * fx.attenuation(self.geodesic, p["mu_per_m"])
-            if p.get("ambient_mu_per_m", 0.0) > 0.0:  # the background's guided light, from the LEDs' ring
-                kept = fx.attenuation(self.base_distance, p["ambient_mu_per_m"])[..., None]
-                ambient = ambient * self._aligned(kept, fill=1.0)[..., 0]
+            own, background = self.fades(params["path_attenuation"])
+            I = I * own
+            # the background's guided light, from the LEDs' ring
+            ambient = ambient * self._aligned(background[..., None], fill=1.0)[..., 0]
         colours = self.colours
         if "led_spectrum" in params:
             p = params["led_spectrum"]

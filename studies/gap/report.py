@@ -167,6 +167,32 @@ def _params(entry: dict, name: str) -> str:
                      for k, v in entry["params"][name].items())
 
 
+def _nothing_explains(report: dict) -> str:
+    """The Answer's line when no candidate is ranked: none explains the gap, the closest
+    ones and what they close, and where the gap lies (the regions, the channels)."""
+    from .fit import MIN_RANK_SHARE
+
+    line = (f"No candidate explains the gap: none closes a significant share of the held-out gap, at least "
+            f"{MIN_RANK_SHARE * 100:.0f}% of it with a 95% interval above zero.")
+    closes = {n: e["heldout"]["improvement"]["masked"]["mae"] for n, e in report.get("effects", {}).items()}
+    best = sorted(closes, key=lambda n: -closes[n]["share"])[:2]
+    if best:
+        line += " The closest: " + "; ".join(
+            f"{n} closes {closes[n]['share'] * 100:.1f}% [{closes[n]['share_low'] * 100:.1f}, "
+            f"{closes[n]['share_high'] * 100:.1f}]" for n in best) + "."
+    where = report.get("where", {})
+    regions = {k: v for k, v in where.get("regions", {}).items() if v.get("samples")}
+    if regions:
+        line += " The gap lies by region: " + ", ".join(
+            f"{k.replace('_', ' ')} MAE {_fmt(v['mae'])}" for k, v in sorted(regions.items(),
+                                                                              key=lambda kv: -kv[1]["mae"]["mean"]))
+    channels = where.get("channels")
+    if isinstance(channels, dict) and channels:
+        line += "; by channel: " + ", ".join(f"{c} {_fmt(v['mae']) if isinstance(v, dict) else f'{v:.4f}'}"
+                                             for c, v in channels.items())
+    return line + "."
+
+
 def headline(report: dict) -> list[str]:
     """The answer in a few sentences."""
     lines = []
@@ -219,7 +245,7 @@ def headline(report: dict) -> list[str]:
                          f"({pair['instead_of_parameters']} parameters) alone, and more than either alone.")
         lines += _contact_lines(report, top)
     else:
-        lines.append("No effect of the catalogue closes a significant part of the held-out gap.")
+        lines.append(_nothing_explains(report))
     if report["selection"]:
         last = report["selection"][-1]
         by_region = _by_region(last["share_closed"])
