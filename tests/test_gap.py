@@ -197,7 +197,9 @@ def test_light_functions_analytic():
     N[2] = -1.0
     k = fx.leak_kernel(P, N, (0.0, 0.0, 0.0), length_m=0.01)
     assert k[0].tolist() == pytest.approx([0.5, 0.2])  # 1 / (1 + (d / l)^2), cos = 1
-    assert fx.attenuation(np.array([0.0, 0.01]), 100.0).tolist() == pytest.approx([1.0, math.exp(-1.0)])
+    # Beer-Lambert at 100 per metre: each stretch of a 60 mm profile has depth 100 x its length
+    kept = fx.fade(fx.fade_ramps(np.array([0.0, 0.01, 0.025]), 0.06), [6.0 / fx.FADE_KNOTS] * fx.FADE_KNOTS)
+    assert kept.tolist() == pytest.approx([1.0, math.exp(-1.0), math.exp(-2.5)], rel=1e-5)
     colours = np.eye(3)
     same = fx.spectral_colours(colours, [465, 625, 525], [25, 20, 35], [0, 0, 0], [1, 2, 1], floor=0.05)
     assert np.allclose(same, np.diag([1, 2, 1]))

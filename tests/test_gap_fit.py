@@ -376,3 +376,34 @@ def test_the_fade_starts_in_closed_form_on_its_own_profile(spec, injector, conta
     assert np.abs(found - truth)[:, seen].max(axis=1).min() < 0.05, found
     fit = d.fit(("path_attenuation",))
     assert fit.train_loss < 0.2 * fit.train_loss_before
+
+
+def test_parameter_intervals_are_the_bootstrap_of_the_samples_own_optima(spec, injector, contacts):
+    """Each training sample's loss a parabola c_i (sigma - m_i)^2 about an optimum of its
+    own: a resample's optimum is the weighted mean of the m_i, which one Newton step finds
+    exactly, so the intervals are the percentiles of those means over the same draws."""
+    sim = np.stack([injector.render(d) for d in contacts[:8]])
+    d = diagnosis(make_pairs(spec, "solid", sim, sim, contacts[:8]), ("blur_noise",))
+    n = len(d.train_index)
+    rng = np.random.default_rng(7)
+    optima, curvature = rng.uniform(1.5, 2.5, n), rng.uniform(0.5, 2.0, n)
+    d.predict_train = lambda params: params  # the "prediction" is the parameters themselves
+    d._sample_losses = lambda params: curvature * (params["blur_noise"]["sigma_px"] - optima) ** 2
+    d._sample_counts = lambda: np.ones(n)
+    fitted = 2.0
+    fit = fx_fit(("blur_noise",), {"blur_noise": {"sigma_px": fitted}})
+    low, high = d.intervals(fit, resamples=300)["blur_noise"]["sigma_px"]
+    draws = np.random.default_rng(d.seed)
+    means = []
+    for _ in range(300):
+        w = np.bincount(draws.integers(0, n, n), minlength=n) * curvature
+        means.append(w @ optima / w.sum())
+    reference = float(curvature @ optima / curvature.sum())  # the samples themselves
+    expected = fitted + np.percentile(np.array(means) - reference, [2.5, 97.5])
+    assert [low, high] == pytest.approx(expected.tolist(), abs=1e-4)
+
+
+def fx_fit(names, params):
+    from studies.gap.fit import Fit
+
+    return Fit(names, params, 0.0, 0.0, 0, 0.0)

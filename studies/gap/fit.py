@@ -97,8 +97,13 @@ MAX_TRIALS = 3
 #: At most this many effects in a selected combination.
 MAX_COMBINATION = 4
 #: Bootstrap resamples of the training samples behind each reported parameter interval
-#: (each a refit: on the fast path, 10 of them for 2 effects about double a diagnosis).
-PARAM_RESAMPLES = 10
+#: (each one Newton step from the fit, nearly free once its finite differences are taken).
+PARAM_RESAMPLES = 200
+#: The parameter intervals' finite-difference step, scaled units (as the fits' own).
+INTERVAL_STEP = 1e-3
+#: A Hessian eigenvalue below this share of the largest marks a direction the training
+#: samples do not pin: the intervals' Newton steps leave it alone.
+INTERVAL_FLOOR = 1e-6
 #: Parameter intervals are reported for this many of the best-ranked single effects.
 INTERVAL_EFFECTS = 2
 
@@ -229,20 +234,9 @@ class Diagnosis:
         err *= self._box_mask
         return float(np.einsum("nhwc,nhwc->", err, err, dtype=np.float64)) / self._box_count
 
-    def _loss(self, pred: np.ndarray, weights: np.ndarray | None = None) -> float:
-        """The fitted loss: the smooth MAE (``LOSS_EPS``) over the training samples' circle;
-        ``weights`` (N,) counts each sample that many times (a bootstrap resample)."""
-        rows, cols = self._box
-        err = self._compared_w(pred)[:, rows, cols] - self._real_w_compared[:, rows, cols]
-        err *= err
-        # sqrt(e^2 + eps^2) - eps, written so that it is exactly 0 at e = 0 in float32
-        err /= np.sqrt(err + np.float32(LOSS_EPS * LOSS_EPS)) + np.float32(LOSS_EPS)
-        err *= self._box_mask
-        if weights is None:
-            return float(err.sum(dtype=np.float64)) / self._box_count
-        per_sample = err.sum(axis=(1, 2, 3), dtype=np.float64)
-        counts = 3.0 * self._box_mask.sum(axis=(1, 2, 3), dtype=np.float64)
-        return float(per_sample @ weights) / max(float(counts @ weights), 1e-12)
+    def _loss(self, pred: np.ndarray) -> float:
+        """The fitted loss: the smooth MAE (``LOSS_EPS``) over the training samples' circle."""
+        return float(self._sample_losses(pred).sum()) / self._box_count
 
     def predict_train(self, params: dict) -> np.ndarray:
         return self.work.predict(self.sim_w, self.depth_w, params, keys=self.train_index)
@@ -506,14 +500,18 @@ class Diagnosis:
                    train_loss, self.train_loss_before, status)
 
     def intervals(self, fit: Fit, resamples: int = PARAM_RESAMPLES, confidence: float = 0.95) -> dict:
-        """Bootstrap intervals of a fit's parameters: {effect: {param: [low, high]}}. Each
-        resample draws the training samples with replacement and refits from the fitted
-        parameters (at most ``JOINT_ITERATIONS`` L-BFGS-B iterations).
+        """Bootstrap intervals of a fit's parameters: {effect: {param: [low, high]}}.
 
-        The refits stop at tolerances far below the fit's, so the training samples
-        themselves, refitted so, are the reference: each draw's offset from that refit is
-        added to the fitted value. (Plain percentiles once put a fitted leak of 0.257
-        outside its own interval, [0.249, 0.251]: the fit had stopped at FTOL.)"""
+        Each resample draws the training samples with replacement; its parameters are one
+        Newton step from the fit on that resample's loss, whose gradient and Hessian are
+        sums of per-sample ones, measured once by finite differences (``INTERVAL_STEP``,
+        scaled units) around the fit: 1 + 2P + P(P - 1) / 2 evaluations for P parameters,
+        whatever the number of resamples (a refit per resample cost about P + 1
+        evaluations per iteration each: most of a diagnosis). The step of the training
+        samples themselves (the fit stops at a looser tolerance) is the reference: each
+        draw's offset from it is added to the fitted value. A parameter at a bound (within
+        the step) is held there; directions the training samples do not pin (a Hessian
+        eigenvalue below ``INTERVAL_FLOOR`` of the largest) get no step."""
         names = fit.effects
         plist, to_params, to_z = self._space(names)
         if not plist or resamples < 2:
@@ -521,30 +519,67 @@ class Diagnosis:
         low = np.array([p.low for _, p in plist])
         high = np.array([p.high for _, p in plist])
         z0 = np.clip(to_z(fit.params), 0.0, 1.0)
-        rng = np.random.default_rng(self.seed)
-        n = len(self.train_index)
-        draws = []
-        for i in range(resamples + 1):  # the last: every training sample once, the reference
-            weights = (np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64) if i < resamples
-                       else np.ones(n))
-            scale = max(self._loss(self.sim_w, weights), 1e-12)
+        h = INTERVAL_STEP
+        free = np.flatnonzero((z0 >= h) & (z0 <= 1.0 - h))
+        step = np.zeros(len(plist))
+        draws = np.zeros((resamples, len(plist)))
+        if free.size:
+            def sums(dz: dict) -> np.ndarray:  # per-sample loss sums at z0 + h sum(e_j)
+                z = z0.copy()
+                for j, sign in dz.items():
+                    z[j] += sign * h
+                return self._sample_losses(self.predict_train(to_params(z)))
 
-            def loss(z: np.ndarray, weights=weights, scale=scale) -> float:
-                return self._loss(self.predict_train(to_params(z)), weights) / scale
+            f0 = sums({})
+            up = {j: sums({j: 1.0}) for j in free}
+            down = {j: sums({j: -1.0}) for j in free}
+            F = free.size
+            grad = np.stack([(up[j] - down[j]) / (2 * h) for j in free], axis=1)  # (n, F)
+            hess = np.zeros((len(f0), F, F))
+            for a, j in enumerate(free):
+                hess[:, a, a] = (up[j] + down[j] - 2 * f0) / (h * h)
+                for b in range(a + 1, F):
+                    k = free[b]
+                    hess[:, a, b] = hess[:, b, a] = (sums({j: 1.0, k: 1.0}) - up[j] - up[k] + f0) / (h * h)
+            counts = self._sample_counts()
+            rng = np.random.default_rng(self.seed)
+            n = len(f0)
 
-            # Tolerances far below the fit's: a resample moves the optimum by little, and a
-            # refit stopped by FTOL at its start would give an interval of the tolerance.
-            res = optimize.minimize(loss, z0, method="L-BFGS-B", bounds=[(0.0, 1.0)] * len(plist),
-                                    options={"maxiter": JOINT_ITERATIONS, "eps": 1e-4, "ftol": 1e-12, "gtol": 1e-10})
-            draws.append(low + np.clip(res.x, 0.0, 1.0) * (high - low))
+            def newton(weights: np.ndarray) -> np.ndarray:
+                total = float(weights @ counts)
+                g = weights @ grad / total
+                H = np.tensordot(weights, hess, axes=1) / total
+                values, vectors = np.linalg.eigh(0.5 * (H + H.T))
+                keep = values > INTERVAL_FLOOR * max(float(values.max()), 1e-300)
+                return -(vectors[:, keep] @ ((vectors[:, keep].T @ g) / values[keep]))
+
+            reference = newton(np.ones(n))
+            for i in range(resamples):
+                weights = np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)
+                draws[i, free] = newton(weights) - reference
+            step[free] = reference
         fitted = low + z0 * (high - low)
-        draws = np.clip(fitted + np.array(draws[:-1]) - draws[-1], low, high)
+        values = np.clip(fitted + draws * (high - low), low, high)
         tail = 100 * (1 - confidence) / 2
-        lo, hi = np.percentile(draws, [tail, 100 - tail], axis=0)
+        lo, hi = np.percentile(values, [tail, 100 - tail], axis=0)
         out: dict = {name: {} for name in names}
         for (name, p), a, b in zip(plist, lo, hi):
             out[name][p.name] = [float(a), float(b)]
         return out
+
+    def _sample_losses(self, pred: np.ndarray) -> np.ndarray:
+        """(N,) each training sample's sum of the fitted loss over its circle (``_loss``'s
+        numerator, per sample)."""
+        rows, cols = self._box
+        err = self._compared_w(pred)[:, rows, cols] - self._real_w_compared[:, rows, cols]
+        err *= err
+        err /= np.sqrt(err + np.float32(LOSS_EPS * LOSS_EPS)) + np.float32(LOSS_EPS)
+        err *= self._box_mask
+        return err.sum(axis=(1, 2, 3), dtype=np.float64)
+
+    def _sample_counts(self) -> np.ndarray:
+        """(N,) the values each training sample's loss sums (3 per pixel of its circle)."""
+        return 3.0 * self._box_mask.sum(axis=(1, 2, 3), dtype=np.float64)
 
     def _unstick(self, loss, x: np.ndarray, value: float, bounds, max_iterations: int, status: dict):
         """A fit stopped at its start leaving most of the gap: probe ``PROBE_STEP`` either

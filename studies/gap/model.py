@@ -69,7 +69,7 @@ def optics(images: np.ndarray, params: dict, camera: Camera, factor: int, fixed:
     if "camera_response" in params:
         p = params["camera_response"]
         out = fx.camera_response(out, fx.colour_matrix(p), p["offset"], p["gamma"])
-    return np.clip(out, 0.0, 1.0)
+    return np.clip(out, fx.ZERO, fx.ONE)  # float32 bounds: numpy clips a float32 array 5x faster
 
 
 def working_cameras(spec: SensorSpec, factor: int) -> tuple[Camera, Camera]:
@@ -380,7 +380,7 @@ class FastModel:
                 I0, _, colours0 = self._lit(self._base_geometry(-1, self.ref), params)
                 shading0 = compose(I0.astype(np.float32, copy=False), colours0, np.zeros_like(ambient, np.float32))
                 image = image - self._aligned(np.clip(shading0, 0.0, 1.0).transpose(1, 2, 0))
-        return np.clip(image, 0.0, 1.0) * self.mask[..., None]
+        return np.clip(image, fx.ZERO, fx.ONE) * self.mask[..., None]
 
     def _lit(self, g: dict, params: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(I (M, H, W), the ambient term (3, H, W), the LEDs' colours (M, 3)) of a deformed
