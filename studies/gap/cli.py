@@ -133,8 +133,8 @@ def register(registry) -> None:
                    help="fits run at 1/FACTOR of the image resolution (default 2); results are measured at full size")
     p.add_argument("--effects", type=_effects, default=None, help="'all' (default) or a comma-separated subset")
     p.add_argument("--intervals", type=non_negative_int, default=None,
-                   help="bootstrap refits behind the best-ranked effects' parameter intervals (default: "
-                        "studies.gap.fit.PARAM_RESAMPLES; 0: none, about halves a fast-path diagnosis)")
+                   help="bootstrap resamples behind the best-ranked effects' parameter intervals, each one Newton "
+                        "step from the fit (default: studies.gap.fit.PARAM_RESAMPLES; 0: none)")
     add_quiet_argument(p)
     p.add_argument("--cases", type=positive_int, default=20, help="benchmark: number of cases (default 20)")
     p.add_argument("--pairs", type=positive_int, default=48, help="benchmark: pairs per case (default 48)")

@@ -23,7 +23,7 @@ import numpy as np
 from scenes.images import block_mean
 
 from . import metrics
-from .fit import INTERVAL_EFFECTS, PARAM_RESAMPLES, RANK_BY, Diagnosis, Judged
+from .fit import INTERVAL_EFFECTS, MIN_RANK_SHARE, PARAM_RESAMPLES, RANK_BY, Diagnosis, Judged
 from .pairs import Pairs, load_pairs, split
 from .regions import error_maps, where
 
@@ -107,10 +107,13 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                      "rank_by": "/".join(RANK_BY), "confidence": 0.95, "bootstrap_resamples": 2000,
                      "significant": "95% bootstrap interval of the paired held-out MAE improvement above 0",
                      "param_intervals": (f"95% intervals of the {INTERVAL_EFFECTS} best-ranked effects' parameters: "
-                                         f"the fitted value plus the percentiles of {intervals} bootstrap resamples' "
-                                         "refits (from the fit, of the training samples drawn with replacement) less a "
-                                         "refit of the training samples themselves: the spread over taps, not the bias "
-                                         "of the renders the fit leans on" if intervals else "not computed")},
+                                         f"the fitted value plus the percentiles over {intervals} bootstrap resamples "
+                                         "of the training samples (drawn with replacement) of one Newton step from the "
+                                         "fit on the resample's loss (per-sample gradients and Hessians by finite "
+                                         "differences), less the step of the training samples themselves: the spread "
+                                         "over taps, not the bias of the renders the fit leans on; a parameter at a "
+                                         "bound is held there" if intervals else "not computed"),
+                     "ranked_if": (f"significant and closing at least {MIN_RANK_SHARE:.0%} of the held-out gap")},
         "gap_contact": (metrics.summarise({"contact": diagnosis.before["contact"]}, seed=seed)["contact"]
                         if "contact" in diagnosis.before else None),
         "gap": {"all": metrics.summarise(gap_all, seed=seed),

@@ -10,6 +10,7 @@ import numpy as np
 
 from scenes.dataset import atomic_write_bytes
 
+from .fit import MIN_RANK_SHARE
 from .regions import CHANNELS, REGIONS
 
 
@@ -170,8 +171,6 @@ def _params(entry: dict, name: str) -> str:
 def _nothing_explains(report: dict) -> str:
     """The Answer's line when no candidate is ranked: none explains the gap, the closest
     ones and what they close, and where the gap lies (the regions, the channels)."""
-    from .fit import MIN_RANK_SHARE
-
     line = (f"No candidate explains the gap: none closes a significant share of the held-out gap, at least "
             f"{MIN_RANK_SHARE * 100:.0f}% of it with a 95% interval above zero.")
     closes = {n: e["heldout"]["improvement"]["masked"]["mae"] for n, e in report.get("effects", {}).items()}
@@ -364,7 +363,8 @@ Intervals are 95% bootstrap intervals over samples.</p>
 {_table(["split", "area", "samples", "MAE", "signed", "spread"], where_rows)}
 <h2>Which effect causes it</h2>
 <p>Each effect fitted alone on the training samples, judged on the held-out ones: the share of the held-out masked MAE
-it closes, and the change of SSIM and PSNR (positive is better). Only significant effects are ranked.</p>
+it closes, and the change of SSIM and PSNR (positive is better). Only effects that close a significant share of the gap,
+at least {MIN_RANK_SHARE:.0%} with a 95% interval above zero, are ranked.</p>
 {_table(["rank", "effect", "gap closed (MAE)", "SSIM change", "PSNR change (dB)", "significant", "fitted parameters"], effect_rows)}
 {"<p>Not applicable here, or not judged on the held-out samples:</p><ul>" + na + "</ul>" if na else ""}
 <h2>How far it shrinks</h2>
