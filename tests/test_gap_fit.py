@@ -291,7 +291,20 @@ def test_an_effect_that_cannot_help_is_checked_around_its_start(spec, injector, 
     d = diagnosis(make_pairs(spec, "solid", sim, real, contacts[:4]), ("vignetting",))
     fit = d.fit(("vignetting",), start={"vignetting": d.catalogue["vignetting"].identity})
     assert fit.status["stopped_at_start"] and "local optimum" in fit.status["note"]
+    assert fit.status["why"] == "local optimum"
     assert fit.train_loss == fit.train_loss_before
+
+
+def test_a_fit_on_a_clipped_image_says_its_loss_is_flat(spec, injector, contacts):
+    """A simulation clipped white everywhere against a mid-grey capture: light leaking
+    through the core only adds to what is clipped, so the loss does not change around the
+    start, and the fit says that is why it stopped, not that it found an optimum."""
+    sim = np.ones((4,) + injector.camera.shape + (3,), np.float32)
+    real = 0.5 * sim
+    d = diagnosis(make_pairs(spec, "solid", sim, real, contacts[:4]), ("core_light_leak",))
+    fit = d.fit(("core_light_leak",), start={"core_light_leak": d.catalogue["core_light_leak"].identity})
+    assert fit.status["stopped_at_start"] and fit.status["why"] == "flat"
+    assert "flat" in fit.status["note"] and fit.train_loss == pytest.approx(fit.train_loss_before)
 
 
 # --- the light effects against the injector's renders -----------------------------------------

@@ -498,7 +498,9 @@ def camera_response(images: np.ndarray, matrix: np.ndarray, offset: float, gamma
     channel (a black level, negative, or flare, positive); gamma : of the response curve.
     Returns images' shape, float32.
     """
-    mixed = images @ np.asarray(matrix, np.float64).T.astype(np.float32)
+    images = np.asarray(images, np.float32)
+    # one (K, 3) @ (3, 3) product: numpy's batched matmul over (N, H, W, 3) is 3x slower
+    mixed = (images.reshape(-1, 3) @ np.asarray(matrix, np.float64).T.astype(np.float32)).reshape(images.shape)
     if offset:
         mixed += np.float32(offset)
     mixed = np.clip(mixed, ZERO, ONE)

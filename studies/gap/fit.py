@@ -52,6 +52,8 @@ STUCK_LEFT = 0.5
 #: A stuck fit probes this far (scaled units) either side of its start along each
 #: parameter, and restarts L-BFGS-B from the best probe that beats it.
 PROBE_STEP = 0.05
+#: A stuck fit's loss is "flat" at its start when no probe changes it by this share of the gap.
+FLAT_SHARE = 1e-5
 #: At most this many probe-and-restart rounds.
 PROBE_ROUNDS = 3
 #: Gammas at which a closed-form colour matrix starts camera_response fits.
@@ -486,7 +488,9 @@ class Diagnosis:
         status = {"optimizer": "L-BFGS-B", "message": str(res.message), "iterations": int(res.nit),
                   "start_loss": scored[0][0] * scale, "moved": moved, "stopped_at_start": False, "retried": False}
         if moved < STUCK_MOVE and value > STUCK_LEFT and len(x):
+            status["start_value"] = value
             x, value, status = self._unstick(loss, x, value, bounds, max_iterations, status)
+            status.pop("start_value")
         if value > scored[0][0]:  # never worse than its best start (closed-form ones included)
             x, value = z0, scored[0][0]
             status["note"] = "the search ended above its best start, which is reported instead"
@@ -587,10 +591,12 @@ class Diagnosis:
         again (at most ``PROBE_ROUNDS`` times). Returns (x, value, status)."""
         z0 = x.copy()
         status.update(stopped_at_start=True, retried=True)
+        first = None
         for _ in range(PROBE_ROUNDS):
             probes = [np.clip(x + sign * PROBE_STEP * np.eye(len(x))[i], 0.0, 1.0)
                       for i in range(len(x)) for sign in (-1.0, 1.0)]
             values = [loss(z) for z in probes]
+            first = values if first is None else first
             best = int(np.argmin(values))
             if values[best] >= value:
                 break
@@ -600,7 +606,16 @@ class Diagnosis:
             status["iterations"] += int(res.nit)
             status["message"] = str(res.message)
         status["moved"] = float(np.abs(x - z0).max())
-        if status["moved"] < STUCK_MOVE:
+        # Why it stopped: the probes around the start say whether the loss is flat there
+        # (the effect does not reach the compared pixels, or only clipped ones) or rises.
+        spread = float(np.max(np.abs(np.array(first) - status["start_value"]))) if first else 0.0
+        status["why"] = "flat" if spread < FLAT_SHARE else "local optimum"
+        if status["moved"] < STUCK_MOVE and status["why"] == "flat":
+            status["note"] = (f"L-BFGS-B stopped at its start, leaving {100 * value:.0f}% of the training loss; the "
+                              f"loss is flat there: no point {PROBE_STEP} (scaled) either side along any parameter "
+                              f"changes it by {100 * FLAT_SHARE:g}% of the gap (the effect does not reach the compared "
+                              "pixels, or only where the image is clipped)")
+        elif status["moved"] < STUCK_MOVE:
             status["note"] = (f"L-BFGS-B stopped at its start, leaving {100 * value:.0f}% of the training loss; no "
                               f"point {PROBE_STEP} (scaled) either side along any parameter is better: a local optimum")
         else:
