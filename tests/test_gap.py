@@ -129,9 +129,14 @@ def test_improvement_is_significant_only_when_it_is():
 
 def test_optics_functions_analytic():
     f, centre = 240.0, (239.5, 319.5)
-    v = fx.vignette((480, 640), f, centre, a=1.0, b=0.0)
-    assert v[240, 320] == pytest.approx(1.0, abs=1e-5)
-    assert v[240, 320 + 240] == pytest.approx(0.5, abs=2e-3)  # r = f: 1 / (1 + 1)
+    # six stretches of 0.2 in r: the first's log fall-off 1, the third's 0.5
+    v = fx.vignette((480, 640), f, centre, [1.0, 0.0, 0.5, 0.0, 0.0, 0.0], 1.2)
+    assert v[240, 320] == pytest.approx(1.0, abs=2e-2)  # half a pixel off the centre
+    assert v[240, 320 + 120] == pytest.approx(math.exp(-1.25), rel=1e-2)  # r = 0.5: half the third
+    assert v[240, 320 + 240] == pytest.approx(math.exp(-1.5), rel=1e-3)  # r = 1, past the third
+    assert np.all(np.diff(v[240, 320:]) <= 0)  # monotone outwards
+    assert fx.vignette_length(np.ones((480, 640), bool), f) == pytest.approx(
+        math.hypot(319.5, 239.5) / f + fx.VIGNETTE_CENTRE_PX / f)
     grid = fx.source_coordinates((480, 640), f, centre, None, None)
     assert np.allclose(grid[0], np.arange(480)[:, None]) and np.allclose(grid[1], np.arange(640)[None])
     shifted = fx.source_coordinates((480, 640), f, centre,

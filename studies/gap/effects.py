@@ -79,6 +79,14 @@ FADE_KNOTS = 6
 #: left over one stretch).
 FADE_DEPTH_MAX = 3.0
 
+#: vignetting: the fall-off's log is piecewise linear in r = radius / f over this many
+#: equal stretches from the optical centre to the image circle's farthest pixel (plus the
+#: centre's largest offset); each stretch's log fall-off is at most VIGNETTE_DEPTH_MAX.
+VIGNETTE_KNOTS = 6
+VIGNETTE_DEPTH_MAX = 1.5
+#: vignetting: bound of the optical centre's offset, full-resolution pixels.
+VIGNETTE_CENTRE_PX = 40.0
+
 #: Clipping bounds of float32 images: numpy clips a float32 array about five times faster
 #: with float32 bounds than with Python floats (measured: 6 ms against 31 ms for 32
 #: working images), and fits clip every image of every evaluation.
@@ -161,12 +169,15 @@ def catalogue(n_leds: int, sigma_px: float) -> dict[str, Effect]:
                Param("gamma", 0.3, 3.0, 1.0, "-", "the response curve out = y^(1/gamma)")]),
             "the camera's colour matrix (white balance and colour mixing, any 3x3), black level and response curve: "
             "out = clip(C in + offset)^(1/gamma)"),
-        Effect("vignetting", "optics", (
-            Param("a", 0.0, 6.0, 0.0, "-", "r^2 coefficient, r = radius / focal length"),
-            Param("b", 0.0, 6.0, 0.0, "-", "r^4 coefficient"),
-            Param("centre_du_px", -40.0, 40.0, 0.0, "px", "optical centre offset, columns"),
-            Param("centre_dv_px", -40.0, 40.0, 0.0, "px", "optical centre offset, rows")),
-            "light falling off towards the image's edge, V = 1 / (1 + a r^2 + b r^4)"),
+        Effect("vignetting", "optics", tuple(
+            [Param(f"depth_{k}", 0.0, VIGNETTE_DEPTH_MAX, 0.0, "-",
+                   f"log fall-off over stretch {k} of {VIGNETTE_KNOTS} equal stretches of r = radius / focal "
+                   "length, from the optical centre to the image circle's farthest pixel") for k in range(VIGNETTE_KNOTS)]
+            + [Param("centre_du_px", -VIGNETTE_CENTRE_PX, VIGNETTE_CENTRE_PX, 0.0, "px", "optical centre offset, columns"),
+               Param("centre_dv_px", -VIGNETTE_CENTRE_PX, VIGNETTE_CENTRE_PX, 0.0, "px", "optical centre offset, rows")]),
+            "light falling off towards the image's edge by a monotone profile of the distance from an optical "
+            "centre, V = exp(-sum_k depth_k ramp_k(r)): a lens's natural fall-off (cos^4), its mechanical "
+            "vignetting, or a radial loss of any other form"),
         Effect("lens_distortion", "optics", (
             Param("k1", -0.6, 0.6, 0.0, "-", "radial coefficient of r^2, r = radius / focal length"),
             Param("k2", -0.4, 0.4, 0.0, "-", "radial coefficient of r^4")),
@@ -460,12 +471,27 @@ def resample(images: np.ndarray, coords: np.ndarray) -> np.ndarray:
     return out
 
 
-def vignette(shape: tuple[int, int], f: float, centre: tuple[float, float], a: float, b: float) -> np.ndarray:
-    """V = 1 / (1 + a r^2 + b r^4), r = distance from the optical centre / f; (H, W)."""
+def radial_distance(shape: tuple[int, int], f: float, centre: tuple[float, float]) -> np.ndarray:
+    """(H, W) float32 r = distance from ``centre`` (row, col) px / f."""
     h, w = shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    r2 = ((u - centre[1]) ** 2 + (v - centre[0]) ** 2) / (f * f)
-    return (1.0 / (1.0 + a * r2 + b * r2 * r2)).astype(np.float32)
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    return (np.hypot(u - np.float32(centre[1]), v - np.float32(centre[0])) / np.float32(f)).astype(np.float32)
+
+
+def vignette_length(mask: np.ndarray, f: float, factor: int = 1) -> float:
+    """The span of ``vignetting``'s profile in r: the image circle's farthest pixel from
+    the image centre, over f, plus the centre's largest offset (``VIGNETTE_CENTRE_PX`` at
+    full resolution; ``factor`` the images' downsampling)."""
+    h, w = mask.shape
+    r = radial_distance(mask.shape, f, ((h - 1) / 2, (w - 1) / 2))
+    return float(r[mask].max(initial=0.0)) + VIGNETTE_CENTRE_PX / (f * factor)
+
+
+def vignette(shape: tuple[int, int], f: float, centre: tuple[float, float], depths, length: float) -> np.ndarray:
+    """V = exp(-sum_k depth_k ramp_k(r)), r = distance from the optical centre / f, over
+    ``len(depths)`` equal stretches of [0, ``length``] (``fade_ramps``); (H, W) float32."""
+    depths = np.asarray(depths, np.float32)
+    return fade(fade_ramps(radial_distance(shape, f, centre), length, len(depths)), depths).astype(np.float32)
 
 
 def blur(images: np.ndarray, sigma_px: float) -> np.ndarray:

@@ -347,63 +347,66 @@ class Diagnosis:
     def _fade_starts(self, base: dict) -> list[dict]:
         """path_attenuation's starts. In closed form per share of the axial distance
         (``FADE_START_SHARES``): where every light fades alike, log(real / sim) = -tau(d)
-        is linear in the stretches' optical depths, solved with them >= 0 (scipy's
-        lsq_linear) over the median log ratio of the training pixels in each of
-        ``FADE_BINS`` bins of the background's distance, then the same depths on the LEDs'
-        own terms alone and on the background alone; and Beer-Lambert ones, every stretch
-        alike (``FADE_UNIFORM_STARTS``), along the membrane and along the axis, of every
-        light and of the LEDs' own terms alone."""
+        is linear in the stretches' optical depths (``_log_profile`` over the background's
+        distance), then the same depths on the LEDs' own terms alone and on the background
+        alone; and Beer-Lambert ones, every stretch alike (``FADE_UNIFORM_STARTS``), along
+        the membrane and along the axis, of every light and of the LEDs' own terms alone."""
         model = self.work
-        params = {p.name: p for p in self.catalogue["path_attenuation"].params}
-        knots = fx.FADE_KNOTS
+        knots, most = fx.FADE_KNOTS, fx.FADE_DEPTH_MAX
         rows, cols = self._box
-        inside = self._box_mask[..., 0] > 0
-        sim = self.sim_w[:, rows, cols].mean(axis=-1)
-        real = self.real_w[:, rows, cols].mean(axis=-1)
-        keep = inside & (sim > 0.02) & (real > 0.02) & (sim < 0.99) & (real < 0.99)
-        ratio = np.log(real[keep]) - np.log(sim[keep])
 
         def start(depths, share: float, led: float = 1.0, ambient: float = 1.0) -> dict:
             return {**base, **{f"depth_{k}": float(v) for k, v in enumerate(depths)}, "axial_share": share,
                     "led_weight": led, "ambient_weight": ambient}
 
         out = [start([d] * knots, s, ambient=a) for d in FADE_UNIFORM_STARTS for s in (0.0, 1.0) for a in (0.0, 1.0)]
-        if ratio.size < 16:
-            return out
         for share in FADE_START_SHARES:
             d = fx.fade_distances(model.base_distance, model.axial, share)[rows, cols]
-            d = np.broadcast_to(d, keep.shape)[keep] / model.fade_length
-            bins = np.minimum((d * FADE_BINS).astype(int), FADE_BINS - 1)
-            order = np.argsort(bins, kind="stable")
-            edges = np.searchsorted(bins[order], np.arange(FADE_BINS + 1))
-            filled = [(b, edges[b], edges[b + 1]) for b in range(FADE_BINS) if edges[b + 1] > edges[b]]
-            centres = np.array([np.median(d[order[a:z]]) for _, a, z in filled])
-            target = np.array([-np.median(ratio[order[a:z]]) for _, a, z in filled])
-            weight = np.sqrt([z - a for _, a, z in filled])
-            A = fx.fade_ramps(centres * model.fade_length, model.fade_length).T.astype(np.float64)
-            solved = optimize.lsq_linear(A * weight[:, None], target * weight,
-                                         bounds=(0.0, params["depth_0"].high)).x
+            solved = self._log_profile(d, model.fade_length, knots, most)
+            if solved is None:
+                break
             out += [start(solved, share), start(solved, share, ambient=0.0), start(solved, share, led=0.0)]
         return out
 
     def _vignetting_start(self, base: dict) -> dict:
-        """a, b in closed form about the image centre: real = sim / (1 + a r^2 + b r^4)
-        makes sim / real - 1 = a r^2 + b r^4, least squares over the training pixels."""
+        """The log fall-off's stretches in closed form about the image centre: real = sim V
+        makes log(real / sim) = -sum_k depth_k ramp_k(r), solved with the depths >= 0 over
+        the median log ratio of the training pixels in bins of r (``_log_profile``)."""
+        camera = self.work.camera
         rows, cols = self._box
-        h, w = self.work.camera.shape
-        v, u = np.mgrid[0:h, 0:w][:, rows, cols]
-        r2 = ((u - self.work.camera.cx) ** 2 + (v - self.work.camera.cy) ** 2) / self.work.camera.f**2
+        r = fx.radial_distance(camera.shape, camera.f, (camera.cy, camera.cx))[rows, cols]
+        length = fx.vignette_length(camera.mask, camera.f, self.work.factor)
+        depths = self._log_profile(r, length, fx.VIGNETTE_KNOTS, fx.VIGNETTE_DEPTH_MAX)
+        if depths is None:
+            return base
+        return {**base, **{f"depth_{k}": float(v) for k, v in enumerate(depths)}}
+
+    def _log_profile(self, distance: np.ndarray, length: float, knots: int, most: float) -> np.ndarray | None:
+        """(knots,) optical depths >= 0 (at most ``most``) of the profile exp(-tau(d)) that
+        takes the simulated training pixels to the real ones, tau piecewise linear in the
+        distance over ``knots`` equal stretches of [0, length] (``effects.fade_ramps``):
+        least squares (scipy's lsq_linear) over the median log(real / sim), mean over the
+        channels, of the unclipped pixels of the circle in each of ``FADE_BINS`` bins of
+        the distance (the median: the fitted loss is an MAE). ``distance`` (h, w) over the
+        fit's box, or (N, h, w). None when under 16 pixels are usable."""
+        rows, cols = self._box
         inside = self._box_mask[..., 0] > 0
         sim = self.sim_w[:, rows, cols].mean(axis=-1)
         real = self.real_w[:, rows, cols].mean(axis=-1)
-        keep = inside & (sim > 0.05) & (real > 0.05) & (sim < 0.99) & (real < 0.99)
+        keep = inside & (sim > 0.02) & (real > 0.02) & (sim < 0.99) & (real < 0.99)
         if keep.sum() < 16:
-            return base
-        r2 = np.broadcast_to(r2, keep.shape)[keep]
-        A = np.stack([r2, r2 * r2], axis=1)
-        (a, b), *_ = np.linalg.lstsq(A, sim[keep] / real[keep] - 1.0, rcond=None)
-        p = {q.name: q for q in self.catalogue["vignetting"].params}
-        return {**base, "a": float(np.clip(a, p["a"].low, p["a"].high)), "b": float(np.clip(b, p["b"].low, p["b"].high))}
+            return None
+        ratio = np.log(real[keep]) - np.log(sim[keep])
+        d = np.broadcast_to(distance, keep.shape)[keep] / length
+        bins = np.clip((d * FADE_BINS).astype(int), 0, FADE_BINS - 1)
+        order = np.argsort(bins, kind="stable")
+        edges = np.searchsorted(bins[order], np.arange(FADE_BINS + 1))
+        filled = [(edges[b], edges[b + 1]) for b in range(FADE_BINS) if edges[b + 1] > edges[b]]
+        centres = np.array([np.median(d[order[a:z]]) for a, z in filled])
+        target = np.array([-np.median(ratio[order[a:z]]) for a, z in filled])
+        weight = np.sqrt([z - a for a, z in filled])
+        A = fx.fade_ramps(centres * length, length, knots).T.astype(np.float64)
+        return optimize.lsq_linear(A * weight[:, None], target * weight, bounds=(0.0, most)).x
 
     def _misalignment_starts(self, base: dict, name: str = "misalignment") -> list[dict]:
         """Rotation from a coarse grid (every 10 degrees, then 1 degree around the best)

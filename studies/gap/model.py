@@ -63,7 +63,8 @@ def optics(images: np.ndarray, params: dict, camera: Camera, factor: int, fixed:
     if "vignetting" in params:
         p = params["vignetting"]
         c = (centre[0] + p["centre_dv_px"] / factor, centre[1] + p["centre_du_px"] / factor)
-        out = out * fx.vignette(camera.shape, f, c, p["a"], p["b"])[None, ..., None]
+        depths = [p[f"depth_{k}"] for k in range(fx.VIGNETTE_KNOTS)]
+        out = out * fx.vignette(camera.shape, f, c, depths, fx.vignette_length(camera.mask, f, factor))[None, ..., None]
     if "blur_noise" in params:
         out = fx.blur(out, params["blur_noise"]["sigma_px"] / factor)
     if "camera_response" in params:
