@@ -632,12 +632,20 @@ class Diagnosis:
     def predict_heldout(self, params: dict) -> np.ndarray:
         return self.full.predict(self.sim_h, self.depth_h, params, keys=self.heldout_index)
 
-    def judge(self, fit: Fit, against: dict | None = None, complete: bool = True) -> Judged:
+    def judge(self, fit: Fit, against: dict | None = None, complete: bool | None = True) -> Judged:
         """Held-out metrics of a fit and their paired improvement over ``against`` (a
         ``metrics.per_sample`` result; default: the simulator as it is). ``complete=False``
-        measures MAE and PSNR only (no SSIM), for trials that are only compared."""
-        after = metrics.per_sample(self._real_h_compared, self._compared_h(self.predict_heldout(fit.params)),
-                                   self.mask, ssim=complete,
+        measures MAE and PSNR only (no SSIM, most of the time), for trials that are only
+        compared; None adds SSIM only where the fit explains part of the gap
+        (``Judged.explains``), as the single candidates are judged."""
+        pred = self._compared_h(self.predict_heldout(fit.params))
+        if complete is None:
+            quick = self._judged(fit, pred, against, False)
+            return self._judged(fit, pred, against, True) if quick.explains else quick
+        return self._judged(fit, pred, against, complete)
+
+    def _judged(self, fit: Fit, pred: np.ndarray, against: dict | None, complete: bool) -> Judged:
+        after = metrics.per_sample(self._real_h_compared, pred, self.mask, ssim=complete,
                                    areas=self.areas_h, regions=self.regions_h, contact=self.contact_h)
         against = self.before if against is None else against
         names = metrics.METRICS if complete else ("mae", "psnr")
@@ -658,7 +666,8 @@ class Diagnosis:
                 self.progress(i + 1, steps, name)
         screened = self.screened(fits)
         for i, (name, fit) in enumerate(fits.items()):
-            out[name] = self.judge(fit) if name not in screened else self._unjudged(fit, screened[name])
+            # SSIM (most of a judgement's time) only for those that explain part of the gap
+            out[name] = self.judge(fit, complete=None) if name not in screened else self._unjudged(fit, screened[name])
             if self.progress is not None:
                 self.progress(len(fits) + i + 1, steps, f"{name}, judged on the held-out samples")
         return out

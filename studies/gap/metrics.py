@@ -141,8 +141,15 @@ def improvement(before: np.ndarray, after: np.ndarray, metric: str, confidence: 
 
 
 def summarise(values: dict, confidence: float = 0.95, seed: int = 0) -> dict:
-    """Means with intervals of a ``per_sample`` result: {full|masked: {metric: ci}}."""
-    return {k: {m: mean_ci(v[m], confidence, seed=seed) for m in METRICS} for k, v in values.items()}
+    """Means with intervals of a ``per_sample`` result: {full|masked: {metric: ci}}; a
+    metric left out (SSIM of a quick judgement, all NaN) is left out here too."""
+    return {k: {m: mean_ci(v[m], confidence, seed=seed) for m in METRICS if _measured(v.get(m))}
+            for k, v in values.items()}
+
+
+def _measured(values) -> bool:
+    """Whether a metric was measured (``per_sample(ssim=False)`` leaves SSIM as NaN)."""
+    return values is not None and not np.all(np.isnan(np.asarray(values, np.float64)))
 
 
 def group_means(values: np.ndarray, keys: list) -> dict:

@@ -326,7 +326,8 @@ def render_html(report: dict, files: dict[str, str]) -> str:
             (report["ranking"].index(n) + 1) if n in report["ranking"] else "-", n,
             f"{imp['mae']['share'] * 100:.1f}% [{imp['mae']['share_low'] * 100:.1f}, {imp['mae']['share_high'] * 100:.1f}]"
             if judged else "not judged (screened out)",
-            _fmt(imp["ssim"], digits=4) if judged else "-", _fmt(imp["psnr"], digits=2) if judged else "-",
+            _fmt(imp["ssim"], digits=4) if judged and "ssim" in imp else "-",
+            _fmt(imp["psnr"], digits=2) if judged else "-",
             "yes" if e[n]["significant"] else "no",
             _params(e[n], n)])
     sel_rows = [[i + 1, "+ " + s["added"], " + ".join(s["effects"]), _fmt(s["heldout"]["after"]["masked"]["mae"]),
@@ -363,7 +364,8 @@ Intervals are 95% bootstrap intervals over samples.</p>
 {_table(["split", "area", "samples", "MAE", "signed", "spread"], where_rows)}
 <h2>Which effect causes it</h2>
 <p>Each effect fitted alone on the training samples, judged on the held-out ones: the share of the held-out masked MAE
-it closes, and the change of SSIM and PSNR (positive is better). Only effects that close a significant share of the gap,
+it closes, and the change of SSIM (measured only for those that are ranked: it costs most of a judgement) and PSNR
+(positive is better). Only effects that close a significant share of the gap,
 at least {MIN_RANK_SHARE:.0%} with a 95% interval above zero, are ranked.</p>
 {_table(["rank", "effect", "gap closed (MAE)", "SSIM change", "PSNR change (dB)", "significant", "fitted parameters"], effect_rows)}
 {"<p>Not applicable here, or not judged on the held-out samples:</p><ul>" + na + "</ul>" if na else ""}
