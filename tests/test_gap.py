@@ -633,6 +633,12 @@ def test_a_sure_but_tiny_closure_explains_nothing_and_the_answer_says_so():
     assert not judged(0.002, True).explains
     assert not judged(0.4, False).explains
     assert judged(MIN_RANK_SHARE, True).explains and judged(0.4, True).explains
+    # a gap mostly of sensor noise: the bar is a share of the rest (here 0.002 of MAE removed)
+    noisy = judged(0.02, True)
+    noisy.min_gain = 0.001
+    assert noisy.explains
+    noisy.min_gain = 0.003
+    assert not noisy.explains
     mae = {"mean": 0.05, "low": 0.04, "high": 0.06}
     effect = {"heldout": {"improvement": {"masked": {"mae": {"share": 0.002, "share_low": 0.001,
                                                               "share_high": 0.003}}}}}

@@ -113,7 +113,10 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                                          "differences), less the step of the training samples themselves: the spread "
                                          "over taps, not the bias of the renders the fit leans on; a parameter at a "
                                          "bound is held there" if intervals else "not computed"),
-                     "ranked_if": (f"significant and closing at least {MIN_RANK_SHARE:.0%} of the held-out gap")},
+                     "ranked_if": (f"significant and closing at least {MIN_RANK_SHARE:.0%} of the held-out gap less "
+                                   "its sensor-noise MAE floor (estimated from the held-out residual before any "
+                                   "effect)"),
+                     "min_gain": diagnosis.min_gain, "noise_floor_before": diagnosis.noise_floor},
         "gap_contact": (metrics.summarise({"contact": diagnosis.before["contact"]}, seed=seed)["contact"]
                         if "contact" in diagnosis.before else None),
         "gap": {"all": metrics.summarise(gap_all, seed=seed),

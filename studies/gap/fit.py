@@ -76,8 +76,8 @@ MAX_FIT_SAMPLES = 32
 #: A forward-selection step must also close at least this share of the original gap.
 MIN_STEP_SHARE = 0.01
 #: A single effect is ranked (named as a cause) only if it also closes at least this share
-#: of the held-out gap: a candidate that closes 0.2 % of it, however surely, explains
-#: nothing, and the Answer then says that nothing does.
+#: of the held-out gap less its sensor-noise floor: a candidate that closes 0.2 % of it,
+#: however surely, explains nothing, and the Answer then says that nothing does.
 MIN_RANK_SHARE = 0.05
 #: A reference model's candidate that closes the held-out gap to within this share of it
 #: of the best one's ties with it for the first place (``Diagnosis.rank``). A re-rendered
@@ -134,6 +134,8 @@ class Judged:
     fit: Fit
     after: dict  # metrics.per_sample of the prediction
     improvement: dict = field(default_factory=dict)  # {full|masked: {metric: improvement}}
+    #: the held-out MAE it must remove to be named (``Diagnosis.min_gain``); 0: any
+    min_gain: float = 0.0
 
     @property
     def significant(self) -> bool:
@@ -150,8 +152,11 @@ class Judged:
 
     @property
     def explains(self) -> bool:
-        """Whether it is named as a cause: significant, and closing at least ``MIN_RANK_SHARE``."""
-        return self.significant and self.share >= MIN_RANK_SHARE
+        """Whether it is named as a cause: significant, and removing at least ``min_gain``
+        of the held-out MAE, and at least ``MIN_RANK_SHARE`` of the gap where no
+        ``min_gain`` was set."""
+        floor = self.min_gain if self.min_gain > 0 else None
+        return self.significant and (self.gain >= floor if floor is not None else self.share >= MIN_RANK_SHARE)
 
 
 class Diagnosis:
@@ -225,6 +230,12 @@ class Diagnosis:
         self._real_h_compared = self._compared_h(self.real_h)
         self.before = metrics.per_sample(self._real_h_compared, self._compared_h(self.sim_h), self.mask,
                                          areas=self.areas_h, regions=self.regions_h, contact=self.contact_h)
+        # What a candidate must remove to be named: MIN_RANK_SHARE of the part of the
+        # held-out gap that is not sensor noise (which no prediction removes), so that a
+        # gap mostly of noise does not hide the effect behind the rest.
+        gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
+        self.noise_floor = fx.noise_std(self.real_h - self.sim_h, self.mask) * float(np.sqrt(2 / np.pi))
+        self.min_gain = MIN_RANK_SHARE * max(gap - self.noise_floor, 0.0) or 1e-12
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
 
@@ -653,7 +664,7 @@ class Diagnosis:
         # intervals cost as much as the whole circle's, and nothing reads the others
         improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed)
                            for m in (names if k in metrics.SCOPES else ("mae",))} for k in after}
-        return Judged(fit, after, improvement)
+        return Judged(fit, after, improvement, min_gain=self.min_gain)
 
     def singles(self) -> dict[str, Judged]:
         """Each effect fitted alone and judged on the held-out samples, except the

@@ -172,7 +172,7 @@ def _nothing_explains(report: dict) -> str:
     """The Answer's line when no candidate is ranked: none explains the gap, the closest
     ones and what they close, and where the gap lies (the regions, the channels)."""
     line = (f"No candidate explains the gap: none closes a significant share of the held-out gap, at least "
-            f"{MIN_RANK_SHARE * 100:.0f}% of it with a 95% interval above zero.")
+            f"{MIN_RANK_SHARE * 100:.0f}% of what is not sensor noise, with a 95% interval above zero.")
     closes = {n: e["heldout"]["improvement"]["masked"]["mae"] for n, e in report.get("effects", {}).items()}
     best = sorted(closes, key=lambda n: -closes[n]["share"])[:2]
     if best:
@@ -366,7 +366,7 @@ Intervals are 95% bootstrap intervals over samples.</p>
 <p>Each effect fitted alone on the training samples, judged on the held-out ones: the share of the held-out masked MAE
 it closes, and the change of SSIM (measured only for those that are ranked: it costs most of a judgement) and PSNR
 (positive is better). Only effects that close a significant share of the gap,
-at least {MIN_RANK_SHARE:.0%} with a 95% interval above zero, are ranked.</p>
+at least {MIN_RANK_SHARE:.0%} of what is not sensor noise with a 95% interval above zero, are ranked.</p>
 {_table(["rank", "effect", "gap closed (MAE)", "SSIM change", "PSNR change (dB)", "significant", "fitted parameters"], effect_rows)}
 {"<p>Not applicable here, or not judged on the held-out samples:</p><ul>" + na + "</ul>" if na else ""}
 <h2>How far it shrinks</h2>
