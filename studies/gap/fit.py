@@ -155,8 +155,9 @@ class Judged:
         """Whether it is named as a cause: significant, and removing at least ``min_gain``
         of the held-out MAE, and at least ``MIN_RANK_SHARE`` of the gap where no
         ``min_gain`` was set."""
-        floor = self.min_gain if self.min_gain > 0 else None
-        return self.significant and (self.gain >= floor if floor is not None else self.share >= MIN_RANK_SHARE)
+        if self.min_gain > 0:
+            return self.significant and self.gain >= self.min_gain
+        return self.significant and self.share >= MIN_RANK_SHARE
 
 
 class Diagnosis:
@@ -284,7 +285,7 @@ class Diagnosis:
         # Start just off the identity where the identity is a flat spot of the loss.
         nudges = {"core_light_leak": {k: 0.1 for k in base if k.startswith("amplitude")},
                   "coating_gloss": {"k_g": 0.2},
-                  "contact_shadow": {"darkness": 0.5}, "vignetting": {"a": 0.2},
+                  "contact_shadow": {"darkness": 0.5},
                   "blur_noise": {"sigma_px": 1.0}}
         base.update(nudges.get(name, {}))
         if name == "misalignment":
@@ -539,7 +540,6 @@ class Diagnosis:
         z0 = np.clip(to_z(fit.params), 0.0, 1.0)
         h = INTERVAL_STEP
         free = np.flatnonzero((z0 >= h) & (z0 <= 1.0 - h))
-        step = np.zeros(len(plist))
         draws = np.zeros((resamples, len(plist)))
         if free.size:
             def sums(dz: dict) -> np.ndarray:  # per-sample loss sums at z0 + h sum(e_j)
@@ -575,7 +575,6 @@ class Diagnosis:
             for i in range(resamples):
                 weights = np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)
                 draws[i, free] = newton(weights) - reference
-            step[free] = reference
         fitted = low + z0 * (high - low)
         values = np.clip(fitted + draws * (high - low), low, high)
         tail = 100 * (1 - confidence) / 2
