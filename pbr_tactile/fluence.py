@@ -83,12 +83,15 @@ def fluence_grid(solid, voxel: float = VOXEL_M, like: FluenceGrid | None = None,
 
     A voxel whose 8 corners are all inside (outside) counts whole (empty); one the surface
     cuts is measured on SUBSAMPLES^3 points. like, within : a grid of the same solid
-    before a local change, and the (2, 3) bounds of the change: only the voxels that
-    overlap it are measured again (a contact's dent), the rest are ``like``'s; each is
-    measured as it would be in the whole grid (its neighbours are looked at too).
-    shrinks : the change only took material away (a dent pressed inwards), so ``like``'s
-    empty voxels stay empty and are not measured again (every point inside the changed
-    solid was inside the old one: the same points measure the same volumes).
+    before a local change, and where the change lies: (2, 3) bounds, or (K, 2, 3) boxes
+    (each face that moved: the box of its corners before and after). Only the voxels a
+    box meets, and their neighbours, are measured again (a contact's dent); the rest are
+    ``like``'s, and each is measured as it would be in the whole grid. A point's
+    containment changes only where a surface swept across it, inside a box, so a voxel
+    whose own points and whose neighbours' corners all lie outside every box measures
+    what it did. shrinks : the change only took material away (a dent pressed inwards),
+    so ``like``'s empty voxels stay empty and are not measured again (every point inside
+    the changed solid was inside the old one: the same points measure the same volumes).
     """
     if not (np.isfinite(voxel) and voxel > 0):
         raise ValueError(f"voxel must be a finite edge > 0 m, got {voxel!r}")
@@ -97,43 +100,84 @@ def fluence_grid(solid, voxel: float = VOXEL_M, like: FluenceGrid | None = None,
     if like is None:
         # One empty voxel of margin all round: every voxel's neighbours are in the grid.
         origin = np.asarray(solid.bounds[0], np.float64) - voxel
-        shape = np.ceil((solid.bounds[1] + voxel - origin) / voxel).astype(int)
-        return FluenceGrid(origin, float(voxel), _measure(solid, origin, float(voxel), np.zeros(3, int), shape))
+        shape = tuple(np.ceil((solid.bounds[1] + voxel - origin) / voxel).astype(int))
+        volume = np.zeros(shape)
+        every = np.argwhere(np.ones(shape, bool))
+        volume[tuple(every.T)] = _measure(solid, origin, float(voxel), shape, every)
+        return FluenceGrid(origin, float(voxel), volume)
     if within is None:
         raise ValueError("like needs within, the bounds of the change")
     origin, voxel, volume = like.origin, like.voxel, like.volume.copy()
-    first = np.maximum(np.floor((np.asarray(within[0]) - origin) / voxel).astype(int), 0)
-    last = np.minimum(np.floor((np.asarray(within[1]) - origin) / voxel).astype(int) + 1, volume.shape)
-    if np.any(last <= first):
+    boxes = np.asarray(within, np.float64)
+    if boxes.shape == (2, 3):
+        boxes = boxes[None]
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3):
+        raise ValueError(f"within must be (2, 3) bounds or (K, 2, 3) boxes, m, got shape {boxes.shape}")
+    met = _met(boxes, origin, voxel, volume.shape)
+    if not met.any():
         return FluenceGrid(origin, voxel, volume)
-    lo, hi = np.maximum(first - 1, 0), np.minimum(last + 1, volume.shape)  # and their neighbours
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    measured = _measure(solid, origin, voxel, lo, hi, like.volume[box] > 0 if shrinks else None)
-    inner = tuple(slice(a - b0, c - b0) for a, c, b0 in zip(first, last, lo))
-    volume[tuple(slice(a, b) for a, b in zip(first, last))] = measured[inner]
+    from scipy import ndimage
+
+    again = np.argwhere(ndimage.binary_dilation(met))  # a neighbour's corners decide an empty voxel's cut
+    only = like.volume[tuple(again.T)] > 0 if shrinks else None
+    volume[tuple(again.T)] = _measure(solid, origin, voxel, volume.shape, again, only)
     return FluenceGrid(origin, voxel, volume)
 
 
-def _measure(solid, origin: np.ndarray, voxel: float, lo: np.ndarray, hi: np.ndarray,
-             only: np.ndarray | None = None) -> np.ndarray:
-    """Elastomer volume, m^3, of the voxels [lo, hi) of the grid at origin; with ``only``
-    (a bool mask of those voxels), the others are 0 and not measured."""
-    from scipy import ndimage
+def _met(boxes: np.ndarray, origin: np.ndarray, voxel: float, shape) -> np.ndarray:
+    """Bool (shape): the voxels whose closed cell meets one of the (K, 2, 3) boxes."""
+    n = np.asarray(shape)
+    # A point on a face between two voxels belongs to both: widen by a hair.
+    first = np.maximum(np.floor((boxes[:, 0] - origin) / voxel - 1e-6).astype(np.int64), 0)
+    last = np.minimum(np.floor((boxes[:, 1] - origin) / voxel + 1e-6).astype(np.int64), n - 1)
+    keep = np.all(last >= first, axis=1)
+    first, last = first[keep], last[keep]
+    met = np.zeros(shape, bool)
+    if not len(first):
+        return met
+    span = last - first + 1
+    # Boxes a few voxels across (faces): mark each offset at once; larger ones one by one.
+    small = np.all(span <= 4, axis=1)
+    for offset in np.argwhere(np.ones((4, 4, 4), bool)):
+        inside = small & np.all(offset < span, axis=1)
+        met[tuple((first[inside] + offset).T)] = True
+    for a, b in zip(first[~small], last[~small]):
+        met[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = True
+    return met
 
-    n = hi - lo
-    axes = [origin[k] + (lo[k] + np.arange(n[k] + 1)) * voxel for k in range(3)]
-    corners = solid.contains(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)).reshape(n + 1)
-    inside = sum(corners[i:i + n[0], j:j + n[1], k:k + n[2]].astype(int) for i in (0, 1) for j in (0, 1) for k in (0, 1))
+
+def _measure(solid, origin: np.ndarray, voxel: float, shape, voxels: np.ndarray,
+             only: np.ndarray | None = None) -> np.ndarray:
+    """Elastomer volume, m^3, of the (M, 3) ``voxels`` (indices) of the grid of ``shape``
+    at origin, each as in the whole grid; with ``only`` (M,) bool, the others are 0 and
+    not measured."""
+    n = np.asarray(shape)
+    steps = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+    # The voxels and their 6 neighbours (an empty voxel beside elastomer is measured too,
+    # as ndimage.binary_dilation's cross finds it); none beyond the grid's edge.
+    around = voxels[:, None, :] + steps[None]
+    inner = np.all((around >= 0) & (around < n), axis=2)
+    seen, where = np.unique(np.ravel_multi_index(tuple(around[inner].T), shape), return_inverse=True)
+    cube = np.argwhere(np.ones((2, 2, 2), bool))
+    corners = np.unravel_index(seen, shape)
+    corners = np.stack(corners, -1)[:, None, :] + cube[None]
+    lattice, which = np.unique(np.ravel_multi_index(tuple(corners.reshape(-1, 3).T), tuple(n + 1)),
+                               return_inverse=True)
+    points = origin + np.stack(np.unravel_index(lattice, tuple(n + 1)), -1) * voxel
+    inside_seen = solid.contains(points)[which].reshape(-1, 8).sum(axis=1)
+    count = np.zeros(inner.shape, np.int64)
+    count[inner] = inside_seen[where]
+    inside = count[:, 0]
     fraction = (inside == 8).astype(np.float64)
     # The surface can clip a voxel without enclosing any of its corners: measure the empty
     # voxels beside any elastomer too.
-    cut = ((inside > 0) & (inside < 8)) | ((inside == 0) & ndimage.binary_dilation(inside > 0))
+    cut = ((inside > 0) & (inside < 8)) | ((inside == 0) & np.any(count[:, 1:] > 0, axis=1))
     if only is not None:
         fraction *= only
         cut &= only
-    cut = np.argwhere(cut)
+    cut = np.flatnonzero(cut)
     if len(cut):
         offsets = (np.stack(np.meshgrid(*[np.arange(SUBSAMPLES)] * 3, indexing="ij"), -1).reshape(-1, 3) + 0.5)
-        points = origin + ((lo + cut)[:, None, :] + offsets[None] / SUBSAMPLES) * voxel
-        fraction[tuple(cut.T)] = solid.contains(points.reshape(-1, 3)).reshape(len(cut), -1).mean(axis=1)
+        points = origin + (voxels[cut][:, None, :] + offsets[None] / SUBSAMPLES) * voxel
+        fraction[cut] = solid.contains(points.reshape(-1, 3)).reshape(len(cut), -1).mean(axis=1)
     return fraction * voxel**3

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy import spatial
 
 from scenes.camera import Camera
 from scenes.elastic import LAYER_EDGE_M, MembraneLayer
@@ -76,6 +77,20 @@ class ElastomerBuilder:
         inner.invert()  # normals into the glass: out of the elastomer
         self.undeformed = Elastomer(outer, inner, _base_ring(outer, inner), float(thickness.min()))
         check_closed(self.undeformed)
+        # The welded solid's faces and where each surface's vertices sit among its
+        # vertices: a contact moves only outer vertices, so its solid is the undeformed
+        # one with those moved (``solid``), with no welding by position.
+        welded = self.undeformed.solid()
+        self._faces = np.asarray(welded.faces)
+        self._vertices = np.asarray(welded.vertices)
+        own = np.asarray(outer.vertices)
+        self._outer_at = spatial.cKDTree(self._vertices).query(own)[1]
+        shared = np.zeros(len(self._vertices), int)
+        np.add.at(shared, self._outer_at, 1)
+        rest = np.concatenate([np.asarray(inner.vertices), np.asarray(self.undeformed.base.vertices)])
+        np.add.at(shared, spatial.cKDTree(self._vertices).query(rest)[1], 1)
+        self._welded_to_others = shared[self._outer_at] > 1  # outer vertices the base ring shares
+        self._last_solid: tuple = (None, None)
         self._solids: OrderedDict = OrderedDict()  # the last KEPT_SOLIDS dented solids, by contact
         self._grids: OrderedDict = OrderedDict()  # fluence grids, undeformed and dented, by contact and voxel
         self._written: dict = {}  # the undeformed solid's scene meshes, by glass wall
@@ -95,6 +110,25 @@ class ElastomerBuilder:
 
         return _kept(self._solids, make_key(np.asarray(depth), np.asarray(ref_depth)),
                      lambda: self._deformed(depth, ref_depth), KEPT_SOLIDS)
+
+    def solid(self, elastomer: Elastomer) -> trimesh.Trimesh:
+        """``elastomer.solid()`` of this builder's undeformed solid or a contact's: the
+        undeformed welded solid with the outer vertices moved (the same faces, in the same
+        order), or, when a vertex the outer surface shares with the base ring moved, welded
+        anew. The last one is kept: the crossing test and the fluence grid read it."""
+        if self._last_solid[0] is elastomer:
+            return self._last_solid[1]
+        outer = np.asarray(elastomer.outer.vertices)
+        ours = elastomer.inner is self.undeformed.inner and elastomer.base is self.undeformed.base
+        if not ours or len(outer) != len(self._outer_at) or np.any(
+                outer[self._welded_to_others] != self.layer.vertices[self._welded_to_others]):
+            mesh = elastomer.solid()
+        else:
+            vertices = self._vertices.copy()
+            vertices[self._outer_at] = outer
+            mesh = trimesh.Trimesh(vertices, self._faces, process=False)
+        self._last_solid = (elastomer, mesh)
+        return mesh
 
     def meshes(self, glass_wall: float) -> dict[str, str]:
         """The undeformed solid's scene meshes (``pbr_tactile.scene.write_meshes``),
@@ -141,10 +175,13 @@ class ElastomerBuilder:
         changed = faces[np.any(new != old, axis=1)[faces].any(axis=1)]
         if not len(changed):
             return flat
-        corners = np.concatenate([new[changed.ravel()], old[changed.ravel()]])
-        within = np.array([corners.min(axis=0), corners.max(axis=0)])
+        # Each moved face's box, before and after: a point changes sides only where a face
+        # swept across it (a dent's faraway vertices move by micrometres, so the boxes
+        # cover far less than their bounds).
+        corners = np.concatenate([new[changed], old[changed]], axis=1)
+        within = np.stack([corners.min(axis=1), corners.max(axis=1)], axis=1)
         return _kept(self._grids, make_key(np.asarray(depth), np.asarray(ref_depth), float(voxel)),
-                     lambda: fluence_grid(solid.solid(), like=flat, within=within, shrinks=True), KEPT_SOLIDS)
+                     lambda: fluence_grid(self.solid(solid), like=flat, within=within, shrinks=True), KEPT_SOLIDS)
 
     def _deformed(self, depth: np.ndarray, ref_depth: np.ndarray) -> Elastomer:
         try:
@@ -152,7 +189,8 @@ class ElastomerBuilder:
             check_folds(outer, self.undeformed.outer)
             result = Elastomer(outer, self.undeformed.inner, self.undeformed.base, self.undeformed.thickness)
             moved = np.any(np.asarray(outer.vertices) != self.layer.vertices, axis=1)
-            check_crossings(result, changed=np.flatnonzero(moved[outer.faces].any(axis=1)))
+            check_crossings(result, changed=np.flatnonzero(moved[outer.faces].any(axis=1)),
+                            solid_mesh=self.solid(result))
         finally:
             # A trimesh mesh refers to itself (its cache keys on a bound method), so the
             # welded solid of the crossing test and the solids _kept drops, tens of MB each,
@@ -251,14 +289,15 @@ def check_closed(solid: Elastomer) -> None:
         raise ValueError("the elastomer's normals point inwards (negative volume)")
 
 
-def check_crossings(solid: Elastomer, changed: np.ndarray | None = None) -> None:
+def check_crossings(solid: Elastomer, changed: np.ndarray | None = None, solid_mesh=None) -> None:
     """The solid must not intersect itself.
 
     changed : (K,) int, indices of the outer faces that moved (the solid lists the outer
         faces first); only pairs with one of them are tested. None tests every pair,
         which takes seconds on a finely refined membrane.
+    solid_mesh : ``solid.solid()``, when already welded (``ElastomerBuilder.solid``).
     """
-    crossed = crossing_faces(solid.solid(), changed)
+    crossed = crossing_faces(solid.solid() if solid_mesh is None else solid_mesh, changed)
     if len(crossed):
         raise ValueError(
             f"the elastomer intersects itself at {len(crossed)} faces: the deformed membrane passes through "

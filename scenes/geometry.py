@@ -284,17 +284,31 @@ def crossing_faces(mesh: trimesh.Trimesh, faces: np.ndarray | None = None) -> np
     (C,) int, sorted indices of the faces that an edge crosses.
     """
     tri = np.asarray(mesh.triangles)
-    lo, hi = tri.min(axis=1), tri.max(axis=1)
-    _, ok = trimesh.triangles.normals(tri)
-    planar = np.flatnonzero(ok)  # a zero-area face has no plane to be crossed
     if faces is None:
+        _, ok = trimesh.triangles.normals(tri)
+        planar = np.flatnonzero(ok)  # a zero-area face has no plane to be crossed
         return _crossed(mesh, planar, planar)
-    faces = np.asarray(faces, dtype=np.int64)
+    faces = np.unique(np.asarray(faces, dtype=np.int64))
     if len(faces) == 0:
         return faces
-    box_lo, box_hi = lo[faces].min(axis=0), hi[faces].max(axis=0)
-    near = planar[((lo[planar] <= box_hi) & (hi[planar] >= box_lo)).all(axis=1)]
-    moved = np.intersect1d(faces, planar)
+    # Near: every face whose bounding sphere (about its centroid) meets a moved face's;
+    # two triangles that cross share a point, so their spheres meet.
+    centre = tri.mean(axis=1)
+    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+    tree = spatial.cKDTree(centre[faces])
+    reach = radius[faces].max()
+    large = radius > 2 * np.median(radius[faces])
+    near = []
+    for group in (np.flatnonzero(~large), np.flatnonzero(large)):
+        if len(group):
+            hits = tree.query_ball_point(centre[group], radius[group] + reach, return_length=True)
+            near.append(group[hits > 0])
+    near = np.concatenate(near)
+    involved = np.union1d(near, faces)
+    _, ok = trimesh.triangles.normals(tri[involved])
+    planar = np.zeros(len(tri), bool)
+    planar[involved[ok]] = True  # a zero-area face has no plane to be crossed
+    near, moved = near[planar[near]], faces[planar[faces]]
     return np.union1d(_crossed(mesh, moved, near), _crossed(mesh, near, moved))
 
 

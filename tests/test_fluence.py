@@ -46,8 +46,20 @@ def test_a_local_change_remeasures_only_the_voxels_it_overlaps():
     # A change outside the grid changes nothing.
     assert np.array_equal(fluence_grid(dented, like=grid, within=bounds + 1.0).volume, grid.volume)
     assert local.volume.sum() < grid.volume.sum()
+    # Each moved face's own box (before and after) instead of their bounds: the voxels no
+    # box meets keep their volumes, and the grid is the same.
+    faces = shell.faces[moved[shell.faces].any(axis=1)]
+    both = np.concatenate([shell.vertices[faces], dented.vertices[faces]], axis=1)
+    boxes = np.stack([both.min(axis=1), both.max(axis=1)], axis=1)
+    assert np.array_equal(fluence_grid(dented, like=grid, within=boxes, shrinks=True).volume, whole.volume)
+    # A box that holds a voxel's corner on its face re-measures that voxel's neighbours too.
+    corner = grid.origin + np.array([30, 24, 20]) * grid.voxel
+    met = fluence_grid(dented, like=grid, within=np.array([[corner, corner]]))
+    assert np.array_equal(met.volume, grid.volume)  # nothing there moved: measured again, the same
     with pytest.raises(ValueError, match="within"):
         fluence_grid(dented, like=grid)
+    with pytest.raises(ValueError, match=r"within must be \(2, 3\) bounds or \(K, 2, 3\) boxes"):
+        fluence_grid(dented, like=grid, within=np.zeros((3, 3)))
 
 
 def test_bad_grids_are_refused():
@@ -155,6 +167,12 @@ def test_a_contacts_grid_is_its_undeformed_grid_measured_again_where_it_moved(tm
     assert dented.volume.sum() < flat.volume.sum()  # the dent took elastomer away, and added none
     assert np.all(dented.volume <= flat.volume)
     assert build.grid(voxel=2e-3) is flat and build.grid(pressed, ref, voxel=2e-3) is dented  # kept
+    # The contact's solid, its outer vertices moved in the undeformed welded solid, is the
+    # one welding by position gives: the same triangles, in the same order, and closed.
+    solid = build(pressed, ref)
+    moved, welded = build.solid(solid), solid.solid()
+    np.testing.assert_array_equal(moved.triangles, welded.triangles)
+    assert moved.is_watertight and build.solid(solid) is moved
     # Another builder of the same membrane reads the undeformed grid from the disk cache.
     assert len(list((tmp_path / "cache").glob("fluence-grid-*.npz"))) == 1
     again = ElastomerBuilder(mesh, spec, camera).grid(voxel=2e-3)
