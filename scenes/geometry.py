@@ -317,21 +317,27 @@ def _near_pairs(mid: np.ndarray, half: np.ndarray, tri: np.ndarray) -> tuple[np.
 
     An edge (midpoint ``mid``, half-length ``half``) can only meet a triangle whose
     centroid lies within half + the triangle's circumradius about its centroid. Faces
-    much larger than the median are searched apart, with their own radius, so that a few
-    large ones (the base ring) do not widen every search.
+    much larger than the median, and edges much longer, are searched apart, with their own
+    reach, so that a few large ones (the base ring) do not widen every search.
     """
     centre = tri.mean(axis=1)
     radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
     large = radius > 2 * np.median(radius)
-    edge_tree = spatial.cKDTree(mid)
-    edges, faces = [], []
-    for group in (np.flatnonzero(~large), np.flatnonzero(large)):
-        if len(group) == 0:
+    long = half > 2 * np.median(half)
+    edges, faces = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for lines in (np.flatnonzero(~long), np.flatnonzero(long)):
+        if len(lines) == 0:
             continue
-        reach = float(half.max() + radius[group].max())
-        pairs = edge_tree.sparse_distance_matrix(spatial.cKDTree(centre[group]), reach, output_type="ndarray")
-        edges.append(pairs["i"].astype(np.int64))
-        faces.append(group[pairs["j"]])
+        edge_tree = spatial.cKDTree(mid[lines])
+        for group in (np.flatnonzero(~large), np.flatnonzero(large)):
+            if len(group) == 0:
+                continue
+            reach = float(half[lines].max() + radius[group].max())
+            pairs = edge_tree.sparse_distance_matrix(spatial.cKDTree(centre[group]), reach, output_type="ndarray")
+            i, j = lines[pairs["i"]], group[pairs["j"]]
+            close = pairs["v"] <= half[i] + radius[j]  # each pair's own reach: its spheres meet
+            edges.append(i[close])
+            faces.append(j[close])
     return np.concatenate(edges), np.concatenate(faces)
 
 
@@ -345,8 +351,9 @@ def _crossed(mesh: trimesh.Trimesh, edge_faces: np.ndarray, faces: np.ndarray) -
     edges = np.unique(np.sort(F[edge_faces][:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
     a, b = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
     edge, face = _near_pairs((a + b) / 2, np.linalg.norm(b - a, axis=1) / 2, tri)
-    boxes = ((np.minimum(a, b)[edge] <= tri.max(axis=1)[face]) & (np.maximum(a, b)[edge] >= tri.min(axis=1)[face]))
-    edge, face = edge[boxes.all(axis=1)], face[boxes.all(axis=1)]
+    low, high = np.minimum(a, b), np.maximum(a, b)
+    boxes = ((low[edge] <= tri.max(axis=1)[face]) & (high[edge] >= tri.min(axis=1)[face])).all(axis=1)
+    edge, face = edge[boxes], face[boxes]
     apart = ~(F[faces][face][:, :, None] == edges[edge][:, None, :]).any(axis=(1, 2))
     edge, face = edge[apart], face[apart]
     length = np.linalg.norm(b - a, axis=1)

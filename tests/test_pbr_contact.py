@@ -166,6 +166,24 @@ def test_crossing_triangles_are_found_and_neighbours_are_not():
     assert crossing_faces(raised).tolist() == []
     # A fan of faces meeting at shared edges and a shared corner never crosses itself.
     assert crossing_faces(trimesh.creation.icosphere(subdivisions=1)).tolist() == []
+    # Only pairs with a moved face are tested, and either face of a crossing pair finds it.
+    assert crossing_faces(crossing, [1]).tolist() == [0, 1] == crossing_faces(crossing, [0]).tolist()
+    assert crossing_faces(crossing, []).tolist() == []
+
+
+def test_the_faces_that_moved_find_every_crossing_that_all_pairs_find():
+    """A sphere with a patch pushed through its far side: testing the pairs with a moved
+    face finds what testing all pairs finds (the broad phase only drops pairs whose
+    bounding spheres do not meet)."""
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    V = np.array(sphere.vertices)
+    patch = V[:, 2] > 0.9
+    V[patch, 2] -= 1.95  # through the sphere, out of its bottom
+    pushed = trimesh.Trimesh(V, sphere.faces, process=False)
+    moved = np.flatnonzero(patch[sphere.faces].any(axis=1))
+    every = crossing_faces(pushed)
+    assert len(every) > 0
+    np.testing.assert_array_equal(crossing_faces(pushed, moved), every)
 
 
 def test_a_membrane_pushed_through_the_glass_core_intersects_itself(mesh, spec, camera):
