@@ -34,7 +34,8 @@ def basis_camera(camera: Camera) -> Camera:
 def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film: tuple[int, int],
                   photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
                   use_cache: bool = True, depth: np.ndarray | None = None,
-                  ref_depth: np.ndarray | None = None, solids=None, no_contact_runs: int = 0) -> dict:
+                  ref_depth: np.ndarray | None = None, solids=None, no_contact_runs: int = 0,
+                  inscatter: str = "fluence") -> dict:
     """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
     sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,), ``response``
     (S, 3) the film's response to each source at the effects' powers. Without ``depth``
@@ -45,7 +46,9 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     ``ElastomerBuilder`` for this spec and camera, kept across renders (it refines and
     checks the membrane once; None builds one). ``no_contact_runs``: the photon map as the
     sensor's cached no-contact map (this many runs per pass) plus the contact's change, as
-    a dataset renders it (``pbr_tactile.render.reference``); 0 traces every photon each time."""
+    a dataset renders it (``pbr_tactile.render.reference``); 0 traces every photon each time.
+    ``inscatter``: how the camera finds the light the elastomer scatters towards it
+    (``reference``'s; the fluence lookup by default, as every reference render)."""
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
@@ -60,14 +63,14 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
         raise ValueError("emitter_basis: a contact needs both depth and ref_depth")
     contact = [] if depth is None else [np.asarray(depth, np.float32), np.asarray(ref_depth, np.float32)]
     own = camera == Camera.from_spec(spec)
-    key = make_key("basis", 1, CACHE_VERSION, CAMERA_PASS_VERSION, variant, dataclasses.asdict(spec), np.asarray(mesh.vertices),
-                   effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
+    key = make_key("basis", 2, CACHE_VERSION, CAMERA_PASS_VERSION, variant, inscatter, dataclasses.asdict(spec),
+                   np.asarray(mesh.vertices), effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
                    *([no_contact_runs] if no_contact_runs else []), *([] if own else [dataclasses.asdict(camera)]))
 
     def build():
         est = reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
                         seed=seed, variant=variant, passes=passes, photons=photons, per_source=True, solids=solids,
-                        no_contact_runs=no_contact_runs)
+                        no_contact_runs=no_contact_runs, inscatter=inscatter)
         sources = led_sources(spec, effects)
         return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
                 "response": source_response(sources, effects)}

@@ -228,9 +228,10 @@ def register(registry) -> None:
     p.add_argument("--estimator", choices=["photons", "volpath"], default="photons",
                    help="photons (two-pass, fast) or volpath (brute force)")
     p.add_argument("--photons", type=int, default=1 << 20, help="photons per LED per pass")
-    p.add_argument("--inscatter", choices=list(INSCATTER), default="split",
-                   help="photons: the light the elastomer scatters towards the camera, by split camera paths "
-                        "(default) or read from the photons' fluence on a voxel grid (less noise, faster)")
+    p.add_argument("--inscatter", choices=list(INSCATTER), default="fluence",
+                   help="photons: the light the elastomer scatters towards the camera, read from the photons' "
+                        "fluence on a voxel grid (default: less noise, faster) or by split camera paths (the old "
+                        "estimator)")
     p.add_argument("--effect", action="append", metavar="NAME=VALUE",
                    help="set one physical effect of pbr_tactile.effects.Effects, e.g. contact_shadow=false or "
                         "scattering_per_m=0 (repeatable)")

@@ -526,7 +526,7 @@ def reference(
     control_spp: int = 0,
     per_source: bool = False,
     led_power=1.0,
-    inscatter: str = "split",
+    inscatter: str = "fluence",
 ) -> Estimate:
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
@@ -554,9 +554,10 @@ def reference(
         RGB (see ``render_photons``; photons only).
     led_power : each LED's radiance scale, one for all or one per LED (``led_sources``).
     inscatter : how the photon estimator's camera finds the light its scattering events
-        in the elastomer receive: "split" (trace SCATTER_SPLIT paths on from the first
-        event, with next-event estimates of the LEDs) or "fluence" (read it from the
-        photons' fluence on the solid's voxel grid, ``pbr_tactile.fluence``).
+        in the elastomer receive: "fluence" (the default: read it from the photons'
+        fluence on the solid's voxel grid, ``pbr_tactile.fluence``; less noise, and the
+        camera pass costs a fifth) or "split" (trace SCATTER_SPLIT paths on from the
+        first event, with next-event estimates of the LEDs: the estimator before it).
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")

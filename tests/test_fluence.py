@@ -233,3 +233,27 @@ def test_a_contact_by_the_fluence_equals_the_split_estimator_inside_and_outside_
     # This bright contact's noise is mostly the photon map's, which both share (measured:
     # 0.0621 split, 0.0625 fluence); the fluence's gain is on dim contacts and in time.
     assert rse["fluence"] < 1.1 * rse["split"]
+
+
+@pytest.mark.slow
+def test_per_source_images_by_the_fluence_make_the_rgb_image(mesh, spec, camera, ref, pressed, monkeypatch, tmp_path):
+    """The calibration's and the diagnosis' bases are per-source images rendered with the
+    fluence lookup (the default of every reference render): weighted by each source's film
+    response they are the RGB image of the same seed, with and without contact (the
+    transport is linear in each source's power, and the fluence of a pass is per source)."""
+    from pbr_tactile.render import reference, source_response
+    from pbr_tactile.scene import led_sources
+
+    from test_pbr import _needs_vectorised_variant
+
+    _needs_vectorised_variant()
+    monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
+    effects = Effects(core_light_leak=0.5)  # the leaks are sources of the basis too
+    response = source_response(led_sources(spec, effects), effects)
+    for depth in (None, pressed):
+        kw = {"spp": 4, "width": 40, "height": 30, "passes": 2, "photons": 1 << 12, "seed": 3, "no_contact_runs": 1}
+        contact = () if depth is None else (depth, ref)
+        per_source = reference(*(contact or (None, None)), mesh, spec, camera, effects, per_source=True, **kw)
+        rgb = reference(*(contact or (None, None)), mesh, spec, camera, effects, **kw)
+        assert per_source.mean.shape == (30, 40, len(response))
+        np.testing.assert_allclose(per_source.mean @ response, rgb.mean, rtol=0, atol=1e-6 * rgb.mean.max())

@@ -331,16 +331,21 @@ def test_a_second_render_compiles_no_kernel(tmp_path, monkeypatch, mesh, spec, c
             reference(None, None, mesh, spec, camera, Effects(), seed=seed, **kw)
             # the tracing kernels: those of hundreds of operations and more (loading a
             # scene launches a few small kernels of Mitsuba's own, with sizes baked in)
-            return {k["hash"] for k in dr.kernel_history()
+            return {(k["operation_count"], k["hash"]) for k in dr.kernel_history()
                     if k["type"] == dr.KernelType.JIT and k["operation_count"] >= TRACING_OPS}
         finally:
             dr.set_flag(dr.JitFlag.KernelHistory, False)
             del ballast
 
-    kernels(1, 8)
-    second = kernels(2, 40)
+    earlier = kernels(1, 8) | kernels(2, 40)
     third = kernels(3, 72)
-    assert third and third <= second, f"{len(third - second)} of {len(third)} kernels were new"
+    # A kernel is the same code when it has the same operations: one seen before with
+    # another hash had something baked in. (A render may launch a kernel no earlier one
+    # needed: the weight window's last generation, reached only when photons split that
+    # often, which varies with the seed at these few photons.)
+    seen = {ops: digest for ops, digest in earlier}
+    baked = [ops for ops, digest in third if ops in seen and (ops, digest) not in earlier]
+    assert len(third) >= 3 and not baked, f"{len(baked)} of {len(third)} kernels were compiled anew: {baked}"
 
 
 def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camera):
