@@ -12,6 +12,7 @@ itself is ``tactile-sim diagnose benchmark --physical``.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,7 @@ PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240)
 
 
 def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, seed=0, use_cache=True, depth=None,
-               ref_depth=None, solids=None, no_contact_runs=0):
+               ref_depth=None, solids=None, no_contact_runs=0, inscatter="fluence"):
     """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
     distance in metres over the image from the LED's place), its leak a ring at 0.4 of
     the image radius on the LED's side (nearer the centre, the tip, the narrower its cone up
@@ -69,7 +70,13 @@ def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, se
             ring = 0.4 * (1.0 - effects.core_leak_cone_rad)
             images.append(80.0 * np.exp(-((rho - ring) / 0.12) ** 2) * (1 + np.cos(np.arctan2(y, x) - a)) + 5 * dent)
             names.append(f"led{m}_leak")
-    return {"mean": np.stack(images, axis=-1).astype(np.float32), "names": np.array(names)}
+    mean = np.stack(images, axis=-1).astype(np.float32)
+    # the renders' Monte Carlo noise: NOISE of each image, per pixel
+    return {"mean": mean, "variance": (NOISE * mean) ** 2, "names": np.array(names)}
+
+
+#: The stand-in basis' relative standard error per pixel (``fake_basis``'s variance).
+NOISE = 0.01
 
 
 @pytest.fixture
@@ -467,6 +474,33 @@ def test_the_physical_benchmark_refuses_to_be_mixed_with_the_stratified_one(tmp_
     assert not (tmp_path / "b.json").exists()
 
 
+def test_the_physical_bench_times_the_diagnosis_alone_on_its_capture_and_replay(tmp_path, monkeypatch, capsys):
+    """``bench diagnose --physical``: the capture (with the hidden leak) and the replay of
+    ``--pairs`` taps are made first and timed apart, then the whole diagnosis of the pair
+    is timed; the result names what came first and what the hidden leak closed. The
+    renders and the diagnosis are stood in for here (each is tested on its own)."""
+    import studies.gap.diagnose as dg
+    import studies.gap.physical_benchmark as pb
+    from scenes.cli import main
+
+    made = []
+    monkeypatch.setattr(pb, "capture", lambda folder, hidden, progress=False, taps=pb.TAPS:
+                        made.append(("capture", dict(hidden), taps)) or folder)
+    monkeypatch.setattr(pb, "replay", lambda real, folder, progress=False: made.append(("replay", real.name)) or folder)
+    monkeypatch.setattr(dg, "run", lambda real, sim, out, seed=0, progress=True: {
+        "pairs": 36, "ranking": ["core_light_leak"], "model": "pbr", "renders": {"count": 3},
+        "effects": {"core_light_leak": {"share_closed": {"masked": 0.5}, "params": {"fraction": 0.29}}}})
+    out = tmp_path / "bench.json"
+    assert main(["bench", "diagnose", "--physical", "--work", str(tmp_path / "w"), "--json", str(out), "--quiet"]) == 0
+    assert made == [("capture", pb.BENCH_HIDDEN, 36), ("replay", "real_36")]
+    result = json.loads(out.read_text())
+    assert result["first"] == "core_light_leak" and result["pairs"] == 36 and result["cold"]
+    assert result["seconds"] >= 0 and result["setup_seconds"] >= 0
+    assert result["hidden_share_closed"] == {"masked": 0.5}
+    with pytest.raises(ValueError, match="pairs must be >= 4"):
+        pb.bench_physical(pairs=2, work=tmp_path / "w")
+
+
 @pytest.mark.slow
 def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec, scene, stub, monkeypatch):
     """Judging a re-rendered candidate renders every held-out tap: only the best
@@ -512,6 +546,41 @@ def test_a_reference_diagnosis_writes_its_report_judged_at_the_basis_film(spec, 
     low, high = report["effects"]["core_light_leak"]["param_intervals"]["core_light_leak"]["fraction"]
     fitted = report["effects"]["core_light_leak"]["params"]["core_light_leak"]["fraction"]
     assert 0.28 < low <= high < 0.32 and low - 0.01 < fitted < high + 0.01
+    # The basis' own Monte Carlo noise is stated beside the bar a candidate must clear.
+    basis = report["noise"]["basis"]
+    assert basis["taps"] >= 2 and basis["mae_floor"] > 0 and basis["min_gain"] == report["settings"]["min_gain"]
+    assert basis["under_min_gain"] == (basis["mae_floor"] < basis["min_gain"]) and basis["inscatter"] == "fluence"
+
+
+def test_the_basis_noise_is_its_variance_as_the_images_are_compared(spec, scene, stub, monkeypatch):
+    """``ReferenceModel.basis_noise``: a noise twice as large doubles the floor; a flat
+    variance sigma^2 (per unit weight) low-passed by a Gaussian keeps sigma^2 times its
+    squared weights' sum, so the floor is sqrt(2 / pi) sigma sqrt(sum w^2) inside the
+    film's circle; nothing rendered, nothing stated."""
+    from scipy import ndimage
+
+    import test_gap_physical as me
+    from studies.gap.physical import COMPARED_SIGMA_FILM_PX, NO_CONTACT
+
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
+    assert model.basis_noise([0, NO_CONTACT]) is None  # none rendered yet
+    model.image(0, {})
+    once = model.basis_noise([0, 1])
+    assert once["taps"] == 1  # tap 1 is not rendered: left out, not rendered for this
+    monkeypatch.setattr(me, "NOISE", 2 * NOISE)
+    twice = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
+    twice.image(0, {})
+    assert twice.basis_noise([0])["mae_floor"] == pytest.approx(2 * once["mae_floor"], rel=1e-5)
+    flat = np.ones(FILM[::-1] + (len(twice.basis.names),), np.float32)
+    twice.basis._variances[(0, None, None)] = flat
+    weight = (GAIN * twice.colour({})) ** 2  # (S, 3)
+    impulse = np.zeros((41, 41))
+    impulse[20, 20] = 1.0
+    kept = (ndimage.gaussian_filter(impulse, COMPARED_SIGMA_FILM_PX) ** 2).sum()
+    inside = twice._film.mask
+    expected = np.sqrt(2 / np.pi) * np.mean(np.broadcast_to(np.sqrt(weight.sum(axis=0) * kept), inside.shape + (3,))[inside])
+    assert twice.basis_noise([0])["mae_floor"] == pytest.approx(expected, rel=0.02)
 
 
 def test_the_reference_lens_is_judged_with_the_exposure_its_capture_gets(spec, scene, stub):

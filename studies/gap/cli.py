@@ -107,10 +107,18 @@ def cmd_benchmark(args) -> int:
 def cmd_bench(args) -> int:
     from pathlib import Path
 
-    from .benchmark import bench_diagnose
     from .report import write_json
 
-    result = bench_diagnose(pairs=args.pairs, work=args.work, progress=not args.quiet)
+    if args.physical:
+        from .physical_benchmark import bench_physical
+
+        result = bench_physical(pairs=args.pairs or 36, work=args.work, progress=not args.quiet)
+        write_json(Path(args.json), result)
+        print(json.dumps({k: result[k] for k in ("seconds", "setup_seconds", "pairs", "first", "hidden_share_closed")}))
+        return 0
+    from .benchmark import bench_diagnose
+
+    result = bench_diagnose(pairs=args.pairs or 144, work=args.work, progress=not args.quiet)
     write_json(Path(args.json), result)
     print(json.dumps({k: result[k] for k in ("seconds", "pairs", "effects")}))
     return 0
@@ -161,6 +169,11 @@ def register(registry) -> None:
                         "catalogue for them (comma-separated; default all); each case keeps its index and seed from "
                         "the full run")
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
-    b.add_argument("--pairs", type=positive_int, default=144, help="pairs (default 144, the base protocol)")
+    b.add_argument("--pairs", type=positive_int, default=None,
+                   help="pairs (default 144, the base protocol; with --physical 36, its two objects' taps)")
+    b.add_argument("--physical", action="store_true",
+                   help="a reference capture with a hidden leak (the virtual rig's camera) against the reference's "
+                        "replay: the physical candidates and their basis renders "
+                        "(studies/gap/physical_benchmark.py bench_physical)")
     b.add_argument("--work", metavar="DIR", default=None, help="keep the datasets here")
     add_quiet_argument(b)

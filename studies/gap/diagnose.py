@@ -168,6 +168,14 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                              "passes": basis.passes, "seed": basis.seed, "count": basis.renders,
                              "seconds": round(basis.seconds, 1),
                              "identity": basis.cost.get("identity", {"renders": 0, "seconds": 0.0})}
+        own = diagnosis.work.basis_noise(basis.rendered_keys())
+        if own is not None:
+            own.update({"min_gain": diagnosis.min_gain, "under_min_gain": own["mae_floor"] < diagnosis.min_gain,
+                        "note": "the basis renders' own Monte Carlo noise, as the images are compared (basis film, "
+                                "low-passed), from their variance maps with pixels as independent (a lower bound), "
+                                "beside the held-out MAE a candidate must remove to be named (min_gain): a basis "
+                                "noisier than that can name or hide a candidate by its noise"})
+            report["noise"]["basis"] = own
     report["seconds"] = time.perf_counter() - t0
     examples = _examples(diagnosis, final)
     return report, {"maps": maps, "labels": labels, "mask": _mask(pairs), "examples": examples}

@@ -417,8 +417,12 @@ class SourceBasis:
         self.no_contact_runs = int(renderer.get("no_contact_runs", BASIS_NO_CONTACT_RUNS)
                                    if no_contact_runs is None else no_contact_runs)
         self.spp, self.passes, self.seed = spp, passes, seed
+        # The camera's in-scattered light as the dataset found it (the fluence lookup, the
+        # reference's default, where it records none).
+        self.inscatter = renderer.get("inscatter") or "fluence"
         self.use_cache = use_cache
         self._images: dict = {}
+        self._variances: dict = {}  # the variance of each image's mean, by the same tags
         self.names: list[str] | None = None  # the sources, in the basis' order (from the first render)
         self.renders = 0  # basis renders made here (not read from memory)
         self.seconds = 0.0
@@ -462,7 +466,7 @@ class SourceBasis:
         t0 = time.perf_counter()
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
                               passes=self.passes, seed=self.seed, use_cache=self.use_cache,
-                              no_contact_runs=self.no_contact_runs, **contact)
+                              no_contact_runs=self.no_contact_runs, inscatter=self.inscatter, **contact)
         seconds = time.perf_counter() - t0
         self.renders += 1
         self.seconds += seconds
@@ -476,7 +480,17 @@ class SourceBasis:
             raise ValueError(f"the basis' sources changed between renders ({self.names} against {names})")
         image = np.asarray(basis["mean"], np.float32)
         self._images[tag] = image
+        self._variances[tag] = np.asarray(basis["variance"], np.float32)
         return image
+
+    def rendered_keys(self) -> list[int]:
+        """The taps whose identity images are rendered (no contact included)."""
+        return sorted(key for key, name, _ in self._images if name is None)
+
+    def variance(self, key: int) -> np.ndarray:
+        """(h, w, S) the variance of tap ``key``'s identity images (``images``' mean),
+        from the passes of its render; the tap must be rendered."""
+        return self._variances[(int(key), None, None)]
 
 
 class ReferenceModel:
@@ -655,6 +669,30 @@ class ReferenceModel:
             scale = fx.exposure_scale(film) * self._film_exposure(film, physical)
             out = np.clip(out * np.float32(scale), 0.0, 1.0)
         return out
+
+    def basis_noise(self, keys) -> dict | None:
+        """The basis' own Monte Carlo noise, as the diagnosis compares images: the MAE
+        floor (sqrt(2 / pi) sigma per pixel, averaged over the film's image circle) of
+        the identity image of each of ``keys`` already rendered, its per-source variances
+        weighted by the dataset's exposure and colours, at the basis film and low-passed
+        by ``COMPARED_SIGMA_FILM_PX`` (``compared``), pixels taken as independent (the
+        photon map's are not, so it is a lower bound). None when none is rendered."""
+        from .diagnose import _low_passed_variance
+
+        rendered = set(self.basis.rendered_keys())
+        keys = [int(k) for k in keys if int(k) in rendered]
+        if not keys:
+            return None
+        weight = (float(self.basis.gain) * self.colour({})) ** 2  # (S, 3)
+        area = self._film.mask
+        floors = []
+        for key in keys:
+            variance = np.tensordot(self.basis.variance(key), weight, axes=([2], [0]))
+            variance = _low_passed_variance(variance, COMPARED_SIGMA_FILM_PX)
+            floors.append(float(np.sqrt(2 / np.pi) * np.sqrt(variance[area]).mean()))
+        return {"mae_floor": float(np.mean(floors)), "mae_floor_max": float(np.max(floors)), "taps": len(keys),
+                "photons": self.basis.photons, "spp": self.basis.spp, "passes": self.basis.passes,
+                "inscatter": self.basis.inscatter}
 
     def _recoloured(self, sim: np.ndarray, key: int, physical: dict, A: np.ndarray) -> np.ndarray:
         """One simulated image (h, w, 3) with the ``physical`` candidates, before clipping:

@@ -190,11 +190,12 @@ def _run(argv: list[str]) -> None:
         raise RuntimeError(f"tactile-sim {' '.join(argv)} exited {code}")
 
 
-def capture(folder: Path, hidden: dict, progress: bool = False) -> Path:
-    """The case's "real" capture: the virtual rig with the reference as its camera."""
+def capture(folder: Path, hidden: dict, progress: bool = False, taps: int = TAPS) -> Path:
+    """The case's "real" capture: the virtual rig with the reference as its camera, the
+    first ``taps`` taps of the base protocol on OBJECTS."""
     render = [x for k, v in RENDER.items() for x in (f"--{k.replace('_', '-')}", v)]
     _run(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--renderer", "pbr", *render,
-          *effect_settings(hidden), "--objects", OBJECTS, "--protocol", "base", "--limit", str(TAPS), "--yes",
+          *effect_settings(hidden), "--objects", OBJECTS, "--protocol", "base", "--limit", str(taps), "--yes",
           "--out", str(folder)] + ([] if progress else ["--quiet"]))
     return folder
 
@@ -339,6 +340,57 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
                 "hidden_at_least_once": sorted({h for r in results for h in r["hidden"]}),
                 "never_hidden": sorted(set(HIDDEN) - {h for r in results for h in r["hidden"]})})
     return out
+
+
+#: What ``bench_physical`` hides: the leak of issue 23's example (a 0.3 share of each
+#: LED's light into the glass core).
+BENCH_HIDDEN = {"core_light_leak": 0.3}
+
+
+def bench_physical(pairs: int = 36, work: str | Path | None = None, progress: bool = True, seed: int = 0) -> dict:
+    """Seconds for one whole diagnosis (``diagnose.run``: load, every physical candidate
+    with its basis renders, selection, report) of a ``pairs``-tap reference capture with
+    BENCH_HIDDEN against the reference's replay of it. The capture and the replay are
+    rendered first and timed apart (``setup_seconds``); with ``work`` they are kept and
+    reused, and the basis renders the diagnosis makes are cached there too (a second run
+    on the same folder is warm: ``cold`` says which)."""
+    import os
+    import tempfile
+
+    from scenes.cache import CACHE_ENV
+
+    from .diagnose import run
+
+    if pairs < 4:
+        raise ValueError(f"pairs must be >= 4 (two taps to fit and two to judge), got {pairs}")
+    with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-physical-") as tmp:
+        root = Path(work) if work is not None else Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
+        old = os.environ.get(CACHE_ENV)
+        os.environ[CACHE_ENV] = str(root / "cache")
+        cold = not (root / "cache").exists()
+        try:
+            t0 = time.perf_counter()
+            real = capture(root / f"real_{pairs}", BENCH_HIDDEN, progress, taps=pairs)
+            sim = replay(real, root / f"sim_{pairs}", progress)
+            setup = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            report = run(real, sim, root / f"report_{pairs}", seed=seed, progress=progress)
+            seconds = time.perf_counter() - t0
+        finally:
+            if old is None:
+                os.environ.pop(CACHE_ENV, None)
+            else:
+                os.environ[CACHE_ENV] = old
+    ranking = report.get("ranking", [])
+    leak = report.get("effects", {}).get("core_light_leak", {})
+    return {"seconds": seconds, "setup_seconds": setup, "pairs": report["pairs"], "cold": cold,
+            "hidden": BENCH_HIDDEN, "ranking": ranking, "first": ranking[0] if ranking else None,
+            "hidden_share_closed": leak.get("share_closed"), "hidden_fitted": leak.get("params"),
+            "renders": report.get("renders"), "model": report.get("model"), "render": RENDER,
+            "what": "tactile-sim diagnose of a reference capture (the virtual rig's camera, the hidden leak) against "
+                    "the reference's replay of its taps: load, every physical candidate and its per-source basis "
+                    "renders, selection, figures, report; the capture and the replay are setup_seconds, apart"}
 
 
 def _against_residual(results: list[dict], residual: float, ranking: list[str]) -> dict:
