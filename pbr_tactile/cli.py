@@ -267,3 +267,9 @@ def register(registry) -> None:
                    help="check a seeded sample of N taps (default: every tap)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sample")
     p.add_argument("--edge-mm", type=float, default=0.25, help="refined edge of the membrane, mm (the reference's)")
+
+    from .gpu_run import add_run_arguments, cmd_run
+
+    p = registry.bench("gpu", cmd_run, "the reference's benches on the GPU (cuda_ad_spectral), each budgeted, in one "
+                       "JSON (pbr_tactile/gpu_run.py); without a CUDA device it says so and exits 0")
+    add_run_arguments(p)
