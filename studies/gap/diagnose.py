@@ -222,7 +222,7 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int 
         return None
 
     def floor(variances: list, area: np.ndarray) -> float:
-        return float(np.mean([np.sqrt(2 / np.pi) * np.sqrt(v[area]).mean() for v in variances]))
+        return float(np.mean([metrics.mae_floor(v, area) for v in variances]))
 
     def summary(variances: dict, area: np.ndarray) -> dict:
         out = {"mae_floor": {side: floor(vs, area) for side, vs in variances.items()}}
@@ -237,26 +237,12 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int 
         blocks = {}
         for side, vs in sides.items():
             held = max(1.0, (factor * float(films[side][0]) / pairs.shape[1]) ** 2)  # film pixels in a block
-            blocks[side] = [_low_passed_variance(block_mean(v, factor, (0, 1)) / held, sigma) for v in vs]
+            blocks[side] = [metrics.low_passed_variance(block_mean(v, factor, (0, 1)) / held, sigma) for v in vs]
         area = block_mean(mask.astype(np.float32), factor, (0, 1)) >= 0.5
         out["judged"] = {"factor": int(factor), "sigma": float(sigma), **summary(blocks, area),
                          "note": "the same at the resolution the held-out samples are judged at (block means), as "
                                  "if the film's pixels were independent: a lower bound"}
     return out
-
-
-def _low_passed_variance(variance: np.ndarray, sigma: float) -> np.ndarray:
-    """(H, W, C) the variance of independent pixels' values once low-passed by a Gaussian
-    of ``sigma`` pixels (scipy.ndimage's, 'nearest' borders): sum_j w_j^2 v_j per pixel."""
-    if sigma <= 0:
-        return variance
-    from scipy import ndimage
-
-    size = 2 * int(4 * sigma + 0.5) + 1  # gaussian_filter's kernel (truncate 4)
-    delta = np.zeros((size, size), np.float64)
-    delta[size // 2, size // 2] = 1.0
-    weights = ndimage.gaussian_filter(delta, sigma, mode="constant")
-    return ndimage.convolve(np.asarray(variance, np.float64), (weights ** 2)[..., None], mode="nearest")
 
 
 def _physical_entry(model, name: str) -> dict:

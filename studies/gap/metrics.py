@@ -160,3 +160,23 @@ def group_means(values: np.ndarray, keys: list) -> dict:
         sel = np.array([k == key for k in keys])
         out[str(key)] = {"mean": float(values[sel].mean()), "n": int(sel.sum())}
     return out
+
+
+def low_passed_variance(variance: np.ndarray, sigma: float) -> np.ndarray:
+    """(H, W, C) the variance of independent pixels' values once low-passed by a Gaussian
+    of ``sigma`` pixels (scipy.ndimage's, 'nearest' borders): sum_j w_j^2 v_j per pixel."""
+    if sigma <= 0:
+        return variance
+    from scipy import ndimage
+
+    size = 2 * int(4 * sigma + 0.5) + 1  # gaussian_filter's kernel (truncate 4)
+    delta = np.zeros((size, size), np.float64)
+    delta[size // 2, size // 2] = 1.0
+    weights = ndimage.gaussian_filter(delta, sigma, mode="constant")
+    return ndimage.convolve(np.asarray(variance, np.float64), (weights ** 2)[..., None], mode="nearest")
+
+
+def mae_floor(variance: np.ndarray, area: np.ndarray) -> float:
+    """The MAE that zero-mean Gaussian noise of this per-pixel ``variance`` alone makes
+    over ``area`` (a bool mask of its pixels): sqrt(2 / pi) sigma, averaged."""
+    return float(np.sqrt(2 / np.pi) * np.sqrt(np.asarray(variance)[area]).mean())

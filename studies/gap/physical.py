@@ -55,6 +55,7 @@ from scenes.images import block_mean
 from scenes.spec import SensorSpec
 
 from . import effects as fx
+from .metrics import low_passed_variance, mae_floor
 
 #: The basis renders: film (a quarter of the default dataset film a side), camera samples
 #: per pixel per pass, passes; photons per LED per pass and no-contact runs per pass are
@@ -677,8 +678,6 @@ class ReferenceModel:
         weighted by the dataset's exposure and colours, at the basis film and low-passed
         by ``COMPARED_SIGMA_FILM_PX`` (``compared``), pixels taken as independent (the
         photon map's are not, so it is a lower bound). None when none is rendered."""
-        from .diagnose import _low_passed_variance
-
         rendered = set(self.basis.rendered_keys())
         keys = [int(k) for k in keys if int(k) in rendered]
         if not keys:
@@ -688,8 +687,7 @@ class ReferenceModel:
         floors = []
         for key in keys:
             variance = np.tensordot(self.basis.variance(key), weight, axes=([2], [0]))
-            variance = _low_passed_variance(variance, COMPARED_SIGMA_FILM_PX)
-            floors.append(float(np.sqrt(2 / np.pi) * np.sqrt(variance[area]).mean()))
+            floors.append(mae_floor(low_passed_variance(variance, COMPARED_SIGMA_FILM_PX), area))
         return {"mae_floor": float(np.mean(floors)), "mae_floor_max": float(np.max(floors)), "taps": len(keys),
                 "photons": self.basis.photons, "spp": self.basis.spp, "passes": self.basis.passes,
                 "inscatter": self.basis.inscatter}
