@@ -356,6 +356,7 @@ def bench_physical(pairs: int = 36, work: str | Path | None = None, progress: bo
     on the same folder is warm: ``cold`` says which)."""
     import os
     import tempfile
+    from unittest import mock
 
     from scenes.cache import CACHE_ENV
 
@@ -366,10 +367,8 @@ def bench_physical(pairs: int = 36, work: str | Path | None = None, progress: bo
     with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-physical-") as tmp:
         root = Path(work) if work is not None else Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
-        old = os.environ.get(CACHE_ENV)
-        os.environ[CACHE_ENV] = str(root / "cache")
         cold = not (root / "cache").exists()
-        try:
+        with mock.patch.dict(os.environ, {CACHE_ENV: str(root / "cache")}):
             t0 = time.perf_counter()
             real = capture(root / f"real_{pairs}", BENCH_HIDDEN, progress, taps=pairs)
             sim = replay(real, root / f"sim_{pairs}", progress)
@@ -377,11 +376,6 @@ def bench_physical(pairs: int = 36, work: str | Path | None = None, progress: bo
             t0 = time.perf_counter()
             report = run(real, sim, root / f"report_{pairs}", seed=seed, progress=progress)
             seconds = time.perf_counter() - t0
-        finally:
-            if old is None:
-                os.environ.pop(CACHE_ENV, None)
-            else:
-                os.environ[CACHE_ENV] = old
     ranking = report.get("ranking", [])
     leak = report.get("effects", {}).get("core_light_leak", {})
     return {"seconds": seconds, "setup_seconds": setup, "pairs": report["pairs"], "cold": cold,
