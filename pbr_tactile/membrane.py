@@ -83,12 +83,10 @@ class ElastomerBuilder:
         welded = self.undeformed.solid()
         self._faces = np.asarray(welded.faces)
         self._vertices = np.asarray(welded.vertices)
-        own = np.asarray(outer.vertices)
-        self._outer_at = spatial.cKDTree(self._vertices).query(own)[1]
-        shared = np.zeros(len(self._vertices), int)
-        np.add.at(shared, self._outer_at, 1)
+        tree = spatial.cKDTree(self._vertices)
+        self._outer_at = tree.query(np.asarray(outer.vertices))[1]
         rest = np.concatenate([np.asarray(inner.vertices), np.asarray(self.undeformed.base.vertices)])
-        np.add.at(shared, spatial.cKDTree(self._vertices).query(rest)[1], 1)
+        shared = np.bincount(np.concatenate([self._outer_at, tree.query(rest)[1]]), minlength=len(self._vertices))
         self._welded_to_others = shared[self._outer_at] > 1  # outer vertices the base ring shares
         self._last_solid: tuple = (None, None)
         self._solids: OrderedDict = OrderedDict()  # the last KEPT_SOLIDS dented solids, by contact
