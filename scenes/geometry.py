@@ -293,8 +293,7 @@ def crossing_faces(mesh: trimesh.Trimesh, faces: np.ndarray | None = None) -> np
         return faces
     # Near: every face whose bounding sphere (about its centroid) meets a moved face's;
     # two triangles that cross share a point, so their spheres meet.
-    centre = tri.mean(axis=1)
-    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+    centre, radius = _spheres(tri)
     tree = spatial.cKDTree(centre[faces])
     reach = radius[faces].max()
     large = radius > 2 * np.median(radius[faces])
@@ -312,6 +311,12 @@ def crossing_faces(mesh: trimesh.Trimesh, faces: np.ndarray | None = None) -> np
     return np.union1d(_crossed(mesh, moved, near), _crossed(mesh, near, moved))
 
 
+def _spheres(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle's (T, 3) centroid and (T,) the radius about it that holds the triangle."""
+    centre = tri.mean(axis=1)
+    return centre, np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+
+
 def _near_pairs(mid: np.ndarray, half: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Broad phase: (edge, face) index pairs close enough to cross.
 
@@ -320,8 +325,7 @@ def _near_pairs(mid: np.ndarray, half: np.ndarray, tri: np.ndarray) -> tuple[np.
     much larger than the median, and edges much longer, are searched apart, with their own
     reach, so that a few large ones (the base ring) do not widen every search.
     """
-    centre = tri.mean(axis=1)
-    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+    centre, radius = _spheres(tri)
     large = radius > 2 * np.median(radius)
     long = half > 2 * np.median(half)
     edges, faces = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
