@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import time
 
-import serial
+try:
+    import serial
+except ImportError:  # the rig extra is not installed: the CLI still loads, opening a port says why
+    serial = None
 
 try:
     import termios
@@ -17,7 +20,7 @@ except ImportError:  # not POSIX: pyserial raises no termios errors there
 #: What a port raises when its device fails or goes away. pyserial's flush() on POSIX
 #: calls termios.tcdrain, whose error is not an OSError: an unplugged cable raised a bare
 #: "error: (5, 'Input/output error')" from a write, not the driver's error.
-PORT_ERRORS = (serial.SerialException, OSError, *_TERMIOS_ERRORS)
+PORT_ERRORS = ((serial.SerialException,) if serial is not None else ()) + (OSError, *_TERMIOS_ERRORS)
 
 #: One blocking read on the port, seconds; bounds how late a deadline is noticed.
 READ_POLL_S = 0.02
@@ -47,9 +50,12 @@ class LineReader:
             self._buffer += self._port.read(max(1, self._port.in_waiting))
 
 
-def open_port(port: str, baud: int, write_timeout_s: float, device: str, error: type[Exception]) -> serial.Serial:
-    """Open ``port`` exclusively for reading lines; ``error`` (naming the ``device`` and
-    the port) when it does not exist or another program holds it."""
+def open_port(port: str, baud: int, write_timeout_s: float, device: str, error: type[Exception]):
+    """Open ``port`` (a ``serial.Serial``) exclusively for reading lines; ``error`` (naming
+    the ``device`` and the port) when it does not exist, another program holds it, or
+    pyserial is not installed."""
+    if serial is None:
+        raise error(f"cannot open {device} port {port!r}: pyserial is not installed (pip install '.[rig]')")
     try:
         return serial.Serial(port, baud, timeout=READ_POLL_S, write_timeout=write_timeout_s, exclusive=True)
     except (serial.SerialException, OSError, ValueError) as exc:
