@@ -21,6 +21,7 @@ import numpy as np
 
 from scenes.camera import Camera, lens_angle
 from scenes.captures import MAX_TAPS, split
+from scenes.image_stats import percentile_interval, r2
 from scenes.images import block_mean
 from scenes.profile import Alignment, CameraProfile, Profile
 from scenes.spec import SensorSpec
@@ -39,8 +40,6 @@ from .real_image import (
     film_factor,
     heldout_interval,
     image_circle,
-    interval,
-    r2,
     sector_index,
 )
 
@@ -303,7 +302,7 @@ def _bootstrap(fit: ImageFit, model: ImageModel, r: np.ndarray, sector: np.ndarr
                             common_turn=bool(taps)).fit(fit.nl, max_evaluations=300)
         for name, value in _parameters(refit, tie=not taps and not model.known_alignment).items():
             samples.setdefault(name, []).append(np.asarray(value, np.float64))
-    return {name: np.apply_along_axis(interval, 0, np.stack(values)).tolist() for name, values in samples.items()}
+    return {name: np.apply_along_axis(percentile_interval, 0, np.stack(values)).tolist() for name, values in samples.items()}
 
 
 def _uncalibrated(rendered: SensorSpec, model: ImageModel, r, train) -> np.ndarray:

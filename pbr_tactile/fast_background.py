@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 from scenes.camera import Camera
+from scenes.image_stats import r2
 
-from .real_image import heldout_interval, r2
+from .real_image import heldout_interval
 
 def fit_fast_background(r, circle, camera: Camera, train, test, clipped, judged: dict, sector, seed: int):
     """The fast path's background term fitted on the training sectors

@@ -1,5 +1,6 @@
 """A real sensor image as the calibration sees it: checked, its lit circle, its sectors,
-its clipped pixels, and how well a prediction explains it on held-out pixels."""
+its clipped pixels, and how well a prediction explains it on held-out pixels (R^2 of
+``scenes.image_stats``, with its interval over resampled held-out sectors)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 from scipy import ndimage
 
 from scenes.camera import Camera
+from scenes.image_stats import percentile_interval, r2
 
 #: Angular sectors of the image circle: even ones fit, odd ones judge.
 SECTORS = 12
@@ -68,31 +70,14 @@ def film_factor(shape: tuple[int, ...], film: tuple[int, int]) -> int:
     return k
 
 
-def r2(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray) -> float:
-    """Share of the real pixels' variance the prediction explains."""
-    y, p = real[pixels], pred[pixels]
-    total = float(np.sum((y - y.mean()) ** 2))
-    return float(1 - np.sum((y - p) ** 2) / total) if total > 0 else float("nan")
-
-
-def interval(values: np.ndarray) -> list[float]:
-    return [float(np.percentile(values, 5)), float(np.percentile(values, 95))]
-
-
 def heldout_interval(pred: np.ndarray, real: np.ndarray, pixels: np.ndarray, sector: np.ndarray, seed: int = 0,
                      count: int = 1000) -> list[float]:
     """5-95 % bootstrap interval of the held-out R^2 over the held-out sectors (drawn
     with replacement, each sector's pixels weighted by how often it was drawn)."""
     rng = np.random.default_rng(seed)
     odd = np.arange(1, SECTORS, 2)
-    values = []
-    for _ in range(count):
-        weight = np.bincount(rng.choice(odd, len(odd)), minlength=SECTORS)[sector][pixels].astype(np.float64)
-        if not weight.sum() > 0:
-            continue  # every drawn sector is empty here (a clipped channel)
-        y, p = real[pixels], pred[pixels]
-        mean = np.sum(weight * y) / np.sum(weight)
-        total = np.sum(weight * (y - mean) ** 2)
-        if total > 0:
-            values.append(1 - np.sum(weight * (y - p) ** 2) / total)
-    return interval(np.array(values)) if values else [float("nan")] * 2
+    values = [r2(pred, real, pixels, np.bincount(rng.choice(odd, len(odd)), minlength=SECTORS)[sector])
+              for _ in range(count)]
+    # NaN: every drawn sector is empty here (a clipped channel), or flat
+    values = [v for v in values if not math.isnan(v)]
+    return percentile_interval(values) if values else [float("nan")] * 2

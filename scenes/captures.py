@@ -123,52 +123,6 @@ def press_regions(records, images: np.ndarray, background: np.ndarray, inside: n
     return out
 
 
-def contact_strength(images: np.ndarray, no_contact: np.ndarray, regions: np.ndarray) -> np.ndarray:
-    """(N,) how strongly each press shows: the mean over its contact region of
-    |image - no_contact|, averaged over the channels, in the images' units.
-
-    The project's one measure of a contact's strength: the simulated over the real
-    (each against its own no-contact frame, over the same region) is the contact
-    strength ratio that ``compare``, the diagnosis and the studies report.
-
-    images : (N, H, W, 3); no_contact : (H, W, 3), or (N, H, W, 3) one per image;
-    regions : (N, H, W) bool, or (H, W) for all. A press with an empty region is NaN.
-    """
-    return contact_contrast(images, no_contact, regions)["change"].mean(axis=1)
-
-
-def contact_contrast(images: np.ndarray, no_contact: np.ndarray, regions: np.ndarray) -> dict[str, np.ndarray]:
-    """Each press's contact strength (``contact_strength``) in its two factors, per channel:
-    ``level`` (N, 3), the no-contact image's mean over the region; ``change`` (N, 3), the
-    mean |image - no_contact| there; and ``relative`` (N, 3), change over level.
-
-    A simulator's strength over the real is its level ratio times its relative-change
-    ratio: the first is the camera's (exposure, gains, offset, response), the second the
-    light's (how strongly the contact changes the light on the paint, less what the
-    camera's offset and response dilute). Same arguments as ``contact_strength``; NaN where
-    a region is empty or its level is 0."""
-    images = np.asarray(images, np.float64)
-    if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"images must be (N, H, W, 3), got shape {images.shape}")
-    no_contact = np.broadcast_to(np.asarray(no_contact, np.float64), images.shape) \
-        if np.shape(no_contact) == images.shape[1:] else np.asarray(no_contact, np.float64)
-    if no_contact.shape != images.shape:
-        raise ValueError(f"no_contact must be (H, W, 3) or (N, H, W, 3) like images {images.shape}, got "
-                         f"{np.shape(no_contact)}")
-    regions = np.broadcast_to(np.asarray(regions, bool), images.shape[:3]) if np.ndim(regions) == 2 \
-        else np.asarray(regions, bool)
-    if regions.shape != images.shape[:3]:
-        raise ValueError(f"regions must be (N, H, W) or (H, W) bool like images {images.shape[:3]}, got "
-                         f"{regions.shape}")
-    count = regions.sum(axis=(1, 2))[:, None]
-    w = regions[..., None]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        level = np.where(count > 0, (no_contact * w).sum(axis=(1, 2)) / count, np.nan)
-        change = np.where(count > 0, (np.abs(images - no_contact) * w).sum(axis=(1, 2)) / count, np.nan)
-        relative = np.where(level > 0, change / level, np.nan)
-    return {"level": level, "change": change, "relative": relative}
-
-
 def frame_spread(image: np.ndarray, inside: np.ndarray, low: float = 5.0, high: float = 95.0) -> dict[str, np.ndarray]:
     """How unevenly the LEDs light a no-contact image (H, W, 3) inside ``inside`` (H, W),
     per channel (3,): its ``low`` and ``high`` percentiles, their difference ``spread`` and
@@ -211,7 +165,7 @@ def load_real_taps(folder: str | Path, spec, camera, limit: int = MAX_TAPS) -> R
     sample's own depth file, or else its tap replayed on the MuJoCo rig from the dataset's
     protocol.json (a real capture has no depth), and their annotated discs if any."""
     from scenes.dataset import DatasetError, load_sample, read_samples
-    from scenes.protocol import Protocol
+    from scenes.taps import Protocol
     from scenes.rig import tap_depths
 
     folder = Path(folder)

@@ -14,6 +14,7 @@ from pbr_tactile import calibrate as cal
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
 from pbr_tactile.calibrate_cli import real_background
+from scenes.image_stats import r2
 from scenes.profile import (
     PROFILE_VERSION,
     Alignment,
@@ -163,7 +164,7 @@ def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
     assert fit.converged
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
     for c in range(2):
-        assert ri.r2(pred[..., c], real[..., c], test) > 0.99
+        assert r2(pred[..., c], real[..., c], test) > 0.99
     # The three synthetic LEDs differ only in gains, so a turn by a third is the same
     # sensor with its LEDs renamed: the rotation is known modulo 2 pi / 3, the LEDs'
     # parameters up to that renaming; and only each LED's whole turn, the rotation plus
@@ -204,7 +205,7 @@ def test_a_known_alignment_is_held_and_keeps_each_leds_name(camera):
     np.testing.assert_allclose(fit.nl.led_azimuth_rad, truth.led_azimuth_rad, atol=0.02)
     np.testing.assert_allclose(fit.gains, gains, rtol=0.05, atol=0.01)
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
-    assert min(ri.r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
+    assert min(r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
     # a camera turned 1 rad from the spec's is not the spec's: held (the LEDs' azimuths
     # free only within AZIMUTH_BOUND_RAD), the fit cannot reach it (what --camera-known
     # asserts), and leaves a gap a free search closes

@@ -1,5 +1,5 @@
-"""scenes.captures: the contact strength, the press regions and the halves a calibration
-fits and judges, analytically."""
+"""scenes.captures: the frame's spread, the press regions and the halves a calibration
+fits and judges, analytically (the contact strength: tests/test_image_stats.py)."""
 
 from __future__ import annotations
 
@@ -7,58 +7,6 @@ import numpy as np
 import pytest
 
 from scenes import captures
-
-
-def test_contact_strength_is_the_mean_change_over_the_region():
-    rng = np.random.default_rng(0)
-    no_contact = rng.uniform(0.2, 0.6, (12, 16, 3))
-    regions = np.zeros((3, 12, 16), bool)
-    regions[0, 2:5, 3:9] = True
-    regions[1, 6:, :4] = True  # region 2 stays empty
-    images = np.repeat(no_contact[None], 3, axis=0)
-    images[0][regions[0]] += [0.3, -0.1, 0.2]  # |change| averaged over channels: 0.2
-    images[1][regions[1]] -= 0.05
-    images[0, 0, 0] += 0.5  # outside every region: not counted
-    out = captures.contact_strength(images, no_contact, regions)
-    assert out[0] == pytest.approx(0.2) and out[1] == pytest.approx(0.05) and np.isnan(out[2])
-    # one no-contact frame per image, and one region for all
-    per_image = captures.contact_strength(images, np.repeat(no_contact[None], 3, axis=0), regions[0])
-    assert per_image[0] == pytest.approx(0.2) and per_image[1] == 0.0
-    # simulated over real: a simulation twice as strong has the ratio 2
-    sim = no_contact + 2 * (images - no_contact)
-    ratio = captures.contact_strength(sim, no_contact, regions) / out
-    assert ratio[:2] == pytest.approx([2.0, 2.0])
-
-
-@pytest.mark.parametrize("args, match", [
-    ((np.zeros((2, 4, 4)), np.zeros((4, 4, 3)), np.ones((4, 4), bool)), r"images must be \(N, H, W, 3\)"),
-    ((np.zeros((2, 4, 4, 3)), np.zeros((4, 5, 3)), np.ones((4, 4), bool)), r"no_contact must be \(H, W, 3\) or"),
-    ((np.zeros((2, 4, 4, 3)), np.zeros((4, 4, 3)), np.ones((3, 4, 4), bool)), r"regions must be \(N, H, W\) or"),
-])
-def test_contact_strength_refuses_bad_shapes(args, match):
-    with pytest.raises(ValueError, match=match):
-        captures.contact_strength(*args)
-
-
-def test_contact_contrast_splits_the_strength_into_level_and_relative_change():
-    no_contact = np.full((6, 8, 3), [0.2, 0.4, 0.5])
-    regions = np.zeros((2, 6, 8), bool)
-    regions[0, 1:3, 2:6] = True  # region 1 stays empty
-    images = np.repeat(no_contact[None], 2, axis=0)
-    images[0][regions[0]] += [0.1, -0.1, 0.0]
-    got = captures.contact_contrast(images, no_contact, regions)
-    np.testing.assert_allclose(got["level"][0], [0.2, 0.4, 0.5])
-    np.testing.assert_allclose(got["change"][0], [0.1, 0.1, 0.0], atol=1e-12)
-    np.testing.assert_allclose(got["relative"][0], [0.5, 0.25, 0.0], atol=1e-12)
-    assert np.isnan(got["level"][1]).all() and np.isnan(got["relative"][1]).all()
-    # the strength is the channels' mean change, and a camera that doubles every value
-    # doubles the level, not the relative change
-    assert captures.contact_strength(images, no_contact, regions)[0] == pytest.approx(0.2 / 3)
-    doubled = captures.contact_contrast(2 * images, 2 * no_contact, regions)
-    np.testing.assert_allclose(doubled["relative"][0], got["relative"][0], atol=1e-12)
-    # an offset (a pedestal) raises the level and dilutes the relative change
-    lifted = captures.contact_contrast(images + 0.3, no_contact + 0.3, regions)
-    np.testing.assert_allclose(lifted["relative"][0], [0.1 / 0.5, 0.1 / 0.7, 0.0], atol=1e-12)
 
 
 def test_frame_spread_is_a_low_and_a_high_percentile_inside():

@@ -82,36 +82,6 @@ def real_dataset(root: Path, spec, injector, contacts, effects: list) -> Path:
 # --- metrics ------------------------------------------------------------------------------
 
 
-def test_metrics_of_known_images(camera):
-    a = np.full((2, 480, 640, 3), 0.5, np.float32)
-    b = a + 0.1
-    m = metrics.per_sample(a, b, camera.mask)
-    assert np.allclose(m["full"]["mae"], 0.1, atol=1e-6)
-    assert np.allclose(m["masked"]["mae"], 0.1, atol=1e-6)
-    assert np.allclose(m["full"]["psnr"], 20.0, atol=1e-3)  # 10 log10(1 / 0.01)
-    same = metrics.per_sample(a, a, camera.mask)
-    assert np.allclose(same["full"]["ssim"], 1.0) and np.all(same["full"]["psnr"] == metrics.PSNR_CAP_DB)
-
-
-def test_metrics_per_region_measure_only_their_pixels(camera):
-    a = np.full((2, 480, 640, 3), 0.5, np.float32)
-    b = a.copy()
-    top = np.zeros(camera.shape, bool)
-    top[:240] = True
-    b[:, :240] += 0.1
-    b[:, 240:] += 0.3
-    m = metrics.per_sample(a, b, camera.mask, regions={"top": top, "bottom": ~top})
-    assert np.allclose(m["top"]["mae"], 0.1, atol=1e-6) and np.allclose(m["bottom"]["mae"], 0.3, atol=1e-6)
-    assert np.allclose(m["top"]["psnr"], 20.0, atol=1e-3)
-    assert 0.1 < m["masked"]["mae"][0] < 0.3
-    with pytest.raises(ValueError, match="region 'masked'"):
-        metrics.per_sample(a, b, camera.mask, regions={"masked": top})
-    with pytest.raises(ValueError, match="with pixels inside"):
-        metrics.per_sample(a, b, camera.mask, regions={"outside": ~camera.mask})
-    with pytest.raises(ValueError, match="regions or areas"):
-        metrics.per_sample(a, b, camera.mask, regions={"top": top}, areas=np.ones((2,) + camera.shape, bool))
-
-
 def test_improvement_is_significant_only_when_it_is():
     rng = np.random.default_rng(1)
     before = rng.uniform(0.05, 0.06, 30)
@@ -622,7 +592,7 @@ def test_a_sure_but_tiny_closure_explains_nothing_and_the_answer_says_so():
     """A candidate whose held-out improvement is significant but closes 0.2 % of the gap
     is not named as a cause; with nothing ranked, the Answer says that nothing explains
     the gap, gives the closest candidates' shares and where the gap lies."""
-    from studies.gap.fit import MIN_RANK_SHARE, Judged
+    from studies.gap.judge import MIN_RANK_SHARE, Judged
     from studies.gap.report import headline
 
     def judged(share: float, significant: bool) -> Judged:

@@ -12,6 +12,7 @@ import pytest
 from pbr_tactile import basis as bs
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
+from scenes.image_stats import r2
 from scenes.spec import GLASS_IOR, GLASS_WALL_M, default_spec, load_spec, spec_from_dict
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"
@@ -139,7 +140,7 @@ def test_a_fit_finds_each_groups_centre_and_span(camera):
     fitter = im.ImageFitter(model, real, train, leak=False)
     fit = fitter.fit(model.start(), max_evaluations=600)
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
-    assert min(ri.r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
+    assert min(r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
     turns = fit.nl.rotation_rad + np.array(fit.nl.led_azimuth_rad)
     np.testing.assert_allclose(turns, true_turn, atol=0.03)
     np.testing.assert_allclose(fit.nl.span_rad, true_span, rtol=0.05)

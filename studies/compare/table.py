@@ -1,11 +1,11 @@
 """Table 1 of a capture: one row per method, MAE, SSIM and PSNR against the real images.
 
 Each metric is a mean over taps with a percentile bootstrap interval (taps resampled,
-seeded: ``studies.gap.metrics.mean_ci``), over the full frame, as the paper published it
+seeded: ``scenes.image_stats.bootstrap_interval``), over the full frame, as the paper published it
 (the black border included), masked to the sensor's image circle, and over each tap's
 contact region (``scenes.captures.press_regions``). Every row resamples with the same
 seed, so rows over the same taps resample the same taps. A row also has the contact
-strength (``scenes.captures.contact_strength``): simulated over real, per tap, its mean
+strength (``scenes.image_stats.contact_strength``): simulated over real, per tap, its mean
 with an interval and its median.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from studies.gap import metrics
+from scenes import image_stats
 
 SCOPES = ("full", "masked", "contact")
 #: How each scope is named in tables.
@@ -30,16 +30,16 @@ def score(real: np.ndarray, images: np.ndarray, mask: np.ndarray,
     real, images : (N, H, W, 3) float in [0, 1]; mask : (H, W) bool, the image circle;
     contact : (N, H, W) bool, each tap's contact region (None: no contact scope).
     """
-    return metrics.per_sample(real, images, mask, contact=contact)
+    return image_stats.per_sample(real, images, mask, contact=contact)
 
 
 def _interval(values, confidence: float, resamples: int, seed: int) -> dict:
-    """mean_ci of the finite values (a tap whose region is empty is NaN); NaN when none."""
+    """bootstrap_interval of the finite values (a tap whose region is empty is NaN); NaN when none."""
     values = np.asarray(values, np.float64)
     finite = values[np.isfinite(values)]
     if len(finite) == 0:
         return {"mean": float("nan"), "low": float("nan"), "high": float("nan")}
-    return metrics.mean_ci(finite, confidence, resamples, seed)
+    return image_stats.bootstrap_interval(finite, confidence, resamples, seed)
 
 
 def row(label: str, method: dict, values: dict, ids: list[str], resamples: int = 2000, seed: int = 0,
@@ -53,13 +53,13 @@ def row(label: str, method: dict, values: dict, ids: list[str], resamples: int =
     n = len(ids)
     scopes = [s for s in SCOPES if s in values]
     for scope in scopes:
-        for m in metrics.METRICS:
+        for m in image_stats.METRICS:
             if len(values[scope][m]) != n:
                 raise ValueError(f"values[{scope!r}][{m!r}] has {len(values[scope][m])} taps for {n} ids")
     out = {"label": label, **method, "taps": n, "ids": list(ids)}
     for scope in scopes:
-        out[scope] = {m: _interval(values[scope][m], confidence, resamples, seed) for m in metrics.METRICS}
-    out["per_tap"] = {scope: {m: [float(v) for v in values[scope][m]] for m in metrics.METRICS} for scope in scopes}
+        out[scope] = {m: _interval(values[scope][m], confidence, resamples, seed) for m in image_stats.METRICS}
+    out["per_tap"] = {scope: {m: [float(v) for v in values[scope][m]] for m in image_stats.METRICS} for scope in scopes}
     if strength is not None:
         strength = np.asarray(strength, np.float64)
         if strength.shape != (n,):
@@ -79,7 +79,7 @@ def subset(r: dict, ids: list[str], resamples: int = 2000, seed: int = 0, confid
         raise ValueError(f"ids must be taps of row {r['label']!r}, got {missing[:5]}")
     pick = [index[sid] for sid in ids]
     scopes = [s for s in SCOPES if s in r["per_tap"]]
-    values = {scope: {m: np.asarray(r["per_tap"][scope][m])[pick] for m in metrics.METRICS} for scope in scopes}
+    values = {scope: {m: np.asarray(r["per_tap"][scope][m])[pick] for m in image_stats.METRICS} for scope in scopes}
     method = {k: v for k, v in r.items() if k not in ("label", "taps", "ids", "per_tap", "strength", *SCOPES)}
     strength = np.asarray(r["strength"]["per_tap"])[pick] if "strength" in r else None
     return row(r["label"], method, values, ids, resamples, seed, confidence, strength)
@@ -99,12 +99,12 @@ def scopes_of(rows: list[dict]) -> list[str]:
 def header(rows: list[dict]) -> list[str]:
     strength = ["contact strength, sim / real (mean [CI]; median)"] if any("strength" in r for r in rows) else []
     return ["method", "taps"] + [f"{FORMATS[m][0]}{FORMATS[m][1]}, {SCOPE_NAMES[s]}"
-                                 for s in scopes_of(rows) for m in metrics.METRICS] + strength
+                                 for s in scopes_of(rows) for m in image_stats.METRICS] + strength
 
 
 def cells(r: dict, rows: list[dict] | None = None) -> list[str]:
     rows = rows or [r]
-    out = [r["label"], str(r["taps"])] + [cell(r[s][m], m) for s in scopes_of(rows) for m in metrics.METRICS]
+    out = [r["label"], str(r["taps"])] + [cell(r[s][m], m) for s in scopes_of(rows) for m in image_stats.METRICS]
     if any("strength" in x for x in rows):
         st = r.get("strength")
         out.append(f"{st['mean']:.2f} [{st['low']:.2f}, {st['high']:.2f}]; {st['median']:.2f}" if st else "-")
