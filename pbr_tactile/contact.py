@@ -18,7 +18,7 @@ import trimesh
 from scenes.camera import CONTACT_EPS_M, Camera, check_depth, reference_depth
 from scenes.contact import indenter_depth
 from scenes.elastic import LAYER_EDGE_M
-from scenes.geometry import validate_mesh
+from scenes.shapes.mesh import validate_mesh
 from scenes.indenters import MAX_INDENTER_EXTENT_M, check_closed
 from scenes.spec import MAX_SENSOR_SIZE_M, SensorSpec
 

@@ -22,11 +22,12 @@ import numpy as np
 import trimesh
 
 from scenes.camera import Camera
+from scenes.shapes import family
 from scenes.spec import GLASS_IOR, GLASS_WALL_M, LED, SensorSpec
 
 from .effects import Effects
-from .membrane import Elastomer
 from .paint import Paint
+from .solid import Elastomer
 from .spectra import CAMERA_BANDS_NM, gaussian, led_spectrum, mitsuba_spectrum
 
 #: Refractive indices (dimensionless): silicone elastomer, glass core, air.
@@ -129,11 +130,12 @@ def led_places(spec: SensorSpec) -> list[str]:
 
 def tube_radii(spec: SensorSpec) -> tuple[float, float, float]:
     """The glass core's and the membrane's radius at the base, and the base's z, in the
-    tube's frame, metres: a capsule's ``core_radius``, ``radius`` and ``base_z``; another
-    shape's mean radii of its body's base loops (``scenes.body``)."""
-    m = spec.membrane
-    if m.shape == "capsule":
-        return m.core_radius, m.radius, m.base_z
+    tube's frame, metres: a body known in closed form's (its family's ``tube``: a
+    capsule's ``core_radius``, ``radius`` and ``base_z``); another shape's mean radii of its
+    body's base loops (``scenes.body``)."""
+    tube = family(spec.membrane.shape).tube(spec.membrane)
+    if tube is not None:
+        return tube.core_radius, tube.radius, tube.base_z
     from scenes.body import sensor_body
 
     body = sensor_body(spec)
@@ -145,12 +147,12 @@ def tube_radii(spec: SensorSpec) -> tuple[float, float, float]:
 
 def led_centres(spec: SensorSpec) -> np.ndarray:
     """(L, 3) metres: each LED's emitter's centre (``led_places``)."""
-    m = spec.membrane
     places = led_places(spec)
-    if m.shape != "capsule" and "elastomer" in places:
+    if family(spec.membrane.shape).tube(spec.membrane) is None and "elastomer" in places:
         # In the middle of the elastomer wall under the LED: its nearest membrane point
         # moved inwards by half the thickness there (scenes.body).
-        from scenes.body import closest_faces, sensor_body
+        from scenes.body import sensor_body
+        from scenes.proximity import closest_faces
 
         body = sensor_body(spec)
         at = np.array([led.position for led in spec.leds], dtype=np.float64)

@@ -11,9 +11,10 @@ from tqdm import tqdm
 
 from scenes.camera import Camera, check_depth
 from scenes.body import checked_membrane
-from scenes.geometry import load_mesh
 from scenes.images import write_rgb
 from scenes.reference_data import reference_dir
+from scenes.shapes import family
+from scenes.shapes.mesh import load_mesh
 from scenes.spec import load_spec
 
 from .bake import METHODS, bake_all
@@ -116,7 +117,7 @@ def cmd_demo(args) -> int:
     if args.spec != "all":
         _demo(args, *_sensor(args), Path(args.out))
         return 0
-    from scenes.spec import DEFAULT_SPEC_PATH
+    from scenes.spec import DEFAULT_SPEC_PATH, SENSORS_DIR
 
     from .figures import contact_sheet
 
@@ -125,7 +126,7 @@ def cmd_demo(args) -> int:
     from .sources import snap_leds
 
     sheet = {}
-    for path in [DEFAULT_SPEC_PATH, *sorted((DEFAULT_SPEC_PATH.parent / "sensors").glob("*.toml"))]:
+    for path in [DEFAULT_SPEC_PATH, *sorted(p for p in SENSORS_DIR.glob("*.toml") if p != DEFAULT_SPEC_PATH)]:
         spec = load_spec(path)
         mesh = checked_membrane(spec)
         try:
@@ -170,7 +171,7 @@ def _demo(args, spec, mesh, camera, out: Path) -> dict:
         np.save(out / "depth" / f"{name}.npy", depths[name])
     backgrounds = {"none": "none", "solid": "solid"}
     real = Path(args.real_background) if args.real_background else None
-    if real is None and spec.membrane.shape == "capsule" and (published := reference_dir()) is not None:
+    if real is None and family(spec.membrane.shape).PUBLISHED and (published := reference_dir()) is not None:
         real = published / "real" / "bkg.png"  # the published GelTip's own
     if real is not None:
         backgrounds["real"] = str(real)

@@ -7,8 +7,9 @@ and the reference's elastomer solid and glass. The body is the outer membrane su
 vertices, measured along the vertex's inward normal; the core's surface is the membrane
 moved inwards by it (:attr:`SensorBody.core`), vertex for vertex.
 
-- A capsule's thickness is ``radius - core_radius`` everywhere, exactly (a hemisphere and
-  a cylinder offset inwards are a hemisphere and a cylinder).
+- A body known in closed form (its family's ``tube``: the capsule's) is
+  ``radius - core_radius`` thick everywhere, exactly (a hemisphere and a cylinder offset
+  inwards are a hemisphere and a cylinder).
 - A shape family or a mesh with a stated ``thickness`` derives its core by that offset,
   checked: no face of the core turns over (a fold, where the membrane is convex with a
   radius under the thickness), the core does not cross itself, and no part of the
@@ -23,7 +24,8 @@ moved inwards by it (:attr:`SensorBody.core`), vertex for vertex.
 Every body is checked against its camera as well: the camera must see the membrane whole
 (``scenes.camera.unseen``), except a band at the base that it cannot see because it sits
 inside the tube there; a part hidden anywhere else (behind a bend, outside the image
-circle) is refused.
+circle) is refused. A family whose gel fills the view (a flat sensor's pad) must instead
+put gel in every pixel (:func:`check_covers`).
 """
 
 from __future__ import annotations
@@ -36,15 +38,14 @@ from functools import cached_property
 
 import numpy as np
 import trimesh
-from scipy import spatial
 
 from .camera import Camera, cast_rays, unseen, view_angle
-from .pad import PAD
-from .geometry import base_loop, crossing_faces, load_mesh, membrane_mesh, mesh_digest, validate_mesh
+from .geometry import crossing_faces, membrane_mesh, mesh_digest
+from .proximity import interpolate, surface_distance
+from .shapes import family
+from .shapes.mesh import base_loop, load_mesh, validate_mesh
 from .spec import SensorSpec
 
-#: Nearest faces searched for a point's closest point on a mesh (``thickness_at``).
-NEAREST_FACES = 8
 #: A face of the derived core whose normal turns this far from the membrane's has folded.
 MAX_CORE_TURN_RAD = math.radians(60.0)
 #: The least share of the membrane's area the camera must see (the GelTip's published
@@ -107,60 +108,6 @@ class SensorBody:
         """(N,) the thickness under points (N, 3) on or near the membrane, metres:
         interpolated on the nearest point of the membrane."""
         return interpolate(self.membrane, self.thickness, points)
-
-
-def interpolate(mesh: trimesh.Trimesh, values: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N,) per-vertex ``values`` (V,) of a mesh, linearly interpolated at the nearest
-    points of its surface to ``points`` (N, 3)."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    values = np.asarray(values, dtype=np.float64)
-    if values.shape != (len(mesh.vertices),):
-        raise ValueError(f"values must be ({len(mesh.vertices)},), one per vertex, got shape {values.shape}")
-    if np.ptp(values) == 0:
-        return np.full(len(points), float(values[0]))
-    face, closest = closest_faces(mesh, points)
-    tri = np.asarray(mesh.triangles)[face]
-    bary = np.clip(trimesh.triangles.points_to_barycentric(tri, closest), 0.0, 1.0)
-    bary /= bary.sum(axis=1, keepdims=True)
-    return (values[np.asarray(mesh.faces)[face]] * bary).sum(axis=1)
-
-
-def closest_faces(mesh: trimesh.Trimesh, points: np.ndarray, k: int = NEAREST_FACES) -> tuple[np.ndarray, np.ndarray]:
-    """The face (N,) and closest point (N, 3) of a mesh to points (N, 3) near it, among the
-    ``k`` faces whose centroids are nearest (exact for points within about an edge)."""
-    tri = np.asarray(mesh.triangles)
-    k = min(k, len(tri))
-    _, near = spatial.cKDTree(tri.mean(axis=1)).query(points, k=k)
-    near = near.reshape(len(points), k)
-    cand = trimesh.triangles.closest_point(tri[near.ravel()], np.repeat(points, k, axis=0)).reshape(-1, k, 3)
-    best = np.argmin(np.linalg.norm(cand - points[:, None], axis=2), axis=1)
-    rows = np.arange(len(points))
-    return near[rows, best], cand[rows, best]
-
-
-def surface_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The exact distance (N,) from points (N, 3) to a mesh's surface, metres, the
-    closest points (N, 3) and their faces (N,).
-
-    The closest point lies within the nearest vertex's distance, so only faces whose
-    centroids lie within that plus the largest face's circumradius are tested: a sparse,
-    vectorised form of trimesh.proximity, worked in millimetres as trimesh's tolerances
-    are absolute (at metre scale they misplace closest points).
-    """
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3) * 1e3
-    tri = np.asarray(mesh.triangles) * 1e3
-    centre = tri.mean(axis=1)
-    reach = float(np.linalg.norm(tri - centre[:, None], axis=2).max())
-    nearest, _ = spatial.cKDTree(np.asarray(mesh.vertices) * 1e3).query(points)
-    lists = spatial.cKDTree(centre).query_ball_point(points, nearest * (1 + 1e-9) + reach)
-    count = np.fromiter((len(c) for c in lists), np.int64, len(points))
-    face = np.fromiter((f for c in lists for f in c), np.int64, int(count.sum()))
-    which = np.repeat(np.arange(len(points)), count)
-    closest = trimesh.triangles.closest_point(tri[face], points[which])
-    d = np.linalg.norm(closest - points[which], axis=1)
-    order = np.lexsort((d, which))
-    first = order[np.searchsorted(which[order], np.arange(len(points)))]
-    return d[first] * 1e-3, closest[first] * 1e-3, face[first]
 
 
 def _derived(membrane: trimesh.Trimesh, thickness: float, name: str) -> np.ndarray:
@@ -263,9 +210,9 @@ def check_covers(membrane: trimesh.Trimesh, camera: Camera, name: str = "membran
 
 
 def _check_leds(spec: SensorSpec, body: SensorBody, name: str) -> None:
-    """Refuse an LED inside the glass wall under a non-capsule membrane (the capsule's are
-    checked with its spec): between the core's base radius and a wall's thickness less,
-    above the base."""
+    """Refuse an LED inside the glass wall under a measured body (one known in closed form,
+    a ``Tube``, has its LEDs checked with its spec): between the core's base radius and a
+    wall's thickness less, above the base."""
     outer = body.core_base_radius
     inner = outer - spec.membrane.glass_wall
     base_z = float(np.asarray(body.membrane.vertices)[body.base_loop, 2].mean())
@@ -307,8 +254,10 @@ def sensor_body(spec: SensorSpec, membrane: trimesh.Trimesh | None = None) -> Se
         return _bodies[key]
     name = f"sensor {spec.name!r}"
     camera = Camera.from_spec(spec)
-    if m.shape == "capsule":
-        thickness = np.full(len(membrane.vertices), m.radius - m.core_radius)
+    shape = family(m.shape)
+    tube = shape.tube(m)
+    if tube is not None:
+        thickness = np.full(len(membrane.vertices), tube.thickness)
     elif m.core_mesh_path is not None:
         core = load_mesh(m.core_mesh_path, units=m.mesh_units)
         if m.mesh_transform is not None:
@@ -320,11 +269,11 @@ def sensor_body(spec: SensorSpec, membrane: trimesh.Trimesh | None = None) -> Se
         thickness = _kept_thickness("derived", [mesh_digest(membrane), m.thickness, MAX_CORE_TURN_RAD],
                                     lambda: _derived(membrane, m.thickness, name))
     _check_thickness(thickness, m.thickness_bounds, membrane, name)
-    pad = m.shape == PAD
-    body = SensorBody(membrane, thickness, check_seen(membrane, camera, name, 0.0 if pad else MIN_SEEN_SHARE))
-    if pad:
+    fills = shape.FILLS_VIEW
+    body = SensorBody(membrane, thickness, check_seen(membrane, camera, name, 0.0 if fills else MIN_SEEN_SHARE))
+    if fills:
         check_covers(membrane, camera, name)
-    if m.shape != "capsule":
+    if tube is None:
         _check_leds(spec, body, name)
     _bodies[key] = body
     while len(_bodies) > KEPT_BODIES:

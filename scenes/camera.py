@@ -10,8 +10,6 @@ from functools import cached_property
 import numpy as np
 import trimesh
 
-from .spec import CameraSpec, SensorSpec
-
 #: The contact threshold, metres: a pixel whose depth lies below the no-contact depth
 #: D_ref by more than this is in contact (or moved, for a deformed surface); smaller
 #: differences are rasterisation noise (MuJoCo's no-contact capture matches the ray-cast
@@ -46,11 +44,11 @@ class Camera:
     projection: str = "pinhole"
 
     @classmethod
-    def from_spec(cls, spec: CameraSpec | SensorSpec) -> "Camera":
-        """The spec's camera: its focal length puts the ray at fov_y / 2 from the axis at
-        half the frame's height from the principal point."""
-        if isinstance(spec, SensorSpec):
-            spec = spec.camera
+    def from_spec(cls, spec) -> "Camera":
+        """The spec's camera (a ``scenes.spec.CameraSpec``, or a ``SensorSpec``'s): its focal
+        length puts the ray at fov_y / 2 from the axis at half the frame's height from the
+        principal point."""
+        spec = getattr(spec, "camera", spec)  # a SensorSpec's CameraSpec
         k1, k2 = spec.distortion
         f = (spec.height / 2.0) / float(lens_radius(spec.fov_y / 2.0, k1, k2, spec.projection))
         cx, cy = spec.principal_point_px or ((spec.width - 1) / 2.0, (spec.height - 1) / 2.0)

@@ -12,7 +12,7 @@ quadric fitted by least squares to the vertices within a ball of radius ``radius
 (trimesh's discrete curvature measures, tried first, integrate the mean and Gaussian
 curvature over the ball: the mean is right, but the Gaussian measure's few-percent error
 splits an umbilic point's curvatures by +-15 %.) Values at points between vertices are
-interpolated linearly on the face nearest them (``scenes.body.interpolate``). The ball
+interpolated linearly on the face nearest them (``scenes.proximity.interpolate``). The ball
 smooths detail finer than its radius, which is what a contact a few millimetres across
 feels.
 
@@ -26,6 +26,8 @@ import math
 
 import numpy as np
 import trimesh
+
+from .proximity import interpolate
 
 #: The ball over which curvature is averaged, metres: about a tap's contact radius.
 CURVATURE_RADIUS_M = 2.0e-3
@@ -65,8 +67,6 @@ def principal_curvatures(mesh: trimesh.Trimesh, points: np.ndarray,
 
     points : (N, 3) float, metres, within about an edge of the surface.
     """
-    from .body import interpolate
-
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
         raise ValueError(f"points must be a finite (N, 3) array, got shape {points.shape}")

@@ -41,6 +41,9 @@ from scipy import ndimage, sparse, spatial
 from scipy.sparse import linalg as sparse_linalg
 
 from .camera import CONTACT_EPS_M, Camera, check_depth, project, reference_depth
+from .proximity import interpolate
+from .shapes import family
+from .shapes.mesh import base_loop
 from .spec import Elastic, SensorSpec
 
 #: The elastic models, by name.
@@ -55,7 +58,7 @@ LAYER_EDGE_M = 0.25e-3
 #: elastomer does not compress below it (the indenter then rests on the glass through it).
 MIN_GAP_M = 0.1e-3
 #: A penetration deeper than the membrane's thickness by more than this is refused,
-#: metres: the contact would pass through the glass core (scenes.protocol.validate
+#: metres: the contact would pass through the glass core (scenes.protocol_checks.validate
 #: refuses taps deeper than the thickness).
 PENETRATION_TOLERANCE_M = 0.25e-3
 #: The layer's displacement is solved within this many decay lengths of the contact;
@@ -256,15 +259,14 @@ class MembraneLayer:
         self.camera = camera
         self.vertices = np.asarray(self.mesh.vertices, dtype=np.float64)
         self.normals = np.asarray(self.mesh.vertex_normals, dtype=np.float64)
-        if thickness is None and spec.membrane.shape == "capsule":
-            thickness = spec.membrane.elastomer_thickness
+        tube = family(spec.membrane.shape).tube(spec.membrane)
+        if thickness is None and tube is not None:
+            thickness = tube.thickness
         if thickness is None:
             from .body import sensor_body
 
             thickness = sensor_body(spec).thickness_at(self.vertices)
         elif np.ndim(thickness) and self.mesh is not mesh:
-            from .body import interpolate
-
             thickness = interpolate(mesh, np.asarray(thickness, dtype=np.float64), self.vertices)
         self.thickness = np.broadcast_to(np.asarray(thickness, dtype=np.float64), (len(self.vertices),)).copy()
         if self.thickness.shape != (len(self.vertices),) or not (self.thickness > MIN_GAP_M).all():
@@ -274,8 +276,6 @@ class MembraneLayer:
     @cached_property
     def base(self) -> np.ndarray:
         """(K,) int, the refined mesh's boundary vertices (its open base), held fixed."""
-        from .geometry import base_loop
-
         return base_loop(self.mesh, "the refined membrane")
 
     @cached_property

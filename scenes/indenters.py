@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .geometry import UNIT_SCALE, read_mesh_file, validate_mesh
+from .shapes.mesh import UNIT_SCALE, read_mesh_file, validate_mesh
 
 #: The paper's objects, by the names used here. "indented_prism" is the published
 #: ``dot_in``, "open_cylinder" the published ``cylinder_shell``.
@@ -488,7 +488,7 @@ def load_indenter(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
     scale = UNIT_SCALE.get(units)
     if scale is None:
         raise ValueError(f"units must be 'm' or 'mm', got {units!r}")
-    # Not scenes.geometry.load_mesh: its 1 m limit is the membrane's rule, and an
+    # Not scenes.shapes.mesh.load_mesh: its 1 m limit is the membrane's rule, and an
     # indenter's unit check must come before it.
     mesh = read_mesh_file(path, "indenter")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)

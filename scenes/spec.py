@@ -1,4 +1,11 @@
-"""Sensor specification: one TOML file, SI units, read into frozen dataclasses."""
+"""Sensor specification: one TOML file (or a chain of them), SI units, read into frozen dataclasses.
+
+A sensor file may name a base file (``base = "geltip.toml"``, relative to the file) and
+state only what differs from it: its tables override the base's key by key
+(:func:`read_sensor_file`). Each membrane is checked through its shape family
+(``scenes.shapes``), each camera's lens through ``scenes.camera``; both sit below this
+module.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_SPEC_PATH = Path(__file__).with_name("geltip.toml")
+from .camera import PROJECTIONS, Camera, lens_table, project
+from .shapes import TABLE_KEYS, family
+
+#: The shipped sensors' folder, and the default: the published simulation's GelTip.
+SENSORS_DIR = Path(__file__).with_name("sensors")
+DEFAULT_SPEC_PATH = SENSORS_DIR / "geltip.toml"
 
 #: Largest plausible sensor dimension in metres; anything larger is a unit mistake.
 MAX_SENSOR_SIZE_M = 1.0
@@ -39,15 +51,15 @@ THICKNESS_BOUNDS_M = (0.5e-3, 10.0e-3)
 class MembraneSpec:
     """Outer membrane surface and the glass core under it (``scenes.body``).
 
-    shape : "capsule" (cylinder + hemispherical tip, built from ``radius``,
-        ``cylinder_length`` and ``core_radius``), a shape family of ``scenes.shapes``
-        ("thumb", "paw": built from ``params``, seated like the capsule by the camera's
-        ``offset_m`` and ``tilt_rad``), "pad" (a flat sensor's domed elastomer disc on a
-        clear plate, ``scenes.pad``, from ``params``), or "mesh" (read from ``mesh_path`` in
-        ``mesh_units``, placed in the camera frame by ``mesh_transform``).
+    shape : its shape family's name (``scenes.shapes.FAMILIES``): "capsule" (cylinder +
+        hemispherical tip, built from ``radius``, ``cylinder_length`` and ``core_radius``),
+        "thumb" or "paw" (built from ``params``), "pad" (a flat sensor's domed elastomer
+        disc on a clear plate, from ``params``), each seated by the camera's ``offset_m``
+        and ``tilt_rad``; or "mesh" (read from ``mesh_path`` in ``mesh_units``, placed in
+        the camera frame by ``mesh_transform``).
     thickness : the elastomer's thickness, metres, where the core is derived by offsetting
-        the membrane inwards (every shape but a capsule, unless ``core_mesh_path`` gives
-        the core); a capsule's is ``radius - core_radius``.
+        the membrane inwards (every family whose body is not known in closed form, unless
+        ``core_mesh_path`` gives the core); a capsule's is ``radius - core_radius``.
     core_mesh_path : the glass core's outer surface as a mesh file (``mesh`` only), in the
         membrane's units and frame.
     thickness_bounds : (min, max) metres the elastomer's thickness must stay within
@@ -72,14 +84,24 @@ class MembraneSpec:
 
     @property
     def elastomer_thickness(self) -> float | None:
-        """The stated thickness, metres: a capsule's ``radius - core_radius``, otherwise
-        ``thickness`` (None where a core mesh gives it, vertex by vertex)."""
-        return self.radius - self.core_radius if self.shape == "capsule" else self.thickness
+        """The stated thickness, metres: a body known in closed form's (its family's
+        ``tube``: a capsule's ``radius - core_radius``), otherwise ``thickness`` (None where
+        a core mesh gives it, vertex by vertex)."""
+        tube = family(self.shape).tube(self)
+        return tube.thickness if tube is not None else self.thickness
 
     @property
     def tip_z(self) -> float:
-        """z of the tip apex in the camera frame, metres."""
+        """z of a capsule's tip apex in the tube frame, metres (``Tube.apex_z``)."""
         return self.base_z + self.cylinder_length + self.radius
+
+
+#: The membrane's shape where a spec names none.
+DEFAULT_SHAPE = MembraneSpec.shape
+#: A sensor file's key that names the file it overrides (``read_sensor_file``).
+BASE_KEY = "base"
+#: Arrays of tables a sensor file merges with its base's entry by entry, by name.
+NAMED_ARRAYS = ("leds", "led_groups")
 
 
 @dataclass(frozen=True)
@@ -211,10 +233,12 @@ class SensorSpec:
 
     def to_dict(self) -> dict:
         """Every field, as a spec file's tables (``spec_from_dict`` reads it back the same):
-        the membrane's table keeps its shape's keys alone, and keys left unset are left out."""
+        the membrane's table leaves out the keys of other shape families
+        (``scenes.shapes.TABLE_KEYS``), and keys left unset are left out."""
         data = dataclasses.asdict(self)
         m = data["membrane"]
-        for key in (CAPSULE_KEYS if self.membrane.shape != "capsule" else ()) + ("params",) * (not m["params"]):
+        others = [key for key, owner in TABLE_KEYS.items() if owner != self.membrane.shape]
+        for key in others + ["params"] * (not m["params"]):
             del m[key]
         data["membrane"] = {k: v for k, v in m.items() if v is not None}
         return json.loads(json.dumps(data))  # tuples as lists, as TOML and JSON hold them
@@ -307,7 +331,11 @@ def _positive(value: float, name: str) -> float:
 
 
 def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
-    """Build and validate a :class:`SensorSpec` from a TOML-shaped dict."""
+    """Build and validate a :class:`SensorSpec` from a TOML-shaped dict (a whole sensor:
+    one that names a base file is read with :func:`read_sensor_file`)."""
+    if BASE_KEY in data:
+        raise ValueError(f"{source}: base = {data[BASE_KEY]!r} names a base file, resolved relative to the file that "
+                         "names it: read the file with load_spec (or read_sensor_file)")
     membrane = _membrane(data.get("membrane", {}), f"{source}: membrane")
 
     camera = _camera(data.get("camera", {}), f"{source}: camera", membrane)
@@ -370,28 +398,19 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     )
 
 
-#: Keys that describe a capsule, refused for other shapes (their size is their own).
-CAPSULE_KEYS = ("radius", "cylinder_length", "core_radius")
-
-
 def _membrane(m: dict, where: str) -> MembraneSpec:
-    """The [membrane] table, checked: its shape and that shape's keys, the core's
-    thickness and its bounds, the glass."""
+    """The [membrane] table, checked: its shape, and its family's keys, parameters and rules
+    (``scenes.shapes``); the core's thickness and its bounds; the glass."""
     if not isinstance(m, dict):
         raise ValueError(f"{where} must be a table, got {m!r}")
-    from .pad import PAD
-    from .shapes import FAMILIES
-
-    shape = _take(m, "shape", str, where, "capsule")
-    shapes = FAMILIES + (PAD, "mesh")  # a capsule from its own keys, a family or a pad from params, or a file
-    if shape not in shapes:
-        raise ValueError(f"{where}.shape must be one of {', '.join(shapes)}, got {shape!r}")
-    if shape != "capsule":
-        given = [k for k in CAPSULE_KEYS if k in m]
-        if given:
-            raise ValueError(f"{where}: {', '.join(given)} describe a capsule; a {shape!r} membrane takes its size from "
-                             + ("[membrane.params]" if shape != "mesh" else "its mesh_path") + " and its core from "
-                             "thickness" + (" or core_mesh_path" if shape == "mesh" else ""))
+    shape = family(_take(m, "shape", str, where, DEFAULT_SHAPE), f"{where}.shape")
+    foreign = [(owner, key) for key, owner in TABLE_KEYS.items() if owner != shape.NAME and m.get(key) is not None]
+    if foreign:  # keys that another family alone takes
+        owner = foreign[0][0]
+        keys = [key for o, key in foreign if o == owner]
+        raise ValueError(f"{where}: {', '.join(keys)} {'is' if len(keys) == 1 else 'are'} for shape = {owner!r}, not a "
+                         f"{shape.NAME!r} membrane, which takes its size from {shape.SIZE_FROM} and its core from "
+                         f"{shape.CORE_FROM}")
     lo_hi = m.get("thickness_bounds", list(THICKNESS_BOUNDS_M))
     bounds = _vec2({"thickness_bounds": list(lo_hi) if isinstance(lo_hi, tuple) else lo_hi}, "thickness_bounds", where)
     if not 0 < bounds[0] < bounds[1] <= MAX_SENSOR_SIZE_M:
@@ -404,19 +423,9 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
         params = dict(params)  # as a spec written out whole (dataclasses.asdict) lists them
     if not isinstance(params, dict):
         raise ValueError(f"{where}.params must be a table of numbers ([membrane.params]), got {params!r}")
-    if shape == PAD:
-        from .pad import check_pad_params
-
-        params = check_pad_params(params, f"{where}.params")
-    elif shape not in ("capsule", "mesh"):
-        from .shapes import check_params
-
-        params = check_params(shape, params, f"{where}.params")
-    elif params:
-        raise ValueError(f"{where}.params is for a shape family ({', '.join(f for f in FAMILIES if f != 'capsule')}) "
-                         f"or a {PAD}, not a {shape!r} membrane")
+    params = shape.membrane_params(params, f"{where}.params")
     membrane = MembraneSpec(
-        shape=shape,
+        shape=shape.NAME,
         radius=_positive(_take(m, "radius", float, where, 0.0115), "membrane.radius"),
         cylinder_length=_take(m, "cylinder_length", float, where, 0.044),
         base_z=_take(m, "base_z", float, where, -0.010),
@@ -440,8 +449,6 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
         raise ValueError(f"{where}.cylinder_length must be >= 0, got {membrane.cylinder_length}")
     if membrane.core_radius >= membrane.radius:
         raise ValueError(f"{where}.core_radius ({membrane.core_radius}) must be < radius ({membrane.radius})")
-    if shape == "capsule" and membrane.thickness is not None:
-        raise ValueError(f"{where}.thickness: a capsule's thickness is radius - core_radius; drop the key")
     if membrane.glass_wall >= membrane.core_radius:
         raise ValueError(f"{where}.glass_wall ({membrane.glass_wall} m) must be thinner than the tube's "
                          f"outer radius core_radius ({membrane.core_radius} m)")
@@ -450,21 +457,11 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
                          f"[{GLASS_IOR_BOUNDS[0]}, {GLASS_IOR_BOUNDS[1]}], got {membrane.glass_ior}")
     if membrane.mesh_units not in ("m", "mm"):
         raise ValueError(f"{where}.mesh_units must be 'm' or 'mm', got {membrane.mesh_units!r}")
-    if shape == "mesh" and not membrane.mesh_path:
-        raise ValueError(f"{where}: shape = 'mesh' needs mesh_path")
-    if shape != "mesh":
-        for key in ("mesh_path", "core_mesh_path", "mesh_transform"):
-            if m.get(key) is not None:
-                raise ValueError(f"{where}.{key} is for shape = 'mesh', not a {shape!r} membrane")
-    if shape != "capsule":
-        if membrane.thickness is None and membrane.core_mesh_path is None:
-            raise ValueError(f"{where}: a {shape!r} membrane needs its elastomer's thickness (thickness, metres)"
-                             + (" or its core's mesh (core_mesh_path)" if shape == "mesh" else ""))
-        if membrane.thickness is not None and membrane.core_mesh_path is not None:
-            raise ValueError(f"{where}: give thickness or core_mesh_path, not both")
-    thickness = membrane.elastomer_thickness
+    shape.check(membrane, where)
+    tube = shape.tube(membrane)
+    thickness, what = ((tube.thickness, "radius - core_radius") if tube is not None
+                       else (membrane.thickness, "thickness"))
     if thickness is not None and not bounds[0] <= thickness <= bounds[1]:
-        what = "radius - core_radius" if shape == "capsule" else "thickness"
         raise ValueError(f"{where}: the elastomer's thickness ({what}) is {thickness * 1e3:.3g} mm, outside "
                          f"thickness_bounds [{bounds[0] * 1e3:.3g}, {bounds[1] * 1e3:.3g}] mm")
     return membrane
@@ -513,21 +510,21 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     lo, hi = FOV_Y_BOUNDS
     if not lo <= camera.fov_y <= hi:
         raise ValueError(f"{where}.fov_y must be in [{lo:.4f}, {hi:.4f}] rad (10 to 170 deg), got {camera.fov_y}")
-    from .camera import PROJECTIONS, Camera, lens_table, project
-
     if camera.projection not in PROJECTIONS:
         raise ValueError(f"{where}.projection must be one of {PROJECTIONS}, got {camera.projection!r}")
     if max(map(abs, camera.distortion)) > DISTORTION_BOUND:
         raise ValueError(f"{where}.distortion (k1, k2) must each lie in [-{DISTORTION_BOUND}, {DISTORTION_BOUND}], "
                          f"got {list(camera.distortion)}")
-    bore = membrane.core_radius - membrane.glass_wall if membrane.shape == "capsule" else math.inf  # else scenes.body
+    shape = family(membrane.shape)
+    tube = shape.tube(membrane)
+    bore = tube.core_radius - membrane.glass_wall if tube is not None else math.inf  # else scenes.body
     if math.hypot(*camera.offset_m) >= bore:
         raise ValueError(f"{where}.offset_m {list(camera.offset_m)} puts the camera {math.hypot(*camera.offset_m):.4g} m "
                          f"off the tube's axis, outside its bore (radius {bore:.4g} m; metres, not millimetres?)")
     if max(map(abs, camera.tilt_rad)) > TILT_BOUND_RAD:
         raise ValueError(f"{where}.tilt_rad {list(camera.tilt_rad)} must each lie in [-{TILT_BOUND_RAD:.4f}, "
                          f"{TILT_BOUND_RAD:.4f}] rad (15 deg)")
-    if membrane.shape == "mesh" and (any(camera.offset_m) or any(camera.tilt_rad)):
+    if not shape.SEATED and (any(camera.offset_m) or any(camera.tilt_rad)):
         raise ValueError(f"{where}.offset_m and tilt_rad seat a generated membrane; a membrane.mesh_path mesh is "
                          "already in the camera frame, or placed there by membrane.mesh_transform")
     if camera.mask_radius_px <= 0:
@@ -544,8 +541,8 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
     if not np.isfinite(lens.slopes()[0][lens.mask]).all():
         raise ValueError(f"{where}: the lens (distortion {list(camera.distortion)}) folds inside the image circle: "
                          "part of the circle would see no ray")
-    if membrane.shape == "capsule":
-        u, v = project((camera.tube_to_camera() @ [0.0, 0.0, membrane.tip_z, 1.0])[:3], lens)
+    if tube is not None:
+        u, v = project((camera.tube_to_camera() @ [0.0, 0.0, tube.apex_z, 1.0])[:3], lens)
         if not lens.mask[min(max(int(round(v)), 0), lens.height - 1), min(max(int(round(u)), 0), lens.width - 1)] \
                 or not (0 <= u <= lens.width - 1 and 0 <= v <= lens.height - 1):
             raise ValueError(f"{where}: the camera puts the tube's tip at pixel ({u:.1f}, {v:.1f}), outside its image "
@@ -572,14 +569,16 @@ def _optics(t: dict, where: str) -> dict:
 
 def _outside_glass(radius: float, height: float, membrane: MembraneSpec, where: str) -> None:
     """Refuse an LED inside the glass wall (``radius`` from the axis and ``height`` z, m) of
-    a capsule; other shapes' glass is checked with their core (``scenes.body``)."""
-    if membrane.shape != "capsule":
+    a body known in closed form (its family's ``tube``); other bodies' glass is checked
+    with their core (``scenes.body``)."""
+    tube = family(membrane.shape).tube(membrane)
+    if tube is None:
         return
-    inner = membrane.core_radius - membrane.glass_wall
-    if inner < radius < membrane.core_radius and height >= membrane.base_z:
+    inner = tube.core_radius - membrane.glass_wall
+    if inner < radius < tube.core_radius and height >= tube.base_z:
         raise ValueError(f"{where}: {radius * 1e3:.2f} mm from the axis puts the LED inside the glass wall "
-                         f"({inner * 1e3:.2f} to {membrane.core_radius * 1e3:.2f} mm from the axis, above the "
-                         f"membrane's base at z = {membrane.base_z * 1e3:.1f} mm): place it in the tube, under the "
+                         f"({inner * 1e3:.2f} to {tube.core_radius * 1e3:.2f} mm from the axis, above the "
+                         f"membrane's base at z = {tube.base_z * 1e3:.1f} mm): place it in the tube, under the "
                          "wall (below the base) or outside it")
 
 
@@ -618,10 +617,99 @@ def read_toml(path: str | Path, what: str) -> dict:
     return data
 
 
+def _merged_tables(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s keys: tables within both merged key by key, any other value
+    of ``over`` in place of the base's."""
+    out = dict(base)
+    for key, value in over.items():
+        old = out.get(key)
+        out[key] = _merged_tables(old, value) if isinstance(value, dict) and isinstance(old, dict) else value
+    return out
+
+
+def _merged_entries(base: list, over: list) -> list:
+    """An array of tables over its base's: each entry merged into the base's entry of the
+    same ``name``, entries of new names (or none) added after the base's."""
+    out = list(base)
+    index = {e["name"]: i for i, e in enumerate(out) if isinstance(e, dict) and "name" in e}
+    for entry in over:
+        name = entry.get("name") if isinstance(entry, dict) else None
+        if name in index:
+            out[index[name]] = _merged_tables(out[index[name]], entry)
+        else:
+            out.append(entry)
+    return out
+
+
+def _merged_sensor(base: dict, over: dict) -> dict:
+    """A sensor file's tables over its base's (:func:`read_sensor_file`)."""
+    base = dict(base)
+    m, m_base = over.get("membrane"), base.get("membrane")
+    if isinstance(m, dict) and isinstance(m_base, dict):
+        shape = m_base.get("shape", DEFAULT_SHAPE)
+        if m.get("shape", shape) != shape:  # another shape: drop what sizes the base's
+            base["membrane"] = {k: v for k, v in m_base.items() if k != "params" and TABLE_KEYS.get(k) != shape}
+    out = _merged_tables(base, {k: v for k, v in over.items() if k not in NAMED_ARRAYS})
+    for key in NAMED_ARRAYS:
+        if key in over:
+            value, old = over[key], base.get(key)
+            merge = isinstance(value, list) and value and isinstance(old, list)
+            out[key] = _merged_entries(old, value) if merge else value
+    out.pop(BASE_KEY, None)
+    return out
+
+
+def read_sensor_file(path: str | Path) -> dict:
+    """A sensor file's tables over those of the base it names, and so on down its chain.
+
+    A file's ``base = "other.toml"`` (relative to the file) names the file it overrides:
+
+    - a table (``[camera]``, ``[membrane]``, ``[membrane.params]``, ...) merges key by
+      key: the file's keys replace the base's, the base's others stay;
+    - ``[[leds]]`` and ``[[led_groups]]`` (NAMED_ARRAYS) merge entry by entry: an entry
+      merges into the base's entry of the same ``name``, an entry of a new name is added
+      after the base's; an empty array (``leds = []``) drops the base's;
+    - any other value (a number, a string, an array) replaces the base's;
+    - a membrane of another ``shape`` than its base's keeps none of what sizes the base's
+      shape: that family's own keys (``scenes.shapes.TABLE_KEYS``) and its
+      ``[membrane.params]``.
+
+    A base's relative mesh paths are its own: they resolve relative to the base.
+
+    Raises FileNotFoundError naming the file whose base is missing, and ValueError for a
+    base that is not a file name or a chain that comes back to one of its files.
+    """
+    path = Path(path)
+    files = [path]
+    layers = [read_toml(path, "sensor spec")]
+    while BASE_KEY in layers[-1]:
+        named_by, base = files[-1], layers[-1][BASE_KEY]
+        if not isinstance(base, str) or not base:
+            raise ValueError(f"sensor spec {named_by}: base must name a sensor file (relative to this one), "
+                             f"got {base!r}")
+        base_path = named_by.parent / base
+        if base_path.resolve() in {f.resolve() for f in files}:
+            raise ValueError(f"sensor spec {named_by}: base {base!r} makes a cycle: "
+                             + " -> ".join(str(f) for f in files + [base_path]))
+        data = read_toml(base_path, f"sensor spec {named_by}: its base")
+        m = data.get("membrane")
+        for key in ("mesh_path", "core_mesh_path"):
+            value = m.get(key) if isinstance(m, dict) else None
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                m[key] = str((base_path.parent / value).resolve())
+        files.append(base_path)
+        layers.append(data)
+    out = layers.pop()
+    while layers:
+        out = _merged_sensor(out, layers.pop())
+    return out
+
+
 def load_spec(path: str | Path | None = None) -> SensorSpec:
-    """Read a sensor spec TOML file; ``None`` gives the embedded default GelTip."""
+    """Read a sensor spec TOML file (over its base, :func:`read_sensor_file`); ``None`` gives
+    the default GelTip."""
     path = Path(path) if path is not None else DEFAULT_SPEC_PATH
-    data = read_toml(path, "sensor spec")
+    data = read_sensor_file(path)
     spec = spec_from_dict(data, source=str(path))
     for key in ("mesh_path", "core_mesh_path"):
         value = getattr(spec.membrane, key)
@@ -631,5 +719,5 @@ def load_spec(path: str | Path | None = None) -> SensorSpec:
 
 
 def default_spec() -> SensorSpec:
-    """The embedded GelTip spec."""
+    """The default GelTip spec (DEFAULT_SPEC_PATH)."""
     return load_spec(None)

@@ -126,19 +126,22 @@ def junction_rho(spec, lens=None) -> float:
     """Where the spec's camera sees the painted surface's ring at the dome's junction, as a
     share of the image circle's radius: the ray from the camera refracted into the glass
     and the elastomer (Snell, in the plane through the axis), through the spec's lens, or
-    ``lens`` (a Camera: a calibration's, ``Alignment.lens``). Only for a capsule, whose
-    junction is a ring about the camera's axis."""
+    ``lens`` (a Camera: a calibration's, ``Alignment.lens``). Only for a body known in
+    closed form (its family's ``tube``: a capsule), whose junction is a ring about the
+    camera's axis."""
     import numpy as np
     from scipy import optimize
 
     from pbr_tactile.scene import IOR_AIR, IOR_SILICONE
     from scenes.camera import Camera, lens_radius
+    from scenes.shapes import family
 
     m = spec.membrane
-    if m.shape != "capsule":
+    tube = family(m.shape).tube(m)
+    if tube is None:
         raise ValueError(f"junction_rho: sensor {spec.name!r} is a {m.shape!r}, not a capsule")
-    z_junction = m.base_z + m.cylinder_length
-    inner, glass, paint = m.core_radius - m.glass_wall, m.core_radius, m.radius
+    z_junction = tube.junction_z
+    inner, glass, paint = tube.core_radius - m.glass_wall, tube.core_radius, tube.radius
 
     def height(theta):  # where the ray at theta off the axis meets the painted surface
         c = math.cos(theta)
@@ -178,6 +181,7 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
     from scenes.geometry import membrane_mesh
     from scenes.images import read_rgb
     from scenes.reference_data import require_reference_dir
+    from scenes.shapes import family
     from scenes.spec import load_spec
 
     folder = require_reference_dir(reference)
@@ -197,8 +201,9 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
         rep = cal.report
         par = rep["parameters"]
         fitted = Alignment(0.0, par["scale"], (0.0, 0.0), distortion=(par["k1"], camera.k2)).lens(camera)
-        rows[name] = {"junction_rho": junction_rho(spec) if spec.membrane.shape == "capsule" else None,
-                      "fitted_junction_rho": junction_rho(spec, fitted) if spec.membrane.shape == "capsule" else None,
+        tube = family(spec.membrane.shape).tube(spec.membrane)
+        rows[name] = {"junction_rho": junction_rho(spec) if tube is not None else None,
+                      "fitted_junction_rho": junction_rho(spec, fitted) if tube is not None else None,
                       "heldout_r2": rep["heldout_r2"], "heldout_r2_interval": rep["heldout_r2_interval"],
                       "best_effects": rep["best_effects"], "converged": rep["converged"],
                       "led_leak": rep["parameters"]["led_leak"], "led_leak_interval": rep["intervals"].get("led_leak"),

@@ -23,7 +23,7 @@ body; on the GelSight at the centre), at the reference's default physics
   and each class's share of a source's region light and its relative change, averaged
   over the sources. This is what the camera sees where each LED has its own colour (the
   GelTip's and the GelSight's do): a contact's strength is the mean over the channels of
-  each one's change (``scenes.captures.contact_strength``), and LEDs on opposite sides
+  each one's change (``scenes.image_stats.contact_strength``), and LEDs on opposite sides
   brighten opposite flanks of a dent, so their summed change hides most of it (on the
   GelSight's centre at the defaults, 0.03 summed against 0.29 per source).
 
@@ -81,21 +81,24 @@ def contact_pixels(spec, camera, ref: np.ndarray) -> dict[str, tuple[float, floa
     the dome's and the body's heights (GELTIP_PLACES)."""
     from scenes.camera import back_project
 
+    from scenes.shapes import family
+
     centre = (float(camera.cx), float(camera.cy))
-    if spec.membrane.shape != "capsule":
+    tube = family(spec.membrane.shape).tube(spec.membrane)
+    if tube is None:
         return {"centre": centre}
     points = back_project(ref, camera)
     row = int(round(camera.cy))
     cols = np.arange(int(round(camera.cx)), camera.width)
     z = points[row, cols, 2]
     seen = np.isfinite(z) & (ref[row, cols] > 0)
-    junction = spec.membrane.base_z + spec.membrane.cylinder_length
+    junction = tube.junction_z
     out = {}
     for name, share in GELTIP_PLACES.items():
         if share is None:
             out[name] = centre
             continue
-        target = junction + share * spec.membrane.radius
+        target = junction + share * tube.radius
         k = int(np.argmin(np.where(seen, np.abs(z - target), np.inf)))
         out[name] = (float(cols[k]), float(row))
     return out
@@ -136,7 +139,7 @@ def source_contrasts(e_0: np.ndarray, e_c: np.ndarray, area: np.ndarray, region:
 
     The camera sees each LED in its own colour channel where, as on the GelTip and the
     GelSight, each LED has its own colour, and a contact's strength is the mean over the
-    channels of each channel's change (``scenes.captures.contact_strength``). LEDs on
+    channels of each channel's change (``scenes.image_stats.contact_strength``). LEDs on
     opposite sides brighten opposite flanks of a dent, so the sources' summed change
     (``class_shares``' contrast) cancels much of what each channel shows."""
     e_0, e_c = np.asarray(e_0, np.float64), np.asarray(e_c, np.float64)
@@ -180,8 +183,8 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
     from pbr_tactile.effects import Effects
     from pbr_tactile.membrane import ElastomerBuilder
     from pbr_tactile.paint import Paint
-    from pbr_tactile.photons import (PATH_CLASSES, coating_areas, coating_vertices, density_kernel, deposits,
-                                     irradiance, sources_from, weight_window)
+    from pbr_tactile.density import coating_areas, coating_vertices, density_kernel, irradiance
+    from pbr_tactile.photons import PATH_CLASSES, deposits, sources_from, weight_window
     from pbr_tactile.render import KERNEL_RADIUS_M, load
     from pbr_tactile.scene import geltip_scene, led_sources, write_meshes
     from scenes.camera import Camera, back_project, reference_depth

@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenes.body import sensor_body, surface_distance
+from scenes.body import sensor_body
 from scenes.camera import Camera, unseen, view_angle
-from scenes.geometry import check_membrane, membrane_mesh, revolve
+from scenes.geometry import membrane_mesh
+from scenes.proximity import surface_distance
+from scenes.shapes.mesh import check_membrane
+from scenes.shapes.revolve import revolve
 from scenes.spec import DEFAULT_SPEC_PATH, SensorSpec, default_spec, spec_from_dict
 
 THICKNESS_M = 0.0025
@@ -26,9 +29,9 @@ def capsule():
 @pytest.fixture(scope="module")
 def coarse():
     """A 1 mm capsule mesh and its core 2.5 mm under it: bad cores are quicker to check."""
-    from scenes.geometry import capsule_mesh
+    from scenes.shapes import capsule
 
-    mesh = capsule_mesh(dataclasses.replace(default_spec().membrane, mesh_edge=0.001))
+    mesh = capsule.mesh(dataclasses.replace(default_spec().membrane, mesh_edge=0.001))
     core = trimesh.Trimesh(mesh.vertices - THICKNESS_M * mesh.vertex_normals, mesh.faces, process=False)
     return mesh, core
 
@@ -236,7 +239,8 @@ def test_a_membrane_the_camera_cannot_see_whole_is_refused(coarse, tmp_path):
 def test_spec_keys_of_one_shape_are_refused_on_another(tmp_path):
     data = tomllib.loads(DEFAULT_SPEC_PATH.read_text())
     data["membrane"] = {"shape": "mesh", "mesh_path": "x.stl", "radius": 0.01, "thickness": THICKNESS_M}
-    with pytest.raises(ValueError, match="describe a capsule"):
+    with pytest.raises(ValueError, match="radius is for shape = 'capsule', not a 'mesh' membrane, which takes its size "
+                                         "from its mesh_path"):
         spec_from_dict(data, "test")
     data["membrane"] = {"shape": "mesh", "mesh_path": "x.stl"}
     with pytest.raises(ValueError, match="needs its elastomer's thickness"):
@@ -253,7 +257,7 @@ def test_the_layer_model_and_the_safe_depth_read_the_body(capsule, tmp_path):
     """A thinner elastomer under a mesh membrane caps the layer's displacement and the
     protocols' depth there."""
     from scenes.elastic import MembraneLayer
-    from scenes.protocol import max_safe_depth_m
+    from scenes.protocol_checks import max_safe_depth_m
 
     spec = _mesh_spec(_write(capsule, tmp_path), thickness=1.5e-3)
     layer = MembraneLayer(capsule, spec, Camera.from_spec(spec), edge=None)
@@ -265,7 +269,7 @@ def test_the_layer_model_and_the_safe_depth_read_the_body(capsule, tmp_path):
 
 
 def test_interpolate_refuses_values_that_are_not_one_per_vertex(coarse):
-    from scenes.body import interpolate
+    from scenes.proximity import interpolate
 
     mesh, _ = coarse
     with pytest.raises(ValueError, match=r"values must be \(\d+,\), one per vertex"):

@@ -14,19 +14,31 @@ from phong_reference.sources import Sources
 from phong_reference.transport import TransportBaker, bake_transport
 from phong_reference.tangent import angle_deg
 from scenes.camera import SurfaceSamples
-from scenes.geometry import capsule_profile, revolve
+from scenes.shapes.capsule import profile as capsule_profile
+from scenes.shapes.revolve import revolve
 
 #: Test surfaces: radius and triangle edge, metres (small meshes, ~1-3k vertices).
 R = 0.010
 EDGE = 0.001
 
-#: Geodesic distance vs the analytic one: relative, plus an absolute floor in metres
-#: (measured: 4e-4 relative on the cylinder, 1.2e-3 on the hemisphere, 0.03 mm absolute).
+#: Geodesic distance vs the analytic one: relative, plus an absolute floor in metres.
+#: Derived: the mesh's faces are chords, so an exact polyhedral geodesic over an arc of
+#: angle EDGE / R is shorter than the arc by (EDGE / R)^2 / 24 = 4.2e-4 (the cylinder gave
+#: 4e-4; the hemisphere, curved both ways and unevenly triangulated, 1.2e-3). The failure
+#: guarded is a distance along mesh edges (Dijkstra), longer by up to 2 / sqrt(3) - 1 =
+#: 15 % on a triangle lattice; 0.5 % is 12 times the chords' shortfall and a thirtieth of
+#: that. The floor, a tenth of an edge, is where a relative error has no meaning (within
+#: ATOL / RTOL = 20 edges of the source); a source or a distance one vertex off is a whole
+#: edge off (seen: 0.03 mm).
 DISTANCE_RTOL = 0.005
 DISTANCE_ATOL = 0.1 * EDGE
 
 #: Largest angle between a baked direction and the analytic one, degrees, beyond two
-#: edges from the source (measured: 1.4 on the cylinder, 1.8 on the hemisphere).
+#: edges from the source. Why 3: the baker's direction is the vertex-averaged gradient of
+#: the exact distance; the piecewise-constant face gradient it improves on errs by
+#: O(EDGE / d) (phong_reference.geodesic), of order 0.4 rad across one face at the nearest
+#: samples compared (d = COMPARE_FROM_EDGES edges), and a sign error by 180. The averaged
+#: gradient's worst samples, at those distances, gave 1.4 (cylinder) and 1.8 (hemisphere).
 GEODESIC_ANGLE_TOL_DEG = 3.0
 
 #: Samples this far from the source, in edges, are compared (the baker refuses closer).
@@ -35,7 +47,11 @@ COMPARE_FROM_EDGES = 2.5
 #: Azimuths within this of the cylinder's cut locus (dphi = ±pi), radians, are skipped.
 CUT_MARGIN = 0.3
 
-#: Transported +z on a cylinder: largest angle to +z, degrees (measured 0.27).
+#: Transported +z on a cylinder: largest angle to +z, degrees. Analytic answer 0: a
+#: cylinder is flat (zero Gaussian curvature), so transport along any path keeps +z. Why 1:
+#: a transport that followed the mesh's facets, not the smooth surface, turns with each
+#: face's normal, EDGE / R = 5.7 deg between neighbouring faces, and one that followed the
+#: geodesics' own direction turns by up to 90; 1 is a sixth of one face's turn (seen: 0.27).
 TRANSPORT_ANGLE_TOL_DEG = 1.0
 
 #: Unit length and tangency of baked float32 fields.
@@ -43,12 +59,19 @@ UNIT_TOL = 1e-5
 TANGENT_TOL = 1e-5
 
 #: On the hemispherical tip, the mean cosine between two LEDs' transported fields stays
-#: below this (measured 0.58; fields that lost their signs coincide, cosine ~1).
+#: below this. Why 0.8: the failure is fields that lost their signs, which coincide (cosine
+#: ~1); the analytic fields point away from LEDs 120 deg apart, cosine -1/2 at the pole,
+#: rising towards 1 near the rim where all run up the meridian (seen: a mean of 0.58 over
+#: polar angles below 60 deg). 0.8 lies between, nearer the failure, so a field that is
+#: right over most of the cap passes.
 TIP_MAX_MEAN_COSINE = 0.8
 
-#: Mean angle between our geodesic field and the authors' one, degrees, per LED
-#: (measured 2.8, 2.1, 2.8; theirs is the chord of the last path segment, ending at the
-#: vertex nearest the pixel, so it is quantised to the mesh and not tangent).
+#: Mean angle between our geodesic field and the authors' one, degrees, per LED. Theirs
+#: is the chord of the last path segment, ending at the vertex nearest the pixel, so it is
+#: quantised to the mesh and not tangent: a chord l long on a surface of radius R leaves
+#: the tangent at its end by l / (2 R), 2.5 deg for l = 1 mm on the GelTip's 11.5 mm (seen:
+#: 2.8, 2.1, 2.8). Why 5: twice that chord tilt, far below a field with its sign lost
+#: (180 deg: the published transport's failure, reported below).
 GEODESIC_REFERENCE_MAX_MEAN_DEG = 5.0
 
 

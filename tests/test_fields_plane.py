@@ -17,24 +17,40 @@ from phong_reference.plane import PlaneBaker, bake_plane
 from phong_reference.sources import Sources, snap_leds
 from phong_reference.tangent import angle_deg
 from scenes.camera import SurfaceSamples, cast_rays
-from scenes.geometry import capsule_profile, revolve
+from scenes.shapes.capsule import profile as capsule_profile
+from scenes.shapes.revolve import revolve
 
 #: Angle between the baked field and an analytic tangent, degrees. Its only error source
-#: is the interpolated vertex normal N at P (measured max 0.15 deg on the icosphere, 0.06
-#: on the hemisphere, 0 on the cylinder with exact normals).
+#: is the interpolated vertex normal N at P. Derived: on a sphere, interpolating exact
+#: (radial) vertex normals with P's barycentric weights gives P's own radial direction, so
+#: only the vertex normals' error (averaged face normals, of order (h / R)^2 rad) is left:
+#: 0.33 deg on the icosphere (h / R = 0.075), 0.11 on the 0.5 mm hemisphere (h / R =
+#: 0.043), 0 on the cylinder with exact normals (seen: 0.15, 0.06, 0). Why 0.5: the
+#: failure guarded is using the face's own normal, off at a face's corners by its
+#: circumradius' angle h / (sqrt(3) R): 2.5 and 1.4 deg on those meshes.
 ANALYTIC_TOL_DEG = 0.5
 
 #: Angle between the baked field (smooth tangent) and the brute-force last segment, a mesh
-#: chord, degrees (measured max 2.5 deg on the GelTip mesh, 7.5 on the wavy one, over 1200
-#: samples each; a wrong sign would be 180).
+#: chord, degrees. Derived: a chord l long on a surface curving with radius rho along it
+#: leaves the tangent at its end by up to l / (2 rho); with l up to a face's diagonal
+#: (sqrt(2) x 0.5 mm), 1.8 deg on the GelTip (rho = 11.5 mm) and 8.3 deg at the wavy
+#: mesh's crests (rho = 1 / (A k^2) = 2.4 mm, amplitude A = 1.5 mm, k = 2 pi / 12 mm)
+#: (seen: 2.5 and 7.5 over 1200 samples each). 15 is just under twice the larger; a wrong
+#: sign would be 180.
 CHORD_TOL_DEG = 15.0
 
-#: Mean angle to the authors' plane fields inside the mask, degrees (measured 2.22, 1.81,
-#: 1.87 for LEDs 0, 1, 2: faceting of their voxel remesh and last-segment chords).
+#: Mean angle to the authors' plane fields inside the mask, degrees. Theirs are
+#: last-segment chords on a voxel remesh: a chord l long leaves the tangent at its end by
+#: l / (2 R), 2.5 deg for a 1 mm segment on the GelTip's R = 11.5 mm, plus the remesh's
+#: facets (seen: 2.22, 1.81, 1.87 for LEDs 0, 1, 2). Why 3: the
+#: reference's own quantisation with about 1 deg to spare, so a systematic turn of ours
+#: by more than that fails; a lost sign would be 180.
 REFERENCE_MEAN_TOL_DEG = 3.0
 
-#: Largest angle to the authors' plane fields, degrees (measured 16.1, 17.1, 17.0): no
-#: pixel travels the other way.
+#: Largest angle to the authors' plane fields, degrees: no pixel travels the other way.
+#: Why 30: a pixel whose light travels the other way is more than 90 off (180 for a flip);
+#: the reference's own worst pixels, where its facets tilt the chord most, are 16-17 off
+#: (seen: 16.1, 17.1, 17.0), so the bound sits between, a third of the way to 90.
 REFERENCE_MAX_TOL_DEG = 30.0
 
 #: Fraction of in-mask pixels that must be valid in both ours and the authors' fields.

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenes import pad
+from scenes.shapes import pad
 from scenes.spec import load_spec
 
 GELSIGHT = "scenes/sensors/gelsight.toml"
@@ -29,17 +29,17 @@ def test_pad_sag_and_profile_are_a_spherical_cap():
     p = {"radius": 0.012, "dome_radius": 0.05}
     assert pad.sag(p) == pytest.approx(0.05 - math.sqrt(0.05**2 - 0.012**2))
     assert pad.rim_slope(p) == pytest.approx(math.asin(0.012 / 0.05))
-    prof = pad.pad_profile(p, 0.03)
+    prof = pad.profile(p, 0.03)
     centre_z = 0.03 + pad.sag(p) - 0.05
     np.testing.assert_allclose(np.hypot(prof[:, 0], prof[:, 1] - centre_z), 0.05, atol=1e-12)
     assert tuple(prof[0]) == (0.012, 0.03) and prof[-1, 0] == 0 and prof[-1, 1] == pytest.approx(0.03 + pad.sag(p))
 
 
 def test_pad_mesh_is_one_sheet_on_the_sphere_open_at_its_rim():
-    from scenes.geometry import base_loop, check_membrane
+    from scenes.shapes.mesh import base_loop, check_membrane
 
     p = {"radius": 0.012, "dome_radius": 0.05}
-    mesh = pad.pad_mesh(p, 0.03, 0.5e-3)
+    mesh = pad.shape_mesh(p, 0.03, 0.5e-3)
     check_membrane(mesh)  # one oriented manifold sheet, open at its base alone, normals out
     V = np.asarray(mesh.vertices)
     centre = np.array([0.0, 0.0, 0.03 + pad.sag(p) - 0.05])
@@ -60,12 +60,12 @@ def test_pad_mesh_is_one_sheet_on_the_sphere_open_at_its_rim():
 ])
 def test_pad_refuses_bad_parameters(params, match):
     with pytest.raises(ValueError, match=match):
-        pad.check_pad_params(params)
+        pad.check_params(params)
 
 
 def test_pad_mesh_refuses_a_bad_edge():
     with pytest.raises(ValueError, match=r"edge must be in \(0, 0\.00325\] m"):
-        pad.pad_mesh({}, 0.03, 0.004)
+        pad.shape_mesh({}, 0.03, 0.004)
 
 
 # --- the spec and its body ---------------------------------------------------------------------
@@ -204,7 +204,8 @@ def test_the_layer_holds_the_pads_rim_so_a_press_near_it_builds_a_closed_solid(g
     from scenes.camera import Camera, reference_depth
     from scenes.contact import press
     from scenes.elastic import MembraneLayer
-    from scenes.geometry import base_loop, membrane_mesh
+    from scenes.geometry import membrane_mesh
+    from scenes.shapes.mesh import base_loop
 
     import trimesh
 

@@ -8,7 +8,9 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scenes.geometry import capsule_mesh, capsule_profile, load_mesh, revolve, validate_mesh
+from scenes.shapes.capsule import mesh as capsule_mesh, profile as capsule_profile
+from scenes.shapes.mesh import load_mesh, validate_mesh
+from scenes.shapes.revolve import revolve
 from scenes.spec import MembraneSpec
 
 

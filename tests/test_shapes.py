@@ -1,5 +1,5 @@
-"""Parametric membrane shapes: each family's analytic map first, then its meshes, at the
-defaults and at the corners of BOUNDS."""
+"""Parametric membrane shapes (the analytic families of scenes.shapes.form): each family's
+analytic map first, then its meshes, at the defaults and at the corners of BOUNDS."""
 
 import inspect
 import itertools
@@ -11,7 +11,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from scenes import shapes
-from scenes.geometry import capsule_mesh
+from scenes.shapes import capsule, form, paw
 from scenes.meridian import meridian
 from scenes.spec import MembraneSpec
 
@@ -49,8 +49,8 @@ def corner(family, pattern):
 
 
 def cases():
-    out = [(f, {}, EDGE) for f in shapes.FAMILIES]
-    out += [(f, corner(f, c), COARSE_EDGE) for f in shapes.FAMILIES for c in MESH_CORNERS[f]]
+    out = [(f, {}, EDGE) for f in shapes.ANALYTIC]
+    out += [(f, corner(f, c), COARSE_EDGE) for f in shapes.ANALYTIC for c in MESH_CORNERS[f]]
     return [pytest.param(f, p, e, id=f"{f}-" + ("defaults" if not p else "-".join(f"{v:g}" for v in p.values())))
             for f, p, e in out]
 
@@ -86,9 +86,9 @@ def capped(mesh):
 
 
 def test_every_parameter_has_a_default_bounds_a_unit_and_a_documented_meaning():
-    assert shapes.FAMILIES == tuple(shapes.DEFAULTS) == tuple(shapes.BOUNDS) == tuple(shapes.UNITS)
-    source = inspect.getsource(shapes).splitlines()
-    for family in shapes.FAMILIES:
+    assert shapes.ANALYTIC == tuple(shapes.DEFAULTS) == tuple(shapes.BOUNDS) == tuple(shapes.UNITS)
+    for family in shapes.ANALYTIC:
+        source = inspect.getsource(shapes.family(family)).splitlines()
         assert set(shapes.DEFAULTS[family]) == set(shapes.BOUNDS[family]) == set(shapes.UNITS[family])
         assert shapes.check_params(family, {}) == shapes.DEFAULTS[family]
         for name, (lo, hi) in shapes.BOUNDS[family].items():
@@ -99,7 +99,7 @@ def test_every_parameter_has_a_default_bounds_a_unit_and_a_documented_meaning():
             assert source[line - 1].strip().startswith(f"#: {shapes.UNITS[family][name]},")
 
 
-@pytest.mark.parametrize("family", shapes.FAMILIES)
+@pytest.mark.parametrize("family", shapes.ANALYTIC)
 def test_every_corner_and_sample_of_bounds_keeps_the_guarantees(family):
     """check_params measures each shape's analytic surface (diagnose): every corner of
     BOUNDS, and points inside, pass it, with the margins it is built for."""
@@ -114,12 +114,12 @@ def test_every_corner_and_sample_of_bounds_keeps_the_guarantees(family):
 
 
 def test_diagnose_measures_the_defaults_margins():
-    for family in shapes.FAMILIES:
+    for family in shapes.ANALYTIC:
         d = shapes.diagnose(family, {})
-        assert d.min_concave_radius >= 4 * shapes.MIN_CONCAVE_RADIUS_M
-        assert d.min_convex_radius >= 1.5 * shapes.MIN_CONVEX_RADIUS_M
-        assert d.star_cosine >= 4 * shapes.STAR_MIN_COSINE
-        assert d.clearance >= shapes.MIN_CORE_CLEARANCE_M + 0.5e-3
+        assert d.min_concave_radius >= 4 * form.MIN_CONCAVE_RADIUS_M
+        assert d.min_convex_radius >= 1.5 * form.MIN_CONVEX_RADIUS_M
+        assert d.star_cosine >= 4 * form.STAR_MIN_COSINE
+        assert d.clearance >= form.MIN_CORE_CLEARANCE_M + 0.5e-3
         assert d.width == pytest.approx(0.023, abs=TOL_M)
         assert (d.saddle_share > 0.05) == (family == "paw")
     assert shapes.diagnose("capsule", {}).min_concave_radius == math.inf
@@ -239,8 +239,8 @@ def test_paw_has_convex_toes_saddles_between_them_and_a_concave_waist():
     centre = np.array([0.0, 0.0, L])
     u = (pts - centre) / np.linalg.norm(pts - centre, axis=1, keepdims=True)
     tip = pts[:, 2] > L
-    d, w = shapes.toe_directions(p)
-    assert len(d) == p["toes"] and 0 < w < shapes.TOE_REACH_RAD - p["toe_spread"] + 1e-12
+    d, w = paw.toe_directions(p)
+    assert len(d) == p["toes"] and 0 < w < paw.TOE_REACH_RAD - p["toe_spread"] + 1e-12
     # On a toe's crest both curvatures exceed the hemisphere's (1 / R): a convex bump.
     crest = tip & (u @ d[0] > math.cos(0.02))
     assert crest.any() and np.all(k[crest, 0] > 1.2 / R)
@@ -255,7 +255,7 @@ def test_paw_has_convex_toes_saddles_between_them_and_a_concave_waist():
     # The body is the waist's surface of revolution, r(Z) = R - depth (1 - s^2)^3, whose
     # principal curvatures are -r'' / (1 + r'^2)^(3/2) (concave at the waist) and
     # 1 / (r sqrt(1 + r'^2)).
-    h_w, z_w = shapes.WAIST_HALF_LENGTH * L, shapes.WAIST_CENTRE * L
+    h_w, z_w = paw.WAIST_HALF_LENGTH * L, paw.WAIST_CENTRE * L
     body = pts[:, 2] < L
     s = (pts[body, 2] - z_w) / h_w
     inside = np.abs(s) < 1
@@ -281,10 +281,10 @@ def test_paw_mesh_is_concave_where_the_map_is():
     assert measured == pytest.approx(shapes.diagnose("paw", p).min_concave_radius, rel=0.1)
 
 
-def test_capsule_is_geometry_capsule_mesh_exactly():
+def test_capsule_shape_mesh_is_its_membrane_mesh_exactly():
     for r, length, edge in ((0.0115, 0.044, EDGE), (0.009, 0.02, 0.0008)):
         mine = shapes.shape_mesh("capsule", {"radius": r, "cylinder_length": length}, BASE_Z, edge)
-        theirs = capsule_mesh(MembraneSpec(radius=r, cylinder_length=length, base_z=BASE_Z, mesh_edge=edge))
+        theirs = capsule.mesh(MembraneSpec(radius=r, cylinder_length=length, base_z=BASE_Z, mesh_edge=edge))
         assert np.array_equal(mine.vertices, theirs.vertices)
         assert np.array_equal(mine.faces, theirs.faces)
 
@@ -321,8 +321,8 @@ def test_camera_sees_the_whole_membrane(family, params, edge):
     faces both ends (then every point between, as the test is linear in the point), and
     the ray from the camera (the origin) to each vertex meets nothing before it."""
     mesh = shapes.shape_mesh(family, params, BASE_Z, edge)
-    assert BASE_Z <= 0.0 <= BASE_Z + shapes.STAR_HEIGHT_M
-    for c in (BASE_Z, BASE_Z + shapes.STAR_HEIGHT_M):
+    assert BASE_Z <= 0.0 <= BASE_Z + form.STAR_HEIGHT_M
+    for c in (BASE_Z, BASE_Z + form.STAR_HEIGHT_M):
         ray = mesh.triangles_center - [0.0, 0.0, c]
         cosine = np.einsum("ij,ij->i", mesh.face_normals, ray) / np.linalg.norm(ray, axis=1)
         assert cosine.min() > 0
@@ -355,10 +355,10 @@ def test_mesh_keeps_the_core_clearance_width_and_curvature(family, params, edge)
     V = mesh.vertices
     r = np.hypot(V[:, 0], V[:, 1])
     above = np.maximum(V[:, 2] - shapes.tip_start_z(family, params, BASE_Z), 0.0)
-    assert np.hypot(r, above).min() >= shapes.MIN_CORE_CLEARANCE_M - 1e-7
-    assert 2 * r.max() < shapes.MAX_WIDTH_M
+    assert np.hypot(r, above).min() >= form.MIN_CORE_CLEARANCE_M - 1e-7
+    assert 2 * r.max() < form.MAX_WIDTH_M
     # Curvature along the edges, a coarse estimate: 15 % slack at the edges used here.
     kmin, kmax = edge_curvatures(mesh)
     inner = V[:, 2] > BASE_Z + TOL_M
-    assert -kmin[inner].min() <= 1.15 / shapes.MIN_CONCAVE_RADIUS_M
-    assert kmax[inner].max() <= 1.15 / shapes.MIN_CONVEX_RADIUS_M
+    assert -kmin[inner].min() <= 1.15 / form.MIN_CONCAVE_RADIUS_M
+    assert kmax[inner].max() <= 1.15 / form.MIN_CONVEX_RADIUS_M

@@ -1,5 +1,6 @@
 """Sensor spec: the embedded GelTip, and bad specs refused with a clear message."""
 
+import dataclasses
 import math
 import tomllib
 
@@ -32,9 +33,15 @@ def test_every_line_of_the_toml_names_its_unit():
 
 
 def test_spec_is_frozen_and_hashable(spec):
-    with pytest.raises(Exception):
+    # ``SensorSpec`` is a ``@dataclass(frozen=True)``: assignment raises the dataclass'
+    # own error, naming the field that was assigned (not any exception at all).
+    with pytest.raises(dataclasses.FrozenInstanceError, match="'name'"):
         spec.name = "x"
+    with pytest.raises(dataclasses.FrozenInstanceError, match="'radius'"):
+        spec.membrane.radius = 1.0
+    assert spec.name != "x" and spec.membrane.radius == pytest.approx(0.0115)
     assert spec.digest() == load_spec().digest()
+    assert hash(spec) == hash(load_spec())
 
 
 def _data():

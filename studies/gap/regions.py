@@ -15,9 +15,9 @@ from scipy import ndimage
 
 from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
 from scenes.geometry import membrane_mesh
+from scenes.image_stats import bootstrap_interval
+from scenes.shapes import family
 from scenes.spec import SensorSpec
-
-from .metrics import mean_ci
 
 REGIONS = ("tip", "body", "near_leds")
 CHANNELS = ("red", "green", "blue")
@@ -34,8 +34,9 @@ def region_labels(spec: SensorSpec, camera: Camera | None = None, ref: np.ndarra
     P = ref[..., None] * camera.rays
     inside = camera.mask
     z = P[..., 2]
-    if spec.membrane.shape == "capsule":
-        junction = spec.membrane.base_z + spec.membrane.cylinder_length
+    tube = family(spec.membrane.shape).tube(spec.membrane)
+    if tube is not None:  # the tip starts at the tube's junction
+        junction = tube.junction_z
     else:
         junction = np.quantile(z[inside], 0.8)
     tip = inside & (z >= junction)
@@ -73,7 +74,7 @@ def _area_stats(err: np.ndarray, masks: np.ndarray, seed: int) -> dict:
     ok = np.isfinite(values)
     if not ok.any():
         return {"samples": 0}
-    return {"samples": int(ok.sum()), "mae": mean_ci(values[ok], seed=seed), "signed": float(np.mean(signed[ok])),
+    return {"samples": int(ok.sum()), "mae": bootstrap_interval(values[ok], seed=seed), "signed": float(np.mean(signed[ok])),
             "spread": float(np.std(values[ok]))}
 
 
