@@ -276,10 +276,14 @@ def cmd_bench_calibrate(args) -> int:
 
 def fast_path_fit():
     """The fast path's fit of its LED constants to a unit's taps (its renderer plugin's
-    ``calibrate``), which a calibration with taps writes into the profile."""
-    from scenes.generate import renderer_plugin
+    ``calibrate``), which a calibration with taps writes into the profile. Looked up by
+    name: this package imports no other renderer, and only the command line chooses one."""
+    from scenes.renderers import Calibrates, get_renderer
 
-    return renderer_plugin("phong").calibrate
+    phong = get_renderer("phong")
+    if not isinstance(phong, Calibrates):
+        raise ValueError("the renderer 'phong' offers no calibrate (scenes.renderers.Calibrates)")
+    return phong.calibrate
 
 
 def _grid(items: list[str]) -> dict:

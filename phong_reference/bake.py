@@ -8,8 +8,8 @@ L_m = -field.
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +17,8 @@ import trimesh
 
 from scenes.cache import cached, make_key
 from scenes.camera import Camera, SurfaceSamples, cast_rays, reference_depth
-from scenes.geometry import mesh_digest, validate_mesh
+from scenes.geometry import mesh_digest
+from scenes.shapes.mesh import validate_mesh
 from scenes.spec import LED
 
 from .sources import FREE_SOURCE_TOLERANCE_M, LED_SNAP_TOLERANCE_M, Sources, snap_leds
@@ -27,12 +28,44 @@ METHODS = ("linear", "plane", "geodesic", "transport")
 #: Bump when what ``bake`` stores changes (all methods' cache entries are rebuilt).
 FORMAT_VERSION = 2
 
-_BAKERS = {
-    "linear": ("phong_reference.linear", "LinearBaker"),
-    "plane": ("phong_reference.plane", "PlaneBaker"),
-    "geodesic": ("phong_reference.geodesic", "GeodesicBaker"),
-    "transport": ("phong_reference.transport", "TransportBaker"),
-}
+
+@dataclass(frozen=True)
+class FieldMethod:
+    """A light-field method's baker, from its module."""
+
+    baker: Callable  # Baker(mesh), heavy set-up once; .bake(samples, sources) -> (L, K, 3) fields, (L, K) valid
+    version: int  # the module's VERSION: bumping it rebuilds the method's cache entries
+    free_sources: bool  # its light leaves each LED's own place (the module's FREE_SOURCES; False without)
+
+
+# Each method's module is imported when the method is first used: geodesic and transport
+# import libraries (pygeodesic, potpourri3d) that only they need.
+def _linear() -> FieldMethod:
+    from . import linear
+
+    return FieldMethod(linear.LinearBaker, linear.VERSION, linear.FREE_SOURCES)
+
+
+def _plane() -> FieldMethod:
+    from . import plane
+
+    return FieldMethod(plane.PlaneBaker, plane.VERSION, False)
+
+
+def _geodesic() -> FieldMethod:
+    from . import geodesic
+
+    return FieldMethod(geodesic.GeodesicBaker, geodesic.VERSION, False)
+
+
+def _transport() -> FieldMethod:
+    from . import transport
+
+    return FieldMethod(transport.TransportBaker, transport.VERSION, False)
+
+
+_BAKERS: dict[str, Callable[[], FieldMethod]] = {
+    "linear": _linear, "plane": _plane, "geodesic": _geodesic, "transport": _transport}
 
 
 @dataclass(frozen=True)
@@ -52,16 +85,16 @@ class LightFields:
     normals: np.ndarray
 
 
-def baker_module(method: str):
+def field_method(method: str) -> FieldMethod:
+    """The baker of ``method`` (one of METHODS), its module imported on first use."""
     if method not in _BAKERS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    return importlib.import_module(_BAKERS[method][0])
+    return _BAKERS[method]()
 
 
 def make_baker(method: str, mesh: trimesh.Trimesh):
     """The stateful baker of a method (heavy set-up done once per mesh)."""
-    module = baker_module(method)
-    return getattr(module, _BAKERS[method][1])(mesh)
+    return field_method(method).baker(mesh)
 
 
 def bake_samples(
@@ -89,18 +122,17 @@ def bake(
     The cache key hashes the mesh, LEDs, camera, method and the method's VERSION, so any
     change rebuilds; a corrupt or stale cache file is detected and rebuilt.
     """
-    module = baker_module(method)
+    baker = field_method(method)
     validate_mesh(mesh, "mesh")
     key = make_key(
         "fields", FORMAT_VERSION, mesh_digest(mesh), [dataclasses.asdict(led) for led in leds], dataclasses.asdict(camera), method,
-        module.VERSION,
+        baker.version,
     )
 
     def build() -> dict[str, np.ndarray]:
         t0 = time.perf_counter()
         samples = cast_rays(mesh, camera)
-        sources = snap_leds(mesh, leds, FREE_SOURCE_TOLERANCE_M if getattr(module, "FREE_SOURCES", False)
-                            else LED_SNAP_TOLERANCE_M)
+        sources = snap_leds(mesh, leds, FREE_SOURCE_TOLERANCE_M if baker.free_sources else LED_SNAP_TOLERANCE_M)
         fields, valid = bake_samples(method, mesh, samples, sources)
         out = {
             "fields": np.stack([samples.scatter(f.astype(np.float32)) for f in fields]),

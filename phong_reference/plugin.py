@@ -1,4 +1,8 @@
-"""The fast path as a dataset renderer plugin (entry point ``tactile_sim.renderers``)."""
+"""The fast path as a dataset renderer plugin (entry point ``tactile_sim.renderers``).
+
+A ``scenes.renderers.RendererPlugin`` that also ``Calibrates`` (``calibrate``, the fit of
+the fast path's LED constants to a unit's taps); it shares no inputs with its workers.
+"""
 
 from __future__ import annotations
 
@@ -11,9 +15,11 @@ from scenes.elastic import MembraneLayer, check_model
 from scenes.spec import SensorSpec
 
 from .background import make_background
-from .bake import METHODS, bake
+from .bake import METHODS, bake, field_method
 from .render import Renderer, light_vectors
 
+#: The dataset's ``source`` (scenes.dataset.SOURCES) for this renderer.
+SOURCE = "sim"
 #: The options this renderer takes.
 OPTIONS = ("field", "background", "rectify", "elastic", "profile")
 
@@ -113,7 +119,6 @@ def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background:
     are those of the field that fits the fitted taps best (the lowest MAE of their
     change over their contact regions), and the profile composes by change
     (``phong_reference.profiled``)."""
-    from . import bake as bakes
     from .calibrate import fit_led_constants, fit_led_places
 
     def fit_loss(report: dict) -> float:
@@ -131,7 +136,7 @@ def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background:
     by_field, reports = {}, {}
     for field in fields:
         leds, places = profile.sensor_spec(spec).leds, None
-        free = getattr(bakes.baker_module(field), "FREE_SOURCES", False)  # its light leaves each LED's own place
+        free = field_method(field).free_sources  # its light leaves each LED's own place
         if free:
             positions, places = fit_led_places(spec, mesh, camera, profile, taps, background, field)
             leds = tuple(dataclasses.replace(led, position=p) for led, p in zip(leds, positions))

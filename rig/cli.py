@@ -44,43 +44,14 @@ def _protocol(args, spec):
 
 
 def _alignment_hook(spec, options: dict):
-    """After the background: the alignment between real and simulated images, for
-    dataset.json (the profile's when one is given, else a registration)."""
+    """After the background: ``rig.capture.alignment_hook`` (the profile's alignment when
+    one is given, else a registration against the fast path's no-contact image)."""
+    from scenes.renderers import get_renderer
 
-    def hook(background):
-        from .align import capture_alignment
+    from .capture import alignment_hook
 
-        if options.get("profile"):
-            from scenes.profile import load_profile
-
-            profile = load_profile(options["profile"], spec)
-            return {"alignment": capture_alignment(background, spec, profile=profile)}
-        try:
-            return {"alignment": capture_alignment(background, spec, sim_background=_sim_background(spec, background))}
-        except ValueError as exc:  # a registration that finds nothing to hold on to is no reason to stop
-            print(f"tactile-sim rig run: warning: no alignment: {exc}", file=sys.stderr)
-            return {"alignment_error": str(exc)}
-
-    return hook
-
-
-def _sim_background(spec, background):
-    """The fast path's no-contact image of the spec (its solid background: the fast path
-    alone draws no membrane), at the capture's size."""
-    from scenes.camera import Camera, reference_depth
-    from scenes.generate import make_renderer, renderer_plugin
-    from scenes.body import checked_membrane
-
-    mesh, camera = checked_membrane(spec), Camera.from_spec(spec)
-    plugin = renderer_plugin("phong")
-    options = {"background": "solid"}
-    plugin.prepare(spec, mesh, camera, options)
-    image = make_renderer(plugin, spec, mesh, camera, reference_depth(mesh, camera)[0], options).no_contact
-    if image.shape[:2] != background.shape[:2]:
-        from skimage.transform import resize
-
-        image = resize(image, background.shape[:2], order=1, anti_aliasing=True)
-    return image
+    profile = options.get("profile")
+    return alignment_hook(spec, None if profile else get_renderer("phong"), profile)
 
 
 #: The devices of ``rig run``, by argument: given unless ``--dry-run``, which opens none.
@@ -115,9 +86,18 @@ def cmd_run(args, parser=None) -> int:
     unit = _unit(args.unit or [])
     if unit and not virtual:
         raise ValueError("--unit is for --camera twin only: a real sensor is the unit it is")
+    after_background = None if args.no_alignment else _alignment_hook(spec, options)
+    if virtual and not args.dry_run:
+        from scenes.renderers import get_renderer
+
+        from .capture import capture
+
+        summary = capture(args.out, spec, protocol, get_renderer(args.renderer), options, layout, unit,
+                          after_background, progress=not args.quiet)  # SessionAborted: scenes.cli reports it
+        print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s)")
+        return 0
     source_meta = {"rig": {"virtual": virtual, "printer": args.printer, "servos": args.servos}}
-    session = prepare(args.out, spec, protocol, layout, source_meta=source_meta,
-                      after_background=None if args.no_alignment else _alignment_hook(spec, options))
+    session = prepare(args.out, spec, protocol, layout, source_meta=source_meta, after_background=after_background)
     if args.dry_run:
         for device, line in session.stream():
             print(f"{device}: {line}")
@@ -131,22 +111,20 @@ def cmd_run(args, parser=None) -> int:
 
     with ExitStack() as stack:
         rig = None
-        if twins:
+        if twins:  # a twin or two with the real camera (the virtual rig's whole capture is rig.capture's)
+            from scenes.renderers import get_renderer
+
             from .virtual import VirtualRig
 
-            rig = stack.enter_context(VirtualRig(spec, protocol.objects, args.renderer, options, layout, unit=unit))
-            if virtual:
-                session.hidden = rig.hidden()
+            renderer = get_renderer(args.renderer)
+            rig = stack.enter_context(VirtualRig(spec, protocol.objects, renderer, options, layout, unit=unit))
         printer_port = rig.printer.port if args.printer == TWIN else args.printer
         servo_port = rig.servos.port if args.servos == TWIN else args.servos
         printer = stack.enter_context(MarlinPrinter(printer_port, args.baud))
         servos = stack.enter_context(ServoBoard(servo_port, args.servo_baud))
-        if virtual:
-            camera = rig.camera
-        else:
-            from .camera import open_camera
+        from .camera import open_camera
 
-            camera = stack.enter_context(open_camera(args.camera, settle_s=args.settle))
+        camera = stack.enter_context(open_camera(args.camera, settle_s=args.settle))
         mount = rig.mount if rig is not None else _ask_to_mount(args.yes)
         devices = Devices(printer, servos, camera, mount, 0.0 if args.servos == TWIN else args.servo_settle)
         summary = session.run(devices, progress=not args.quiet)  # SessionAborted: scenes.cli reports it

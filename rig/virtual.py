@@ -3,9 +3,10 @@
 The printer twin's moves and the servo twin's angles set the joints of ``scenes.rig.Rig``
 (through the layout: printer coordinates are ``head - printer_origin``), so the driver
 that talks to them over pseudo-terminals is the one a real rig uses. The camera twin
-captures the in-sensor depth there and renders it with a renderer plugin (the fast path
-or the physically based reference, with a profile and effects), so a session on the
-virtual rig writes a capture dataset with known ground truth.
+captures the in-sensor depth there and renders it with the renderer plugin it is given
+(``scenes.renderers.RendererPlugin``: the fast path or the physically based reference,
+with a profile and effects; the command line chooses it), so a session on the virtual
+rig writes a capture dataset with known ground truth.
 
 What the camera twin renders with is hidden from whoever reads the capture: the session
 writes it to ``virtual.json`` (:meth:`VirtualRig.hidden`), which neither the diagnosis
@@ -22,6 +23,12 @@ import math
 import numpy as np
 
 from scenes.kinematics import RigLayout
+from scenes.renderers import RendererPlugin, SharesInputs, build_renderer, check_plugin, plugin_name
+
+#: The dataset ``source`` (scenes.dataset.SOURCES) of the physically based reference's
+#: images: its LEDs have powers of their own, and it exposes a capture from its no-contact
+#: frame, as an auto-exposed camera does.
+REFERENCE_SOURCE = "pbr"
 
 #: What the twin's unit may differ in from the recorded spec, by the physical
 #: catalogue's names (``studies.gap.physical``), with what each value means.
@@ -174,7 +181,7 @@ class TwinCamera:
         # The reference sets a capture's exposure from its no-contact frame (its rule), as
         # an auto-exposed camera does, unless a profile's camera sets the image (its gains
         # and response, pbr_tactile.plugin); the fast path has no exposure.
-        auto = self._virtual.renderer_name == "pbr" and self._virtual.options.get("profile") is None
+        auto = self._virtual.plugin.SOURCE == REFERENCE_SOURCE and self._virtual.options.get("profile") is None
         return {"kind": "twin", "size": [cam.width, cam.height], "exposure": "auto" if auto else "fixed"}
 
     def close(self) -> None:
@@ -188,13 +195,14 @@ class VirtualRig:
     ----------
     spec : SensorSpec.
     objects : the indenters the session uses.
-    renderer : a renderer plugin's name (``phong``, ``pbr``) for the camera twin.
+    renderer : the camera twin's renderer plugin (``scenes.renderers.RendererPlugin``, e.g.
+        the module ``phong_reference.plugin``; the command line's ``get_renderer``).
     options : that renderer's options (e.g. ``{"profile": PATH, "effects": {...}}``).
     printer_faults, servo_faults : rig.twins faults to inject.
     unit : how the sensor the camera twin renders differs from ``spec`` (``UNIT``).
     """
 
-    def __init__(self, spec, objects, renderer: str = "phong", options: dict | None = None,
+    def __init__(self, spec, objects, renderer: RendererPlugin, options: dict | None = None,
                  layout: RigLayout = RigLayout(), printer_faults=None, servo_faults=None, unit: dict | None = None):
         import threading
 
@@ -209,11 +217,11 @@ class VirtualRig:
         self.unit = dict(unit or {})
         self.unit_spec, self.compliance = unit_spec(spec, self.unit)
         self.ref_depth = None
-        self.renderer_name, self.options = renderer, dict(options or {})
+        self.plugin, self.options = check_plugin(renderer), dict(options or {})
         if "led_power" in self.unit:  # the reference renders each LED's power; the fast path's LEDs have only colours
-            if renderer != "pbr":
-                raise ValueError(f"unit led_power needs the pbr camera twin (--renderer pbr); got {renderer!r}, whose "
-                                 "LEDs have a colour but no power of their own")
+            if self.plugin.SOURCE != REFERENCE_SOURCE:
+                raise ValueError(f"unit led_power needs the pbr camera twin (--renderer pbr); got "
+                                 f"{plugin_name(self.plugin)}, whose LEDs have a colour but no power of their own")
             self.options["led_power"] = list(_led_power(spec, _values("led_power", self.unit["led_power"])))
         self.mesh = membrane_mesh(spec)
         self.rig = Rig(rig_scene(spec, {name: indenter(name) for name in objects}, membrane=self.mesh), spec, layout)
@@ -245,9 +253,8 @@ class VirtualRig:
         """The camera twin's renderer, built on first use against the no-contact depth."""
         if self._renderer is None:
             from scenes.camera import Camera
-            from scenes.generate import make_renderer, renderer_plugin
 
-            plugin = renderer_plugin(self.renderer_name)
+            plugin = self.plugin
             spec = self.unit_spec  # the unit's membrane and LEDs (its camera and shape are the spec's)
             camera = Camera.from_spec(spec)
             self._settings = plugin.prepare(spec, self.mesh, camera, self.options)
@@ -259,14 +266,16 @@ class VirtualRig:
                 self.ref_depth = self.rig.depth()
                 self.rig.set_joints(**joints)
                 self.rig.mount(mounted)
-            shared = plugin.shared(spec, self.mesh, camera, self.options) if hasattr(plugin, "shared") else None
-            self._renderer = make_renderer(plugin, spec, self.mesh, camera, self.ref_depth, self.options, shared)
+            shared = plugin.shared(spec, self.mesh, camera, self.options) if isinstance(plugin, SharesInputs) else None
+            self._renderer = build_renderer(plugin.make_renderer, spec, self.mesh, camera, self.ref_depth,
+                                            self.options, shared)
         return self._renderer
 
     def hidden(self) -> dict:
-        """What the camera twin renders with (for ``virtual.json``)."""
+        """What the camera twin renders with (for ``virtual.json``): ``renderer`` is the name
+        its settings give (``scenes.renderers``: ``prepare``)."""
         self.renderer()
-        return {"renderer": self.renderer_name, "options": self.options, "settings": self._settings,
+        return {"renderer": self._settings.get("renderer"), "options": self.options, "settings": self._settings,
                 "unit": self.unit}
 
     def close(self) -> None:

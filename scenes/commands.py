@@ -1,5 +1,8 @@
 """Subcommands of the scenes package: the MuJoCo rig (scene), datasets, and their bench;
-and the options that other packages' subcommands share (``add_*_arguments``)."""
+and the options that other packages' subcommands share (``add_*_arguments``).
+
+Part of the command-line layer: it looks renderers up by name (``scenes.renderers.
+get_renderer``) and passes the plugin into dataset generation."""
 
 from __future__ import annotations
 
@@ -118,6 +121,7 @@ REPLAY_TAKES = {"spec": "--spec", "protocol": "--protocol", "objects": "--object
 def cmd_dataset(args) -> int:
     from .generate import generate
     from .body import checked_membrane
+    from .renderers import get_renderer
 
     if args.replay is not None:
         return cmd_replay(args)
@@ -128,8 +132,8 @@ def cmd_dataset(args) -> int:
         from dataclasses import replace
 
         protocol = replace(protocol, taps=protocol.taps[: args.limit])
-    summary = generate(args.out, spec, protocol, args.renderer, renderer_options(args), workers=args.workers,
-                       progress=not args.quiet, executor=args.executor, address=args.address)
+    summary = generate(args.out, spec, protocol, get_renderer(args.renderer), renderer_options(args),
+                       workers=args.workers, progress=not args.quiet, executor=args.executor, address=args.address)
     where = f"Ray cluster at {args.address}" if args.address else f"{summary['workers']} {args.executor} workers"
     print(f"{summary['samples']} samples in {args.out} ({summary['new']} new, {summary['seconds']:.1f} s, {where})")
     return 0
@@ -137,6 +141,7 @@ def cmd_dataset(args) -> int:
 
 def cmd_replay(args) -> int:
     """``tactile-sim dataset --replay CAPTURE_DIR``: the capture's taps at their measured poses."""
+    from .renderers import get_renderer
     from .replay import read_capture, replay
 
     given = [flag for attr, flag in REPLAY_TAKES.items() if getattr(args, attr) is not None]
@@ -145,8 +150,8 @@ def cmd_replay(args) -> int:
                          f"protocol.json); drop {', '.join(given)}")
     capture = read_capture(args.replay)
     ids = capture.ids[: args.limit] if args.limit else None
-    summary = replay(capture, args.out, args.renderer, renderer_options(args), ids=ids, workers=args.workers,
-                     progress=not args.quiet, executor=args.executor, address=args.address)
+    summary = replay(capture, args.out, get_renderer(args.renderer), renderer_options(args), ids=ids,
+                     workers=args.workers, progress=not args.quiet, executor=args.executor, address=args.address)
     print(f"{summary['samples']} samples of {args.replay} replayed in {args.out} ({summary['new']} new, "
           f"{summary['seconds']:.1f} s)")
     return 0
@@ -280,14 +285,16 @@ def bench_dataset(spec, workers: int = 2, objects=None, frames: int = 48, execut
     from .generate import Job, TapRunner, generate
     from .body import checked_membrane
     from .indenters import INDENTERS
+    from .renderers import get_renderer
 
     make_executor(executor, workers, address)  # bad input fails before the first run
     mesh = checked_membrane(spec)
     protocol = make_protocol("base", spec, mesh, tuple(objects or INDENTERS))
+    phong = get_renderer("phong")
     options = {"field": "plane", "background": "none"}
     with tempfile.TemporaryDirectory() as tmp:
         # The parts, in one process: depth capture and rendering per frame.
-        worker = TapRunner(Job(spec, "phong", options, tuple(protocol.objects)))
+        worker = TapRunner(Job(spec, phong.make_renderer, options, tuple(protocol.objects)))
         taps = protocol.taps[:frames]
         depth_ms, render_ms, depths = [], [], []
         worker.capture(taps[0])
@@ -301,10 +308,10 @@ def bench_dataset(spec, workers: int = 2, objects=None, frames: int = 48, execut
             render_ms.append((time.perf_counter() - t0) * 1e3)
         worker.close()
         # End to end: the real command path into a fresh folder.
-        summary = generate(Path(tmp) / "ds", spec, protocol, "phong", options, workers=workers, progress=False)
+        summary = generate(Path(tmp) / "ds", spec, protocol, phong, options, workers=workers, progress=False)
         on_ray = None
         if executor == "ray":
-            on_ray = generate(Path(tmp) / "ray", spec, protocol, "phong", options, workers=workers, progress=False,
+            on_ray = generate(Path(tmp) / "ray", spec, protocol, phong, options, workers=workers, progress=False,
                               executor="ray", address=address)
     camera = Camera.from_spec(spec)
     results = {
@@ -347,8 +354,9 @@ SLICE_TAPS = ((0, 1), (1, 2), (2, 4), (0, 5))
 
 def bench_dataset_slice(spec, renderer: str, options: dict, workers: int = 1, executor: str = "local",
                         address: str | None = None) -> dict:
-    """Frames per hour of a renderer on the fixed base-protocol slice (SLICE_OBJECTS x
-    SLICE_TAPS), through ``generate`` as the dataset command runs it.
+    """Frames per hour of the renderer called ``renderer`` (``scenes.renderers.get_renderer``)
+    on the fixed base-protocol slice (SLICE_OBJECTS x SLICE_TAPS), through ``generate`` as
+    the dataset command runs it.
 
     The renderer's one-time preparation (``prepare``: for pbr the no-contact frame, which
     fills the no-contact photon cache) is timed apart, in a fresh cache; the runs then
@@ -362,8 +370,9 @@ def bench_dataset_slice(spec, renderer: str, options: dict, workers: int = 1, ex
     from .camera import Camera
     from .dataset import read_samples
     from .executors import make_executor
-    from .generate import generate, renderer_plugin
+    from .generate import generate
     from .body import checked_membrane
+    from .renderers import get_renderer
 
     make_executor(executor, workers, address)  # bad input fails before any work
     mesh = checked_membrane(spec)
@@ -378,13 +387,14 @@ def bench_dataset_slice(spec, renderer: str, options: dict, workers: int = 1, ex
         os.environ[CACHE_ENV] = str(Path(tmp) / "cache")
         try:
             t0 = time.perf_counter()
-            settings = renderer_plugin(renderer).prepare(spec, mesh, camera, options)
+            plugin = get_renderer(renderer)
+            settings = plugin.prepare(spec, mesh, camera, options)
             results["prepare_seconds"] = time.perf_counter() - t0
             results["settings"] = settings
             runs = {"local": None} if executor == "local" else {"local": None, "ray": address}
             for name, where in runs.items():
                 root = Path(tmp) / name
-                summary = generate(root, spec, protocol, renderer, options, workers=workers, progress=True,
+                summary = generate(root, spec, protocol, plugin, options, workers=workers, progress=True,
                                    executor=name, address=where)
                 records = read_samples(root)
                 rse = [r["contact_rse"] for r in records if r.get("contact_rse") is not None]

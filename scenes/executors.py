@@ -1,8 +1,8 @@
 """Where tap tasks run: local processes or a Ray cluster, results yielded as they finish.
 
-Both executors run the same task, ``scenes.generate.run_tap(job, tap, shared)``, which
-returns a sample's record and its files' encoded bytes and writes nothing; the caller (the
-driver) writes every file. The plugin's
+Both executors run the tasks they are given (``Tasks``: ``scenes.generate.TASKS``, whose
+tap task returns a sample's record and its files' encoded bytes and writes nothing); the
+caller (the driver) writes every file. The plugin's
 large shared inputs reach each worker process once: through the pool's initializer
 locally, through Ray's object store (``ray.put`` once, the ObjectRef passed to every
 task) on a cluster. Ray is imported here only, and only for ``executor="ray"``.
@@ -14,9 +14,8 @@ import logging
 import multiprocessing
 import os
 import socket
-from collections.abc import Iterable, Iterator
-
-from .generate import Job, no_contact, run_tap
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any, NamedTuple
 
 EXECUTORS = ("local", "ray")
 #: Seconds to wait for a Ray head's port to accept a connection before calling it unreachable.
@@ -35,8 +34,18 @@ LOCAL_CHUNK = 4
 WORKER_ENV = {"LP_NUM_THREADS": "1"}
 RAY_INSTALL = "pip install 'tactile-sim[ray]'"
 
-#: One (kind, value) per result: ("tap", run_tap's dict) or ("background", image).
+#: One (kind, value) per result: ("tap", the tap task's dict) or ("background", image).
 Results = Iterator[tuple[str, object]]
+
+
+class Tasks(NamedTuple):
+    """What an executor runs: module-level functions, so that they reach every worker by
+    reference (``scenes.generate.TASKS``)."""
+
+    #: (job, tap, shared) -> the tap's result (``scenes.generate.run_tap``).
+    tap: Callable[[Any, Any, Any], dict]
+    #: (job, shared) -> (H, W, 3) float image, the no-contact frame (``scenes.generate.no_contact``).
+    no_contact: Callable[[Any, Any], Any]
 
 
 def make_executor(executor: str, workers: int, address: str | None = None):
@@ -88,23 +97,24 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
 
 # --- Local processes -------------------------------------------------------------------------
 
-_JOB: Job | None = None
+_TASKS: Tasks | None = None
+_JOB = None
 _SHARED = None
 
 
-def _init_process(job: Job, shared) -> None:
-    global _JOB, _SHARED
+def _init_process(tasks: Tasks, job, shared) -> None:
+    global _TASKS, _JOB, _SHARED
     for key, value in WORKER_ENV.items():
         os.environ.setdefault(key, value)
-    _JOB, _SHARED = job, shared
+    _TASKS, _JOB, _SHARED = tasks, job, shared
 
 
 def _pool_tap(tap):
-    return run_tap(_JOB, tap, _SHARED)
+    return _TASKS.tap(_JOB, tap, _SHARED)
 
 
 def _pool_no_contact(_=None):
-    return no_contact(_JOB, _SHARED)
+    return _TASKS.no_contact(_JOB, _SHARED)
 
 
 class LocalExecutor:
@@ -113,15 +123,16 @@ class LocalExecutor:
     def __init__(self, workers: int):
         self.workers = workers
 
-    def run(self, job: Job, taps: list, shared=None, background: bool = False) -> Results:
+    def run(self, tasks: Tasks, job, taps: list, shared=None, background: bool = False) -> Results:
+        """``tasks`` of ``job`` on ``taps``, with the no-contact image if ``background``."""
         if self.workers == 1 or len(taps) <= 1:
             if background:
-                yield "background", no_contact(job, shared)
+                yield "background", tasks.no_contact(job, shared)
             for tap in taps:
-                yield "tap", run_tap(job, tap, shared)
+                yield "tap", tasks.tap(job, tap, shared)
             return
         ctx = multiprocessing.get_context("spawn")  # EGL contexts must not cross a fork
-        with ctx.Pool(self.workers, initializer=_init_process, initargs=(job, shared)) as pool:
+        with ctx.Pool(self.workers, initializer=_init_process, initargs=(tasks, job, shared)) as pool:
             image = pool.apply_async(_pool_no_contact) if background else None
             for result in pool.imap_unordered(_pool_tap, taps, chunksize=LOCAL_CHUNK):
                 yield "tap", result
@@ -158,16 +169,17 @@ class RayExecutor:
             raise ValueError(f"address {self.address!r}: no Ray cluster answers there ({exc})") from None
         return True
 
-    def run(self, job: Job, taps: Iterable, shared=None, background: bool = False) -> Results:
+    def run(self, tasks: Tasks, job, taps: Iterable, shared=None, background: bool = False) -> Results:
+        """``tasks`` of ``job`` on ``taps``, with the no-contact image if ``background``."""
         import ray
 
         owned = self._connect()
         try:
             shared_ref = ray.put(shared)  # once; every task gets the same ObjectRef
-            tap_task = ray.remote(**RAY_TASK)(run_tap)
+            tap_task = ray.remote(**RAY_TASK)(tasks.tap)
             pending = {}
             if background:
-                pending[ray.remote(**RAY_TASK)(no_contact).remote(job, shared_ref)] = "background"
+                pending[ray.remote(**RAY_TASK)(tasks.no_contact).remote(job, shared_ref)] = "background"
             limit = TASKS_PER_CPU * max(1, int(ray.cluster_resources().get("CPU", self.workers)))
             for tap in taps:
                 pending[tap_task.remote(job, tap, shared_ref)] = "tap"

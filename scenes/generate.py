@@ -6,62 +6,41 @@ captures the depth map, renders it and encodes the sample's files; it writes not
 The same task runs in local processes or on a Ray cluster (``scenes.executors``), and
 the driver alone (``run_tasks``) writes the files and appends the line to ``samples.jsonl``.
 
-Renderers are plugins (entry point group ``tactile_sim.renderers``), so this module never
-imports one. A plugin is a module with
-
-- ``prepare(spec, mesh, camera, options) -> settings``, run once on the driver;
-- ``make_renderer(spec, mesh, camera, ref_depth, options)``, run once per worker process,
-  returning an object with ``.render(depth) -> (H, W, 3) float image`` and
-  ``.no_contact``, and optionally ``.render_sample(depth) -> {"image": ..., "arrays":
-  {name: array}, "record": {field: value}}``, whose arrays are written as
-  ``<name>/<id>.npy`` and whose record fields join the sample's line; a renderer
-  whose ``writes_depth`` is False keeps its own (e.g. reduced) depth among those arrays,
-  and the full-resolution depth map is not written (it is 1.2 MB of a 640x480 sample);
-- optionally ``shared(spec, mesh, camera, options) -> picklable``: large inputs every
-  worker needs (e.g. cached photon maps). The driver computes them once; each worker gets
-  them as ``make_renderer(..., shared=value)`` (through Ray's object store on a cluster).
+Renderers are plugins (``scenes.renderers.RendererPlugin``) that the caller passes in
+(the command line looks one up by name), so this module never imports one, nor chooses
+one: a job carries the plugin's ``make_renderer``, which each worker runs once.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from importlib import import_module
-from importlib.metadata import entry_points
 from pathlib import Path
 
 import numpy as np
 
 from .camera import Camera
 from .dataset import DatasetWriter, sample_files, sample_id, write_files
+from .executors import Tasks, make_executor
 from .geometry import membrane_mesh
-from .protocol import Protocol, Tap, validate
+from .protocol_checks import validate
+from .renderers import (
+    DatasetRenderer,
+    OwnDepth,
+    RendererPlugin,
+    SampleRenderer,
+    SharesInputs,
+    build_renderer,
+    check_plugin,
+)
 from .spec import SensorSpec
-
-RENDERER_GROUP = "tactile_sim.renderers"
-
-
-def renderer_plugin(name: str):
-    """The renderer plugin module called ``name`` in the entry point group, or, for a
-    name with a dot, the module of that import path (a plugin not registered, e.g. in
-    tests)."""
-    found = {ep.name: ep for ep in entry_points(group=RENDERER_GROUP)}
-    if name in found:
-        return found[name].load()
-    if "." in name:
-        try:
-            return import_module(name)
-        except ImportError as exc:
-            raise ValueError(f"renderer {name!r} is not an importable module: {exc}") from None
-    raise ValueError(f"renderer must be one of {sorted(found)} or an importable module path "
-                     f"'package.module', got {name!r}")
+from .taps import Protocol, Tap
 
 
-def make_renderer(plugin, spec, mesh, camera, ref_depth, options: dict, shared=None):
-    """A plugin's renderer (its ``make_renderer``); only plugins that define ``shared()``
-    take ``shared``."""
-    args = (spec, mesh, camera, ref_depth, options)
-    return plugin.make_renderer(*args, shared=shared) if hasattr(plugin, "shared") else plugin.make_renderer(*args)
+def make_renderer(plugin: RendererPlugin, spec, mesh, camera, ref_depth, options: dict, shared=None) -> DatasetRenderer:
+    """A plugin's renderer: ``scenes.renderers.build_renderer`` of its ``make_renderer``."""
+    return build_renderer(plugin.make_renderer, spec, mesh, camera, ref_depth, options, shared)
 
 
 def measured_depth(depth: np.ndarray, ref_depth: np.ndarray, camera: Camera, tap: Tap, noise: float) -> float:
@@ -80,13 +59,22 @@ def measured_depth(depth: np.ndarray, ref_depth: np.ndarray, camera: Camera, tap
 @dataclass(frozen=True)
 class Job:
     """What a tap task needs besides the tap, picklable. It never holds the dataset
-    folder: tasks run wherever the executor puts them, with no disk shared."""
+    folder: tasks run wherever the executor puts them, with no disk shared.
+
+    make_renderer : the renderer plugin's ``make_renderer``, a module-level function, so
+        that a job pickles (by reference) to any worker.
+    """
 
     spec: SensorSpec
-    renderer: str
+    make_renderer: Callable[..., DatasetRenderer]
     options: dict
     objects: tuple[str, ...]
     noise_m: float = 1e-6
+
+    def __post_init__(self):
+        if not callable(self.make_renderer):
+            raise ValueError(f"make_renderer must be a renderer plugin's make_renderer function, got "
+                             f"{self.make_renderer!r}")
 
 
 @dataclass(frozen=True)
@@ -131,8 +119,8 @@ def tap_fields(tap: Tap) -> dict:
 
 def render_sample(renderer, depth: np.ndarray) -> dict:
     """``{"image", "arrays", "record"}`` of one depth map, from ``render_sample`` when the
-    renderer has it, else from ``render`` alone."""
-    if hasattr(renderer, "render_sample"):
+    renderer has it (``scenes.renderers.SampleRenderer``), else from ``render`` alone."""
+    if isinstance(renderer, SampleRenderer):
         out = renderer.render_sample(depth)
         return {"image": out["image"], "arrays": dict(out.get("arrays") or {}), "record": dict(out.get("record") or {})}
     return {"image": renderer.render(depth), "arrays": {}, "record": {}}
@@ -154,8 +142,8 @@ class TapRunner:
         self.rig = Rig(rig_scene(self.spec, meshes, membrane=self.mesh), self.spec)
         self.rig.home()
         self.ref_depth = self.rig.depth()
-        plugin = renderer_plugin(job.renderer)
-        self.renderer = make_renderer(plugin, self.spec, self.mesh, self.camera, self.ref_depth, job.options, shared)
+        self.renderer = build_renderer(job.make_renderer, self.spec, self.mesh, self.camera, self.ref_depth,
+                                       job.options, shared)
 
     def capture(self, task: Task) -> np.ndarray:
         """The depth map of a tap pressed, or of the rig set to a posed tap's joints."""
@@ -183,12 +171,12 @@ class TapRunner:
             record["pose"] = {name: float(value) for name, value in task.pose.items()}
         clash = sorted((set(out["record"]) | set(out["arrays"])) & (set(record) | {"image", "depth"}))
         if clash:
-            raise ValueError(f"renderer {self.job.renderer!r} returned fields {clash} that a sample record already "
-                             f"has; rename them")
+            raise ValueError(f"renderer {self.job.make_renderer.__module__!r} returned fields {clash} that a sample "
+                             f"record already has; rename them")
         return {
             "record": {**record, **out["record"]},
             "image": np.asarray(out["image"], np.float32),
-            "depth": depth if getattr(self.renderer, "writes_depth", True) else None,
+            "depth": None if isinstance(self.renderer, OwnDepth) and not self.renderer.writes_depth else depth,
             "arrays": {name: np.asarray(a, np.float32) for name, a in out["arrays"].items()},
         }
 
@@ -232,6 +220,10 @@ def no_contact(job: Job, shared=None) -> np.ndarray:
     return np.asarray(runner(job, shared).renderer.no_contact, np.float32)
 
 
+#: What the executors run: a tap's task and the no-contact image's.
+TASKS = Tasks(tap=run_tap, no_contact=no_contact)
+
+
 def record_sample(writer: DatasetWriter, result: dict) -> None:
     """Write one task's result into the dataset: its files, then its line (driver only)."""
     writer.append({**result["record"], **write_files(writer.root, result["files"])})
@@ -241,7 +233,7 @@ def generate(
     root: str | Path,
     spec: SensorSpec,
     protocol: Protocol,
-    renderer: str = "phong",
+    renderer: RendererPlugin,
     options: dict | None = None,
     workers: int = 2,
     source: str | None = None,
@@ -256,12 +248,14 @@ def generate(
 
     Parameters
     ----------
+    renderer : the renderer plugin (``scenes.renderers.RendererPlugin``, e.g. the module
+        ``phong_reference.plugin``), and ``options`` its options.
     workers : local processes (``executor="local"``), or the CPUs of the Ray cluster
         started on this machine (``executor="ray"`` without ``address``).
     executor : ``"local"`` (a process pool on this machine) or ``"ray"``.
     address : a Ray cluster's ``HOST:PORT`` to connect to (``executor="ray"`` only).
     source : the dataset's ``source`` (scenes.dataset.SOURCES); None: the plugin's
-        ``SOURCE`` ("pbr" for the physically based reference), else "sim".
+        ``SOURCE`` ("pbr" for the physically based reference, "sim" for the fast path).
     """
     options = dict(options or {})
     mesh = membrane_mesh(spec)
@@ -284,7 +278,7 @@ def run_tasks(
     objects: tuple[str, ...],
     protocol: dict,
     meta: dict,
-    renderer: str = "phong",
+    renderer: RendererPlugin,
     options: dict | None = None,
     workers: int = 2,
     progress: bool = True,
@@ -298,21 +292,19 @@ def run_tasks(
     objects : every indenter the rig must carry.
     protocol : the full protocol dict, written as ``protocol.json``.
     meta : dataset.json keys besides those this fills in (sensor, renderer, image_size,
-        depth, image); ``source`` None means the plugin's ``SOURCE``, else "sim".
+        depth, image); ``source`` None means the plugin's ``SOURCE``.
     """
-    from .executors import make_executor
-
     options = dict(options or {})
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     runs = make_executor(executor, workers, address)
     mesh = membrane_mesh(spec)
     camera = Camera.from_spec(spec)
-    plugin = renderer_plugin(renderer)
+    plugin = check_plugin(renderer)
     settings = plugin.prepare(spec, mesh, camera, options)
     meta = {
         **meta,
-        "source": meta.get("source") if meta.get("source") is not None else getattr(plugin, "SOURCE", "sim"),
+        "source": meta.get("source") if meta.get("source") is not None else plugin.SOURCE,
         "sensor": spec.to_dict(),
         "renderer": settings,
         "image_size": [camera.width, camera.height],
@@ -321,7 +313,7 @@ def run_tasks(
     }
     writer = DatasetWriter(root, meta, protocol)
     todo = [t for t in tasks if sample_id(task_tap(t).index, task_tap(t).object) not in writer.done]
-    job = Job(spec, renderer, options, tuple(objects))
+    job = Job(spec, plugin.make_renderer, options, tuple(objects))
     t0 = time.perf_counter()
     from tqdm import tqdm
 
@@ -330,8 +322,8 @@ def run_tasks(
     need_background = not (writer.root / "background.png").exists() and bool(job.objects)
     stamps = []
     if todo or need_background:
-        shared = plugin.shared(spec, mesh, camera, options) if hasattr(plugin, "shared") else None
-        for kind, value in runs.run(job, todo, shared, need_background):
+        shared = plugin.shared(spec, mesh, camera, options) if isinstance(plugin, SharesInputs) else None
+        for kind, value in runs.run(TASKS, job, todo, shared, need_background):
             if kind == "background":
                 writer.write_background(value)
                 continue

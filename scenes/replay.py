@@ -22,8 +22,9 @@ from pathlib import Path
 
 from .dataset import DatasetError, read_meta, read_samples, sample_id, sha256_json
 from .generate import PosedTap, run_tasks
-from .protocol import Protocol
+from .taps import Protocol
 from .kinematics import JOINTS
+from .renderers import RendererPlugin, check_plugin
 from .spec import SensorSpec, spec_from_dict
 
 #: The pose key of a capture's sample record that a replay sets the rig to.
@@ -140,7 +141,7 @@ def select(capture: Capture, ids: Sequence[str] | None) -> list[PosedTap]:
 def replay(
     capture: str | Path | Capture,
     out: str | Path,
-    renderer: str = "phong",
+    renderer: RendererPlugin,
     options: dict | None = None,
     ids: Sequence[str] | None = None,
     workers: int = 1,
@@ -154,13 +155,16 @@ def replay(
     Parameters
     ----------
     capture : the capture folder (or ``read_capture``'s result).
-    renderer, options : the renderer plugin and its options, as ``tactile-sim dataset``.
+    renderer, options : the renderer plugin (``scenes.renderers.RendererPlugin``, e.g. the
+        module ``phong_reference.plugin``; the command line's ``get_renderer``) and its
+        options, as ``tactile-sim dataset``.
     ids : only these samples (default all).
 
     ``out`` gets the capture's protocol.json unchanged (so its sha256 is the capture's),
     its protocol summary, its sensor and its sample ids; ``dataset.json`` also records
     ``replay``: the capture it came from and the pose key it replayed.
     """
+    renderer = check_plugin(renderer)
     capture = capture if isinstance(capture, Capture) else read_capture(capture)
     tasks = select(capture, ids)
     summary = {k: v for k, v in (capture.meta.get("protocol") or {}).items() if k not in ("file", "sha256")}
@@ -170,7 +174,7 @@ def replay(
 
     for name in capture.objects:
         indenter(name)  # unknown names fail here, before any work
-    # No protocol.validate: the poses are where the rig went, not where it was told to go;
+    # No protocol_checks.validate: the poses are where the rig went, not where it was told to go;
     # a pose outside the rig's travel fails when it is set, naming its sample.
     return run_tasks(out, capture.spec, tasks, capture.objects, capture.protocol, meta, renderer, options,
                      workers=workers, progress=progress, executor=executor, address=address)

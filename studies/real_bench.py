@@ -62,13 +62,13 @@ def _row(table: dict, method: str, **match) -> dict | None:
 
 def _paired(a: dict, b: dict, scope: str = "contact") -> dict:
     """Mean of per-press MAE differences a - b over the presses both rows scored, with a
-    95 % bootstrap interval (``studies.gap.metrics.mean_ci``)."""
-    from studies.gap.metrics import mean_ci
+    95 % bootstrap interval (``scenes.image_stats.bootstrap_interval``)."""
+    from scenes.image_stats import bootstrap_interval
 
     ia, ib = {i: k for k, i in enumerate(a["ids"])}, {i: k for k, i in enumerate(b["ids"])}
     common = [i for i in a["ids"] if i in ib]
     diff = np.array([a["per_tap"][scope]["mae"][ia[i]] - b["per_tap"][scope]["mae"][ib[i]] for i in common])
-    return {**mean_ci(diff), "presses": len(common)}
+    return {**bootstrap_interval(diff), "presses": len(common)}
 
 
 def _figure(row: dict | None) -> dict | None:
@@ -152,19 +152,22 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                 reference=True, reference_taps=int(reference_presses), **common))
         core = sum(seconds.values())
 
+        from phong_reference import plugin as phong
         from scenes.replay import replay
         from studies.gap.diagnose import run as diagnose
 
         replayed = work / "replay_calibrated_fast"
-        stage("replay_calibrated_fast", lambda: replay(unit, replayed, "phong", {"field": field,
-                                                                                  "profile": str(fast_profile)},
+        stage("replay_calibrated_fast", lambda: replay(unit, replayed, phong, {"field": field,
+                                                                                "profile": str(fast_profile)},
                                                        workers=2, progress=not quiet))
         diagnosis = stage("diagnose_fast", lambda: diagnose(capture, replayed, work / "diagnosis_fast",
                                                            progress=not quiet, split_by="alternate"))
         diagnosis_ref = None
         if reference_diagnosis and ref_profile.is_file():
+            from pbr_tactile import plugin as pbr
+
             replayed_ref = work / "replay_calibrated_reference"
-            stage("replay_calibrated_reference", lambda: replay(unit, replayed_ref, "pbr",
+            stage("replay_calibrated_reference", lambda: replay(unit, replayed_ref, pbr,
                                                                 {"profile": str(ref_profile)}, workers=1,
                                                                 progress=not quiet))
             diagnosis_ref = stage("diagnose_reference", lambda: diagnose(

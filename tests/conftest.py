@@ -172,10 +172,11 @@ def compare_result(tiny_capture, tmp_path_factory) -> tuple[dict, Path]:
     """(table.json, folder) of a comparison of tiny_capture: two fields, every background,
     and tests/fake_renderer.py standing in for the slow reference on two taps."""
     from studies.compare.run import compare
+    from tests import fake_renderer
 
     out = tmp_path_factory.mktemp("compare") / "table"
-    result = compare(tiny_capture, out, fields=("plane", "linear"), reference_taps=2,
-                     reference_renderer="tests.fake_renderer", bootstrap=200, seed=1, progress=False)
+    result = compare(tiny_capture, out, fields=("plane", "linear"), reference_taps=2, reference_renderer=fake_renderer,
+                     reference_label="tests.fake_renderer", bootstrap=200, seed=1, progress=False)
     return result, out
 
 

@@ -55,7 +55,8 @@ def write_capture(root: Path, spec, protocol, field: str = "plane", background: 
     (a scenes.profile.Alignment) the images are moved by it and dataset.json says so."""
     from scenes.camera import Camera
     from scenes.dataset import DatasetWriter, write_sample_files
-    from scenes.generate import measured_depth, renderer_plugin, tap_fields
+    from phong_reference import plugin as phong
+    from scenes.generate import measured_depth, tap_fields
     from scenes.geometry import membrane_mesh
     from scenes.indenters import indenter
     from scenes.profile import align_image
@@ -69,8 +70,7 @@ def write_capture(root: Path, spec, protocol, field: str = "plane", background: 
     try:
         rig.home()
         ref = rig.depth()
-        renderer = renderer_plugin("phong").make_renderer(spec, mesh, camera, ref,
-                                                          {"field": field, "background": background})
+        renderer = phong.make_renderer(spec, mesh, camera, ref, {"field": field, "background": background})
         def moved(image):  # into the "real" camera's frame; its lens' circle stays
             return image if alignment is None else align_image(image, alignment, camera) * camera.mask[..., None]
 

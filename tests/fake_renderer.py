@@ -1,9 +1,11 @@
-"""A tiny renderer plugin for tests of dataset generation, loaded by its module path
-(``generate(..., renderer="tests.fake_renderer")``; no entry point needed).
+"""A tiny renderer plugin for tests of dataset generation (``generate(..., renderer=
+tests.fake_renderer)``; no entry point needed: ``get_renderer("tests.fake_renderer")``
+loads it by its module path).
 
-It has every optional part of the plugin interface: ``shared`` (an array large enough
-that Ray keeps it in its object store rather than inline in each task) and
-``render_sample`` with extra arrays and record fields saying where the sample was
+It has the optional parts of the plugin interface (``scenes.renderers``) that dataset
+generation uses: ``shared`` (``SharesInputs``: an array large enough that Ray keeps it
+in its object store rather than inline in each task) and ``render_sample``
+(``SampleRenderer``) with extra arrays and record fields saying where the sample was
 rendered and what shared input the worker received.
 """
 
@@ -15,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+#: The dataset's ``source`` (scenes.dataset.SOURCES).
+SOURCE = "sim"
 #: float32 values of the shared array: 1 MiB, above Ray's 100 KiB limit for inline arguments.
 SHARED_SIZE = 1 << 18
 #: Image brightness per metre of indentation, so that a 1 mm dent is plainly visible.

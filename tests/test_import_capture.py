@@ -112,9 +112,10 @@ def test_an_archive_becomes_a_capture_that_replays(tmp_path, mujoco_gl):
     run_import(tmp_path, pack)
     assert {p.name: p.stat().st_mtime_ns for p in (root / "images").iterdir()} == before
     # the replay renders each press where the archive shows it
+    from phong_reference import plugin as phong
     from scenes.replay import replay
 
-    replay(capture, tmp_path / "sim", "phong", {"field": "plane", "background": "none"}, workers=1, progress=False)
+    replay(capture, tmp_path / "sim", phong, {"field": "plane", "background": "none"}, workers=1, progress=False)
     sim = read_rgb(tmp_path / "sim" / "images" / f"{records[1]['id']}.png")
     change = sim.sum(axis=2)
     v, u = np.unravel_index(np.argmax(change), change.shape)

@@ -1,5 +1,7 @@
 """Dependencies point one way: scenes imports no renderer, rig imports no renderer, and
-heavy libraries are imported only by the module that needs them."""
+heavy libraries are imported only by the module that needs them. What runs follows the
+imports: only the command-line layer looks a renderer up by name, and the fast path's
+bakers are imported by code, not from strings."""
 
 import ast
 from pathlib import Path
@@ -52,3 +54,105 @@ def test_heavy_libraries_stay_in_their_module():
             for lib, allowed in HEAVY.items():
                 if lib in _imports(path):
                     assert rel in allowed, f"{rel} imports {lib}; only {sorted(allowed)} may"
+
+
+# --- Renderers are chosen only by the command-line layer ----------------------------------
+
+PACKAGES = ("scenes", "phong_reference", "pbr_tactile", "rig", "studies")
+#: The registry itself, which reads the entry points.
+REGISTRY = "scenes/renderers.py"
+#: The command-line layer, the only code that looks a renderer up by name
+#: (``scenes.renderers.get_renderer``) and passes the plugin into the code below it:
+#: every module named ``cli.py`` or ``*_cli.py``, ``scenes/commands.py``, and, in any other
+#: module that registers subcommands (pyproject.toml's ``tactile_sim.commands``, e.g.
+#: studies/real_bench.py), its ``register`` function and its ``cmd_*`` functions.
+CLI_MODULES = {"scenes/commands.py"}
+#: Calls that look a renderer up by name: the registry's lookup, and
+#: ``entry_points(group=...)`` of the renderers' group.
+LOOKUPS = {"get_renderer"}
+RENDERER_GROUP = "tactile_sim.renderers"
+
+
+def _in_cli_layer(rel: str) -> bool:
+    name = rel.rsplit("/", 1)[-1]
+    return name == "cli.py" or name.endswith("_cli.py") or rel in CLI_MODULES
+
+
+def _is_cli_function(name: str) -> bool:
+    return name == "register" or name.startswith("cmd_")
+
+
+def _called(node: ast.Call) -> str | None:
+    func = node.func
+    return func.id if isinstance(func, ast.Name) else func.attr if isinstance(func, ast.Attribute) else None
+
+
+def _is_lookup(node: ast.AST) -> bool:
+    if not isinstance(node, ast.Call):
+        return False
+    name = _called(node)
+    if name in LOOKUPS:
+        return True
+    for keyword in node.keywords if name in ("entry_points", "select") else ():
+        value = keyword.value
+        if keyword.arg == "group" and (
+                (isinstance(value, ast.Constant) and value.value == RENDERER_GROUP)
+                or (isinstance(value, ast.Name) and value.id == "RENDERER_GROUP")
+                or (isinstance(value, ast.Attribute) and value.attr == "RENDERER_GROUP")):
+            return True
+    return False
+
+
+def renderer_lookups() -> dict[str, set[str]]:
+    """Module -> the top-level functions (or classes; "<module>" for its body) that look a
+    renderer up by name, outside the command-line layer and the registry."""
+    found: dict[str, set[str]] = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            rel = str(path.relative_to(ROOT))
+            if rel == REGISTRY or _in_cli_layer(rel):
+                continue
+            for top in ast.parse(path.read_text(), rel).body:
+                name = getattr(top, "name", "<module>")
+                if not _is_cli_function(name) and any(_is_lookup(node) for node in ast.walk(top)):
+                    found.setdefault(rel, set()).add(name)
+    return found
+
+
+def test_only_the_command_line_layer_looks_renderers_up_by_name():
+    found = {rel: sorted(names) for rel, names in renderer_lookups().items()}
+    assert not found, (f"renderers looked up by name below the command-line layer: {found}; take the plugin as an "
+                       "argument and let the command line choose it (scenes.renderers.get_renderer)")
+
+
+def test_the_lookup_scan_sees_each_way_of_looking_up():
+    tree = ast.parse("get_renderer('pbr')\nscenes.renderers.get_renderer('phong')\n"
+                     "entry_points(group='tactile_sim.renderers')\nentry_points(group=RENDERER_GROUP)\n"
+                     "entry_points(group='tactile_sim.commands')\nplugin.make_renderer(spec)\n")
+    assert [_is_lookup(statement.value) for statement in tree.body] == [True, True, True, True, False, False]
+    assert _in_cli_layer("rig/cli.py") and _in_cli_layer("pbr_tactile/calibrate_cli.py")
+    assert _in_cli_layer("scenes/commands.py") and not _in_cli_layer("scenes/generate.py")
+    assert _is_cli_function("register") and _is_cli_function("cmd_bench_real") and not _is_cli_function("run")
+
+
+def test_bakers_are_imported_by_code_not_from_strings():
+    """phong_reference/bake.py imports each light field's module in a function, so that
+    the import scan above sees it; nothing there imports a module named by a string."""
+    path = ROOT / "phong_reference" / "bake.py"
+    tree = ast.parse(path.read_text(), str(path))
+    assert "importlib" not in _imports(path)
+    calls = {_called(node) for node in ast.walk(tree) if isinstance(node, ast.Call)}
+    assert not calls & {"import_module", "__import__"}
+    lazy = {alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.level == 1
+            and node.module is None for alias in node.names}  # from . import linear
+    assert {"linear", "plane", "geodesic", "transport"} <= lazy
+
+
+def test_the_executors_run_the_tasks_they_are_given():
+    """scenes.executors imports nothing of scenes.generate, which hands it its tasks
+    (``scenes.generate.TASKS``): no import circle between the two."""
+    path = ROOT / "scenes" / "executors.py"
+    tree = ast.parse(path.read_text(), str(path))
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    assert not imported & {"generate", "scenes.generate"}

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from pbr_tactile.render import Control, Estimate, contact_region, contact_rse, run_passes
+from pbr_tactile.estimate import Control, Estimate, contact_region, contact_rse, run_passes
 from scenes.cli import main
 
 # --- The stopping rule, analytically ------------------------------------------------------
@@ -123,7 +123,7 @@ def test_contact_rse_leaves_out_unlit_pixels():
 
 
 def test_contact_region_is_the_dent_and_its_rim(camera, ref, pressed):
-    from pbr_tactile.render import RIM_PX
+    from pbr_tactile.estimate import RIM_PX
 
     moved = np.abs(pressed - ref) > 1e-6
     region = contact_region(pressed, ref, camera)
@@ -334,18 +334,21 @@ DATASET = ["dataset", "--objects", "sphere", "--limit", "1", "--out"]
 
 
 def test_pbr_options_are_passed_only_when_given(tmp_path, captured):
+    """The command line looks the renderer up by name and passes the plugin."""
+    import pbr_tactile.plugin
+    import phong_reference.plugin
+
     assert main([*DATASET, str(tmp_path), "--renderer", "pbr", "--target-rse", "0.1", "--max-passes", "8",
                  "--effect", "vignetting=0.2", "--effect", "scattering_per_m=0", "--estimator", "photons",
                  "--photons", "4096", "--camera-spp", "4", "--kernel-radius-mm", "0.5", "--no-contact-runs", "2",
                  "--film", "320x240"]) == 0
-    assert captured[-1] == ("pbr", {"target_rse": 0.1, "max_passes": 8, "effects": ["vignetting=0.2",
-                                    "scattering_per_m=0"], "estimator": "photons", "photons": 4096,
-                                    "camera_spp": 4, "kernel_radius_mm": 0.5, "no_contact_runs": 2,
-                                    "film": [320, 240]})
+    assert captured[-1] == (pbr_tactile.plugin, {"target_rse": 0.1, "max_passes": 8, "effects": ["vignetting=0.2",
+                            "scattering_per_m=0"], "estimator": "photons", "photons": 4096, "camera_spp": 4,
+                            "kernel_radius_mm": 0.5, "no_contact_runs": 2, "film": [320, 240]})
     assert main([*DATASET, str(tmp_path)]) == 0
-    assert captured[-1] == ("phong", {})  # the phong renderer's defaults fill in
+    assert captured[-1] == (phong_reference.plugin, {})  # the phong renderer's defaults fill in
     assert main([*DATASET, str(tmp_path), "--field", "linear", "--rectify"]) == 0
-    assert captured[-1] == ("phong", {"field": "linear", "rectify": True})
+    assert captured[-1] == (phong_reference.plugin, {"field": "linear", "rectify": True})
 
 
 def test_film_must_be_w_x_h(tmp_path, captured, capsys):
@@ -405,6 +408,7 @@ def test_a_pbr_dataset_end_to_end(tmp_path, spec, mesh, monkeypatch):
     pytest.importorskip("mujoco")
     from dataclasses import replace
 
+    from pbr_tactile import plugin
     from scenes.dataset import load_sample, read_meta, read_samples
     from scenes.generate import generate
     from scenes.protocol import base_protocol
@@ -412,7 +416,7 @@ def test_a_pbr_dataset_end_to_end(tmp_path, spec, mesh, monkeypatch):
     protocol = base_protocol(spec, mesh, ["sphere"])
     protocol = replace(protocol, taps=protocol.taps[1:3])
     out = tmp_path / "pbr"
-    summary = generate(out, spec, protocol, "pbr", OPTIONS, workers=1, progress=False)
+    summary = generate(out, spec, protocol, plugin, OPTIONS, workers=1, progress=False)
     assert summary["samples"] == 2
     meta = read_meta(out)
     assert meta["source"] == "pbr" and meta["renderer"]["renderer"] == "pbr"
@@ -423,5 +427,5 @@ def test_a_pbr_dataset_end_to_end(tmp_path, spec, mesh, monkeypatch):
         assert record["contact_rse"] <= OPTIONS["target_rse"] and record["passes"] >= 2
         assert record["linear"] == f"linear/{record['id']}.npy"
     assert (out / "background.png").exists()
-    again = generate(out, spec, protocol, "pbr", OPTIONS, workers=1, progress=False)
+    again = generate(out, spec, protocol, plugin, OPTIONS, workers=1, progress=False)
     assert again["new"] == 0

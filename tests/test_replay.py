@@ -51,6 +51,7 @@ def test_diagnose_pairs_a_capture_with_its_replay(diagnose_report):
 def test_replay_sets_the_measured_pose_not_the_commanded_one(tmp_path, tiny_spec, session_env):
     """With measured poses off the commanded ones by a known perturbation, the replay
     reproduces the capture; replaying the commanded poses instead does not."""
+    from phong_reference import plugin as phong
     from scenes.geometry import membrane_mesh
     from scenes.replay import replay
     from tests.fake_capture import PERTURBATION, capture_protocol, edit_samples, images, write_capture
@@ -58,16 +59,17 @@ def test_replay_sets_the_measured_pose_not_the_commanded_one(tmp_path, tiny_spec
     protocol = capture_protocol(tiny_spec, membrane_mesh(tiny_spec))
     root = write_capture(tmp_path / "capture", tiny_spec, protocol, perturbation=PERTURBATION)
     options = {"field": "plane", "background": "solid"}
-    replay(root, tmp_path / "measured", "phong", options, progress=False)
+    replay(root, tmp_path / "measured", phong, options, progress=False)
     assert _mae(images(root), images(tmp_path / "measured")) == 0.0
     commanded = shutil.copytree(root, tmp_path / "commanded")
     edit_samples(commanded, lambda r: {**r, "measured_pose": r["commanded_pose"]})
-    replay(commanded, tmp_path / "at_commanded", "phong", options, progress=False)
+    replay(commanded, tmp_path / "at_commanded", phong, options, progress=False)
     moved = np.abs(images(root) - images(tmp_path / "at_commanded")).max(axis=(1, 2, 3))
     assert (moved > MOVED).all(), moved * 255
 
 
 def test_replay_never_opens_the_virtual_rigs_hidden_settings(tiny_capture, tmp_path):
+    from phong_reference import plugin as phong
     from scenes.replay import replay
     from tests.fake_capture import HIDDEN
 
@@ -81,7 +83,7 @@ def test_replay_never_opens_the_virtual_rigs_hidden_settings(tiny_capture, tmp_p
     sys.addaudithook(hook)  # hooks cannot be removed: this one is switched off below
     try:
         assert (tiny_capture / HIDDEN).exists()
-        replay(tiny_capture, tmp_path / "sim", "phong", {"field": "plane", "background": "solid"},
+        replay(tiny_capture, tmp_path / "sim", phong, {"field": "plane", "background": "solid"},
                ids=[read_samples(tiny_capture)[0]["id"]], progress=False)
     finally:
         watching[0] = False
@@ -146,12 +148,22 @@ def test_replay_refuses_unfit_captures(tiny_capture, tmp_path, case, expected):
 
 
 def test_replay_names_the_sample_whose_pose_is_out_of_travel(tiny_capture, tmp_path):
+    from phong_reference import plugin as phong
     from scenes.replay import replay
 
     root = _broken(tiny_capture, tmp_path, lambda r: {**r, "measured_pose": {**r["measured_pose"], "printer_z": 9.0}}
                    if r["tap_index"] == 1 else r)
     with pytest.raises(ValueError, match=r"sample 000001_sphere: pose: printer_z = 9 is outside its travel"):
-        replay(root, tmp_path / "sim", "phong", {"field": "plane"}, progress=False)
+        replay(root, tmp_path / "sim", phong, {"field": "plane"}, progress=False)
+
+
+def test_replay_takes_a_renderer_plugin_not_its_name(tiny_capture, tmp_path):
+    """Only the command line looks a renderer up by name (``scenes.renderers.get_renderer``)."""
+    from scenes.replay import replay
+
+    with pytest.raises(ValueError, match=r"renderer must be a renderer plugin .*got the name 'phong'"):
+        replay(tiny_capture, tmp_path / "sim", "phong", {"field": "plane"}, progress=False)
+    assert not (tmp_path / "sim").exists()  # refused before any work
 
 
 def test_dataset_command_takes_replay_or_a_protocol_not_both(tiny_capture, tmp_path, capsys):

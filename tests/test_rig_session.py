@@ -22,6 +22,7 @@ from rig.twins.printer import TwinFaults
 from scenes.dataset import read_samples
 from scenes.kinematics import RigLayout, head_for_tap, sensor_to_world
 from scenes.protocol import base_protocol
+from scenes.renderers import get_renderer
 
 #: The drivers' reply timeout against the twins, seconds.
 REPLY_TIMEOUT_S = 0.4
@@ -127,7 +128,7 @@ def test_a_protocol_out_of_reach_or_of_servo_range_is_refused_before_any_port(sp
     with pytest.raises(EnvelopeError, match=r"tap 0 \(sphere\).*outside the build volume"):
         prepare(tmp_path / "a", spec, protocol, RigLayout(travel_x=(-0.05, 0.2)))
     # Roll 2 pi further is the same pose for the protocol, but beyond the roll servo's travel:
-    # the protocol's own check (scenes.protocol.validate) refuses it by name.
+    # the protocol's own check (scenes.protocol_checks.validate) refuses it by name.
     taps = list(protocol.taps[:18])
     taps[12] = replace(taps[12], sensor_roll=taps[12].sensor_roll + 2 * math.pi)
     with pytest.raises(ValueError, match=r"tap 12 \(object 'sphere'.*the rig cannot reach it: sensor_roll 9.425"):
@@ -203,7 +204,8 @@ def virtual(spec):
     opened = []
 
     def make(objects=("sphere",), printer_faults=None, servo_faults=None, camera=None):
-        rig = VirtualRig(spec, objects, "phong", {}, printer_faults=printer_faults, servo_faults=servo_faults)
+        rig = VirtualRig(spec, objects, get_renderer("phong"), {}, printer_faults=printer_faults,
+                         servo_faults=servo_faults)
         opened.append(rig)
         printer = MarlinPrinter(rig.printer.port, reply_timeout_s=REPLY_TIMEOUT_S)
         servos = ServoBoard(rig.servos.port, reply_timeout_s=REPLY_TIMEOUT_S)
@@ -255,7 +257,7 @@ def test_a_virtual_session_captures_what_the_dataset_generator_renders(spec, pro
     assert meta["source"] == "real" and meta["rig"]["virtual"] is True
     assert "phong" not in json.dumps(meta)  # the hidden settings are elsewhere
     assert json.loads((tmp_path / "cap" / "virtual.json").read_text())["renderer"] == "phong"
-    job = Job(spec, "phong", {}, ("sphere",))
+    job = Job(spec, get_renderer("phong").make_renderer, {}, ("sphere",))
     for record, tap in zip(records, short.taps):
         for joint, value in record["commanded_pose"].items():
             tolerance = POSITION_RESOLUTION_M if joint.startswith("printer") else ANGLE_RESOLUTION_RAD
@@ -405,7 +407,7 @@ def test_the_twin_camera_says_who_sets_its_exposure(spec, renderer, options, exp
     _needs_virtual_rig()
     from rig.virtual import VirtualRig
 
-    with VirtualRig(spec, ("sphere",), renderer, options) as rig:
+    with VirtualRig(spec, ("sphere",), get_renderer(renderer), options) as rig:
         assert rig.camera.describe()["exposure"] == exposure
 
 
@@ -437,9 +439,9 @@ def test_a_twin_units_led_powers_go_to_the_reference_and_only_there(spec):
     from rig.virtual import VirtualRig
 
     with pytest.raises(ValueError, match="unit led_power needs the pbr camera twin"):
-        VirtualRig(spec, ("sphere",), "phong", {}, unit={"led_power": (1.2, 0.8, 1.0)})
+        VirtualRig(spec, ("sphere",), get_renderer("phong"), {}, unit={"led_power": (1.2, 0.8, 1.0)})
     _needs_virtual_rig()
-    with VirtualRig(spec, ("sphere",), "pbr", {"film": [80, 60]}, unit={"led_power": 1.5}) as rig:
+    with VirtualRig(spec, ("sphere",), get_renderer("pbr"), {"film": [80, 60]}, unit={"led_power": 1.5}) as rig:
         assert rig.options == {"film": [80, 60], "led_power": [1.5, 1.5, 1.5]}  # one for every LED
         assert rig.unit_spec == spec
 
@@ -478,7 +480,7 @@ def test_a_twin_unit_presses_deeper_and_renders_its_own_spec(spec, monkeypatch):
     monkeypatch.setattr(scenes.generate, "render_sample", lambda renderer, depth: seen.append(depth) or
                         {"image": np.full((*depth.shape, 3), 0.4, np.float32)})
     unit = {"membrane_compliance": 1.5, "layer_spread": 0.25, "camera_gains": (2.0, 1.0, 0.5)}
-    with VirtualRig(spec, ("sphere",), "phong", {}, unit=unit) as rig:
+    with VirtualRig(spec, ("sphere",), get_renderer("phong"), {}, unit=unit) as rig:
         rig.renderer()
         ref = np.asarray(rig.ref_depth, np.float32)
         pressed = ref.copy()

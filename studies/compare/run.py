@@ -25,20 +25,24 @@ from pathlib import Path
 
 import numpy as np
 
+from phong_reference import plugin as phong
 from phong_reference.background import make_background
 from phong_reference.bake import METHODS
 from phong_reference.plugin import OPTIONS as FAST_OPTIONS
 from phong_reference.render import finish
 from scenes.camera import Camera
-from scenes.captures import contact_contrast, contact_strength, frame_spread, press_regions, split
+from scenes.captures import frame_spread, press_regions, split
 from scenes.dataset import load_sample, read_samples
+from scenes.image_stats import contact_contrast, contact_strength
 from scenes.images import read_rgb
 from scenes.profile import Alignment, align_image, load_profile
+from scenes.renderers import RendererPlugin
 from rig.align import alignment_from_dict
 from scenes.replay import Capture, read_capture, replay
 
 from . import table
 
+#: The renderers' names in the renders' folders (the fast path's) and in the table (the reference's).
 FAST = "phong"
 REFERENCE = "pbr"
 #: The fast path's backgrounds: none, the renderer's solid colour, and the capture's own
@@ -119,7 +123,7 @@ def _backgrounds(capture: Capture, camera: Camera, wanted: Sequence[str] | None)
 
 def contrast_budget(sim: dict, real: dict, sim_frame: dict, real_frame: dict) -> dict:
     """Where a method's contact strength against the real one comes from, per channel,
-    from ``scenes.captures.contact_contrast`` of its taps and of the real ones and
+    from ``scenes.image_stats.contact_contrast`` of its taps and of the real ones and
     ``frame_spread`` of each no-contact image: the medians over the taps of
 
     - ``level_ratio``, its level over the real level: the camera's share (exposure, gains);
@@ -156,7 +160,8 @@ def compare(
     fields: Sequence[str] = METHODS,
     backgrounds: Sequence[str] | None = None,
     reference: bool = True,
-    reference_renderer: str = REFERENCE,
+    reference_renderer: RendererPlugin | None = None,
+    reference_label: str = REFERENCE,
     peers: Sequence[str] = (),
     bootstrap: int = 2000,
     seed: int = 0,
@@ -181,7 +186,9 @@ def compare(
     fields, backgrounds : the fast path's light fields and backgrounds (None: every one
         the capture allows: ``real`` needs its background.png).
     reference : False leaves the reference out.
-    reference_renderer : the reference's renderer plugin (a module path in tests).
+    reference_renderer, reference_label : the reference's renderer plugin (None: the
+        physically based reference, ``pbr_tactile.plugin``; a stand-in in tests) and its
+        name in the table (its row ``reference: <label>`` and the row's ``renderer``).
     peers : peer simulators scored beside ours, some of PEERS ("taxim": Taxim with its
         shipped calibration and refitted on the capture's fitted half, ``studies.compare.taxim``;
         an imported set of ball presses). One that cannot run here is listed in the
@@ -254,7 +261,7 @@ def compare(
     for field in fields:
         if profile is None:
             where = renders / f"{FAST}_{field}"
-            replay(capture, where, FAST, {**fast_options, "field": field, "background": "none"}, ids=ids, **common)
+            replay(capture, where, phong, {**fast_options, "field": field, "background": "none"}, ids=ids, **common)
             shading = align(load_images(where, ids, camera.shape), masked=False)
             shading_0 = align(no_contact_of(where, camera)[None], masked=False)[0]
             for name, background in bgs.items():
@@ -263,7 +270,7 @@ def compare(
                     stack, ids, with_background(shading_0, background, spec.material.ambient, mask))
         else:
             where = renders / f"{FAST}_{field}_profile"
-            replay(capture, where, FAST, {**fast_options, "field": field, "profile": str(profile)}, ids=ids, **common)
+            replay(capture, where, phong, {**fast_options, "field": field, "profile": str(profile)}, ids=ids, **common)
             add(f"fast: {field}, profile", {"method": "fast", "field": field, "background": "profile"},
                 load_images(where, ids, camera.shape), ids, no_contact_of(where, camera))
     peer_status = {}
@@ -282,10 +289,12 @@ def compare(
             add(f"peer: {peer}, {variant}", {"method": "peer", "peer": peer, "variant": variant},
                 r["images"] * mask[..., None], ids, r["no_contact"] * mask[..., None])
     if reference:
+        if reference_renderer is None:
+            from pbr_tactile import plugin as reference_renderer
         where = renders / ("reference" if profile is None else "reference_profile")
         opts = ref_options if profile is None else {**ref_options, "profile": str(profile)}
         replay(capture, where, reference_renderer, opts, ids=ref_ids, **common)
-        add(f"reference: {reference_renderer}", {"method": "reference", "renderer": reference_renderer},
+        add(f"reference: {reference_label}", {"method": "reference", "renderer": reference_label},
             align(load_images(where, ref_ids, camera.shape)), ref_ids, align(no_contact_of(where, camera)[None])[0])
 
     best = min((r for r in rows if r["method"] == "fast"), key=lambda r: r["masked"]["mae"]["mean"])

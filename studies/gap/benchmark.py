@@ -67,6 +67,7 @@ def real_background() -> Path:
 
 def contacts(root: Path, spec: SensorSpec, progress: bool = True) -> Path:
     """The base protocol's depth maps from the MuJoCo rig (cached in ``root``)."""
+    import phong_reference.plugin
     from scenes.generate import generate
     from scenes.geometry import membrane_mesh
     from scenes.indenters import INDENTERS
@@ -74,7 +75,8 @@ def contacts(root: Path, spec: SensorSpec, progress: bool = True) -> Path:
 
     folder = root / "contacts"
     protocol = base_protocol(spec, membrane_mesh(spec), tuple(INDENTERS))
-    generate(folder, spec, protocol, "phong", {"field": "plane", "background": "none"}, progress=progress)
+    generate(folder, spec, protocol, phong_reference.plugin, {"field": "plane", "background": "none"},
+             progress=progress)
     return folder
 
 
