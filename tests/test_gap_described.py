@@ -389,7 +389,8 @@ def test_imports_nothing_from_studies_gap(absolute_imports):
     assert {n.split(".")[0] for n in names} <= allowed
 
 
-@pytest.mark.parametrize("name", ["effects", "fit", "model", "diagnose"])
+@pytest.mark.parametrize("name", ["effects", "fit", "judge", "selection", "diagnosis", "samples", "optics",
+                                  "model", "diagnose"])
 def test_the_fitter_never_imports_this_module(name):
     path = ROOT / "studies" / "gap" / f"{name}.py"
     if not path.exists():

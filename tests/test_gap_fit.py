@@ -17,7 +17,8 @@ import trimesh
 from scenes.contact import press
 from scenes.images import to_uint8
 from studies.gap import effects as fx
-from studies.gap.fit import LOSS_EPS, Diagnosis
+from studies.gap.diagnosis import Diagnosis
+from studies.gap.fit import LOSS_EPS
 from studies.gap.inject import Injector, misalign, respond
 from studies.gap.model import FastModel
 from studies.gap.pairs import Pairs, split
@@ -69,11 +70,11 @@ def ranked(singles: dict) -> list[str]:
 def test_the_fitted_loss_is_a_smooth_mae(spec, injector, contacts):
     sim = np.stack([injector.render(d) for d in contacts[:4]])
     d = diagnosis(make_pairs(spec, "solid", sim, sim, contacts[:4]), ("camera_response",))
-    assert d._loss(d.real_w) == 0.0
+    assert d.fitter._loss(d.fitter.real_w) == 0.0
     e = 0.1  # a uniform error of e over the circle: sqrt(e^2 + eps^2) - eps
-    assert d._loss(d.real_w + e) == pytest.approx(math.sqrt(e * e + LOSS_EPS**2) - LOSS_EPS, rel=1e-4)
+    assert d.fitter._loss(d.fitter.real_w + e) == pytest.approx(math.sqrt(e * e + LOSS_EPS**2) - LOSS_EPS, rel=1e-4)
     # Nine pixels in ten off by 0.01 weigh as much as one in ten off by 0.1 (an MSE: 1/10 as much).
-    assert d._loss(d.real_w + 0.01) > 0.07 * d._loss(d.real_w + 0.1)
+    assert d.fitter._loss(d.fitter.real_w + 0.01) > 0.07 * d.fitter._loss(d.fitter.real_w + 0.1)
 
 
 def test_white_balance_gains_start_in_closed_form(spec, injector, contacts):
@@ -82,7 +83,7 @@ def test_white_balance_gains_start_in_closed_form(spec, injector, contacts):
     sim = np.stack([injector.render(d) for d in contacts[:4]])
     real = respond(sim, 1.0, gains, np.eye(3))
     d = diagnosis(make_pairs(spec, "solid", sim, real, contacts[:4]), ("camera_response",))
-    start = next(s for s in d.starts("camera_response") if s["gamma"] == 1.0)
+    start = next(s for s in d.fitter.starts("camera_response") if s["gamma"] == 1.0)
     assert [start[f"gain_{c}"] for c in "rgb"] == pytest.approx(gains, abs=0.01)
 
 
@@ -96,14 +97,14 @@ def test_a_colour_matrix_that_mixes_and_darkens_starts_in_closed_form(spec):
     C = np.array([[0.7, -0.1, 0.05], [0.1, 0.5, -0.05], [-0.05, 0.1, 0.8]])
     real = np.clip(sim @ C.T - 0.02, 0.0, 1.0) ** (1 / 1.3)
     d = diagnosis(make_pairs(spec, "solid", sim, real, None), ("camera_response",))
-    start = next(s for s in d.starts("camera_response") if s["gamma"] == 1.3)
+    start = next(s for s in d.fitter.starts("camera_response") if s["gamma"] == 1.3)
     assert np.allclose(fx.colour_matrix(start), C, atol=0.01) and start["offset"] == pytest.approx(-0.02, abs=0.01)
     fit = d.fit(("camera_response",))
     assert fit.train_loss < 0.05 * fit.train_loss_before
     assert np.allclose(fx.colour_matrix(fit.params["camera_response"]), C, atol=0.03)
-    darker = d.real_w[:, d.mask_w].mean()
-    assert darker < d.sim_w[:, d.mask_w].mean() - 0.05
-    assert d.predict_train(fit.params)[:, d.mask_w].mean() == pytest.approx(darker, abs=0.005)
+    darker = d.fitter.real_w[:, d.fitter.mask_w].mean()
+    assert darker < d.fitter.sim_w[:, d.fitter.mask_w].mean() - 0.05
+    assert d.fitter.predict_train(fit.params)[:, d.fitter.mask_w].mean() == pytest.approx(darker, abs=0.005)
 
 
 def test_misalignment_keeps_the_image_circle_and_background(spec):
@@ -167,9 +168,9 @@ def test_light_fading_is_not_taken_for_a_camera_response(spec, injector, contact
     # The background (no contact, most of the circle) is not traded for the contacts: fitted
     # by squared error, its MAE rose by a quarter here (0.0022 -> 0.0027).
     no_contact = d.work.working_images(injector.no_contact[None])[0]
-    background = (np.abs(d.sim_w - no_contact).max(axis=-1) < 2 / 255) & d.mask_w
-    before = np.abs(d.sim_w - d.real_w).mean(axis=-1)[background].mean()
-    after = np.abs(d.predict_train(response.fit.params) - d.real_w).mean(axis=-1)[background].mean()
+    background = (np.abs(d.fitter.sim_w - no_contact).max(axis=-1) < 2 / 255) & d.fitter.mask_w
+    before = np.abs(d.fitter.sim_w - d.fitter.real_w).mean(axis=-1)[background].mean()
+    after = np.abs(d.fitter.predict_train(response.fit.params) - d.fitter.real_w).mean(axis=-1)[background].mean()
     assert after <= 1.1 * before, (before, after)
 
 
@@ -357,9 +358,10 @@ def test_a_fit_never_leaves_more_than_its_best_start(spec, injector, contacts, m
     sim = np.stack([injector.render(d) for d in contacts[:4]])
     real = respond(sim, 1.0, (1.2, 1.45, 1.1), np.eye(3))
     d = diagnosis(make_pairs(spec, "solid", sim, real, contacts[:4]), ("camera_response",))
-    _, _, to_z = d._space(("camera_response",))
-    best = min(d._loss(d.predict_train({"camera_response": s})) for s in d.starts("camera_response"))
-    assert best < 0.1 * d.train_loss_before  # the closed form itself closes most of it
+    _, _, to_z = d.fitter._space(("camera_response",))
+    best = min(d.fitter._loss(d.fitter.predict_train({"camera_response": s}))
+               for s in d.fitter.starts("camera_response"))
+    assert best < 0.1 * d.fitter.train_loss_before  # the closed form itself closes most of it
 
     def worse(fun, x0, **kwargs):
         x = np.clip(np.asarray(x0) + 0.2, 0.0, 1.0)
@@ -380,7 +382,7 @@ def test_the_fade_starts_in_closed_form_on_its_own_profile(spec, injector, conta
     kept = fx.fade(fx.fade_ramps(model.axial, model.fade_length), truth)
     real = sim * kept[None, ..., None]
     d = diagnosis(make_pairs(spec, "solid", sim, real, contacts[:6]), ("path_attenuation",))
-    starts = [s for s in d.starts("path_attenuation")
+    starts = [s for s in d.fitter.starts("path_attenuation")
               if s["axial_share"] == 1.0 and s["led_weight"] == 1.0 and s["ambient_weight"] == 1.0]
     found = np.array([[s[f"depth_{k}"] for k in range(fx.FADE_KNOTS)] for s in starts])
     # the stretches the axial heights reach (the longest distance is the path to the apex)
@@ -400,9 +402,9 @@ def test_parameter_intervals_are_the_bootstrap_of_the_samples_own_optima(spec, i
     n = len(d.train_index)
     rng = np.random.default_rng(7)
     optima, curvature = rng.uniform(1.5, 2.5, n), rng.uniform(0.5, 2.0, n)
-    d.predict_train = lambda params: params  # the "prediction" is the parameters themselves
-    d._sample_losses = lambda params: curvature * (params["blur_noise"]["sigma_px"] - optima) ** 2
-    d._sample_counts = lambda: np.ones(n)
+    d.fitter.predict_train = lambda params: params  # the "prediction" is the parameters themselves
+    d.fitter._sample_losses = lambda params: curvature * (params["blur_noise"]["sigma_px"] - optima) ** 2
+    d.fitter._sample_counts = lambda: np.ones(n)
     fitted = 2.0
     fit = fx_fit(("blur_noise",), {"blur_noise": {"sigma_px": fitted}})
     low, high = d.intervals(fit, resamples=300)["blur_noise"]["sigma_px"]

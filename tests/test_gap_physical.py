@@ -1,5 +1,5 @@
 """The diagnosis when the reference rendered the simulation: its candidates are the
-reference's own switches (studies.gap.physical).
+reference's own switches (studies.gap.physical, studies.gap.reference_model).
 
 The per-source renders are replaced here by an analytic stand-in for
 ``pbr_tactile.basis.emitter_basis`` (each LED's light falls off as exp(-sigma_a d)
@@ -23,10 +23,12 @@ from pbr_tactile.effects import Effects
 from scenes.camera import Camera, reference_depth
 from scenes.contact import press
 from scenes.geometry import membrane_mesh
-from studies.gap import physical
-from studies.gap.fit import Diagnosis
+from studies.gap import reference_model, smoothing, source_basis
+from studies.gap.diagnosis import Diagnosis
 from studies.gap.pairs import Pairs, split
-from studies.gap.physical import ReferenceModel, SourceBasis, physical_catalogue
+from studies.gap.physical import physical_catalogue
+from studies.gap.reference_model import ReferenceModel
+from studies.gap.source_basis import SourceBasis
 
 FILM = (80, 60)
 
@@ -141,7 +143,7 @@ def test_powers_leak_and_spectra_are_linear_in_the_sources(spec, scene, stub):
               "led_power": {f"power_{m}": 2.0 if m == 1 else 1.0 for m in range(len(spec.leds))}}
     # The capture is exposed from its own no-contact frame (pbr_tactile.plugin's rule).
     mask = camera.scaled(*FILM).mask
-    nc = model.sources(physical.NO_CONTACT, {})
+    nc = model.sources(source_basis.NO_CONTACT, {})
     level = np.percentile((GAIN * sum(0.5 * (2.0 if n.startswith("led1") else 1.0) * nc[..., s, None] * R[int(n[3])]
                                       for s, n in enumerate(names)))[mask], 99.5)
     level0 = np.percentile((GAIN * sum(nc[..., s, None] * R[int(n[3])] for s, n in enumerate(names)
@@ -194,11 +196,11 @@ def test_a_re_rendered_effect_is_interpolated_between_grid_points(spec, scene, s
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
     got = model.interpolated(2, "absorption_per_m", 50.0)
     truth = fake_basis(spec, None, camera, dataclasses.replace(Effects(), absorption_per_m=50.0,
-                                                               core_light_leak=physical.LEAK_BASIS),
+                                                               core_light_leak=source_basis.LEAK_BASIS),
                        FILM, depth=depth[2], ref_depth=ref)["mean"]
     leak = np.array([n.endswith("_leak") for n in model.basis.names])
     film = camera.scaled(*FILM)
-    truth[..., leak] = physical._axially_smoothed(truth[..., leak], (film.cx, film.cy), physical.LEAK_SMOOTH_PX)
+    truth[..., leak] = smoothing.axially_smoothed(truth[..., leak], (film.cx, film.cy), smoothing.LEAK_SMOOTH_PX)
     assert np.allclose(got, truth, rtol=1e-4, atol=1e-4)
     assert model.basis.cost["absorption_per_m"]["renders"] == 1  # one grid point (120) beside the identity
 
@@ -212,10 +214,10 @@ def test_a_re_rendered_change_is_smoothed_as_a_ratio():
     # An exact ratio away from the film's edges (the filter's nearest-edge padding aside).
     inner = (slice(8, -8), slice(8, -8))
     truth = (base * ratio - base)[inner]
-    assert np.abs(physical._smoothed_change(base * ratio, base)[inner] - truth).max() < 0.02 * np.abs(truth).max()
+    assert np.abs(smoothing.smoothed_change(base * ratio, base)[inner] - truth).max() < 0.02 * np.abs(truth).max()
     noisy = base * ratio * (1 + 0.1 * rng.standard_normal(base.shape)).astype(np.float32)
     plain = np.abs((noisy - base) - (base * ratio - base))[inner].mean()
-    smoothed = np.abs(physical._smoothed_change(noisy, base) - (base * ratio - base))[inner].mean()
+    smoothed = np.abs(smoothing.smoothed_change(noisy, base) - (base * ratio - base))[inner].mean()
     assert smoothed < plain / 3
 
 
@@ -229,7 +231,7 @@ def test_a_leak_image_is_smoothed_around_the_tubes_axis_more_than_along_it():
     r, azimuth = np.hypot(u - cx, v - cy), np.arctan2(v - cy, u - cx)
     ring = np.exp(-(((r - 12) / 3) ** 2))
     images = np.stack([ring, np.cos(azimuth), np.ones((h, w))], axis=-1).astype(np.float32)
-    out = physical._axially_smoothed(images, (cx, cy), (4.0, 0.0))
+    out = smoothing.axially_smoothed(images, (cx, cy), (4.0, 0.0))
     assert np.abs(out[..., 2] - 1).max() < 1e-6
     assert np.abs(out[..., 0] - ring).max() < 0.03
     band = (r > 15) & (r < 25)
@@ -237,7 +239,7 @@ def test_a_leak_image_is_smoothed_around_the_tubes_axis_more_than_along_it():
     assert np.abs(out[..., 1][band] - kept * images[..., 1][band]).max() < 0.01
     assert np.abs(out[..., 1][band] - images[..., 1][band]).max() > 0.015  # it did smooth
     noise = np.random.default_rng(0).standard_normal((h, w, 1)).astype(np.float32)
-    assert physical._axially_smoothed(noise, (cx, cy), (4.0, 0.75))[r < 28].std() < 0.25
+    assert smoothing.axially_smoothed(noise, (cx, cy), (4.0, 0.75))[r < 28].std() < 0.25
 
 
 def pairs_of(spec, scene, real: np.ndarray, sim: np.ndarray, **effects) -> Pairs:
@@ -269,7 +271,7 @@ def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidde
     assert singles[name].fit.params[name]["exposure"] == pytest.approx(hidden[name].get("exposure", 1.0), abs=0.01)
     assert singles[name].improvement["masked"]["mae"]["share"] > 0.8
     # Judged at the basis film: held-out images are its block means.
-    assert d.real_h.shape[1:3] == (FILM[1], FILM[0]) and d.full.factor == 8
+    assert d.judging.real_h.shape[1:3] == (FILM[1], FILM[0]) and d.full.factor == 8
 
 
 @pytest.mark.parametrize("hidden, first", [({"core_leak_cone_rad": {"value": 0.3, "fraction": 0.3}},
@@ -297,7 +299,7 @@ def test_a_leak_aimed_up_the_tube_is_a_candidate_though_the_simulation_has_no_le
 
 
 def test_a_reference_model_is_judged_at_its_basis_film(spec):
-    from studies.gap.model import judging_factor
+    from studies.gap.diagnosis import judging_factor
 
     assert judging_factor(spec, (80, 60)) == 8 and judging_factor(spec, (160, 120)) == 4
     assert judging_factor(spec, (100, 60)) == 1  # a film that does not tile the image: the images' own
@@ -509,7 +511,7 @@ def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec,
     from studies.gap.diagnose import diagnose
     from studies.gap.report import headline
 
-    monkeypatch.setattr(physical, "JUDGED_RENDERS", 1)
+    monkeypatch.setattr(reference_model, "JUDGED_RENDERS", 1)
     pairs = pairs_of(spec, scene, rendered(spec, scene, {"absorption_per_m": {"value": 60.0}}), rendered(spec, scene, {}))
     train, heldout = split(pairs, 0.5, seed=0)
     d = Diagnosis(pairs, train, heldout, factor=8,
@@ -560,7 +562,8 @@ def test_the_basis_noise_is_its_variance_as_the_images_are_compared(spec, scene,
     from scipy import ndimage
 
     import test_gap_physical as me
-    from studies.gap.physical import COMPARED_SIGMA_FILM_PX, NO_CONTACT
+    from studies.gap.reference_model import COMPARED_SIGMA_FILM_PX
+    from studies.gap.source_basis import NO_CONTACT
 
     camera, ref, depth = scene
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
@@ -592,7 +595,7 @@ def test_the_reference_lens_is_judged_with_the_exposure_its_capture_gets(spec, s
     camera, ref, depth = scene
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
     frames = np.stack([model._resized(model.image(i, {})) for i in range(len(depth))])
-    nc = model._resized(model.image(physical.NO_CONTACT, {}))
+    nc = model._resized(model.image(source_basis.NO_CONTACT, {}))
     lens = sensor.vignetting(nc, camera, 0.5)
     gain = np.percentile(nc[camera.mask], EXPOSURE_PERCENTILE) / np.percentile(lens[camera.mask], EXPOSURE_PERCENTILE)
     real = np.clip(gain * np.stack([sensor.vignetting(f, camera, 0.5) for f in frames]), 0, 1)
@@ -621,7 +624,7 @@ def test_a_reference_ranking_puts_the_simplest_of_the_tied_best_first(spec, scen
     assert set(ranked) == {"led_power", "camera_gains"} and ranked[0] == "led_power"
     if by_gain[0] == "camera_gains":  # then it must not have been better by more than the tie rule allows
         from studies.gap import metrics
-        from studies.gap.fit import RANK_TIE_SHARE
+        from studies.gap.selection import RANK_TIE_SHARE
 
         a, b = (singles[n].after["masked"]["mae"] for n in ("led_power", "camera_gains"))
         within = np.mean(a) - np.mean(b) <= RANK_TIE_SHARE * np.mean(d.before["masked"]["mae"])
@@ -634,8 +637,8 @@ def test_a_reference_candidate_within_the_tie_margin_of_the_best_ties_with_it():
     more, camera_gains does."""
     from types import SimpleNamespace
 
-    from studies.gap import fit as fitmod
-    from studies.gap.fit import Judged
+    from studies.gap import selection
+    from studies.gap.judge import Judged
 
     def judged(mae: np.ndarray, before: np.ndarray) -> Judged:
         from studies.gap import metrics
@@ -652,7 +655,7 @@ def test_a_reference_candidate_within_the_tie_margin_of_the_best_ties_with_it():
     model.__dict__.update(work=SimpleNamespace(kind="pbr", ties_to_simplest=True), catalogue=catalogue, seed=0,
                           before={"masked": {"mae": before}})
     best = 0.004 + 0.0005 * rng.standard_normal(20)
-    for lag, first in ((0.5 * fitmod.RANK_TIE_SHARE, "absorption_per_m"), (3 * fitmod.RANK_TIE_SHARE, "camera_gains")):
+    for lag, first in ((0.5 * selection.RANK_TIE_SHARE, "absorption_per_m"), (3 * selection.RANK_TIE_SHARE, "camera_gains")):
         singles = {"camera_gains": judged(best, before),
                    "absorption_per_m": judged(best + lag * before.mean(), before)}
         assert model.rank(singles)[0] == first
@@ -687,7 +690,8 @@ def test_a_pair_takes_the_first_place_only_if_each_of_its_two_adds_to_the_other(
     from types import SimpleNamespace
 
     from studies.gap import metrics
-    from studies.gap.fit import Fit, Judged
+    from studies.gap.fit import Fit
+    from studies.gap.judge import Judged
 
     rng = np.random.default_rng(0)
     before = 0.02 + 0.001 * rng.standard_normal(20)
@@ -734,7 +738,7 @@ def test_an_alignment_closes_the_simulations_noise_only_where_it_is_compared_uns
 
     real, sim = noisy(clean), noisy(clean)
     low = alignment(real, sim).improvement["masked"]["mae"]
-    monkeypatch.setattr(physical, "COMPARED_SIGMA_FILM_PX", 0.0)  # the images themselves
+    monkeypatch.setattr(reference_model, "COMPARED_SIGMA_FILM_PX", 0.0)  # the images themselves
     raw = alignment(real, sim).improvement["masked"]["mae"]
     monkeypatch.undo()
     assert raw["significant"] and raw["share"] > 0.03

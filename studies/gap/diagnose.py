@@ -20,12 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
+from scenes import image_stats
 from scenes.images import block_mean
 
 from . import metrics
-from .fit import INTERVAL_EFFECTS, MIN_RANK_SHARE, PARAM_RESAMPLES, RANK_BY, Diagnosis, Judged
+from .diagnosis import Diagnosis
+from .fit import INTERVAL_EFFECTS, PARAM_RESAMPLES
+from .judge import MIN_RANK_SHARE, RANK_BY, Judged
 from .pairs import Pairs, load_pairs, split
 from .regions import error_maps, where
+from .selection import size
 
 
 def _judged(j: Judged) -> dict:
@@ -45,13 +49,13 @@ def _per_sample(pairs: Pairs, values: dict, index: np.ndarray) -> list[dict]:
         r = pairs.records[i]
         rows.append({"id": pairs.ids[i], "object": r.get("object"), "path": r.get("path"),
                      "position": r.get("position"),
-                     **{f"{scope}_{m}": float(values[scope][m][k]) for scope in values for m in metrics.METRICS}})
+                     **{f"{scope}_{m}": float(values[scope][m][k]) for scope in values for m in image_stats.METRICS}})
     return rows
 
 
 def _groups(pairs: Pairs, values: dict, index: np.ndarray, key) -> dict:
     keys = [key(pairs.records[i]) for i in index]
-    return {scope: {m: metrics.group_means(values[scope][m], keys) for m in metrics.METRICS} for scope in values}
+    return {scope: {m: metrics.group_means(values[scope][m], keys) for m in image_stats.METRICS} for scope in values}
 
 
 #: Why held-out samples are judged at the resolution they are (report settings.judged_at).
@@ -73,13 +77,13 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
     sides : an explicit (train, held-out) pair of boolean masks over the samples, in
         place of the stratified ``split``.
     intervals : bootstrap resamples behind the parameter intervals of the best-ranked
-        effects (``Diagnosis.intervals``); 0 leaves them out (the benchmarks, which do
+        effects (``Fitter.intervals``); 0 leaves them out (the benchmarks, which do
         not score them).
     """
     t0 = time.perf_counter()
     train, heldout = split(pairs, heldout_fraction, seed) if sides is None else sides
     every = np.arange(len(pairs))
-    gap_all = metrics.per_sample(pairs.real, pairs.sim, _mask(pairs))
+    gap_all = image_stats.per_sample(pairs.real, pairs.sim, _mask(pairs))
     located, labels = where(pairs.real, pairs.sim, pairs.depth, pairs.records, pairs.spec, seed)
     maps = error_maps(pairs.real, pairs.sim)
 
@@ -131,11 +135,11 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
         "not_applicable": diagnosis.not_applicable,
         "ranking": ranked,
         # the two first-ranked effects, fitted together, where they took the first place
-        # from a single effect with more parameters that closes no more (``Diagnosis.rank``)
+        # from a single effect with more parameters that closes no more (``selection.rank``)
         "first_pair": None if diagnosis.first_pair is None else {
             **_judged(diagnosis.first_pair), "instead_of": diagnosis.first_pair.instead_of,
-            "parameters": sum(diagnosis.size(n) for n in diagnosis.first_pair.fit.effects),
-            "instead_of_parameters": diagnosis.size(diagnosis.first_pair.instead_of)},
+            "parameters": sum(size(diagnosis.catalogue[n]) for n in diagnosis.first_pair.fit.effects),
+            "instead_of_parameters": size(diagnosis.catalogue[diagnosis.first_pair.instead_of])},
         "not_significant": [n for n in singles if n not in ranked],
         # Fits whose search ended where it started while leaving most of the gap, and what
         # the check around the start found (a local optimum, or a restart that moved on).
@@ -222,7 +226,7 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int 
         return None
 
     def floor(variances: list, area: np.ndarray) -> float:
-        return float(np.mean([metrics.mae_floor(v, area) for v in variances]))
+        return float(np.mean([image_stats.mae_floor(v, area) for v in variances]))
 
     def summary(variances: dict, area: np.ndarray) -> dict:
         out = {"mae_floor": {side: floor(vs, area) for side, vs in variances.items()}}
@@ -237,7 +241,7 @@ def render_noise(pairs: Pairs, index: np.ndarray, mask: np.ndarray, factor: int 
         blocks = {}
         for side, vs in sides.items():
             held = max(1.0, (factor * float(films[side][0]) / pairs.shape[1]) ** 2)  # film pixels in a block
-            blocks[side] = [metrics.low_passed_variance(block_mean(v, factor, (0, 1)) / held, sigma) for v in vs]
+            blocks[side] = [image_stats.low_passed_variance(block_mean(v, factor, (0, 1)) / held, sigma) for v in vs]
         area = block_mean(mask.astype(np.float32), factor, (0, 1)) >= 0.5
         out["judged"] = {"factor": int(factor), "sigma": float(sigma), **summary(blocks, area),
                          "note": "the same at the resolution the held-out samples are judged at (block means), as "
@@ -275,11 +279,12 @@ def _mask(pairs: Pairs) -> np.ndarray:
 
 def _examples(diagnosis: Diagnosis, final: Judged | None, count: int = 4) -> dict:
     """A few held-out samples (the worst gaps): real, simulated, and with the selected effects."""
-    before = diagnosis.before["masked"]["mae"]
+    judging = diagnosis.judging
+    before = judging.before["masked"]["mae"]
     order = np.argsort(-before)[:count]
-    pred = diagnosis.predict_heldout(final.fit.params)[order] if final is not None else diagnosis.sim_h[order]
-    return {"ids": [diagnosis.pairs.ids[diagnosis.heldout_index[i]] for i in order], "real": diagnosis.real_h[order],
-            "sim": diagnosis.sim_h[order], "model": pred}
+    pred = judging.predict(final.fit.params)[order] if final is not None else judging.sim_h[order]
+    return {"ids": [diagnosis.pairs.ids[judging.heldout_index[i]] for i in order], "real": judging.real_h[order],
+            "sim": judging.sim_h[order], "model": pred}
 
 
 def alternate(pairs: Pairs) -> tuple[np.ndarray, np.ndarray]:

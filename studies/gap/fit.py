@@ -1,45 +1,33 @@
-"""Fit candidate effects on training samples, measure them on held-out ones, rank them,
-and select combinations greedily.
+"""Fit candidate effects' parameters on training samples.
 
 Each effect's parameters are fitted by bounded quasi-Newton (scipy's L-BFGS-B on
 parameters scaled to [0, 1]) minimising a smooth mean absolute error between the real
 images and the predicted ones over the training samples, at the working resolution (the
-held-out judgement is an MAE too: a squared error would let an effect trade many small
-errors for a few large ones and win the fit while losing the judgement). Fits start from
-the best of a few starting points: closed-form ones where the effect is linear in its
-parameters for a fixed exponent (the colour matrix per gamma, vignetting coefficients),
-registration for shifts and rotations, small grids where the loss has several basins. A
-fit that leaves most of the training gap without having moved from its start (a kink or
-flat spot where finite-difference gradients mislead L-BFGS-B) probes a step either side
-of it along each parameter and restarts from the best probe, and its status says so.
-The fitted effect is then judged on held-out samples only, at full resolution (a
-reference model: at its basis film, ``studies.gap.model.make_models``): the
-paired improvement of each sample's MAE, SSIM and PSNR, with bootstrap confidence
-intervals. Effects whose MAE improvement is not significant (interval reaching 0) are
-reported as such and not ranked. Forward selection then adds, one at a time, the effect
-that most improves the held-out MAE of the combination fitted jointly, while the step's
-paired improvement is significant.
+held-out judgement, ``studies.gap.judge``, is an MAE too: a squared error would let an
+effect trade many small errors for a few large ones and win the fit while losing the
+judgement). Fits start from the best of a few starting points: closed-form ones where
+the effect is linear in its parameters for a fixed exponent (the colour matrix per
+gamma, vignetting coefficients), registration for shifts and rotations, small grids
+where the loss has several basins. A fit that leaves most of the training gap without
+having moved from its start (a kink or flat spot where finite-difference gradients
+mislead L-BFGS-B) probes a step either side of it along each parameter and restarts
+from the best probe, and its status says so. A fit's parameters get bootstrap intervals
+over the training samples (``Fitter.intervals``).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy import optimize
 from skimage.registration import phase_cross_correlation
 
-from scenes.images import block_mean
-
 from . import effects as fx
-from . import metrics
-from .model import make_models
 from .pairs import Pairs
+from .samples import areas_at, fit_subset
 
-#: Ranking metric: the masked MAE (the image circle; the black border holds no signal).
-RANK_BY = ("masked", "mae")
 #: At most this many L-BFGS-B iterations per fit.
 MAX_ITERATIONS = 100
 #: The fitted loss: mean of sqrt(e^2 + eps^2) - eps (Charbonnier), an MAE that is smooth
@@ -73,31 +61,6 @@ FTOL = 1e-4
 #: Fits use at most this many training samples (an even spread over objects): a few
 #: parameters per effect need no more, and it bounds the time of a diagnosis.
 MAX_FIT_SAMPLES = 32
-#: A forward-selection step must also close at least this share of the original gap.
-MIN_STEP_SHARE = 0.01
-#: A single effect is ranked (named as a cause) only if it also closes at least this share
-#: of the held-out gap less its sensor-noise floor: a candidate that closes 0.2 % of it,
-#: however surely, explains nothing, and the Answer then says that nothing does.
-MIN_RANK_SHARE = 0.05
-#: A reference model's candidate that closes the held-out gap to within this share of it
-#: of the best one's ties with it for the first place (``Diagnosis.rank``). A re-rendered
-#: candidate's prediction carries the basis' Monte Carlo noise, and camera_gains' none:
-#: on the physical benchmark the hidden absorption (98 per m, fitted 97.8), albedo (0.708,
-#: fitted 0.707) and core leak were beaten by camera_gains (11 parameters) by 0.2 %, 1.7 %
-#: and 0.7 % of the gap, each significant on the paired held-out taps (the absorption,
-#: predicted at its hidden value, left a masked MAE of 0.0149 on six of the taps; the
-#: fitted camera_gains, 0.0150 on the held-out six).
-RANK_TIE_SHARE = 0.02
-#: A pair drawn from this many of the best-ranked single candidates of a reference model
-#: may take the first place from a single one with more parameters (``Diagnosis.rank``).
-PAIR_POOL = 4
-#: L-BFGS-B iterations of the joint refit of a selected combination.
-JOINT_ITERATIONS = 15
-#: Forward selection tries at most this many remaining candidates per step (the best
-#: single ones).
-MAX_TRIALS = 3
-#: At most this many effects in a selected combination.
-MAX_COMBINATION = 4
 #: Bootstrap resamples of the training samples behind each reported parameter interval
 #: (each one Newton step from the fit, nearly free once its finite differences are taken).
 PARAM_RESAMPLES = 200
@@ -124,123 +87,44 @@ class Fit:
     train_loss_before: float = float("nan")  # and before
     #: how the search ended: optimizer, message, iterations, start_loss, moved (largest
     #: scaled parameter change from the start), stopped_at_start, retried, note
-    status: dict = field(default_factory=dict)  # and screened: why it was not judged (``Diagnosis.screened``)
+    status: dict = field(default_factory=dict)  # and screened: why it was not judged (``selection.screened``)
 
 
-@dataclass
-class Judged:
-    """A fit judged on the held-out samples."""
+class Fitter:
+    """The training samples of one pair of datasets at ``model``'s working resolution, and
+    effects fitted on them.
 
-    fit: Fit
-    after: dict  # metrics.per_sample of the prediction
-    improvement: dict = field(default_factory=dict)  # {full|masked: {metric: improvement}}
-    #: the held-out MAE it must remove to be named (``Diagnosis.min_gain``); 0: any
-    min_gain: float = 0.0
-
-    @property
-    def significant(self) -> bool:
-        return self.improvement[RANK_BY[0]][RANK_BY[1]]["significant"]
-
-    @property
-    def gain(self) -> float:
-        return self.improvement[RANK_BY[0]][RANK_BY[1]]["mean"]
-
-    @property
-    def share(self) -> float:
-        """The share of the held-out gap it closes (``RANK_BY``)."""
-        return self.improvement[RANK_BY[0]][RANK_BY[1]]["share"]
-
-    @property
-    def explains(self) -> bool:
-        """Whether it is named as a cause: significant, and removing at least ``min_gain``
-        of the held-out MAE, and at least ``MIN_RANK_SHARE`` of the gap where no
-        ``min_gain`` was set."""
-        if self.min_gain > 0:
-            return self.significant and self.gain >= self.min_gain
-        return self.significant and self.share >= MIN_RANK_SHARE
-
-
-class Diagnosis:
-    """Fitting and judging effects on one pair of datasets.
-
-    pairs : the matched datasets; train, heldout : boolean masks over them;
-    factor : the working resolution of fits (1/factor of the images');
-    effects : the names to consider (default: every one that applies);
-    regions : the image circle's regions ({name: (H, W) bool} at the images' size,
-        default ``regions.region_labels``): held-out samples are also judged in each
-        (their own scopes beside "full" and "masked"), unless samples are parts of one image.
+    model : the working model (``FastModel`` or ``ReferenceModel``); pairs : the matched
+    datasets; train : boolean mask over them (fits use at most ``MAX_FIT_SAMPLES`` of
+    them, or the model's own ``max_fit_samples``, an even spread over objects); seed : the
+    spread's and the parameter intervals' bootstrap's.
     """
 
-    def __init__(self, pairs: Pairs, train: np.ndarray, heldout: np.ndarray, factor: int = 2,
-                 effects: tuple[str, ...] | None = None, seed: int = 0, progress=None,
-                 regions: dict[str, np.ndarray] | None = None):
-        self.pairs = pairs
+    def __init__(self, model, pairs: Pairs, train: np.ndarray, seed: int = 0):
+        self.work = model
+        self.catalogue = model.catalogue
+        self.names = model.names
         self.seed = seed
-        self.progress = progress
-        renderer = dict(pairs.sim_meta.get("renderer") or {})
-        self.work, self.full = make_models(pairs, renderer, factor)
-        self.catalogue = self.work.catalogue
-        self.names = self.work.names
-        self.train_index = _fit_subset(pairs, np.flatnonzero(train), self.work.max_fit_samples or MAX_FIT_SAMPLES, seed)
-        self.heldout_index = np.flatnonzero(heldout)
-        self.real_w = self.work.working_images(pairs.real[self.train_index])
-        self.sim_w = self.work.working_images(pairs.sim[self.train_index])
-        self.depth_w = None if pairs.depth is None else self.work.working_depth(pairs.depth[self.train_index])
-        self.mask_w = self.work.mask
+        self.train_index = fit_subset(pairs, np.flatnonzero(train), model.max_fit_samples or MAX_FIT_SAMPLES, seed)
+        self.real_w = model.working_images(pairs.real[self.train_index])
+        self.sim_w = model.working_images(pairs.sim[self.train_index])
+        self.depth_w = None if pairs.depth is None else model.working_depth(pairs.depth[self.train_index])
+        self.mask_w = model.mask
         # Samples that are parts of one image (pairs.extra["areas"], (N, H, W) bool) are
         # compared only there.
         areas = pairs.extra.get("areas")
-        self.areas_h = None if areas is None else _areas_at(self.full, np.asarray(areas, bool)[self.heldout_index])
         weights = np.broadcast_to(self.mask_w, (len(self.train_index),) + self.mask_w.shape).astype(np.float32)
         if areas is not None:
-            weights = weights * _areas_at(self.work, np.asarray(areas, bool))[self.train_index]
+            weights = weights * areas_at(model, np.asarray(areas, bool))[self.train_index]
         r, c = np.nonzero(weights.any(axis=0))
         self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
         self._box_mask = weights[(slice(None),) + self._box][..., None]
         self._box_count = float(self._box_mask.sum()) * 3
-        # Held-out samples at the judging model's resolution (the images' own, except for
-        # a reference model: its basis film, see ``make_models``).
-        self.real_h = self.full.working_images(pairs.real[self.heldout_index])
-        self.sim_h = self.full.working_images(pairs.sim[self.heldout_index])
-        self.depth_h = None if pairs.depth is None else pairs.depth[self.heldout_index]
-        self.mask = self.full.mask
-        self.regions_h = None
-        if areas is None:
-            if regions is None:
-                from .regions import region_labels
-
-                regions = region_labels(pairs.spec)
-            judged = {name: (block_mean(np.asarray(r, np.float32), self.full.factor) >= 0.5) & self.mask
-                      for name, r in regions.items()}
-            self.regions_h = {name: r for name, r in judged.items() if r.any()}
-        # Each held-out tap's contact region: what a tactile sensor's user looks at first.
-        self.contact_h = None if areas is not None else _contact_at(self.full, pairs, self.heldout_index)
-        self.not_applicable = self.work.not_applicable(pairs)
-        wanted = self.names if effects is None else tuple(effects)
-        unknown = [e for e in wanted if e not in self.names]
-        if unknown:
-            raise ValueError(f"unknown effect(s) {unknown}; the {self.work.kind} model's catalogue has "
-                             f"{list(self.names)}")
-        self.effects = tuple(e for e in wanted if e not in self.not_applicable)
-        self.first_pair: Judged | None = None  # the pair ranked first, if one was (``rank``)
-        # What fits and judgements compare: a model's ``compared`` images where it has one
-        # (the reference's, low-passed), else the images themselves.
-        self._compared_w = getattr(self.work, "compared", _same)
-        self._compared_h = getattr(self.full, "compared", _same)
+        # What fits compare: the model's ``compared`` images (the reference's, low-passed).
+        self._compared_w = model.compared
         self._real_w_compared = self._compared_w(self.real_w)
-        self._real_h_compared = self._compared_h(self.real_h)
-        self.before = metrics.per_sample(self._real_h_compared, self._compared_h(self.sim_h), self.mask,
-                                         areas=self.areas_h, regions=self.regions_h, contact=self.contact_h)
-        # What a candidate must remove to be named: MIN_RANK_SHARE of the part of the
-        # held-out gap that is not sensor noise (which no prediction removes), so that a
-        # gap mostly of noise does not hide the effect behind the rest.
-        gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
-        self.noise_floor = fx.noise_std(self.real_h - self.sim_h, self.mask) * float(np.sqrt(2 / np.pi))
-        self.min_gain = MIN_RANK_SHARE * max(gap - self.noise_floor, 0.0) or 1e-12
         self.train_mse_before = self._mse(self.sim_w)
         self.train_loss_before = self._loss(self.sim_w)
-
-    # --- fitting --------------------------------------------------------------------------
 
     def _mse(self, pred: np.ndarray) -> float:
         rows, cols = self._box
@@ -254,6 +138,10 @@ class Diagnosis:
 
     def predict_train(self, params: dict) -> np.ndarray:
         return self.work.predict(self.sim_w, self.depth_w, params, keys=self.train_index)
+
+    def train_loss(self, params: dict) -> float:
+        """The fitted loss (``_loss``) of the training samples predicted with ``params``."""
+        return self._loss(self.predict_train(params))
 
     def _space(self, names: tuple[str, ...]):
         plist = [(name, p) for name in names for p in self.catalogue[name].params]
@@ -636,256 +524,3 @@ class Diagnosis:
             status["note"] = (f"L-BFGS-B stopped at its start; restarted from a probe {PROBE_STEP} (scaled) away, it "
                               f"left {100 * value:.0f}% of the training loss")
         return x, value, status
-
-    # --- judging --------------------------------------------------------------------------
-
-    def predict_heldout(self, params: dict) -> np.ndarray:
-        return self.full.predict(self.sim_h, self.depth_h, params, keys=self.heldout_index)
-
-    def judge(self, fit: Fit, against: dict | None = None, complete: bool | None = True) -> Judged:
-        """Held-out metrics of a fit and their paired improvement over ``against`` (a
-        ``metrics.per_sample`` result; default: the simulator as it is). ``complete=False``
-        measures MAE and PSNR only (no SSIM, most of the time), for trials that are only
-        compared; None adds SSIM only where the fit explains part of the gap
-        (``Judged.explains``), as the single candidates are judged."""
-        pred = self._compared_h(self.predict_heldout(fit.params))
-        if complete is None:
-            quick = self._judged(fit, pred, against, False)
-            return self._judged(fit, pred, against, True) if quick.explains else quick
-        return self._judged(fit, pred, against, complete)
-
-    def _judged(self, fit: Fit, pred: np.ndarray, against: dict | None, complete: bool) -> Judged:
-        after = metrics.per_sample(self._real_h_compared, pred, self.mask, ssim=complete,
-                                   areas=self.areas_h, regions=self.regions_h, contact=self.contact_h)
-        against = self.before if against is None else against
-        names = metrics.METRICS if complete else ("mae", "psnr")
-        # a region of the image circle is judged on the MAE it closes only: its bootstrap
-        # intervals cost as much as the whole circle's, and nothing reads the others
-        improvement = {k: {m: metrics.improvement(against[k][m], after[k][m], m, seed=self.seed)
-                           for m in (names if k in metrics.SCOPES else ("mae",))} for k in after}
-        return Judged(fit, after, improvement, min_gain=self.min_gain)
-
-    def singles(self) -> dict[str, Judged]:
-        """Each effect fitted alone and judged on the held-out samples, except the
-        re-rendered candidates of a reference model beyond its ``judged_renders`` lowest
-        training losses (``screened``): judging one renders every held-out tap."""
-        fits, out, steps = {}, {}, 2 * len(self.effects)
-        for i, name in enumerate(self.effects):
-            fits[name] = self.fit((name,))
-            if self.progress is not None:
-                self.progress(i + 1, steps, name)
-        screened = self.screened(fits)
-        for i, (name, fit) in enumerate(fits.items()):
-            # SSIM (most of a judgement's time) only for those that explain part of the gap
-            out[name] = self.judge(fit, complete=None) if name not in screened else self._unjudged(fit, screened[name])
-            if self.progress is not None:
-                self.progress(len(fits) + i + 1, steps, f"{name}, judged on the held-out samples")
-        return out
-
-    def screened(self, fits: dict[str, Fit]) -> dict[str, str]:
-        """{name: why} the fitted single effects left unjudged (``singles``)."""
-        keep = getattr(self.work, "judged_renders", None)
-        if keep is None:
-            return {}
-        costly = [n for n in fits if self.work.rerendered(n)]
-        if len(costly) <= keep:
-            return {}
-        order = sorted(costly, key=lambda n: fits[n].train_loss)
-        return {n: (f"not judged on the held-out samples: its training loss ({fits[n].train_loss:.4g} of "
-                    f"{fits[n].train_loss_before:.4g}) was not among the {keep} lowest of the re-rendered candidates "
-                    f"({', '.join(order[:keep])}), and judging one renders every held-out tap")
-                for n in order[keep:]}
-
-    def _unjudged(self, fit: Fit, why: str) -> Judged:
-        """A fit left unjudged (``screened``): reported as closing nothing, never significant."""
-        fit.status["screened"] = why
-        improvement = {k: {m: metrics.improvement(self.before[k][m], self.before[k][m], m, seed=self.seed)
-                           for m in (metrics.METRICS if k in metrics.SCOPES else ("mae",))} for k in self.before}
-        return Judged(fit, self.before, improvement)
-
-    def size(self, name: str) -> int:
-        """A candidate's parameters, the capture's exposure (fitted with every physical one) not counted."""
-        return sum(p.name != "exposure" for p in self.catalogue[name].params)
-
-    def rank(self, singles: dict[str, Judged]) -> list[str]:
-        """The single effects that explain part of the gap (``Judged.explains``: significant
-        and closing at least ``MIN_RANK_SHARE`` of it), best held-out MAE improvement first. A
-        reference model's candidates are ranked by that too, except that the first is the
-        one with the fewest parameters among those the best does not beat significantly
-        (paired held-out MAE) or beats by at most ``RANK_TIE_SHARE`` of the gap: its
-        image-level models of the unit's camera (camera_gains, 11 parameters) mimic a
-        physical colour or brightness change nearly as well and then would take the first
-        place by noise alone (measured: hidden camera_response and led_spectra switches
-        were fitted exactly, and ranked second to it). A fast model does the same when
-        its candidates are fitted with the capture's exposure (``FastModel.ties_to_simplest``):
-        its camera_response then beat a hidden absorption's path_attenuation by 1.7 % of the
-        gap. A pair with fewer parameters than that first one may take the first two
-        places (``_pair``)."""
-        ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.explains]
-        self.first_pair = None
-        if not self.work.ties_to_simplest or len(ranked) < 2:
-            return ranked
-        best = singles[ranked[0]].after[RANK_BY[0]][RANK_BY[1]]
-        margin = RANK_TIE_SHARE * float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
-
-        def tied(judged: Judged) -> bool:
-            other = judged.after[RANK_BY[0]][RANK_BY[1]]
-            if float(np.mean(other)) - float(np.mean(best)) <= margin:
-                return True
-            return not metrics.improvement(other, best, RANK_BY[1], seed=self.seed)["significant"]
-
-        first = min((n for n in ranked if tied(singles[n])), key=lambda n: (self.size(n), ranked.index(n)))
-        self.first_pair = self._pair(singles, ranked, first, tied)
-        if self.first_pair is not None:
-            self.first_pair.instead_of = first
-            pair = sorted(self.first_pair.fit.effects, key=ranked.index)
-            return pair + [n for n in ranked if n not in pair]
-        return [first] + [n for n in ranked if n != first]
-
-    def _pair(self, singles: dict[str, Judged], ranked: list[str], first: str, tied) -> Judged | None:
-        """The pair that takes the first place from ``first``, if one does: drawn from the
-        ``PAIR_POOL`` best-ranked candidates, with fewer parameters than ``first``, tied
-        with the best single (``tied``, as ``rank``'s rule) and better than each of its two
-        alone by what a selection step must close (significant, ``MIN_STEP_SHARE``).
-        Among several, the fewest parameters, then the lowest held-out MAE.
-
-        A hidden cause of two physical effects (LED peaks shifted and the camera's
-        response off; the coating's albedo and the medium's absorption) is mimicked by the
-        unit's flexible camera model (camera_gains, 11 parameters) better than by either
-        effect alone, so ranking single candidates named the camera: the same parsimony
-        as the tie rule, over pairs."""
-        pool = ranked[:PAIR_POOL]
-        gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
-        found = []
-        for i, a in enumerate(pool):
-            for b in pool[i + 1:]:
-                if self.size(a) + self.size(b) >= self.size(first):
-                    continue
-                judged = self.judge(self._jointly(self._added(singles[a].fit, b, singles)), complete=False)
-                after = judged.after[RANK_BY[0]][RANK_BY[1]]
-
-                def adds_to(alone: Judged) -> bool:  # the pair against one of its two alone
-                    before = alone.after[RANK_BY[0]][RANK_BY[1]]
-                    return _adds(metrics.improvement(before, after, RANK_BY[1], seed=self.seed), gap)
-
-                if tied(judged) and adds_to(singles[a]) and adds_to(singles[b]):
-                    found.append((self.size(a) + self.size(b), float(np.mean(after)), judged))
-        if not found:
-            return None
-        return self.judge(min(found, key=lambda t: t[:2])[2].fit)
-
-    def _added(self, fit: Fit, name: str, singles: dict[str, Judged]) -> Fit:
-        """Effect ``name`` fitted on top of ``fit`` (held fixed), from its single fit."""
-        return self.fit(fit.effects + (name,), start={**fit.params, name: singles[name].fit.params[name]},
-                        free=(name,))
-
-    def _jointly(self, fit: Fit) -> Fit:
-        """``fit``'s effects refitted together (``JOINT_ITERATIONS``), where that fits better."""
-        joint = self.fit(fit.effects, start=fit.params, max_iterations=JOINT_ITERATIONS)
-        return joint if joint.train_loss < fit.train_loss else fit
-
-    def select(self, singles: dict[str, Judged], ranked: list[str] | None = None) -> list[Judged]:
-        """Greedy forward selection, chosen on the training samples, stopped on the
-        held-out ones.
-
-        The first step is the best significant single effect. At each later step every
-        remaining effect is screened by the training loss of the current combination
-        plus that effect with its single-fit parameters; the ``MAX_TRIALS`` best are
-        fitted on top of the combination (held fixed), the one with the lowest training
-        loss is refitted jointly with it, and the step is kept if its paired held-out
-        improvement over the current combination (full resolution) is significant and
-        closes at least ``MIN_STEP_SHARE`` of the original gap; otherwise selection stops.
-        Held-out samples only decide when to stop and measure every step.
-        """
-        ranked = self.rank(singles) if ranked is None else ranked
-        steps: list[Judged] = []
-        if not ranked:
-            return steps
-        current = singles[ranked[0]]
-        current.added = ranked[0]
-        steps.append(current)
-        pair = self.first_pair
-        if pair is not None and set(pair.fit.effects) == set(ranked[:2]):  # ranked first as a pair: its second step
-            pair.added = ranked[1]
-            steps.append(pair)
-            current = pair
-        candidates = [n for n in singles if n not in current.fit.effects]
-        gap = float(np.mean(self.before[RANK_BY[0]][RANK_BY[1]]))
-        while candidates and len(current.fit.effects) < MAX_COMBINATION:
-
-            def screened(name: str, params=current.fit.params) -> float:
-                return self._loss(self.predict_train({**params, name: singles[name].fit.params[name]}))
-
-            order = sorted(candidates, key=screened)
-            trials = [(name, self._added(current.fit, name, singles)) for name in order[:MAX_TRIALS]]
-            added, fit = min(trials, key=lambda t: t[1].train_loss)
-            fit = self._jointly(fit)
-            step = self.judge(fit, against=current.after, complete=False)
-            if not _adds(step.improvement[RANK_BY[0]][RANK_BY[1]], gap):
-                break
-            # Reported against the simulator as it is, with every metric.
-            best = self.judge(fit)
-            best.step_improvement = step.improvement
-            best.added = added
-            steps.append(best)
-            current = best
-            candidates.remove(added)
-        return steps
-
-    def noise(self, params: dict) -> float:
-        """Sensor noise estimated from the held-out residual of a prediction."""
-        return fx.noise_std(self.real_h - self.predict_heldout(params), self.mask)
-
-
-def _adds(improvement: dict, gap: float) -> bool:
-    """Whether a paired held-out improvement (``metrics.improvement``) is what a selection
-    step must close: significant, and at least ``MIN_STEP_SHARE`` of the gap."""
-    return improvement["significant"] and improvement["mean"] >= MIN_STEP_SHARE * gap
-
-
-def _same(images: np.ndarray) -> np.ndarray:
-    return images
-
-
-def _contact_at(model, pairs: Pairs, index: np.ndarray) -> np.ndarray | None:
-    """(N, h, w) bool: the samples ``index``'s contact regions at ``model``'s resolution
-    (``scenes.captures.press_regions``: the real capture's annotated discs, else where a
-    real image differs from the real no-contact image), within its image circle; None
-    where the real side has neither (then no sample has a contact scope)."""
-    from scenes.captures import press_regions
-    from scenes.dataset import read_samples
-    from scenes.images import read_rgb
-
-    real_records = {r["id"]: r for r in read_samples(pairs.real_dir)}
-    records = [real_records.get(pairs.ids[i], {}) for i in index]
-    background = Path(pairs.real_dir) / "background.png"
-    if not (records and (background.is_file() or all("contact_center_px" in r for r in records))):
-        return None
-    bg = read_rgb(background, pairs.shape) if background.is_file() else np.zeros(pairs.shape + (3,), np.float32)
-    from scenes.camera import Camera
-
-    full = press_regions(records, pairs.real[index], bg, Camera.from_spec(pairs.spec).mask)
-    regions = (block_mean(full.astype(np.float32), model.factor, (1, 2)) >= 0.5) & model.mask
-    return regions if regions.any() else None
-
-
-def _areas_at(model, areas: np.ndarray) -> np.ndarray:
-    """(N, H, W) bool areas at ``model``'s resolution: blocks at least half inside."""
-    if model.factor == 1:
-        return areas
-    return model.working_images(areas.astype(np.float32)[..., None])[..., 0] >= 0.5
-
-
-def _fit_subset(pairs: Pairs, index: np.ndarray, count: int, seed: int) -> np.ndarray:
-    """At most ``count`` of the training samples, taken round-robin over objects."""
-    if len(index) <= count:
-        return index
-    rng = np.random.default_rng(seed)
-    objects = [str(pairs.records[i].get("object", "")) for i in index]
-    groups = [list(rng.permutation(index[[o == obj for o in objects]])) for obj in sorted(set(objects))]
-    out = []
-    while len(out) < count:
-        for g in groups:
-            if g and len(out) < count:
-                out.append(g.pop())
-    return np.sort(np.array(out))

@@ -34,85 +34,11 @@ from scenes.images import block_mean
 from scenes.spec import SensorSpec
 
 from . import effects as fx
+from .optics import optics, working_cameras
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def optics(images: np.ndarray, params: dict, camera: Camera, factor: int, fixed: np.ndarray,
-           circle: np.ndarray) -> np.ndarray:
-    """The image-level effects in ``params`` (misalignment, lens_distortion, vignetting,
-    blur_noise, camera_response; full-resolution pixels) applied to (N, H, W, 3) images
-    at ``camera``'s resolution, 1/``factor`` of the full one. ``fixed`` (H, W, 3) and
-    ``circle`` (H, W): what stays put when the membrane moves under the lens
-    (``effects.misalign_membrane``)."""
-    f = camera.f
-    centre = (camera.cy, camera.cx)
-    out = images
-    mis = params.get("misalignment")
-    dist = params.get("lens_distortion")
-    if mis is not None or dist is not None:
-        if mis is not None:
-            mis = {**mis, "du_px": mis["du_px"] / factor, "dv_px": mis["dv_px"] / factor}
-        coords = fx.source_coordinates(camera.shape, f, centre, mis, dist)
-        if mis is not None and mis.get("frame_share", 0.0) < 1.0:
-            out = fx.misalign_membrane(out, coords, fixed, circle, mis.get("frame_share", 0.0))
-        else:
-            out = fx.resample(out, coords)
-    if "vignetting" in params:
-        p = params["vignetting"]
-        c = (centre[0] + p["centre_dv_px"] / factor, centre[1] + p["centre_du_px"] / factor)
-        depths = [p[f"depth_{k}"] for k in range(fx.VIGNETTE_KNOTS)]
-        out = out * fx.vignette(camera.shape, f, c, depths, fx.vignette_length(camera.mask, f, factor))[None, ..., None]
-    if "blur_noise" in params:
-        out = fx.blur(out, params["blur_noise"]["sigma_px"] / factor)
-    if "camera_response" in params:
-        p = params["camera_response"]
-        out = fx.camera_response(out, fx.colour_matrix(p), p["offset"], p["gamma"])
-    return np.clip(out, fx.ZERO, fx.ONE)  # float32 bounds: numpy clips a float32 array 5x faster
-
-
-def working_cameras(spec: SensorSpec, factor: int) -> tuple[Camera, Camera]:
-    """(the spec's camera, the same at 1/``factor`` of its resolution), refusing a factor
-    that does not divide the image."""
-    full = Camera.from_spec(spec)
-    if full.width % factor or full.height % factor:
-        raise ValueError(f"{full.width}x{full.height} px is not divisible by factor {factor}")
-    return full, (full if factor == 1 else full.scaled(full.width // factor, full.height // factor))
-
-
-def judging_factor(spec: SensorSpec, film: tuple[int, int]) -> int:
-    """The block size that takes the spec's camera images to ``film`` (w, h); 1 when
-    blocks of one size do not tile the image into that film."""
-    full = Camera.from_spec(spec)
-    factor = full.width // int(film[0])
-    if factor < 1 or full.width % factor or full.height % factor or full.height // factor != int(film[1]):
-        return 1
-    return factor
-
-
-def make_models(pairs, renderer: dict, factor: int):
-    """(working, judging) models of a simulated dataset: the reference decomposed per
-    source (``studies.gap.physical``) when the reference rendered it, else the fast
-    simulator rebuilt from its settings.
-
-    The fast model is judged at the images' resolution. The reference model predicts what
-    a candidate changes at its basis film only, and its datasets carry Monte Carlo noise
-    at every pixel, so it is judged, and fitted, at the basis film (``judging_factor``):
-    there the noise it cannot predict is smaller and the detail it does not predict is
-    not counted as a gap.
-    """
-    if renderer.get("renderer") == "pbr":
-        from .physical import ReferenceModel, SourceBasis
-
-        basis = SourceBasis(pairs.spec, renderer, pairs.depth if pairs.depth is not None else np.zeros((0,)))
-        judge = judging_factor(pairs.spec, basis.film)
-        work = ReferenceModel(pairs.spec, renderer, max(factor, judge), basis)
-        return work, (ReferenceModel(pairs.spec, renderer, judge, basis) if work.factor != judge else work)
-    exposure = auto_exposed(pairs.real_meta)
-    work = FastModel(pairs.spec, renderer, factor, exposure)
-    return work, (FastModel(pairs.spec, renderer, 1, exposure) if factor != 1 else work)
 
 
 def auto_exposed(meta: dict) -> bool:
@@ -192,7 +118,7 @@ class FastModel:
         self.catalogue = fx.catalogue(len(spec.leds), self.sigma_px)
         # With the capture's exposure every candidate holds a gain, and camera_response's
         # 11 parameters then mimic a physical change nearly as well as its own model: the
-        # ranking's tie rule (``Diagnosis.rank``) puts the simplest of the tied best first.
+        # ranking's tie rule (``selection.rank``) puts the simplest of the tied best first.
         self.ties_to_simplest = bool(exposure)
         if exposure:
             self.catalogue = fx.with_exposure(self.catalogue)
@@ -231,6 +157,11 @@ class FastModel:
 
     def working_images(self, images: np.ndarray) -> np.ndarray:
         return block_mean(np.asarray(images, np.float32), self.factor, (1, 2))
+
+    def compared(self, images: np.ndarray) -> np.ndarray:
+        """Images as the diagnosis fits and judges them: the images themselves (the
+        reference model low-passes its own, ``ReferenceModel.compared``)."""
+        return images
 
     @property
     def geodesic(self) -> np.ndarray:

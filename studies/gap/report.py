@@ -10,7 +10,7 @@ import numpy as np
 
 from scenes.dataset import atomic_write_bytes
 
-from .fit import MIN_RANK_SHARE
+from .judge import MIN_RANK_SHARE
 from .regions import CHANNELS, REGIONS
 
 

@@ -1,0 +1,142 @@
+"""Per-tap, per-source images of the physically based reference at a low film
+(``pbr_tactile.basis.emitter_basis``: each LED, and its leak into the glass core, per unit
+flux), rendered on demand for the identity or a re-rendered candidate at a grid point,
+and kept."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
+from scenes.geometry import membrane_mesh
+from scenes.spec import SensorSpec
+
+#: The basis renders: film (a quarter of the default dataset film a side), camera samples
+#: per pixel per pass, passes; photons per LED per pass and no-contact runs per pass are
+#: the simulated dataset's (these where it records none). At 2^16 photons and no runs,
+#: the basis put a 0.3 core leak's change in the bright rings 2-3 times above what the
+#: dataset renderer's own no-contact frames show, so a leak of 0.3 was fitted at 0.16; at
+#: the dataset's 2^18 photons and 4 runs the fit's loss is lowest at 0.25-0.3. Measured on
+#: 2 cores: one per-source render of a contact takes about 8 s at 2^16 photons and no
+#: runs, 18-22 s at 2^18 and 4 runs.
+BASIS_FILM = (80, 60)
+BASIS_PHOTONS = 1 << 18
+BASIS_SPP = 16
+BASIS_PASSES = 2
+BASIS_NO_CONTACT_RUNS = 4
+#: The basis is rendered with this core leak fraction, so that each LED's leak has its
+#: own image (per unit flux, the fraction only weights it).
+LEAK_BASIS = 0.5
+#: ``SourceBasis.images``' key of the sensor without contact (its exposure's reference).
+NO_CONTACT = -1
+#: Candidates that change only a contact.
+MECHANICS = ("membrane_compliance", "layer_spread")
+
+
+class SourceBasis:
+    """Per-tap, per-source images of the reference at a low film, rendered on demand and
+    kept (on disk too, by ``emitter_basis``'s cache).
+
+    spec, renderer : the simulated dataset's sensor and renderer settings; depth : (N, H,
+    W) its contacts' planar depth, metres.
+    """
+
+    def __init__(self, spec: SensorSpec, renderer: dict, depth: np.ndarray, film=BASIS_FILM,
+                 photons: int | None = None, spp: int = BASIS_SPP, passes: int = BASIS_PASSES, seed: int = 1,
+                 use_cache: bool = True, no_contact_runs: int | None = None):
+        from pbr_tactile.effects import Effects
+
+        self.spec = spec
+        self.camera = Camera.from_spec(spec)
+        self.mesh = membrane_mesh(spec)
+        self.ref = reference_depth(self.mesh, self.camera)[0].astype(np.float32)
+        self.depth = depth
+        given = dict(renderer.get("effects") or {})
+        if "lens_distortion" in given:
+            given["lens_distortion"] = tuple(given["lens_distortion"])
+        self.effects = Effects(**given)
+        self.gain = renderer.get("exposure_gain")
+        self.film = tuple(int(v) for v in film)
+        # The dataset's own photon count and no-contact runs unless given: the exposure and
+        # the leak's share of the image both moved with them (see BASIS_PHOTONS).
+        self.photons = int(photons or renderer.get("photons") or BASIS_PHOTONS)
+        self.no_contact_runs = int(renderer.get("no_contact_runs", BASIS_NO_CONTACT_RUNS)
+                                   if no_contact_runs is None else no_contact_runs)
+        self.spp, self.passes, self.seed = spp, passes, seed
+        # The camera's in-scattered light as the dataset found it (the fluence lookup, the
+        # reference's default, where it records none).
+        self.inscatter = renderer.get("inscatter") or "fluence"
+        self.use_cache = use_cache
+        self._images: dict = {}
+        self._variances: dict = {}  # the variance of each image's mean, by the same tags
+        self.names: list[str] | None = None  # the sources, in the basis' order (from the first render)
+        self.renders = 0  # basis renders made here (not read from memory)
+        self.seconds = 0.0
+        self.cost: dict[str, dict] = {}  # per candidate: renders and seconds
+
+    def variant(self, name: str | None, value: float | None):
+        """(spec, effects, depth scale) of the identity (name None) or of candidate
+        ``name`` at grid ``value``."""
+        effects = dataclasses.replace(self.effects, core_light_leak=LEAK_BASIS)
+        spec, scale = self.spec, 1.0
+        if name == "membrane_compliance":
+            scale = float(value)
+        elif name == "layer_spread":
+            spec = spec.replace(elastic=dataclasses.replace(spec.elastic, poisson_ratio=float(value)))
+        elif name is not None:
+            current = getattr(effects, name)
+            effects = dataclasses.replace(effects, **{name: bool(value >= 0.5) if isinstance(current, bool)
+                                                      else float(value)})
+        return spec, effects, scale
+
+    def images(self, key: int, name: str | None = None, value: float | None = None) -> np.ndarray:
+        """(h, w, S) float32: tap ``key``'s per-source images per unit flux at the film
+        (``NO_CONTACT``: the sensor without contact), for the identity or candidate
+        ``name`` at grid ``value``."""
+        if key == NO_CONTACT and name in MECHANICS:
+            name = value = None  # the membrane's mechanics change nothing without a contact
+        tag = (int(key), name, None if value is None else float(value))
+        if tag in self._images:
+            return self._images[tag]
+        from pbr_tactile.basis import emitter_basis
+
+        spec, effects, scale = self.variant(name, value)
+        depth = self.ref if key == NO_CONTACT else np.asarray(self.depth[key], np.float32)
+        touched = np.abs(depth - self.ref) > CONTACT_EPS_M
+        contact = {}
+        if touched.any():
+            depth = np.where(touched, depth, self.ref)
+            if scale != 1.0:
+                depth = (self.ref - scale * (self.ref - depth)).astype(np.float32)
+            contact = {"depth": depth, "ref_depth": self.ref}
+        t0 = time.perf_counter()
+        basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
+                              passes=self.passes, seed=self.seed, use_cache=self.use_cache,
+                              no_contact_runs=self.no_contact_runs, inscatter=self.inscatter, **contact)
+        seconds = time.perf_counter() - t0
+        self.renders += 1
+        self.seconds += seconds
+        cost = self.cost.setdefault(name or "identity", {"renders": 0, "seconds": 0.0})
+        cost["renders"] += 1
+        cost["seconds"] += seconds
+        names = [str(n) for n in basis["names"]]
+        if self.names is None:
+            self.names = names
+        elif names != self.names:
+            raise ValueError(f"the basis' sources changed between renders ({self.names} against {names})")
+        image = np.asarray(basis["mean"], np.float32)
+        self._images[tag] = image
+        self._variances[tag] = np.asarray(basis["variance"], np.float32)
+        return image
+
+    def rendered_keys(self) -> list[int]:
+        """The taps whose identity images are rendered (no contact included)."""
+        return sorted(key for key, name, _ in self._images if name is None)
+
+    def variance(self, key: int) -> np.ndarray:
+        """(h, w, S) the variance of tap ``key``'s identity images (``images``' mean),
+        from the passes of its render; the tap must be rendered."""
+        return self._variances[(int(key), None, None)]
