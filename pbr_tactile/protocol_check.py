@@ -15,8 +15,9 @@ import numpy as np
 from scenes.camera import Camera
 from scenes.elastic import LAYER_EDGE_M
 from scenes.geometry import membrane_mesh
-from scenes.protocol import Protocol, Tap, validate
+from scenes.protocol_checks import validate
 from scenes.spec import SensorSpec
+from scenes.taps import Protocol, Tap
 
 from .membrane import ElastomerBuilder
 

@@ -6,7 +6,7 @@ Three limits, each from the rig's layout or the sensor's spec:
   (``RigLayout.travel``, printer coordinates ``[0, travel]``);
 - the bed: no part of the indenter goes below the bed's top (:data:`BED_TOP_M`, world z);
 - the membrane: the indenter presses into the membrane at most the spec's safe depth
-  (``scenes.protocol.max_safe_depth_m``: the membrane's thickness, past which it would
+  (``scenes.protocol_checks.max_safe_depth_m``: the membrane's thickness, past which it would
   press on the glass core) and only on a press; on every other move it stays
   :data:`CLEARANCE_M` clear of it.
 
@@ -80,7 +80,7 @@ class SafetyEnvelope:
     def for_sensor(cls, spec, membrane, indenters: dict[str, np.ndarray], layout: RigLayout = RigLayout(),
                    **kwargs) -> SafetyEnvelope:
         """The envelope of a sensor spec: its safe depth is the deepest press."""
-        from scenes.protocol import max_safe_depth_m
+        from scenes.protocol_checks import max_safe_depth_m
 
         return cls(layout, membrane, indenters, max_safe_depth_m(spec), **kwargs)
 

@@ -88,7 +88,7 @@ def plan(taps, vertices: dict[str, np.ndarray], layout: RigLayout, envelope: Saf
 
     Parameters
     ----------
-    taps : sequence of scenes.protocol.Tap, the taps still to do.
+    taps : sequence of scenes.taps.Tap, the taps still to do.
     vertices : indenter name -> (V, 3) its mesh's vertices, metres.
     envelope : every move is checked against it (EnvelopeError naming the tap and move);
         None checks nothing (tests of the steps alone).

@@ -247,7 +247,7 @@ def prepare(root, spec, protocol, layout: RigLayout = RigLayout(), *, source_met
             after_background: Callable[[np.ndarray], dict] | None = None, hidden: dict | None = None) -> Session:
     """Plan a session and check it, before any device is touched.
 
-    Checks the protocol against the sensor (``scenes.protocol.validate``) and every move
+    Checks the protocol against the sensor (``scenes.protocol_checks.validate``) and every move
     against the safety envelope (EnvelopeError naming the tap and move, nothing sent), and
     reads what an existing folder already holds (a resumed session plans only the rest).
 
@@ -264,7 +264,7 @@ def prepare(root, spec, protocol, layout: RigLayout = RigLayout(), *, source_met
     from scenes.dataset import read_samples
     from scenes.geometry import membrane_mesh
     from scenes.indenters import indenter
-    from scenes.protocol import validate
+    from scenes.protocol_checks import validate
 
     root = Path(root)
     mesh = membrane_mesh(spec)

@@ -1,6 +1,6 @@
 """How far a posed indenter is from the glass core: the footprint test of a tap.
 
-A tap's depth (``scenes.protocol.Tap``) is measured at its contact point, along its
+A tap's depth (``scenes.taps.Tap``) is measured at its contact point, along its
 normal, and is safe there when it stays within the elastomer's thickness under that
 point. Elsewhere under the indenter's footprint the membrane may curve towards the
 indenter (a concave region: a waist, a saddle), the elastomer may be thinner, and a tilted

@@ -258,7 +258,9 @@ def press_tap(index: int, obj: str, spec, mesh, camera, centre_px, depth_m: floa
     elastomer (or the ray misses the membrane)."""
     from .contact import surface_point
     from .kinematics import normal_in_sensor
-    from .protocol import Tap, _aim, max_safe_depth_m
+    from .protocol import _aim
+    from .protocol_checks import max_safe_depth_m
+    from .taps import Tap
 
     point, normal = surface_point(mesh, camera, tuple(float(c) for c in centre_px))
     safe = float(max_safe_depth_m(spec, point[None], mesh)[0])
@@ -297,7 +299,8 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     from .geometry import membrane_mesh
     from .indenters import ball_name, indenter
     from .kinematics import RigLayout, tap_pose
-    from .protocol import Protocol, validate
+    from .protocol_checks import validate
+    from .taps import Protocol
 
     if depth not in DEPTH_METHODS:
         raise ValueError(f"depth must be one of {DEPTH_METHODS}, got {depth!r}")

@@ -24,7 +24,7 @@ Frames and conventions:
 - Printer coordinates are what G-code speaks: ``head - printer_origin``
   (:meth:`RigLayout.printer_position`), inside the build volume ``[0, build_volume]``.
 
-A tap's ``normal`` (``scenes.protocol.Tap``) is the direction the indenter comes from, in
+A tap's ``normal`` (``scenes.taps.Tap``) is the direction the indenter comes from, in
 the sensor frame; the roll and pitch servos realise exactly that direction
 (:func:`normal_in_sensor`), and :func:`head_for_tap` puts the head where the indenter's
 deepest point lies ``depth`` past the contact point along -normal.
@@ -329,7 +329,7 @@ def head_for_tap(tap, vertices: np.ndarray, layout: RigLayout = RigLayout()) -> 
 
     Parameters
     ----------
-    tap : scenes.protocol.Tap (point, normal, depth, sensor_roll, indenter_pitch).
+    tap : scenes.taps.Tap (point, normal, depth, sensor_roll, indenter_pitch).
     vertices : (V, 3) the indenter mesh's vertices, metres, its feature along local +z.
     """
     vertices = np.asarray(vertices, dtype=np.float64)

@@ -29,7 +29,7 @@ from .body import sensor_body
 from .camera import Camera, lens_resample, unseen
 from .geometry import membrane_mesh
 from .kinematics import PITCH_TRAVEL_RAD, ROLL_TRAVEL_RAD, SENSOR_TO_WORLD_AT_ROLL0, RigLayout, tap_pose
-from .protocol import Tap
+from .taps import Tap
 from .spec import SensorSpec
 
 #: Geom groups: what the in-sensor depth camera sees, and visual-only parts.

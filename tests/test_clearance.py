@@ -140,7 +140,9 @@ def test_the_protocols_press_no_tap_into_the_glass(paw):
     """On the paw's waist the indented prism's nominal taps would reach the core at 2 mm:
     the base protocol presses them only until they touch it, and validate refuses them
     at 2 mm, though that is within the 2.5 mm under their contact points."""
-    from scenes.protocol import Protocol, base_protocol, core_safe_depth_m, max_safe_depth_m, validate
+    from scenes.protocol import base_protocol
+    from scenes.protocol_checks import core_safe_depth_m, max_safe_depth_m, validate
+    from scenes.taps import Protocol
 
     spec, mesh = paw
     protocol = base_protocol(spec, mesh, ("indented_prism", "sphere"))
@@ -158,7 +160,9 @@ def test_the_protocols_press_no_tap_into_the_glass(paw):
 
 
 def test_a_tap_of_an_unknown_object_is_refused(paw):
-    from scenes.protocol import Protocol, base_protocol, validate
+    from scenes.protocol import base_protocol
+    from scenes.protocol_checks import validate
+    from scenes.taps import Protocol
 
     spec, mesh = paw
     tap = dataclasses.replace(base_protocol(spec, mesh, ("sphere",)).taps[0], object="feather")

@@ -14,18 +14,25 @@ import pytest
 from scenes import kinematics as K
 from scenes import meridian as M
 from scenes import protocol as P
-from scenes.geometry import revolve
+from scenes import protocol_checks as C
+from scenes import taps as T
+from scenes.shapes.revolve import revolve
 
 #: The eight indenters of the paper (scenes.indenters.INDENTERS), spelt out so this test
 #: does not depend on that module.
 OBJECTS = ("dots", "sphere", "indented_prism", "cylinder", "open_cylinder", "cone", "pacman", "random")
 #: Rotations and conventions are exact up to float rounding.
 EXACT = 1e-12
-#: Tip points away from the junction: the mesh's chords sag ~3 um and its interpolated
-#: normals are off by ~0.05 deg (~10 um along the arc); measured <= 12 um.
+#: Tip points away from the junction. Derived: the mesh's chords sag h^2 / (8 R) = 3 um
+#: (h = 0.5 mm edges, R = 11.5 mm) and its interpolated normals are off by ~0.05 deg, of
+#: order (h / R)^2 rad, which is 10 um along the arc: 13 um in all (seen: <= 12 um). 25 um
+#: is twice that, and a twentieth of an edge, which a point snapped to the wrong vertex or
+#: ring would be off by.
 TIP_POINT_TOLERANCE_M = 2.5e-5
 #: The junction (and the cylinder points measured from it): interpolated vertex normals
-#: blur the tip/cylinder kink over one mesh ring (0.43 mm); measured <= 50 um.
+#: blur the tip/cylinder kink over one mesh ring (0.43 mm), and a point's position along
+#: the arc follows its normal there (seen: <= 50 um). Why 0.1 mm: a quarter of that ring,
+#: so a point placed a whole ring off (the failure) is four times past it.
 JUNCTION_POINT_TOLERANCE_M = 1e-4
 #: Smooth normals against the analytic ones.
 NORMAL_TOLERANCE_RAD = math.radians(0.5)
@@ -285,10 +292,10 @@ def test_extended_points_lie_on_the_membrane(spec, mesh, extended):
     assert capsule_distance(spec, points).max() < 1e-5
     assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=EXACT)
     tilt = angle_between(normals, capsule_normal(spec, points))
-    assert tilt.max() < P.MAX_APPROACH_TILT_RAD
+    assert tilt.max() < C.MAX_APPROACH_TILT_RAD
     # In view: clear of the base by the margin.
     assert points[:, 2].min() > spec.membrane.base_z + P.EXTENDED_BASE_MARGIN_M - P.POSITION_JITTER_M
-    P.validate(extended, spec, mesh)
+    C.validate(extended, spec, mesh)
 
 
 def test_extended_perturbations_stay_within_their_bounds(spec, extended):
@@ -323,7 +330,7 @@ def test_extended_perturbations_stay_within_their_bounds(spec, extended):
         values = np.abs(values)
         assert values.max() <= bound + EXACT
         assert values.max() > 0.8 * bound  # really perturbed, over most of the range
-    assert max(d_depth) + P.TAP_DEPTH_M <= P.max_safe_depth_m(spec)
+    assert max(d_depth) + P.TAP_DEPTH_M <= C.max_safe_depth_m(spec)
 
 
 def test_extended_protocol_is_deterministic_for_a_seed(spec, mesh):
@@ -349,14 +356,14 @@ def test_extended_protocol_refuses_bad_arguments(spec, mesh):
 
 
 def test_json_round_trip(spec, mesh, base):
-    assert P.Protocol.from_json(base.to_json()) == base
+    assert T.Protocol.from_json(base.to_json()) == base
     ext = P.extended_protocol(spec, mesh, ("pacman", "random"), seed=11, replicas=3)
-    again = P.Protocol.from_json(ext.to_json(indent=1))
+    again = T.Protocol.from_json(ext.to_json(indent=1))
     assert again == ext and again.seed == 11 and again.objects == ("pacman", "random")
     data = json.loads(ext.to_json())
     assert isinstance(data["taps"][5]["point"], list) and len(data["taps"][5]["point"]) == 3
     tap = ext.taps[5]
-    assert P.Tap.from_dict(tap.to_dict()) == tap and hash(tap.pose_key()) == hash(again.taps[5].pose_key())
+    assert T.Tap.from_dict(tap.to_dict()) == tap and hash(tap.pose_key()) == hash(again.taps[5].pose_key())
 
 
 def _tap_dict(base, **changes):
@@ -387,7 +394,7 @@ def _tap_dict(base, **changes):
 )
 def test_corrupt_json_is_refused_with_a_clear_message(base, mutate, message):
     with pytest.raises(ValueError, match=message):
-        P.Protocol.from_json(mutate(base))
+        T.Protocol.from_json(mutate(base))
 
 
 def _json_nan(base):
@@ -410,47 +417,47 @@ def _with_tap(protocol, i, **changes):
 
 
 def test_validate_accepts_the_generated_protocols(spec, mesh, base):
-    P.validate(base, spec, mesh)
-    assert P.max_safe_depth_m(spec) == pytest.approx(spec.membrane.radius - spec.membrane.core_radius)
+    C.validate(base, spec, mesh)
+    assert C.max_safe_depth_m(spec) == pytest.approx(spec.membrane.radius - spec.membrane.core_radius)
 
 
 def test_validate_refuses_a_tap_deeper_than_the_membrane(spec, mesh, base):
-    too_deep = P.max_safe_depth_m(spec) + 1e-4
+    too_deep = C.max_safe_depth_m(spec) + 1e-4
     bad = _with_tap(base, 22, depth=too_deep)
     t = bad.taps[22]
     named = rf"tap 22 \(object '{t.object}', row {t.row}, position {t.position}, replica 0\)"
     with pytest.raises(ValueError, match=named + ".*glass core"):
-        P.validate(bad, spec, mesh)
+        C.validate(bad, spec, mesh)
     with pytest.raises(ValueError, match="depth must be > 0"):
-        P.validate(_with_tap(base, 3, depth=0.0), spec, mesh)
+        C.validate(_with_tap(base, 3, depth=0.0), spec, mesh)
 
 
 def test_validate_refuses_a_tap_off_the_membrane(spec, mesh, base):
     t = base.taps[9]
     lifted = tuple(np.add(t.point, 0.001 * np.array(t.normal)))
     with pytest.raises(ValueError, match=r"tap 9 .*1\.000 mm from the membrane.*miss the sensor"):
-        P.validate(_with_tap(base, 9, point=lifted), spec, mesh)
+        C.validate(_with_tap(base, 9, point=lifted), spec, mesh)
     # Beside the sensor: the approach misses it altogether.
     with pytest.raises(ValueError, match="tap 0 .*misses the membrane"):
-        P.validate(_with_tap(base, 0, point=(0.05, 0.0, 0.0)), spec, mesh)
+        C.validate(_with_tap(base, 0, point=(0.05, 0.0, 0.0)), spec, mesh)
 
 
 def test_validate_refuses_an_inward_normal(spec, mesh, base):
     for i in (0, 5, 10):  # apex, cylinder, tip
         flipped = tuple(-np.array(base.taps[i].normal))
         with pytest.raises(ValueError, match=rf"tap {i} .*points into the membrane"):
-            P.validate(_with_tap(base, i, normal=flipped), spec, mesh)
+            C.validate(_with_tap(base, i, normal=flipped), spec, mesh)
 
 
 def test_validate_refuses_bad_normals_and_servo_angles(spec, mesh, base):
     t = base.taps[7]
     with pytest.raises(ValueError, match="unit vector"):
-        P.validate(_with_tap(base, 7, normal=tuple(2 * np.array(t.normal))), spec, mesh)
+        C.validate(_with_tap(base, 7, normal=tuple(2 * np.array(t.normal))), spec, mesh)
     with pytest.raises(ValueError, match="point the indenter"):
-        P.validate(_with_tap(base, 7, indenter_pitch=t.indenter_pitch + 0.05), spec, mesh)
+        C.validate(_with_tap(base, 7, indenter_pitch=t.indenter_pitch + 0.05), spec, mesh)
     # A grazing approach, realised by the servos, at the apex.
     pitch = np.pi / 2 - math.radians(30.0)
     grazing = tuple(K.normal_in_sensor(t.sensor_roll, pitch))
     bad = _with_tap(base, 0, indenter_pitch=pitch, normal=grazing, point=base.taps[0].point)
     with pytest.raises(ValueError, match="tap 0 .*30.00 deg off the membrane normal"):
-        P.validate(bad, spec, mesh)
+        C.validate(bad, spec, mesh)
