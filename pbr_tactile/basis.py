@@ -52,7 +52,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
-    from .photons import CAMERA_PASS_VERSION
+    from .camera_pass import CAMERA_PASS_VERSION
     from .render import reference, source_response
     from .scene import led_sources
     from .variant import choose_variant

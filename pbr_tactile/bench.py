@@ -16,9 +16,10 @@ from scenes.geometry import membrane_mesh
 from scenes.spec import SensorSpec
 
 from .effects import Effects
+from .estimate import contact_rse
 from .membrane import ElastomerBuilder
 from .fluence import INSCATTER
-from .render import KERNEL_RADIUS_M, contact_rse, render, render_photons
+from .render import KERNEL_RADIUS_M, render, render_photons
 from .scene import geltip_scene, led_sources, write_meshes
 
 #: The goal's noise level: relative standard error averaged over the contact region.

@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 import gc
 from collections import OrderedDict
-from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -24,6 +23,8 @@ from scenes.geometry import crossing_faces
 from scenes.spec import SensorSpec
 
 from .fluence import GRID_VERSION, SUBSAMPLES, VOXEL_M, FluenceGrid, fluence_grid
+from .scene import write_meshes
+from .solid import Elastomer
 
 #: A face whose normal turns by more than this has folded over (turned its back on where
 #: it faced), radians.
@@ -32,29 +33,6 @@ MAX_FACE_TURN_RAD = np.radians(90.0)
 #: each tap again at every grid point of its re-rendered candidates, and deforming and
 #: checking a contact (the crossing test) took 1.9 s of a 20 s render.
 KEPT_SOLIDS = 48
-
-
-@dataclass(frozen=True)
-class Elastomer:
-    """The elastomer as three surfaces that together bound a closed solid.
-
-    outer : the painted outer surface, deformed; normals point out of the elastomer.
-    inner : the interface with the glass core; normals point out of the elastomer (into
-        the glass).
-    base : the ring that closes the bottom; normals point down, out of the elastomer.
-    thickness : the membrane's least thickness, metres (``scenes.body``).
-    """
-
-    outer: trimesh.Trimesh
-    inner: trimesh.Trimesh
-    base: trimesh.Trimesh
-    thickness: float
-
-    def solid(self) -> trimesh.Trimesh:
-        """The three surfaces welded into one closed mesh."""
-        mesh = trimesh.util.concatenate([self.outer, self.inner, self.base])
-        mesh.merge_vertices(merge_tex=True, merge_norm=True)  # weld by position alone
-        return mesh
 
 
 class ElastomerBuilder:
@@ -137,8 +115,6 @@ class ElastomerBuilder:
             import shutil
             import tempfile
             import weakref
-
-            from .scene import write_meshes
 
             folder = tempfile.mkdtemp(prefix="tactile-undeformed-")  # one per wall: a load keys on the paths
             weakref.finalize(self, shutil.rmtree, folder, True)

@@ -105,12 +105,12 @@ class NoContact:
         independent seeds. trace(seed) traces one run, in the weight window of the pilot
         of ``window_seed`` (the key names the pilot, not the window's values, whose last
         bits vary from run to run with the order of Dr.Jit's atomic adds)."""
-        from .photons import _seed
+        from .streams import sampler_seed
 
         same = self.flux([int(seed), int(window_seed)], lambda: trace(seed), parts)
 
         def mean_of_runs():
-            runs = [trace(_seed(seed, run, 0xC0A7)) for run in range(self.runs)]
+            runs = [trace(sampler_seed(seed, run, 0xC0A7)) for run in range(self.runs)]
             if len(parts) == 1:
                 return np.mean(runs, axis=0)
             return tuple(np.mean([run[i] for run in runs], axis=0) for i in range(len(parts)))

@@ -1,10 +1,11 @@
-"""A two-pass estimator for light guided through the membrane: photons, then the camera.
+"""The photon estimator's light pass: photons from the LEDs deposit their flux on the coating.
 
 Light reaches the coating mostly after many total internal reflections, so camera-side
 path tracing (volpath) converges very slowly: its shadow rays cannot cross the
-dielectric core. Here:
+dielectric core. The two-pass estimator (``pbr_tactile.render.render_photons`` runs it)
+follows the light first:
 
-1. **Light pass** (``deposits``). Photons leave each LED sphere (uniform over its surface,
+1. **Light pass** (``deposits``, here). Photons leave each LED sphere (uniform over its surface,
    cosine about the normal) carrying unit total flux, and are traced through the scene
    in one symbolic Dr.Jit loop: free flights and isotropic scattering in the elastomer
    (sigma_t, albedo), Fresnel reflection or refraction at the smooth dielectric
@@ -13,15 +14,13 @@ dielectric core. Here:
    barycentric weights before reflecting back inside. A weight window set by a pilot
    pass (``weight_window``) splits photons heading for the dim tip and rouletted ones in
    the bright LED end, so every part of the coating gets about as many deposits.
-2. **Density estimate** (``irradiance``). Per LED m, the irradiance per unit emitted
-   flux e_m at each coating vertex is the deposited flux over the area within a kernel
-   of stated radius (photon mapping's estimate: bias of order radius^2, consistent as
-   the radius goes to 0).
-3. **Camera pass** (``camera_pass``). Camera rays, jittered in strata of each pixel, are
-   followed through the tube and the medium to the first coating hit, whose outgoing
-   radiance is (rho / pi) sum_m e_m(x) Phi_m(lambda), Phi_m = pi A_m L_e,m the LED's
-   spectral flux. The first dielectric hit (the tube's inner wall) follows both Fresnel
-   branches.
+2. **Density estimate** (``pbr_tactile.density``): the irradiance per unit emitted flux
+   e_m at each coating vertex, from the deposits.
+3. **Camera pass** (``pbr_tactile.camera_pass``): camera rays to the coating, whose
+   radiance the maps give.
+
+What both passes' walks share (the interfaces' optics, free flights, the coating's
+buffers) is in ``pbr_tactile.transport``, their random streams in ``pbr_tactile.streams``.
 
 The transport is wavelength independent (constant refractive indices, grey medium and
 coating, as in ``pbr_tactile.scene``), so one scalar map and one scalar image per LED carry
@@ -32,38 +31,40 @@ A glossy paint (``pbr_tactile.paint``: a diffuse base and a GGX flake lobe) is c
 a second map. Photons reflect off the paint by either lobe (picked by its share), so the
 maps hold the flux that arrives and the diffuse lobe's radiance is (1 - g) (rho / pi) e_m.
 The camera is fixed, so each coating vertex is seen from one direction along the view path
-through the tube (``camera_views``); every arrival also deposits its flux weighted by the
-flake lobe's BRDF from its own direction towards that one (``GlossyView``), and the same
-density estimate makes the lobe's radiance g l_m (photon mapping's radiance estimate, read
-per vertex). Lanes that reach the paint another way (the tube's reflection, after
-scattering) read the same map, so their view direction is the vertex's, not their own.
-Beyond Monte Carlo noise, the approximations are
-the kernel's blur and the piecewise-linear reconstruction on the coating mesh (edges of
-``REFINED_EDGE_M``); the camera pass uses geometric normals at the interfaces.
+through the tube (``pbr_tactile.camera_pass.camera_views``); every arrival also deposits its
+flux weighted by the flake lobe's BRDF from its own direction towards that one
+(``GlossyView``), and the same density estimate makes the lobe's radiance g l_m (photon
+mapping's radiance estimate, read per vertex). Lanes that reach the paint another way (the
+tube's reflection, after scattering) read the same map, so their view direction is the
+vertex's, not their own. Beyond Monte Carlo noise, the approximations are the kernel's blur
+and the piecewise-linear reconstruction on the coating mesh (edges of ``REFINED_EDGE_M``);
+the camera pass uses geometric normals at the interfaces.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import math
-import typing
 from dataclasses import dataclass
 
 import numpy as np
 
 from .paint import Paint
+from .streams import Rng, splitmix
+from .transport import (
+    Coating,
+    coating_buffers,
+    dielectric_hit,
+    dielectric_interfaces,
+    face_corners,
+    free_flight,
+    owned,
+    sample_dielectric,
+)
 
 #: Russian roulette starts after this many bounces of a photon.
 RR_DEPTH = 8
 #: Hard cap on photon bounces (trapped light needs tens).
 PHOTON_MAX_DEPTH = 160
-#: Hard cap on camera path vertices (tube, medium).
-CAMERA_MAX_DEPTH = 24
-#: Camera rays continue from their first scattering event in this many directions.
-SCATTER_SPLIT = 16
-#: Only camera rays still carrying more than this weight are split at a scattering event.
-SPLIT_MIN_WEIGHT = 0.25
 #: Generations of split photons traced at most (the last one splits no more).
 MAX_GENERATIONS = 12
 #: A photon heavier than its window splits into at most this many.
@@ -128,7 +129,8 @@ class Source:
     def seen_radiance(self) -> float:
         """The radiance per unit flux of its sphere where the camera sees it: a Lambertian
         sphere's 1 / (pi A); a directional source's I / (pi r^2) = 1 / (Omega pi r^2) towards
-        the cone's solid angle Omega, none outside it (``_camera_hit``)."""
+        the cone's solid angle Omega, none outside it
+        (``pbr_tactile.camera_pass._camera_hit``)."""
         if not self.directional:
             return 1.0 / (math.pi * 4 * math.pi * self.radius**2)
         omega = 2 * math.pi * (1 - math.cos(self.cone_half_angle_rad))
@@ -160,174 +162,6 @@ def _start_direction(mi, dr, normal, cone_cos, u):
     return frame.to_world(dr.select(cone_cos > 1.5, mi.warp.square_to_cosine_hemisphere(u), cone))
 
 
-def _owned(cls, values):
-    """A Dr.Jit array of type ``cls`` holding ``values`` (a NumPy array), copied to a
-    64-byte-aligned buffer first. Dr.Jit's LLVM backend maps a NumPy buffer as it lies
-    and specialises every kernel that reads it on whether its address is aligned to a
-    vector (``jit_var_mem_map``), so arrays that NumPy happened to place differently
-    compiled the same kernel anew: measured, every split generation of the photon pass
-    missed the kernel cache, 0.2-0.4 s each, a third of a small render's time."""
-    a = np.ascontiguousarray(values)
-    buffer = np.empty(a.nbytes + 64, np.uint8)
-    start = -buffer.ctypes.data % 64
-    aligned = buffer[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
-    aligned[...] = a
-    return cls(aligned)
-
-
-def _pointer(mi, shape):
-    """``shape`` as an opaque ShapePtr: a kernel parameter, not a literal. A literal
-    pointer is the shape's index in Mitsuba's registry, which differs from one loaded
-    scene to the next, and each new index compiled every kernel that compares against
-    it anew (measured: 0.2-0.8 s a kernel, a few per render)."""
-    import drjit as dr
-
-    pointer = mi.ShapePtr(shape)
-    dr.make_opaque(pointer)
-    return pointer
-
-
-def _splitmix(*parts: np.ndarray) -> np.ndarray:
-    """A 64-bit hash (SplitMix64 steps) of integer arrays, element-wise."""
-    with np.errstate(over="ignore"):
-        h = np.zeros(np.broadcast(*parts).shape, dtype=np.uint64)
-        for part in parts:
-            h = (h ^ np.asarray(part).astype(np.uint64)) + np.uint64(0x9E3779B97F4A7C15)
-            h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-            h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-            h = h ^ (h >> np.uint64(31))
-    return h
-
-
-def _seed(*parts: int) -> int:
-    """One 32-bit sampler seed from several integers (pass, batch)."""
-    return int(_splitmix(*(np.uint64(p % (1 << 64)) for p in parts)) & np.uint64(0xFFFFFFFF))
-
-
-class _Rng:
-    """Per-lane random streams keyed by a 64-bit identity, not by lane position.
-
-    A photon (or camera ray) keeps its own stream whichever lane it lands in, so two
-    renders with the same seed (a contact and the no-contact frame) trace the same
-    walks wherever the geometry is the same: common random numbers, which keep the
-    noise of a contact's change image down to the paths the contact actually changed.
-    Offers the two sampler methods the walks use, and travels as Dr.Jit loop state.
-    """
-
-    DRJIT_STRUCT: typing.ClassVar[dict] = {"pcg": object}
-
-    def __init__(self, mi=None, identity: np.ndarray | None = None):
-        if mi is None:
-            return
-        import drjit as dr
-
-        n = len(identity)
-        # PCG32 adds arange(n) to both words; take it back so only the identity counts.
-        offset = dr.arange(mi.UInt64, n)
-        state = _owned(mi.UInt64, _splitmix(identity, np.uint64(1)))
-        sequence = _owned(mi.UInt64, _splitmix(identity, np.uint64(2)))
-        self.pcg = mi.PCG32(n, state - offset, sequence - offset)
-
-    def next_1d(self, active=True):
-        return self.pcg.next_float32(active)
-
-    def next_2d(self, active=True):
-        import mitsuba as mi
-
-        return mi.Point2f(self.pcg.next_float32(active), self.pcg.next_float32(active))
-
-
-def _shape(scene, name: str):
-    for shape in scene.shapes():
-        if shape.id() == name:
-            return shape
-    raise ValueError(f"the scene has no shape {name!r}")
-
-
-@dataclass(frozen=True)
-class _Coating:
-    """The coating mesh as Dr.Jit buffers, and the shapes the walks tell apart."""
-
-    faces: object  # UInt32 (3F,), vertex indices
-    vertex_area: np.ndarray  # (V,) m^2, a third of each adjacent face's area
-    coating: object  # ShapePtr
-    core: object  # ShapePtr
-
-
-def _coating(mi, scene) -> _Coating:
-    import trimesh
-
-    coating = _shape(scene, "coating")
-    positions = np.asarray(coating.vertex_positions_buffer()).reshape(-1, 3)
-    tri = np.asarray(coating.faces_buffer()).reshape(-1, 3)
-    mesh = trimesh.Trimesh(positions, tri, process=False)
-    vertex_area = np.zeros(len(positions))
-    np.add.at(vertex_area, tri.ravel(), np.repeat(mesh.area_faces / 3, 3))
-    return _Coating(_owned(mi.UInt32, tri.ravel()), vertex_area, _pointer(mi, coating), _pointer(mi, _shape(scene, "core")))
-
-
-def _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t: float):
-    """Where a walk in the elastomer scatters before the next surface: (scatter, point)."""
-    if sigma_t <= 0:
-        return mi.Bool(False), ray.o
-    t_free = -dr.log(1 - sampler.next_1d(active)) / sigma_t
-    return active & in_el & (t_free < si.t), ray(t_free)
-
-
-def _corners(mi, faces, pi, active):
-    """The hit face's coating-vertex indices and the hit's barycentric weights, from a
-    preliminary intersection (Mitsuba's p = (1-u-v) p0 + u p1 + v p2)."""
-    import drjit as dr
-
-    corners = tuple(dr.gather(mi.UInt32, faces, 3 * pi.prim_index + k, active) for k in range(3))
-    return corners, (1 - pi.prim_uv.x - pi.prim_uv.y, pi.prim_uv.x, pi.prim_uv.y)
-
-
-def _interfaces(mi, scene) -> list[tuple[object, float]]:
-    """The smooth dielectric interfaces: (ShapePtr, eta = interior IOR / exterior IOR),
-    by shape id: the scene lists its shapes in an order that varies from one load to the
-    next, and each order made the kernels that test them differ (their etas are literals)."""
-    out = []
-    for shape in sorted(scene.shapes(), key=lambda s: s.id()):
-        bsdf = shape.bsdf()
-        if mi.has_flag(bsdf.flags(), mi.BSDFFlags.DeltaTransmission):
-            out.append((_pointer(mi, shape), float(mi.traverse(bsdf)["eta"])))
-    return out
-
-
-def _dielectric(mi, dr, si, surface, interfaces):
-    """Where the hit is a smooth dielectric interface, and its relative IOR there."""
-    hit, eta = mi.Bool(False), mi.Float(1.0)
-    for ptr, value in interfaces:
-        here = surface & (si.shape == ptr)
-        hit |= here
-        eta = dr.select(here, value, eta)
-    return hit, eta
-
-
-def _fresnel_branches(mi, dr, d, n, eta):
-    """Fresnel reflectance F, eta_ti and the refracted and reflected directions of d
-    at a smooth interface of normal n (world space, geometric normal)."""
-    wi = -d
-    cos_i = dr.dot(wi, n)
-    F, cos_t, _, eta_ti = mi.fresnel(cos_i, eta)
-    refracted = dr.normalize(-eta_ti * (wi - n * cos_i) + n * cos_t)
-    reflected = 2 * cos_i * n - wi
-    return F, eta_ti, refracted, reflected
-
-
-def _sample_dielectric(mi, dr, d, n, eta, u):
-    """Fresnel-sampled reflection or refraction of direction d at a smooth interface of
-    normal n: (new direction, transmitted, F, eta_ti).
-
-    In importance transport the sampled weight is exactly 1 (the eta^2 factor applies
-    to radiance only), as in Mitsuba's ``dielectric``.
-    """
-    F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, d, n, eta)
-    transmitted = u >= F
-    return dr.select(transmitted, refracted, reflected), transmitted, F, eta_ti
-
-
 def _facing_shading_normal(mi, dr, si, towards):
     """The hit's shading normal (interpolated where the mesh has vertex normals), turned
     to the side of the unit direction ``towards`` (as ``twosided`` mirrors a BSDF)."""
@@ -348,10 +182,10 @@ class GlossyView:
     """Where the camera sees each coating vertex from, for a glossy paint's map
     (``deposits(glossy=)``): ``toward`` (V, 3) the unit direction from the vertex back along
     the camera's view path, ``normal`` (V, 3) its unit normal on the elastomer's side
-    (``camera_views``). After ``deposits``, ``flux`` (S, V) is each vertex's share of
-    sum_p Phi_p f(w_p, toward; normal) over the photons' arrivals p (the flake lobe's BRDF
-    from the arrival's direction), which ``irradiance`` makes the lobe's radiance per unit
-    flux emitted."""
+    (``pbr_tactile.camera_pass.camera_views``). After ``deposits``, ``flux`` (S, V) is each
+    vertex's share of sum_p Phi_p f(w_p, toward; normal) over the photons' arrivals p (the
+    flake lobe's BRDF from the arrival's direction), which ``pbr_tactile.density.irradiance``
+    makes the lobe's radiance per unit flux emitted."""
 
     def __init__(self, toward: np.ndarray, normal: np.ndarray):
         self.toward = np.asarray(toward, np.float64)
@@ -362,7 +196,7 @@ class GlossyView:
         self.flux: np.ndarray | None = None
 
 
-def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: dict, sampler, photons: int,
+def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dict, sampler, photons: int,
                       sigma_t: float, albedo: float, paint, may_split: bool, grid=None,
                       track=None, classes: int = 1, lobe=None) -> dict:
     """Trace one generation of photons from ``start``, depositing into ``acc`` (and, with a
@@ -398,7 +232,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
     def body(ray, weight, in_el, active, depth, sampler, tag):
         pi = scene.ray_intersect_preliminary(ray, False, active)
         si = pi.compute_surface_interaction(ray, flags, active)
-        scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
+        scatter, scatter_pos = free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_t)
         if grid is not None:
             # Track length: the segment's w l, at one point drawn uniformly along it.
             length = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
@@ -408,7 +242,7 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
                               mode=dr.ReduceMode.Expand)
         surface = active & ~scatter & si.is_valid()
         hit_coating = surface & (si.shape == c.coating)
-        corners, bary = _corners(mi, c.faces, pi, hit_coating)
+        corners, bary = face_corners(mi, c.faces, pi, hit_coating)
         into = offset if classes == 1 else (s * classes + tag) * n_vertices
         for i, b in zip(corners, bary):
             dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, into + i, hit_coating,
@@ -428,8 +262,8 @@ def _trace_generation(mi, scene, c: _Coating, interfaces, acc, target, start: di
             wi = -ray.d
             shading = _facing_shading_normal(mi, dr, si, wi)
             diffuse_dir, factor = _paint_direction(mi, dr, paint, sampler, diffuse_dir, shading, wi, hit_coating)
-        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
-        refr_dir, transmitted, _, _ = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
+        dielectric, eta = dielectric_hit(mi, dr, si, surface, interfaces)
+        refr_dir, transmitted, _, _ = sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
         in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
         if classes > 1:
             tag = tag | dr.select(dielectric & transmitted, mi.UInt32(GLASS), mi.UInt32(0)) \
@@ -515,10 +349,10 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     import drjit as dr
 
     paint = Paint.of(coating_albedo)
-    c = _coating(mi, scene)
+    c = coating_buffers(mi, scene)
     n_vertices = len(c.vertex_area)
     n_src = len(sources)
-    interfaces = _interfaces(mi, scene)
+    interfaces = dielectric_interfaces(mi, scene)
     n_classes = PATH_CLASSES if classes else 1
     acc = dr.zeros(mi.Float, n_src * n_classes * n_vertices)
     lobe = None
@@ -526,17 +360,17 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         if glossy.toward.shape != (n_vertices, 3):
             raise ValueError(f"the glossy view has {len(glossy.toward)} vertices, the coating {n_vertices}")
         lobe = (dr.zeros(mi.Float, n_src * n_vertices),
-                *(mi.Vector3f(*[_owned(mi.Float, a[:, k]) for k in range(3)]) for a in (glossy.toward, glossy.normal)))
+                *(mi.Vector3f(*[owned(mi.Float, a[:, k]) for k in range(3)]) for a in (glossy.toward, glossy.normal)))
     track = None if grid is None else dr.zeros(mi.Float, n_src * grid.size)
-    target = None if window is None else _owned(mi.Float, np.asarray(window, dtype=np.float64).ravel())
+    target = None if window is None else owned(mi.Float, np.asarray(window, dtype=np.float64).ravel())
 
     # Generation 0: points on the LED spheres, cosine about their normals.
     lane = dr.arange(mi.UInt32, n_src * photons)
     s = lane // photons
     centre = dr.gather(mi.Point3f, mi.Point3f(*[mi.Float([src.centre[k] for src in sources]) for k in range(3)]), s)
     radius = dr.gather(mi.Float, mi.Float([src.radius for src in sources]), s)
-    identity = _splitmix(np.uint64(seed), np.arange(n_src * photons, dtype=np.uint64))
-    sampler = _Rng(mi, identity)
+    identity = splitmix(np.uint64(seed), np.arange(n_src * photons, dtype=np.uint64))
+    sampler = Rng(mi, identity)
     normal = mi.warp.square_to_uniform_sphere(sampler.next_2d())
     # Directional sources leave from the sphere's point on their axis, within their cone.
     if any(src.directional for src in sources):
@@ -547,11 +381,11 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     cones = [math.cos(src.cone_half_angle_rad) if src.directional else _LAMBERTIAN for src in sources]
     start = {"p": centre + normal * (radius * (1 + 1e-4)), "n": normal, "w": mi.Float(1.0 / photons),
              "in_el": dr.gather(mi.Bool, mi.Bool([src.in_elastomer for src in sources]), s), "s": s,
-             "depth": mi.UInt32(0), "id": _owned(mi.UInt64, identity), "cone": dr.gather(mi.Float, mi.Float(cones), s),
+             "depth": mi.UInt32(0), "id": owned(mi.UInt64, identity), "cone": dr.gather(mi.Float, mi.Float(cones), s),
              "tag": dr.zeros(mi.UInt32, n_src * photons)}
     for generation in range(MAX_GENERATIONS):
         if generation > 0:
-            sampler = _Rng(mi, identity)
+            sampler = Rng(mi, identity)
         queue = _trace_generation(mi, scene, c, interfaces, acc, target, start, sampler, photons, sigma_t, albedo,
                                   paint, target is not None and generation < MAX_GENERATIONS - 1,
                                   grid, track, n_classes, lobe)
@@ -570,18 +404,18 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         rep = {key: np.repeat(value, copies) for key, value in q.items()}
         # Each copy's stream: its parent's identity, its copy number, the generation.
         copy = np.arange(len(rep["k"])) - np.repeat(np.cumsum(copies) - copies, copies)
-        identity = _splitmix(rep["id"], copy.astype(np.uint64), np.uint64(generation + 1))
+        identity = splitmix(rep["id"], copy.astype(np.uint64), np.uint64(generation + 1))
         p = np.c_[rep["px"], rep["py"], rep["pz"]]
         nrm = np.c_[rep["nx"], rep["ny"], rep["nz"]]
         p = p + nrm * SPAWN_OFFSET_M
         # Split photons restart on the coating, inside the elastomer.
-        start = {"p": mi.Point3f(*[_owned(mi.Float, p[:, k]) for k in range(3)]),
-                 "n": mi.Vector3f(*[_owned(mi.Float, nrm[:, k]) for k in range(3)]), "w": _owned(mi.Float, rep["w"]),
-                 "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": _owned(mi.UInt32, rep["s"]),
-                 "depth": _owned(mi.UInt32, rep["depth"]), "id": _owned(mi.UInt64, identity),
-                 "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"])), "tag": _owned(mi.UInt32, rep["tag"])}
+        start = {"p": mi.Point3f(*[owned(mi.Float, p[:, k]) for k in range(3)]),
+                 "n": mi.Vector3f(*[owned(mi.Float, nrm[:, k]) for k in range(3)]), "w": owned(mi.Float, rep["w"]),
+                 "in_el": dr.full(mi.Bool, True, len(rep["w"])), "s": owned(mi.UInt32, rep["s"]),
+                 "depth": owned(mi.UInt32, rep["depth"]), "id": owned(mi.UInt64, identity),
+                 "cone": dr.full(mi.Float, _LAMBERTIAN, len(rep["w"])), "tag": owned(mi.UInt32, rep["tag"])}
         if paint.glossy:
-            start["wi"], start["shading"] = (mi.Vector3f(*[_owned(mi.Float, rep[k]) for k in names])
+            start["wi"], start["shading"] = (mi.Vector3f(*[owned(mi.Float, rep[k]) for k in names])
                                              for names in (("wx", "wy", "wz"), ("sx", "sy", "sz")))
     if lobe is not None:
         glossy.flux = np.asarray(lobe[0], dtype=np.float64).reshape(n_src, n_vertices)
@@ -612,440 +446,3 @@ def weight_window(irradiance_pilot: np.ndarray, vertex_area: np.ndarray, photons
     pilot = np.maximum(pilot, floor)
     mean = (pilot * vertex_area).sum(axis=1, keepdims=True) / vertex_area.sum()
     return pilot**exponent * mean ** (1 - exponent) * vertex_area.sum() / (deposits_per_photon * photons)
-
-
-def coating_areas(scene) -> np.ndarray:
-    """(V,) area attributed to each coating vertex, m^2 (a third of each adjacent face)."""
-    import mitsuba as mi
-
-    return _coating(mi, scene).vertex_area
-
-
-def coating_vertices(scene) -> np.ndarray:
-    """(V, 3) positions of the coating mesh's vertices, metres."""
-    return np.asarray(_shape(scene, "coating").vertex_positions_buffer()).reshape(-1, 3)
-
-
-def density_kernel(positions: np.ndarray, radius: float, like: tuple | None = None):
-    """The (V, V) sparse Epanechnikov weights w_ij = 1 - (|x_i - x_j| / radius)^2 over a
-    ball of the given radius (m); radius = 0 gives the identity.
-
-    Vertices at the same position (a seam) weigh 1, like the diagonal. The last
-    KERNEL_MEMO kernels are kept by the positions' bytes: every contact of a sensor
-    asks again for the undeformed membrane's.
-
-    like : (positions, kernel) of the same vertices before some of them moved (a contact's
-        dent): only the moved vertices' rows and columns are computed again; the
-        kernel is the one computed from scratch, entry for entry.
-    """
-    from scipy.sparse import csr_matrix, identity
-    from scipy.spatial import cKDTree
-
-    positions = np.ascontiguousarray(positions, dtype=np.float64)
-    n = len(positions)
-    if radius <= 0:
-        return identity(n, format="csr")
-    key = (hashlib.sha1(positions.tobytes()).hexdigest(), n, float(radius))
-    if key in _KERNELS:
-        _KERNELS[key] = _KERNELS.pop(key)  # the most recently used is kept longest
-        return _KERNELS[key]
-
-    def weights(i, j):
-        return 1.0 - np.sum(np.square(positions[i] - positions[j]), axis=1) / radius**2
-
-    if like is not None and len(like[0]) == n:
-        old = like[1].tocoo()
-        moved = np.any(positions != np.asarray(like[0], np.float64), axis=1)
-        near = cKDTree(positions).query_ball_point(positions[moved], radius, return_sorted=False)
-        rows = np.repeat(np.flatnonzero(moved), [len(k) for k in near])  # every pair with a moved vertex
-        cols = np.concatenate(near).astype(np.int64) if len(near) else np.zeros(0, np.int64)
-        w = weights(rows, cols)
-        keep = ~moved[old.row] & ~moved[old.col]
-        mirror = ~moved[cols]  # pairs of two moved vertices came from both their queries
-        rows, cols, w = (np.concatenate([old.row[keep], rows, cols[mirror]]),
-                         np.concatenate([old.col[keep], cols, rows[mirror]]),
-                         np.concatenate([old.data[keep], w, w[mirror]]))
-    else:
-        pairs = cKDTree(positions).query_pairs(radius, output_type="ndarray")  # i < j
-        w = weights(pairs[:, 0], pairs[:, 1])
-        rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(n)])
-        cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(n)])
-        w = np.concatenate([w, w, np.ones(n)])
-    kernel = csr_matrix((w, (rows, cols)), shape=(n, n))
-    _KERNELS[key] = kernel
-    while len(_KERNELS) > KERNEL_MEMO:
-        _KERNELS.pop(next(iter(_KERNELS)))
-    return kernel
-
-
-#: Density kernels kept by ``density_kernel`` (each about 60 MB on the default GelTip mesh),
-#: the most recently used.
-KERNEL_MEMO = 2
-_KERNELS: dict = {}
-
-
-def irradiance(flux: np.ndarray, vertex_area: np.ndarray, kernel) -> np.ndarray:
-    """Irradiance from deposited flux: E_i = sum_j w_ij Phi_j / sum_j w_ij A_j.
-
-    That is the area-weighted mean irradiance over the kernel's ball around x_i: exact
-    for irradiance linear over the ball, so its bias is of order radius^2 times the
-    irradiance's curvature (photon mapping's density estimate, consistent as the radius
-    goes to 0), while its variance falls as 1 / radius^2.
-
-    flux : (S, V) deposited flux per vertex; vertex_area (V,) m^2; kernel from
-    ``density_kernel``.
-    """
-    return (kernel @ flux.T).T / (kernel @ vertex_area)
-
-
-#: Bump when the camera pass changes what a pixel sees (2: beam LEDs seen inside their
-#: cone; 3: only on a ray's first segment): every cache of rendered images (bases, dataset frames, studies) keys on it.
-CAMERA_PASS_VERSION = 3
-
-
-#: The fewest rays ``camera_views`` traces over the film (a 640x480 grid's).
-VIEW_RAYS = 640 * 480
-
-
-def camera_views(mi, scene) -> GlossyView:
-    """Where the scene's camera sees each coating vertex from, for a glossy paint's map.
-
-    Rays on a grid over the film (at least VIEW_RAYS of them, so that every face in view
-    is met whatever the film's size) are followed along their view paths, refracted at
-    every interface (reflected only where it cannot cross), to the paint; each vertex takes
-    the mean, weighted by the hits' barycentric weights, of the directions back along the
-    rays that meet its faces (a vertex no ray meets: its normal). The normals are the
-    mesh's own vertex normals (Mitsuba's, else trimesh's), turned to the elastomer's side.
-    """
-    import drjit as dr
-    import trimesh
-
-    c = _coating(mi, scene)
-    coating = _shape(scene, "coating")
-    interfaces = _interfaces(mi, scene)
-    n_vertices = len(c.vertex_area)
-    sensor = scene.sensors()[0]
-    width, height = (int(v) for v in sensor.film().crop_size())
-    per = max(1, math.ceil(math.sqrt(VIEW_RAYS / (width * height))))
-    width, height = width * per, height * per
-    index = dr.arange(mi.UInt32, width * height)
-    position = (mi.Point2f(mi.Float(index % width), mi.Float(index // width)) + 0.5) / mi.ScalarVector2f(width, height)
-    ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
-    acc = dr.zeros(mi.Float, 4 * n_vertices)  # per vertex: sum b w (3), sum b
-
-    def cond(ray, active, depth):
-        return active
-
-    def body(ray, active, depth):
-        pi = scene.ray_intersect_preliminary(ray, False, active)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-        surface = active & si.is_valid()
-        hit = surface & (si.shape == c.coating)
-        corners, bary = _corners(mi, c.faces, pi, hit)
-        for i, b in zip(corners, bary):
-            for k, part in enumerate((-ray.d.x, -ray.d.y, -ray.d.z, mi.Float(1.0))):
-                dr.scatter_reduce(dr.ReduceOp.Add, acc, b * part, 4 * i + k, hit, mode=dr.ReduceMode.Expand)
-        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
-        F, _, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
-        ray = si.spawn_ray(dr.select(F < 1, refracted, reflected))
-        depth += 1
-        return ray, dielectric & (depth < CAMERA_MAX_DEPTH), depth
-
-    dr.while_loop(state=(mi.Ray3f(ray.o, ray.d), dr.full(mi.Bool, True, width * height),
-                         dr.zeros(mi.UInt32, width * height)), cond=cond, body=body, label="camera_views")
-    sums = np.asarray(acc, np.float64).reshape(n_vertices, 4)
-    positions = np.asarray(coating.vertex_positions_buffer(), np.float64).reshape(-1, 3)
-    if coating.has_vertex_normals():
-        outward = np.asarray(coating.vertex_normals_buffer(), np.float64).reshape(-1, 3)
-    else:
-        faces = np.asarray(coating.faces_buffer()).reshape(-1, 3)
-        outward = trimesh.Trimesh(positions, faces, process=False).vertex_normals
-    normal = -outward / np.linalg.norm(outward, axis=1, keepdims=True)  # coating normals point out of the elastomer
-    seen = sums[:, 3] > 0
-    toward = normal.copy()
-    toward[seen] = sums[seen, :3] / np.linalg.norm(sums[seen, :3], axis=1, keepdims=True)
-    return GlossyView(toward, normal)
-
-
-def camera_pass(mi, scene, sources: list[Source], maps: np.ndarray, sigma_t: float, albedo: float,
-                coating_albedo: float, spp: int, seed: int = 0, batch: int = 1 << 21,
-                scatter_split: int = SCATTER_SPLIT, fluence=None, glossy_maps: np.ndarray | None = None) -> np.ndarray:
-    """Per pixel and source, the radiance reaching the camera per unit emitted flux.
-
-    Camera rays (the scene's sensor, spp per pixel, one in each cell of a jittered grid
-    over the pixel when spp is a square) are followed through the tube and the medium to
-    the first coating hit, whose outgoing radiance is (rho / pi) e_m(x); LEDs seen
-    directly give 1 / (pi A_m). At the first hit, the tube's inner wall, each ray
-    follows both Fresnel branches with weights F and (1 - F) eta^2 instead of choosing
-    one: the ~4 % reflection shows the bright LED end of the membrane and, sampled,
-    would dominate every pixel's variance. Later interfaces are Fresnel-sampled.
-
-    In the elastomer, absorption is a weight exp(-sigma_a t) along each segment, and
-    scattering events are sampled at rate sigma_s; at a ray's first scattering event it
-    continues in ``scatter_split`` directions, one in each stratum of the sphere, each
-    with a 1/scatter_split share. In-scattered light is the whole camera-side noise
-    (without the medium the contact region's noise is 0.36 % at 48 spp; with it, 2.5 %),
-    so that is where the samples go.
-
-    coating_albedo : the paint's albedo, or a ``pbr_tactile.paint.Paint``. A glossy paint's
-        diffuse lobe is read from the maps, (1 - g) (rho / pi) e_m, and its flake lobe
-        from ``glossy_maps``, g l_m.
-    glossy_maps : (S, V) the flake lobe's radiance per unit flux towards each vertex's view
-        (``GlossyView``'s flux through ``irradiance``), needed by a glossy paint.
-
-    fluence : (grid, phi): a ``pbr_tactile.fluence.FluenceGrid`` and the (S, N) fluence
-        per unit flux of each source in its voxels (``FluenceGrid.fluence`` of the photons'
-        tracks). A ray's scattering event then ends its walk with the in-scattered
-        radiance phi(x) / (4 pi) read there, which holds all the light that reaches x, the
-        LEDs' through the glass included: no split, no next-event estimate
-        (``pbr_tactile.fluence``; ``scatter_split`` is unused).
-
-    The transport is grey, so no wavelength is sampled here: the film's response is
-    applied exactly afterwards (pbr_tactile.spectra.film_response). Rays are traced in
-    one symbolic loop per batch of at most ``batch`` camera samples.
-    Returns (H, W, S) float64, 1/(m^2 sr) per unit flux.
-    """
-    import drjit as dr
-
-    lookup = None
-    if fluence is not None:
-        grid, phi = fluence
-        phi = np.asarray(phi)
-        if phi.shape != (len(sources), grid.size):
-            raise ValueError(f"fluence must be (sources, voxels) = ({len(sources)}, {grid.size}), got {phi.shape}")
-        lookup = (grid, _owned(mi.Float, phi.ravel()))
-        scatter_split = 1
-    paint = Paint.of(coating_albedo)
-    scale = 1.0 if paint.glossy else paint.albedo / math.pi
-    if paint.glossy and glossy_maps is None:
-        raise ValueError("a glossy paint's camera pass needs glossy_maps: the flake lobe's radiance per vertex, "
-                         "from deposits(glossy=GlossyView(...))")
-    c = _coating(mi, scene)
-    interfaces = _interfaces(mi, scene)
-    E = [_owned(mi.Float, m) for m in maps]
-    if paint.glossy:
-        glossy_maps = np.asarray(glossy_maps)
-        if glossy_maps.shape != np.shape(maps):
-            raise ValueError(f"glossy_maps must be shaped as the maps, {np.shape(maps)}, got {glossy_maps.shape}")
-        # One map per source: (1 - g) (rho / pi) e_m + g l_m, read as the diffuse maps are.
-        E = [_owned(mi.Float, (paint.diffuse / math.pi) * m + paint.gloss * l) for m, l in zip(maps, glossy_maps)]
-    emitters = [_pointer(mi, _shape(scene, src.name)) for src in sources]
-    # each source's radiance where seen, and the cone it shines into (Source.seen_radiance).
-    # The axis is a scalar vector, copied into each expression: Dr.Jit 1.5 can broadcast a
-    # literal Vector3f holding -0.0 (a turned LED's axis can) in place when it meets a wider
-    # array, so one kept across the first hit and the walk broke the second.
-    led_radiance = [(src.seen_radiance(), None if not src.directional else
-                     (mi.ScalarVector3f(*src.cone_axis), math.cos(src.cone_half_angle_rad))) for src in sources]
-    sensor = scene.sensors()[0]
-    width, height = (int(v) for v in sensor.film().crop_size())
-    side = math.isqrt(spp) if math.isqrt(spp) ** 2 == spp else 1
-    total = np.zeros((width * height, len(sources)))
-    per_batch = max(1, batch // (width * height))
-    done = 0
-    while done < spp:
-        count = min(per_batch, spp - done)
-        n = width * height * count
-        sampler = mi.load_dict({"type": "independent"})
-        sampler.seed(_seed(seed, 1 << 20, done), 2 * n)
-        index = dr.arange(mi.UInt32, n)
-        pixel = index // count
-        sample = index % count + done
-        px = mi.Point2f(mi.Float(pixel % width), mi.Float(pixel // width))
-        cell = sample % (side * side)
-        stratum = mi.Point2f(mi.Float(cell % side), mi.Float(cell // side))
-        u = dr.gather(mi.Point2f, sampler.next_2d(), index)
-        position = (px + (stratum + u) / side) / mi.ScalarVector2f(width, height)
-        ray, _ = sensor.sample_ray(0.0, 0.5, position, mi.Point2f(0.5))
-        ray = mi.Ray3f(ray.o, ray.d)
-        # First hit: both Fresnel branches, as two lanes per camera sample.
-        pi = scene.ray_intersect_preliminary(ray, False)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal)
-        T = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, si.is_valid(), mi.Float(1.0), scale,
-                        direction=ray.d)
-        dielectric, eta = _dielectric(mi, dr, si, si.is_valid(), interfaces)
-        F, eta_ti, refracted, reflected = _fresnel_branches(mi, dr, ray.d, si.n, eta)
-        enters = (si.shape == c.core)
-        o_t, o_r = si.spawn_ray(refracted).o, si.spawn_ray(reflected).o
-        # _concat gathers, which evaluates its sources: all in one kernel, not one each.
-        dr.eval(T, dielectric, enters, F, eta_ti, refracted, reflected, o_t, o_r)
-
-        def both(a, b):
-            return _concat(mi, dr, a, b)
-
-        lanes = mi.Ray3f(both(o_t, o_r), both(refracted, reflected))
-        beta = both(dr.select(dielectric, (1 - F) * dr.square(eta_ti), 0.0), dr.select(dielectric, F, 0.0))
-        in_el = both(dielectric & enters, dr.zeros(mi.Bool, n))
-        walk = functools.partial(_camera_walk, mi, dr, scene, c, E, sources, emitters, led_radiance, interfaces,
-                                 sigma_s=sigma_t * albedo, sigma_a=sigma_t * (1 - albedo),
-                                 scale=scale, fluence=lookup)
-        T2, scattered = walk(sampler, lanes, beta, in_el, stop_at_scatter=scatter_split > 1)
-        # One kernel for every source's output (converting them one by one would trace
-        # the walk once per source).
-        dr.eval(T, T2, scattered)
-        per_lane = np.stack([np.asarray(t, dtype=np.float64) for t in T2], axis=-1)  # (2n, S)
-        if scatter_split > 1:
-            nee = functools.partial(_led_nee, mi, dr, scene, sources, emitters, led_radiance, sigma_t=sigma_t)
-            per_lane += _split_scatter(mi, dr, walk, nee, scattered, scatter_split, _seed(seed, 1 << 20, done), 2 * n)
-        per_sample = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1) + per_lane.reshape(2, n, -1).sum(0)
-        total += per_sample.reshape(width * height, count, -1).sum(axis=1)
-        done += count
-    return (total / spp).reshape(height, width, len(sources))
-
-
-def _concat(mi, dr, a, b):
-    """Two Dr.Jit arrays (or 3-vectors) of equal width, end to end."""
-    if dr.depth_v(a) > 1:
-        return type(a)(*[_concat(mi, dr, a[k], b[k]) for k in range(len(a))])
-    n = dr.width(a)
-    index = dr.arange(mi.UInt32, 2 * n)
-    first = index < n
-    return dr.select(first, dr.gather(type(a), a, index, first), dr.gather(type(a), b, index - n, ~first))
-
-
-def _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, scale, count_leds=True,
-                direction=None, first=True):
-    """Radiance per unit flux of each source, seen at a hit: the coating's map times
-    ``scale`` (rho / pi times the irradiance e_m; a glossy paint's maps are already its
-    radiance, scale 1) interpolated on the hit face, or an LED's radiance (``Source.seen_radiance``: ``led_radiance``
-    holds it and, for a directional source, its cone's axis and cosine) where
-    ``count_leds``, a directional one's only where ``direction`` (the ray's) leaves it
-    inside its cone, and only on a ray's ``first`` segment past the camera's first hit
-    (seen directly, or through or in the first interface): its sphere is small and bright,
-    and its views after further sampled interfaces, rare, were most of every pixel's
-    variance (bright single pixels all over the image), so they are left out."""
-    hit_coating = surface & (si.shape == c.coating)
-    corners, bary = _corners(mi, c.faces, pi, hit_coating)
-    out = []
-    for e, emitter, (radiance, cone) in zip(E, emitters, led_radiance):
-        irr = sum(dr.gather(mi.Float, e, i, hit_coating) * b for i, b in zip(corners, bary))
-        t = dr.select(hit_coating, beta * irr * scale, 0.0)
-        lit = surface & count_leds & (si.shape == emitter)
-        if cone is not None:
-            lit = lit & first & (dr.dot(-direction, cone[0]) >= cone[1])
-        out.append(t + dr.select(lit, beta * radiance, 0.0))
-    return out
-
-
-def _led_nee(mi, dr, scene, leds, emitters, led_radiance, point, beta, sampler, active, sigma_t: float):
-    """Next-event estimate of each LED's light scattered towards the camera at points in
-    the elastomer (isotropic phase 1/(4 pi)): a direction sampled uniformly in the cone
-    the LED sphere subtends, kept if the sphere is the first thing it hits, attenuated by
-    exp(-sigma_t t). Light reaching the point through an interface is not included (the
-    walk itself finds it). Returns radiance per unit flux per source."""
-    out = []
-    for src, emitter, (radiance, cone) in zip(leds, emitters, led_radiance):
-        to_led = mi.Point3f(*src.centre) - point
-        dist = dr.norm(to_led)
-        cos_max = dr.safe_sqrt(1 - dr.square(src.radius / dr.maximum(dist, src.radius * (1 + 1e-6))))
-        d = mi.Frame3f(to_led / dist).to_world(mi.warp.square_to_uniform_cone(sampler.next_2d(active), cos_max))
-        si = scene.ray_intersect(mi.Ray3f(point, d), mi.RayFlags.Minimal, False, active)
-        seen = active & si.is_valid() & (si.shape == emitter)
-        if cone is not None:  # a directional source lights only the points inside its cone
-            seen = seen & (dr.dot(-d, cone[0]) >= cone[1])
-        weight = beta * radiance / (4 * math.pi) * 2 * math.pi * (1 - cos_max) * dr.exp(-sigma_t * si.t)
-        out.append(dr.select(seen, weight, 0.0))
-    return out
-
-
-def _camera_walk(mi, dr, scene, c, E, leds, emitters, led_radiance, interfaces, sampler, ray, beta, in_el,
-                 sigma_s: float, sigma_a: float, scale: float, stop_at_scatter: bool = False,
-                 after_scatter=None, fluence=None):
-    """Follow camera rays (one symbolic loop) until they end on the coating, an LED or
-    nothing. At a scattering event the LEDs' direct light comes by next-event estimation
-    (``_led_nee``), so a segment starting there does not count an LED it hits (it would
-    count that light twice); after an interface it does. Returns the radiance per unit
-    flux of each source per lane, and, with ``stop_at_scatter``, the lanes stopped at
-    their first scattering event (a dict of arrays: flag, position, weight, one slot per
-    lane), else None. ``after_scatter``: lanes that start at a scattering event.
-    ``fluence``: (FluenceGrid, its (S * N) Dr.Jit fluence): a scattering event adds
-    beta phi(x) / (4 pi) and ends the lane (``camera_pass``)."""
-    n_src = len(E)
-    n = dr.width(beta)
-    lane_index = dr.arange(mi.UInt32, n)
-    stopped = {k: dr.zeros(mi.Float, n) for k in ("flag", "px", "py", "pz", "beta")} if stop_at_scatter else None
-    sigma_t = sigma_s + sigma_a
-
-    def cond(ray, beta, in_el, after, active, depth, sampler, *T):
-        return active
-
-    def body(ray, beta, in_el, after, active, depth, sampler, *T):
-        pi = scene.ray_intersect_preliminary(ray, False, active)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-        scatter, scatter_pos = _free_flight(dr, mi, sampler, ray, si, in_el, active, sigma_s)
-        if sigma_a > 0:
-            travelled = dr.select(scatter, dr.norm(scatter_pos - ray.o), si.t)
-            beta = dr.select(active & in_el, beta * dr.exp(-sigma_a * dr.minimum(travelled, 1.0)), beta)
-        surface = active & ~scatter & si.is_valid()
-        seen = _camera_hit(mi, dr, c, E, emitters, led_radiance, pi, si, surface, beta, scale, ~after, ray.d,
-                           depth == 0)
-        T = [t + dt for t, dt in zip(T, seen)]
-        dielectric, eta = _dielectric(mi, dr, si, surface, interfaces)
-        wo, transmitted, _, eta_ti = _sample_dielectric(mi, dr, ray.d, si.n, eta, sampler.next_1d(active))
-        in_el = dr.select(dielectric & transmitted & (si.shape == c.core), ~in_el, in_el)
-        # Radiance crossing an interface is scaled by eta^2 (solid-angle compression).
-        beta = dr.select(dielectric & transmitted, beta * dr.square(eta_ti), beta)
-        scatter_dir = mi.warp.square_to_uniform_sphere(sampler.next_2d(active))
-        nxt = si.spawn_ray(wo)
-        ray = mi.Ray3f(dr.select(scatter, scatter_pos, nxt.o), dr.select(scatter, scatter_dir, nxt.d))
-        depth += 1
-        keep = scatter
-        if fluence is not None:
-            grid, phi = fluence
-            voxel = grid.index(mi, scatter_pos)
-            T = [t + dr.select(scatter, beta * dr.gather(mi.Float, phi, m * grid.size + voxel, scatter) / (4 * math.pi),
-                               0.0) for m, t in enumerate(T)]
-            keep = mi.Bool(False)
-        elif stopped is not None:
-            # Lanes carrying little (the tube's reflection, weight F) are not worth splitting.
-            stop = scatter & (beta > SPLIT_MIN_WEIGHT)
-            for key, value in (("flag", mi.Float(1.0)), ("px", scatter_pos.x), ("py", scatter_pos.y),
-                               ("pz", scatter_pos.z), ("beta", beta)):
-                dr.scatter(stopped[key], value, lane_index, stop)
-            keep = scatter & ~stop
-        if sigma_s > 0 and fluence is None:
-            direct = _led_nee(mi, dr, scene, leds, emitters, led_radiance, scatter_pos, beta, sampler, keep, sigma_t)
-            T = [t + dt for t, dt in zip(T, direct)]
-        after = keep
-        active = (keep | dielectric) & (beta > 0) & (depth < CAMERA_MAX_DEPTH)
-        return (ray, beta, in_el, after, active, depth, sampler, *T)
-
-    zeros = [dr.zeros(mi.Float, n) for _ in range(n_src)]
-    after = dr.zeros(mi.Bool, n) if after_scatter is None else after_scatter
-    state = dr.while_loop(state=(ray, beta, in_el, after, beta > 0, dr.zeros(mi.UInt32, n), sampler, *zeros),
-                          cond=cond, body=body, label="camera")
-    return list(state[7:]), stopped
-
-
-def _split_scatter(mi, dr, walk, nee, stopped: dict, k: int, seed: int, n_lanes: int) -> np.ndarray:
-    """Continue each stopped lane from its scattering point in k directions, one per
-    stratum of the sphere (a jittered sqrt(k) x sqrt(k) grid on the unit square), each
-    with weight beta / k. Returns (n_lanes, S) radiance per unit flux per lane."""
-    flag = np.asarray(stopped["flag"]) > 0
-    lanes = np.flatnonzero(flag)
-    if len(lanes) == 0:
-        return 0.0
-    origin = np.c_[[np.asarray(stopped[key])[lanes] for key in ("px", "py", "pz")]].T
-    beta = np.asarray(stopped["beta"])[lanes]
-    side = max(1, math.isqrt(k))
-    k = side * side
-    m = len(lanes) * k
-    # Streams keyed by the parent lane and the direction's stratum: a lane that scatters
-    # in two renders (contact, no contact) continues the same way in both.
-    sampler = _Rng(mi, _splitmix(np.uint64(seed), np.repeat(lanes, k).astype(np.uint64),
-                                 np.tile(np.arange(k, dtype=np.uint64), len(lanes))))
-    index = dr.arange(mi.UInt32, m)
-    cell = index % k
-    u = (mi.Point2f(mi.Float(cell % side), mi.Float(cell // side)) + sampler.next_2d()) / side
-    d = mi.warp.square_to_uniform_sphere(u)
-    o = np.repeat(origin, k, axis=0)
-    ray = mi.Ray3f(mi.Point3f(*[_owned(mi.Float, o[:, j]) for j in range(3)]), d)
-    weight = _owned(mi.Float, np.repeat(beta / k, k))
-    T, _ = walk(sampler, ray, weight, dr.full(mi.Bool, True, m), after_scatter=dr.full(mi.Bool, True, m))
-    # The LEDs' direct light at each event, one estimate per direction's stratum sample.
-    direct = nee(ray.o, weight, sampler, dr.full(mi.Bool, True, m))
-    T = [t + d for t, d in zip(T, direct)]
-    dr.eval(T)
-    per = np.stack([np.asarray(t, dtype=np.float64) for t in T], axis=-1).reshape(len(lanes), k, -1).sum(1)
-    out = np.zeros((n_lanes, per.shape[1]))
-    out[lanes] = per
-    return out

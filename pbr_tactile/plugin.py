@@ -45,18 +45,13 @@ import numpy as np
 from scenes.camera import CONTACT_EPS_M, Camera, check_depth
 from scenes.spec import SensorSpec
 
+from .camera_pass import CAMERA_PASS_VERSION
 from .effects import Effects
+from .estimate import MIN_PASSES, Control, Estimate, contact_rse
 from .fluence import INSCATTER
 from .membrane import shared_builder
 from .nocontact import CACHE_VERSION
-from .photons import CAMERA_PASS_VERSION
-from .render import (
-    MIN_PASSES,
-    Control,
-    Estimate,
-    contact_rse,
-    reference,
-)
+from .render import reference
 
 #: The dataset's ``source`` (scenes.dataset.SOURCES) for this renderer.
 SOURCE = "pbr"

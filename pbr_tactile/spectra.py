@@ -48,7 +48,7 @@ def film_response(radiance: np.ndarray, camera_response: bool = True,
     it (``hdrfilm``), linear sRGB of the CIE 1931 XYZ integrals times Mitsuba's
     CIE_Y normalisation. Both are Mitsuba's own conventions, so an image assembled from
     this matches a Mitsuba render of the same light in expectation, without sampling
-    wavelengths (pbr_tactile.photons.camera_pass).
+    wavelengths (pbr_tactile.camera_pass.camera_pass).
     """
     fine = np.linspace(wavelengths[0], wavelengths[-1], 20 * (len(wavelengths) - 1) + 1)
     L = np.interp(fine, wavelengths, radiance)

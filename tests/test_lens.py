@@ -150,7 +150,8 @@ def test_mujoco_depth_through_the_lens_matches_the_ray_cast(spec, camera, mujoco
 
 
 def test_the_references_film_is_read_through_the_lens(spec):
-    from pbr_tactile.render import Estimate, sensor_effects
+    from pbr_tactile.estimate import Estimate
+    from pbr_tactile.render import sensor_effects
     from pbr_tactile.effects import Effects
     from pbr_tactile.scene import geltip_scene
 

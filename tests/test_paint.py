@@ -129,7 +129,8 @@ def test_the_lobe_map_weighs_each_arrival_by_the_lobe_towards_the_camera(lit):
     (the maps are the same with and without it); its views are unit directions on the
     elastomer's side; and viewed along each vertex's normal a roughness-1 lobe's map lies
     within the bounds of its analytic BRDF."""
-    from pbr_tactile.photons import GlossyView, camera_views, deposits
+    from pbr_tactile.camera_pass import camera_views
+    from pbr_tactile.photons import GlossyView, deposits
 
     mi, scene, srcs, fx = lit
     paint = Paint(0.6, 0.5, 0.3)
@@ -160,7 +161,7 @@ def test_the_lobe_map_weighs_each_arrival_by_the_lobe_towards_the_camera(lit):
 
 
 def test_a_glossy_paint_needs_its_lobe_maps(lit):
-    from pbr_tactile.photons import camera_pass
+    from pbr_tactile.camera_pass import camera_pass
 
     mi, scene, srcs, fx = lit
     maps = np.zeros((len(srcs), 8))

@@ -41,7 +41,8 @@ def paint(mesh, spec, camera, photon_mi):
 
 
 def test_the_classes_add_up_to_the_untagged_pass_walk_for_walk(paint):
-    from pbr_tactile.photons import coating_areas, deposits, weight_window
+    from pbr_tactile.density import coating_areas
+    from pbr_tactile.photons import deposits, weight_window
 
     mi, scene, srcs, fx = paint
     args = (mi, scene, srcs, fx.sigma_t, fx.albedo, fx.coating_albedo, 1 << 12)

@@ -20,12 +20,12 @@ from pbr_tactile.contact import (
     contact_elastomer,
 )
 from pbr_tactile.membrane import (
-    Elastomer,
     check_closed,
     check_crossings,
     crossing_faces,
     elastomer,
 )
+from pbr_tactile.solid import Elastomer
 from scenes.cli import main
 from scenes.contact import press, surface_point
 

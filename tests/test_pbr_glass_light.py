@@ -112,7 +112,8 @@ def test_the_guided_leak_lights_the_tip_more_than_the_lambertian_one(mesh, spec,
     its guiding cone, far more of its flux lands on the dome than a Lambertian leak's."""
     mi = photon_mi
     from pbr_tactile.membrane import ElastomerBuilder
-    from pbr_tactile.photons import coating_vertices, deposits, sources_from
+    from pbr_tactile.density import coating_vertices
+    from pbr_tactile.photons import deposits, sources_from
     from pbr_tactile.render import load
     import tempfile
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pbr_tactile.photons import density_kernel, irradiance, weight_window
+from pbr_tactile.density import density_kernel, irradiance
+from pbr_tactile.photons import weight_window
 from pbr_tactile.spectra import CAMERA_BANDS_NM, WAVELENGTHS_NM, film_response, gaussian
 
 
@@ -56,9 +57,9 @@ def test_a_dented_kernel_is_its_undeformed_kernel_changed_where_vertices_moved()
     dented[1] = dented[0]
     assert 20 < moved.sum() < 380
     again = density_kernel(dented, radius, like=(flat, K0))
-    from pbr_tactile import photons
+    from pbr_tactile import density
 
-    photons._KERNELS.clear()  # a fresh computation, not the kept one
+    density._KERNELS.clear()  # a fresh computation, not the kept one
     scratch = density_kernel(dented, radius)
     assert again is not scratch and (again != scratch).nnz == 0
     assert again.nnz == scratch.nnz
@@ -132,7 +133,7 @@ def test_film_response_matches_mitsuba_films():
 def test_contact_rse_is_unbiased_with_two_passes():
     """The bench's noise figure: with 2 passes, the mean of per-pixel standard errors
     reads about 0.8 of the truth; the RMS of the per-pixel variance does not."""
-    from pbr_tactile.render import Estimate, contact_rse
+    from pbr_tactile.estimate import Estimate, contact_rse
 
     rng = np.random.default_rng(0)
     mu, sigma = 2.0, 0.1  # each pass: 5 % noise; the mean of 2 passes: 5 % / sqrt(2)
