@@ -130,7 +130,7 @@ def test_a_small_sweep_writes_a_ranked_report(thumb, tmp_path):
 def test_the_reference_checks_the_best_and_the_worst_on_the_same_taps(thumb, tmp_path):
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from studies.design.loop import run
-    from studies.pbr_field_comparison import QUICK
+    from studies.pbr_field_comparison.frames import QUICK
 
     data = run(thumb, {"thickness": [0.0015, 0.004]}, tmp_path, taps=3, reference_taps=2, settings=QUICK,
                progress=False)

@@ -123,12 +123,7 @@ def test_calibration_recovers_a_known_affine_map_and_never_inverts():
     assert np.allclose(study.fit_gain(np.zeros_like(change), change, mask), 0.0)  # no signal, no gain
 
 
-def test_correlation_and_reliable_pixels():
-    rng = np.random.default_rng(5)
-    a = rng.normal(size=100)
-    assert study.pearson(a, 2 * a + 1) == pytest.approx(1.0)
-    assert study.pearson(a, -a) == pytest.approx(-1.0)
-    assert study.pearson(np.zeros(100), a) == 0.0  # a field that predicts no change
+def test_reliable_pixels():
     mean = np.full((2, 8, 8, 3), 0.5)
     variance = np.full_like(mean, 1e-4)
     variance[1, 3, 4, 0] = 100.0  # one spike in one frame and channel
@@ -136,15 +131,16 @@ def test_correlation_and_reliable_pixels():
     assert not ok[3, 4] and ok.sum() == 63
 
 
-def test_metrics_of_identical_images_and_area_averaging():
+def test_change_metrics_name_the_metrics_and_area_averaging():
+    # the metrics are scenes.image_stats.image_metrics' (tests/test_image_stats.py), named
+    # as this study's JSON names them
     rng = np.random.default_rng(4)
     x = rng.uniform(0, 1, (24, 32, 3))
     mask = np.ones((24, 32), bool)
-    with np.errstate(divide="ignore"):
-        m = study.image_metrics(x, x, mask, 1.0)
-    assert m["mae"] == 0 and m["ssim"] == pytest.approx(1.0)
-    m = study.image_metrics(x, x + 0.1, mask, 1.0)
-    assert m["mae"] == pytest.approx(0.1) and m["psnr_db"] == pytest.approx(20.0)
+    m = study.change_metrics(x, x + 0.1, mask, mask, mask)
+    assert set(m) == set(study.CHANGE_KINDS) and all(tuple(m[k]) == study.METRICS for k in m)
+    assert m["change"]["mae"] == pytest.approx(0.1)
+    assert m["change"]["psnr_db"] == pytest.approx(20.0 + 20 * np.log10(np.ptp(x)))  # data range: the span
     small = study.downsample(np.repeat(np.repeat(x, 4, axis=0), 4, axis=1), (24, 32))
     assert np.allclose(small, x)
 
@@ -178,17 +174,10 @@ def test_validators_refuse_bad_input(tmp_path, camera):
         study.leave_one_out_calibration(np.zeros((2, 4, 4, 3)), np.zeros((2, 4, 4, 3)), np.ones((4, 4), bool))
     with pytest.raises(ValueError, match="change_fast and change_ref must be"):
         study.fit_gain(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)), np.ones((4, 4), bool))
-    with pytest.raises(ValueError, match="same number"):
-        study.pearson(np.zeros(3), np.zeros(4))
     with pytest.raises(ValueError, match="black inside the mask"):
         study.reliable_pixels(np.zeros((1, 4, 4, 3)), np.zeros((1, 4, 4, 3)), np.ones((4, 4), bool))
-    with pytest.raises(ValueError, match="region must hold"):
-        study.image_metrics(np.zeros((8, 8, 3)), np.zeros((8, 8, 3)), np.ones((8, 8), bool), 1.0,
-                            np.zeros((8, 8), bool))
     with pytest.raises(ValueError, match="fast and ref must be"):
         study.fit_affine(np.zeros((4, 4, 3)), np.zeros((4, 5, 3)), np.ones((4, 4), bool))
-    with pytest.raises(ValueError, match="data_range must be > 0"):
-        study.image_metrics(np.zeros((8, 8, 3)), np.zeros((8, 8, 3)), np.ones((8, 8), bool), 0.0)
     with pytest.raises(ValueError, match="integer multiple"):
         study.downsample(np.zeros((10, 10, 3)), (3, 3))
     with pytest.raises(ValueError, match="analytic contacts must be among"):

@@ -22,7 +22,7 @@ def _sweep(text: str):
 
 def cmd_design(args) -> int:
     from scenes.spec import load_spec
-    from studies.pbr_field_comparison import Settings
+    from studies.pbr_field_comparison.frames import Settings
 
     from . import report
     from .loop import run

@@ -68,7 +68,7 @@ JSON_NAME = "design.json"
 def standard_taps(spec: SensorSpec, mesh, indenter: str = INDENTER, count: int | None = None,
                   depth: float = STANDARD_DEPTH_M):
     """The extended protocol's nominal taps of one indenter at ``depth`` metres: (N,)
-    ``scenes.protocol.Tap``; ``count`` of them spread evenly over the protocol's order
+    ``scenes.taps.Tap``; ``count`` of them spread evenly over the protocol's order
     (default all 80)."""
     from scenes.protocol import extended_protocol
 
@@ -138,7 +138,8 @@ def reference_check(spec: SensorSpec, evaluated: dict, indices: Sequence[int], s
     from scipy import ndimage
 
     from scenes.geometry import membrane_mesh
-    from studies.pbr_field_comparison import NO_CONTACT, downsample, reference_frame
+    from studies.pbr_field_comparison.contacts import NO_CONTACT
+    from studies.pbr_field_comparison.frames import downsample, reference_frame
 
     mesh = membrane_mesh(spec)
     camera = Camera.from_spec(spec)
@@ -164,7 +165,7 @@ def reference_check(spec: SensorSpec, evaluated: dict, indices: Sequence[int], s
 def membrane_pixels(valid: np.ndarray, camera: Camera, shape: tuple[int, int]) -> np.ndarray:
     """(h, w) bool: film pixels inside the image circle whose every depth-camera pixel sees
     the membrane (``valid``, (H, W) bool, from ``scenes.camera.reference_depth``)."""
-    from studies.pbr_field_comparison import downsample
+    from studies.pbr_field_comparison.frames import downsample
 
     seen = np.repeat(np.asarray(valid, bool)[..., None], 3, axis=-1).astype(np.float32)
     return (downsample(seen, shape)[..., 0] == 1.0) & camera.scaled(shape[1], shape[0]).mask
@@ -176,7 +177,8 @@ def reference_reach(spec: SensorSpec, evaluated: dict, settings, cache: Path, la
     (p10 over p99.5) and the p99.5 itself (linear radiance, comparable between designs)."""
     from scenes.camera import reference_depth
     from scenes.geometry import membrane_mesh
-    from studies.pbr_field_comparison import NO_CONTACT, reference_frame
+    from studies.pbr_field_comparison.contacts import NO_CONTACT
+    from studies.pbr_field_comparison.frames import reference_frame
 
     camera = Camera.from_spec(spec)
     mesh = membrane_mesh(spec)
@@ -197,7 +199,7 @@ def run(spec: SensorSpec, sweep: Mapping[str, Sequence[float]], out: Path, field
         depth: float = STANDARD_DEPTH_M) -> dict:
     """Sweep, score, check and report; writes into ``out``. Returns the results."""
     from phong_reference.bake import METHODS
-    from studies.pbr_field_comparison import CACHE_FOLDER, Settings, check_settings
+    from studies.pbr_field_comparison.frames import CACHE_FOLDER, Settings, check_settings
 
     from . import report
 
