@@ -142,7 +142,7 @@ def rings(centres, shape=(60, 80), radius=6.0, seed=0):
 
 
 def test_the_correlation_filter_finds_press_centres_it_never_saw():
-    from studies.sim2real.presses import CorrelationLocator
+    from studies.sim2real.locators import CorrelationLocator
 
     rng = np.random.default_rng(2)
     train = rng.uniform([12, 12], [68, 48], (150, 2))
@@ -156,7 +156,7 @@ def test_the_correlation_filter_finds_press_centres_it_never_saw():
 def test_moved_centres_follow_a_misalignment_and_a_lens():
     from scenes.spec import load_spec
     from scenes.camera import Camera
-    from studies.sim2real.presses import moved_centres
+    from studies.sim2real.press_data import moved_centres
 
     camera = Camera.from_spec(load_spec(GELSIGHT).at_resolution(160, 120))
     centres = np.array([[80.0, 60.0], [40.0, 30.0], [120.0, 90.0]])
@@ -178,7 +178,7 @@ def test_moved_centres_follow_a_misalignment_and_a_lens():
 
 
 def test_sampled_presses_stay_in_the_fitted_box_and_range():
-    from studies.sim2real.presses import sample_presses
+    from studies.sim2real.press_data import sample_presses
 
     centres = np.array([[30.0, 20.0], [100.0, 80.0], [60.0, 50.0]])
     depths = np.array([0.8e-3, 1.2e-3, 1.0e-3])
@@ -192,7 +192,8 @@ def test_sampled_presses_stay_in_the_fitted_box_and_range():
 
 
 def test_errors_give_the_mean_offset_and_the_error_without_it():
-    from studies.sim2real.presses import Presses, errors
+    from studies.sim2real.press_data import Presses
+    from studies.sim2real.press_scores import errors
 
     class Shifted:  # predicts every press 2 px right and 1 px up of its label, and its depth exactly
         def predict(self, diffs):
@@ -209,7 +210,8 @@ def test_errors_give_the_mean_offset_and_the_error_without_it():
 
 
 def test_real2real_and_ring_radii_on_drawn_presses():
-    from studies.sim2real.presses import Presses, appearance, real2real, ring_radii
+    from studies.sim2real.press_data import Presses
+    from studies.sim2real.press_scores import appearance, real2real, ring_radii
 
     rng = np.random.default_rng(4)
     fit, test = rng.uniform([14, 14], [66, 46], (60, 2)), rng.uniform([14, 14], [66, 46], (12, 2))
@@ -229,7 +231,9 @@ def test_real2real_and_ring_radii_on_drawn_presses():
 
 
 def test_offset_takes_the_fitted_presses_mean_error_off_the_centres():
-    from studies.sim2real.presses import Offset, Presses, errors
+    from studies.sim2real.locators import Offset
+    from studies.sim2real.press_data import Presses
+    from studies.sim2real.press_scores import errors
 
     class Shifted:  # predicts every press 2 px right and 1 px up of where its image puts it
         def predict(self, diffs):

@@ -7,15 +7,16 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from scenes.camera import project
 from scenes.indenters import INDENTERS
-from studies.sim2real import augment, data, study
+from studies.sim2real import augment, data, features, pipeline, plan, study, summary
 from studies.sim2real.learn import Training, need, train
-from studies.sim2real.study import Run, Settings
+from studies.sim2real.plan import Run, Settings
 
 TORCH = importlib.util.find_spec("torch") is not None
 needs_torch = pytest.mark.skipif(not TORCH, reason="torch is not installed (pip install '.[sim2real]')")
@@ -39,17 +40,17 @@ def test_patches_are_centred_on_the_contact_and_padded_off_the_image():
     images = np.zeros((2, 120, 160, 3), np.uint8)
     images[0, 60, 100] = 255  # array pixel (row 60, col 100) = full-res centre (4 * 100 + 1.5, 4 * 60 + 1.5)
     pixel = np.array([[401.5, 241.5], [0.0, 0.0]])
-    out = study.patches(images, pixel, 4, 32)
+    out = features.patches(images, pixel, 4, 32)
     assert out.shape == (2, 32, 32, 3)
     assert out[0, 16, 16, 0] == 255 and out[0].sum() == 3 * 255
     images[1] = 7
-    corner = study.patches(images, pixel, 4, 32)[1]
+    corner = features.patches(images, pixel, 4, 32)[1]
     assert corner[:15, :15].max() == 0 and corner[17:, 17:].min() == 7  # zero outside the image
 
 
 def test_full_inputs_average_blocks():
     images = np.arange(2 * 4 * 4 * 3, dtype=np.uint8).reshape(2, 4, 4, 3)
-    out = study.full_inputs(images, 2)
+    out = features.full_inputs(images, 2)
     assert out.shape == (2, 2, 2, 3)
     assert out[0, 0, 0, 0] == round(np.mean(images[0, :2, :2, 0]))
 
@@ -82,14 +83,14 @@ def test_gap_closed_is_the_share_of_the_r2r_gap():
     for seed in range(2):
         for (train_set, training), (acc, mm) in values.items():
             which = "own" if train_set == "real" else "real"
-            for inp in study.INPUTS:
+            for inp in plan.INPUTS:
                 c, loc = res(acc + seed, mm, which)
                 results[Run(train_set, training, inp, "classification", seed).name] = c
                 results[Run(train_set, training, inp, "localisation", seed).name] = loc
                 if which == "real":
                     results[Run(train_set, training, inp, "classification", seed).name]["own"] = {"accuracy": acc}
                     results[Run(train_set, training, inp, "localisation", seed).name]["own"] = {"localisation_mm": mm}
-    s = study.summarise(results, settings, ["base_plane"], ["base_plane"])
+    s = summary.summarise(results, settings, ["base_plane"], ["base_plane"])
     closed = s["gap_closed"]["diagnosed"]["base"]["full"]
     assert closed["classification"]["share"] == pytest.approx(0.5)  # (60 - 40) / (80 - 40)
     assert closed["localisation"]["share"] == pytest.approx(0.5)  # (10 - 15) / (5 - 15): lower is better
@@ -99,7 +100,7 @@ def test_gap_closed_is_the_share_of_the_r2r_gap():
 
 
 def test_interval_is_a_t_interval():
-    iv = study.interval([1.0, 2.0, 3.0])
+    iv = summary.interval([1.0, 2.0, 3.0])
     assert iv["mean"] == 2.0
     assert iv["interval"][1] - 2.0 == pytest.approx(4.302652729911275 * 1.0 / math.sqrt(3))
 
@@ -140,14 +141,16 @@ def sim_pair(tmp_path_factory, spec, mujoco_gl):
     phong plugin's own."""
     from dataclasses import replace
 
+    from phong_reference import plugin as phong
     from scenes.body import checked_membrane
     from scenes.commands import make_protocol
     from scenes.generate import generate
+    from studies.sim2real import plugin
 
     protocol = make_protocol("base", spec, checked_membrane(spec), ("sphere", "cone"))
     protocol = replace(protocol, taps=protocol.taps[::3])
     base = tmp_path_factory.mktemp("s2r")
-    for name, renderer in (("sim", "studies.sim2real.plugin"), ("phong", "phong")):
+    for name, renderer in (("sim", plugin), ("phong", phong)):
         generate(base / name, spec, protocol, renderer=renderer, options={"field": "plane"}, workers=1,
                  progress=False)
     return base / "sim", base / "phong"
@@ -159,6 +162,7 @@ def sim_root(sim_pair):
 
 
 def test_compact_dataset_keeps_the_phong_image_and_a_block_indentation(sim_pair, spec, mesh, camera):
+    from phong_reference import plugin as phong
     from scenes.dataset import read_meta, read_samples
     from scenes.generate import Job, runner
     from studies.sim2real import plugin
@@ -169,7 +173,7 @@ def test_compact_dataset_keeps_the_phong_image_and_a_block_indentation(sim_pair,
     assert not any((compact / "depth").glob("*"))  # the writer makes the folder; nothing goes in it
     assert read_meta(compact)["renderer"]["depth_factor"] == 4
     # the no-contact depth both datasets were rendered against: the same rig's
-    ref = runner(Job(spec, "phong", {"field": "plane"}, ("sphere", "cone"))).ref_depth
+    ref = runner(Job(spec, phong.make_renderer, {"field": "plane"}, ("sphere", "cone"))).ref_depth
     for r in read_samples(full):
         c = records[r["id"]]
         assert (compact / c["image"]).read_bytes() == (full / r["image"]).read_bytes()  # the phong image
@@ -301,24 +305,60 @@ def test_train_refuses_bad_input():
 
 # --- the pipeline on a slice ---------------------------------------------------------------
 
-@pytest.mark.slow  # 155 s on 2 cores: a fifth of the not-slow suite's time on its own
+#: The slices the whole pipeline is run on: the capture's frame (None: the spec's 640x480),
+#: the twin's defocus (blur disc radius, px of that frame), the study's settings and the
+#: effects the diagnosis fits. "small" is the not-slow suite's: the same stages and checks
+#: on a 160x120 capture with the same defocus on the sensor (1.5 px at 640x480 is 0.375 at
+#: 160x120), read at full resolution (factor 1), so the arrays, the full input (80x60) and
+#: the patch (32 px) are the sizes "full" reads at its factor 4; 12 extended taps, and one
+#: effect, the camera's response, for the twin's gains. "full" is the slice at the study's
+#: own resolution with the defocus and vignetting candidates too (slow: 155 s on 2 cores, a
+#: fifth of the not-slow suite's time when it ran there).
+PIPELINE_SLICES = {
+    "small": ((160, 120), 0.375, {"factor": 1, "extended_taps": 12}, ("camera_response",)),
+    "full": (None, 1.5, {"extended_taps": 48}, ("camera_response", "blur_noise", "vignetting")),
+}
+
+
+def _spec_file(folder, size) -> list[str]:
+    """``--spec`` arguments of the default sensor at ``size`` (width, height) px, or none
+    for its own size."""
+    if size is None:
+        return []
+    import tomli_w
+
+    from scenes.spec import default_spec
+
+    def given(x):  # TOML has no null: a key left unset is left out
+        if isinstance(x, dict):
+            return {k: given(v) for k, v in x.items() if v is not None}
+        return [given(v) for v in x] if isinstance(x, list) else x
+
+    path = folder / "spec.toml"
+    path.write_text(tomli_w.dumps(given(default_spec().at_resolution(*size).to_dict())))
+    return ["--spec", str(path)]
+
+
 @needs_sklearn
-def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
+@pytest.mark.parametrize("slice_name", ["small", pytest.param("full", marks=pytest.mark.slow)])
+def test_pipeline_on_a_slice(tmp_path, mujoco_gl, slice_name):
     """A virtual-rig capture (the fast path's twin, with a camera of its own: gains and a
     defocus the diagnosis must find) of two indenters, the study with the ridge model: the
     tables, the figure, results.json; the diagnosed effects bring the simulated images
     towards the capture; a second call resumes without training again."""
     from scenes.cli import main
 
+    size, blur_px, slice_settings, effects = PIPELINE_SLICES[slice_name]
     capture = tmp_path / "capture"
     assert main(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--renderer", "phong",
-                 "--unit", "camera_gains=1.25,0.95,0.8", "--unit", "blur=1.5", "--protocol", "base",
+                 *_spec_file(tmp_path, size),
+                 "--unit", "camera_gains=1.25,0.95,0.8", "--unit", f"blur={blur_px}", "--protocol", "base",
                  "--objects", "sphere,cone", "--out", str(capture), "--yes", "--quiet"]) == 0
     out = tmp_path / "study"
-    settings = Settings(model="ridge", seeds=2, extended_taps=48)
+    settings = Settings(model="ridge", seeds=2, **slice_settings)
     args = dict(capture=capture, fields=("plane",), progress=False,
-                diagnose_args=("--effects", "camera_response,blur_noise,vignetting", "--intervals", "0"))
-    doc = study.run(out, settings, **args)
+                diagnose_options={"effects": effects, "intervals": 0})
+    doc = pipeline.run(out, settings, **args)
     for key in ("r2r", "s2s", "s2r", "s2r_by_training", "gap_closed", "paper", "timing"):
         assert key in doc
     assert set(doc["s2r_by_training"]) == {"none", "randomised", "diagnosed"}
@@ -343,29 +383,29 @@ def test_pipeline_on_a_slice(tmp_path, mujoco_gl):
     runs_dir = out / "runs" / "ridge"
     stamps = {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*/*.json")}
     assert len(stamps) == doc["timing"]["runs"]
-    again = study.run(out, settings, **args)
+    again = pipeline.run(out, settings, **args)
     assert again["gap_closed"] == doc["gap_closed"]
     assert {p.name: p.stat().st_mtime_ns for p in runs_dir.glob("*/*.json")} == stamps
     # other settings are other models: they do not reuse these runs
     assert s.run_path(Run("real", "none", "full", "classification", 0)).parent != study.Study(
-        out, Settings(model="ridge", patch_px=16)).run_path(Run("real", "none", "full", "classification", 0)).parent
+        out, replace(settings, patch_px=settings.patch_px * 2)).run_path(
+        Run("real", "none", "full", "classification", 0)).parent
     # difference inputs: their own runs and outputs; a capture's contact shows in its difference
-    diff = Settings(model="ridge", seeds=1, extended_taps=48, difference=True, inputs=("full",),
-                    tasks=("classification",))
+    diff = replace(settings, seeds=1, difference=True, inputs=("full",), tasks=("classification",))
     assert study.Study(out, diff).run_path(Run("real", "none", "full", "classification", 0)).parent != \
         s.run_path(Run("real", "none", "full", "classification", 0)).parent
-    ddoc = study.run(out, diff, **args)
+    ddoc = pipeline.run(out, diff, **args)
     assert (out / "results-ridge-difference.json").exists() and ddoc["settings"]["difference"]
     ds = study.Study(out, diff, progress=False)
     ds.add("real", capture)
     ds.add("base_plane", out / "sim_base_plane")
     ds.params = ddoc["diagnosis"]["params"]
     for name, training in (("real", "none"), ("base_plane", "diagnosed"), ("base_plane", "randomised")):
-        x = study.difference(ds.training_images(name, training), ds.frames(name, training), ds.mask)
+        x = features.difference(ds.training_images(name, training), ds.frames(name, training), ds.mask)
         pressed = sim.indentation[idx] > 1e-4  # the contacts, tap for tap (the capture's order)
         if name != "real":
             x = x[idx]
-        change = np.abs(x.astype(float) - study.DIFFERENCE_ZERO).mean(axis=-1)
+        change = np.abs(x.astype(float) - features.DIFFERENCE_ZERO).mean(axis=-1)
         assert change[pressed].mean() > 3 * change[~pressed & ds.mask].mean(), (name, training)
 
 
@@ -373,16 +413,16 @@ def test_run_refuses_a_capture_that_is_not_real(tmp_path, sim_root):
     if need("ridge"):
         pytest.skip(need("ridge"))
     with pytest.raises(ValueError, match="not a capture"):
-        study.run(tmp_path / "s", Settings(model="ridge"), capture=sim_root, progress=False)
+        pipeline.run(tmp_path / "s", Settings(model="ridge"), capture=sim_root, progress=False)
 
 
 def test_runs_cover_the_tables_and_a_subset_only_its_cells():
-    every = study.runs(Settings(seeds=2), ["base_plane", "extended_plane"], ["extended_plane"])
+    every = plan.runs(Settings(seeds=2), ["base_plane", "extended_plane"], ["extended_plane"])
     # per seed: 3 input-task cells (no localisation from a patch) x (real + 2 sets + 2 trainings)
     assert len(every) == 2 * 3 * 5 and len({r.name for r in every}) == len(every)
     assert not any(r.input == "patch" and r.task == "localisation" for r in every)
-    few = study.runs(Settings(seeds=1, inputs=("full",), tasks=("classification",)), ["extended_plane"],
-                     ["extended_plane"])
+    few = plan.runs(Settings(seeds=1, inputs=("full",), tasks=("classification",)), ["extended_plane"],
+                    ["extended_plane"])
     assert [(r.train_set, r.training) for r in few] == [("real", "none"), ("extended_plane", "none"),
                                                          ("extended_plane", "randomised"),
                                                          ("extended_plane", "diagnosed")]
@@ -409,7 +449,7 @@ def test_contrast_measures_the_contact_against_the_rest():
                     point=np.zeros((n, 3), np.float32), path=np.zeros(n, int), position=np.zeros(n, int),
                     replica=np.zeros(n, int), ids=np.array([f"{i:06d}_x" for i in range(n)]),
                     indentation=indentation, factor=1)
-    out = study.contrast({"set": a}, a, np.ones((h, w), bool))["per_set"]["set"]
+    out = summary.contrast({"set": a}, a, np.ones((h, w), bool))["per_set"]["set"]
     assert set(out) == {INDENTERS[0], INDENTERS[1]}
     assert out[INDENTERS[0]]["contact"] == pytest.approx(51 / 255, rel=1e-5)
     assert 0 < out[INDENTERS[0]]["elsewhere"] < 0.01
@@ -462,24 +502,24 @@ def test_difference_scales_each_image_by_its_own_rms_in_the_circle():
     mask = np.ones((4, 4), bool)
     mask[3, 3] = False
     images[:, 3, 3] = 0  # outside the circle: ignored
-    out = study.difference(images, frame, mask)
+    out = features.difference(images, frame, mask)
     rms = np.sqrt(3 * 10.0 ** 2 / (3 * 15))  # one pixel of 15 inside the circle
-    want = study.DIFFERENCE_ZERO + study.DIFFERENCE_SCALE * 10 / rms
+    want = features.DIFFERENCE_ZERO + features.DIFFERENCE_SCALE * 10 / rms
     assert np.all(out[0, 1, 1] == np.clip(np.rint(want), 0, 255))
     assert np.array_equal(out[0], out[1])  # strength drops out, shape stays
-    assert np.all(out[2] == study.DIFFERENCE_ZERO)  # no contact: zero everywhere
-    assert np.all(out[:, 3, 3] == study.DIFFERENCE_ZERO)
+    assert np.all(out[2] == features.DIFFERENCE_ZERO)  # no contact: zero everywhere
+    assert np.all(out[:, 3, 3] == features.DIFFERENCE_ZERO)
     per_image = np.stack([frame, frame, np.full_like(frame, 90)])
-    assert not np.all(study.difference(images, per_image, mask)[2] == study.DIFFERENCE_ZERO)
+    assert not np.all(features.difference(images, per_image, mask)[2] == features.DIFFERENCE_ZERO)
     with pytest.raises(ValueError, match="one per image"):
-        study.difference(images, per_image[:2], mask)
+        features.difference(images, per_image[:2], mask)
     with pytest.raises(ValueError, match="mask"):
-        study.difference(images, frame, mask[:3])
+        features.difference(images, frame, mask[:3])
 
 
 def test_patches_pad_with_the_fill():
     images = np.full((1, 8, 8, 3), 200, np.uint8)
-    out = study.patches(images, np.array([[0.0, 0.0]]), 1, 4, fill=128)
+    out = features.patches(images, np.array([[0.0, 0.0]]), 1, 4, fill=128)
     assert out[0, 0, 0, 0] == 128 and out[0, -1, -1, 0] == 200
 
 
@@ -520,3 +560,27 @@ def test_bad_input_to_frames_and_visibility_is_refused_by_name(sim_root, tmp_pat
     assert visibility._setting("default=") == ("default", [])
     with pytest.raises(argparse.ArgumentTypeError, match="NAME="):
         visibility._setting("clear")
+
+
+@pytest.mark.slow  # 7 s (25 s on busy cores): two sessions on the rig's twins
+def test_virtual_capture_writes_what_rig_run_writes(tmp_path, spec, mujoco_gl):
+    """The study's capture (``capture.virtual_capture``, the reference's camera there) is the
+    rig's own session on the twins: the same folder as ``tactile-sim rig run`` on the twins,
+    file for file, here with the fast path's camera on two taps."""
+    from phong_reference import plugin as phong
+    from scenes.body import checked_membrane
+    from scenes.cli import main
+    from scenes.commands import make_protocol
+    from studies.sim2real.capture import virtual_capture
+
+    assert main(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--renderer", "phong",
+                 "--protocol", "base", "--objects", "sphere", "--limit", "2", "--out", str(tmp_path / "cli"), "--yes",
+                 "--quiet"]) == 0
+    protocol = make_protocol("base", spec, checked_membrane(spec), ("sphere",))
+    virtual_capture(tmp_path / "py", spec, replace(protocol, taps=protocol.taps[:2]), phong, progress=False)
+    files = {p.relative_to(tmp_path / "cli") for p in (tmp_path / "cli").rglob("*") if p.is_file()}
+    assert files == {p.relative_to(tmp_path / "py") for p in (tmp_path / "py").rglob("*") if p.is_file()}
+    assert json.loads((tmp_path / "py" / "dataset.json").read_text())["alignment"]["method"] == "registration"
+    for name in files:
+        a, b = (tmp_path / "cli" / name).read_bytes(), (tmp_path / "py" / name).read_bytes()
+        assert a.replace(str(tmp_path / "cli").encode(), b"@") == b.replace(str(tmp_path / "py").encode(), b"@"), name

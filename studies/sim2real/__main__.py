@@ -1,4 +1,4 @@
-"""``python -m studies.sim2real --out DIR``: the Sim2Real learning study (``study.run``)."""
+"""``python -m studies.sim2real --out DIR``: the Sim2Real learning study (``pipeline.run``)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import sys
 
 from scenes.commands import positive_int
 
-from .learn import MODELS, Training
-from .study import FIELDS, INPUTS, PROTOCOLS, TASKS, Settings, run
 from .augment import TRAININGS
+from .learn import MODELS, Training
+from .pipeline import run
+from .plan import FIELDS, INPUTS, PROTOCOLS, TASKS, Settings
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,7 +8,7 @@ which is what the gap diagnosis' fast model re-renders an effect from
 (``studies.gap.model.FastModel.working_depth``). The full map is 1.2 MB of a 640x480
 sample; the extended protocol's 23,040 taps would hold 28 GB of it.
 
-Used by name through ``scenes.generate`` (``renderer="studies.sim2real.plugin"``).
+The study passes this module to ``scenes.generate`` as the renderer (``datasets.ensure_sim``).
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ import numpy as np
 from scenes.images import pyplot
 from scenes.indenters import INDENTERS
 
-from .study import INPUTS, PAPER, Run
+from .plan import INPUTS, Run
+from .summary import PAPER
 
 
 def _fmt(cell: dict | None, metric: str) -> str:
