@@ -15,6 +15,8 @@ from pbr_tactile.scene import geltip_scene, led_centres, to_xml, write_meshes
 from pbr_tactile.spectra import gaussian, led_spectrum
 from scenes.contact import press
 
+from mc_agreement import agreement, pixel_footprint_m
+
 
 def test_undeformed_elastomer_is_a_closed_shell_of_the_membrane_thickness(mesh, spec, camera):
     solid = elastomer(mesh, spec, camera, edge=0.5e-3)
@@ -256,10 +258,11 @@ def _vectorised(scene: dict):
 
 #: The paints the photon estimator is checked on against volpath, with the camera's
 #: samples per pixel: the default matte one, and a semi-specular one (half its reflectance
-#: in a GGX flake lobe, ``pbr_tactile.paint``, carried by the lobe map). Measured here on
-#: the no-contact scene (split, 16 spp, volpath at 64 passes): median |z| 0.86, mean z
-#: -0.54, |z| > 3 on 2.8 % of the pixels, aggregate -3.5 % (matte at the same budget: 0.73,
-#: -0.45, 0 %, -2.3 %). ``clear_glossy`` is that paint on a clear elastomer (no
+#: in a GGX flake lobe, ``pbr_tactile.paint``, carried by the lobe map). A record, not a
+#: bound (the bounds come from the variances, ``mc_agreement``): on the no-contact scene
+#: (split, 16 spp, volpath at 64 passes): median |z| 0.86, mean z -0.54, |z| > 3 on 2.8 %
+#: of the pixels, aggregate -3.5 % (matte at the same budget: 0.73, -0.45, 0 %, -2.3 %).
+#: ``clear_glossy`` is that paint on a clear elastomer (no
 #: scattering: Yuan et al. 2017; the medium ``bench real`` and ``bench tiles`` judge).
 PAINTS = {"matte": ((), 4), "glossy": (("coating_gloss=0.5", "coating_roughness=0.3"), 16),
           "clear_glossy": (("scattering_per_m=0", "coating_gloss=0.5", "coating_roughness=0.3"), 16)}
@@ -268,16 +271,19 @@ PAINTS = {"matte": ((), 4), "glossy": (("coating_gloss=0.5", "coating_roughness=
 @pytest.mark.slow
 @pytest.mark.parametrize("paint", PAINTS)
 @pytest.mark.parametrize("inscatter", ["split", "fluence"])
-def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera, inscatter, paint):
+def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, camera, ref, inscatter, paint):
     """A per-pixel z-test of the photon estimator, with each way of finding the light the
     elastomer scatters towards the camera (``render.INSCATTER``), against a high-sample
     volpath reference, each with its variance of the mean from independent passes.
 
     At 8x6 px, volpath at 16 passes x 4096 spp has about 10 % per-pixel standard
-    error and the photon estimator about 4 %; under agreement z ~ N(0, 1), so the
-    median |z| is about 0.67 and |z| > 3 is rare. Measured here (split): median |z| 0.70,
-    no |z| > 3, mean z -0.3, aggregate -4 % (volpath's own seed-to-seed spread at this
-    budget is 1.2-1.6 %: its per-pass means are heavy-tailed)."""
+    error and the photon estimator about 3 %; under agreement z is Welch's t (about 16
+    degrees of freedom here), so the median |z| is about 0.7 and |z| > 3 is rare. The
+    bounds are derived from both estimates' stated variances and pass counts
+    (``mc_agreement``: at these budgets median |z| <= about 1.0, |z| > 3 on <= about
+    10 %, |mean z| <= about 1.0), not set from a run. Recorded (split, matte): median |z| 0.63 to 0.70, |z| > 3 on 0 to
+    1.4 %, mean z -0.15 to -0.3, aggregate -3 to -4 % (volpath's own seed-to-seed spread
+    at this budget is 1.2-1.6 %: its per-pass means are heavy-tailed)."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from pbr_tactile.fluence import fluence_grid
     from pbr_tactile.render import render, render_photons
@@ -296,18 +302,18 @@ def test_photon_estimator_agrees_with_volpath_per_pixel(tmp_path, mesh, spec, ca
                              fluence_grids=grids)
     volpath = render(scene, spp=16 * 4096, passes=16, seed=2)
     lit = (photons.mean > 1e-5) & (volpath.mean > 0)
-    z = ((photons.mean - volpath.mean) / np.sqrt(photons.variance + volpath.variance))[lit]
-    print(f"{paint}, {inscatter}: per-pixel z over {z.size} px: median |z| {np.median(np.abs(z)):.2f}, mean {z.mean():.2f}, "
-          f"|z|>3 {np.mean(np.abs(z) > 3):.3f}; aggregate {photons.mean[lit].sum() / volpath.mean[lit].sum() - 1:+.3f}")
-    assert z.size > 100
-    assert np.median(np.abs(z)) < 1.0
-    assert np.mean(np.abs(z) > 3) < 0.05
-    assert abs(z.mean()) < 0.6
-    assert photons.mean[lit].sum() == pytest.approx(volpath.mean[lit].sum(), rel=0.06)
+    # the nearest coating any pixel sees (by the LEDs) has the narrowest footprint
+    footprint = pixel_footprint_m(float(np.nanmin(ref[ref > 0])), scene["sensor"]["fov"], 6)
+    check = agreement(photons, volpath, lit, footprint)
+    print(f"{paint}, {inscatter}: {check.summary()}")
+    check.check()
 
 
-#: Fewest operations of a photon or camera pass kernel (measured: 424 to 2441; the scene
-#: loader's, 4 to 231).
+#: Fewest operations of a photon or camera pass kernel: a threshold that sorts kernels, not
+#: a tolerance. Why 300: it lies in the gap between the scene loader's own kernels (seen: 4
+#: to 231 operations, sizes baked in by Mitsuba) and the passes' (seen: 424 to 2441); a
+#: loader kernel above it would be flagged as recompiled, and a pass kernel below it would
+#: go unchecked, so a change that closes the gap shows here first.
 TRACING_OPS = 300
 
 
@@ -352,6 +358,7 @@ def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camer
     """Splitting and roulette by a weight window move photons around but not flux: the
     total deposited flux per LED, and the flux at the dim tip, agree with plain tracing."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    from pbr_tactile import density
     from pbr_tactile import photons as ph
     from pbr_tactile.scene import led_sources
 
@@ -362,8 +369,8 @@ def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camer
     srcs = ph.sources_from(led_sources(spec, effects))[:1]
     args = (mi, loaded, srcs, effects.sigma_t, effects.albedo, effects.coating_albedo)
     n = 1 << 15
-    positions, area = ph.coating_vertices(loaded), ph.coating_areas(loaded)
-    pilot = ph.irradiance(ph.deposits(*args, n // 4, seed=99), area, ph.density_kernel(positions, 2e-3))
+    positions, area = density.coating_vertices(loaded), density.coating_areas(loaded)
+    pilot = density.irradiance(ph.deposits(*args, n // 4, seed=99), area, density.density_kernel(positions, 2e-3))
     window = ph.weight_window(pilot, area, n)
     tip = positions[:, 2] > positions[:, 2].max() - 5e-3
     plain = np.array([ph.deposits(*args, n, seed=k)[0] for k in range(4)])
@@ -374,10 +381,10 @@ def test_weight_window_keeps_the_light_pass_unbiased(tmp_path, mesh, spec, camer
         assert abs(a.mean() - b.mean()) < 4 * se + 1e-3 * a.mean()
     # And the guided pass spreads deposits more evenly: the dim tip's per-vertex
     # irradiance (kernel estimate) is less noisy than with plain tracing.
-    K = ph.density_kernel(positions, 0.75e-3)
+    K = density.density_kernel(positions, 0.75e-3)
 
     def tip_noise(runs):
-        E = np.array([ph.irradiance(r[None], area, K)[0] for r in runs])[:, tip]
+        E = np.array([density.irradiance(r[None], area, K)[0] for r in runs])[:, tip]
         return np.median(E.std(0, ddof=1) / E.mean(0))
 
     print("tip per-vertex relative spread, plain vs guided:", tip_noise(plain), tip_noise(guided))

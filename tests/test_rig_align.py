@@ -24,10 +24,14 @@ from scenes.profile import Alignment, Profile, align_image
 GAINS, OFFSETS, NOISE = np.array([0.7, 0.9, 1.1]), np.array([0.05, 0.0, -0.02]), 0.01
 #: A colour cross-talk the per-channel map cannot follow (rows: real R, G, B).
 CROSS_TALK = np.array([[0.7, 0.1, 0.0], [0.05, 0.9, 0.05], [0.0, 0.1, 1.0]])
-#: At 320x240, the registration lands within (measured: 4e-4 rad, 1e-4, 0.02 px; with the
-#: cross-talk 3e-3 rad, 1e-4, 0.02 px) ...
+#: At 320x240, the registration lands within these (seen: 4e-4 rad, 1e-4, 0.02 px; with the
+#: cross-talk 3e-3 rad, 1e-4, 0.02 px) ... Why: each is a fraction of one pixel at the
+#: image circle's rim (radius 120 px here): a turn of 0.002 rad or a scale off by 0.001
+#: moves the rim by 0.24 and 0.12 px, and the shift is a tenth of a pixel; so a sub-pixel
+#: registration passes and a whole-pixel one (off by up to half a pixel) fails.
 ROTATION_TOL_RAD, SCALE_TOL, SHIFT_TOL_PX = 0.002, 0.001, 0.1
-#: ... and, under the cross-talk, its turn (seen only through the colours) within this.
+#: ... and, under the cross-talk, its turn (seen only through the colours) within this:
+#: 0.6 px at the rim, still under one pixel.
 CROSS_TALK_ROTATION_TOL_RAD = 0.005
 
 
