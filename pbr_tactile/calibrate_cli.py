@@ -2,144 +2,12 @@
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
-import numpy as np
+from .calibrate_capture import calibrate_capture, capture_spec, real_background, write_outputs
 
-
-def real_background(real: str | None, background_only: str | None) -> tuple[Path, str]:
-    """The no-contact image to calibrate from, and what it is: ``--background-only
-    IMAGE``, or REAL a capture dataset (``source: "real"``) with its background.png."""
-    if (real is None) == (background_only is None):
-        raise ValueError("give exactly one of REAL (a capture dataset directory) or --background-only IMAGE")
-    if background_only is not None:
-        return Path(background_only), "one no-contact image"
-    folder = Path(real)
-    meta = folder / "dataset.json"
-    if not meta.exists():
-        raise FileNotFoundError(f"REAL {folder} is not a dataset: it has no dataset.json (for a single image use "
-                                "--background-only IMAGE)")
-    try:
-        source = json.loads(meta.read_text()).get("source")
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"REAL {meta} is not valid JSON: {exc}") from None
-    if source != "real":
-        raise ValueError(f"REAL {folder} has source {source!r}; calibration needs captures of a real sensor "
-                         "(source: \"real\")")
-    background = folder / "background.png"
-    if not background.exists():
-        raise ValueError(f"REAL {folder} has no background.png: calibration needs the sensor's no-contact capture")
-    return background, f"the background of capture dataset {folder}"
-
-
-def capture_spec(real: str):
-    """The sensor a capture dataset records (its dataset.json), which a calibration of it
-    takes when no --spec is given: an imported capture's camera is the set's own."""
-    from scenes.dataset import read_meta
-    from scenes.spec import spec_from_dict
-
-    meta = read_meta(real)
-    try:
-        return spec_from_dict(meta["sensor"], f"REAL {real}/dataset.json sensor")
-    except (KeyError, TypeError) as exc:
-        raise ValueError(f"REAL {real}/dataset.json has no usable sensor spec: {exc!r}") from None
-
-
-def _figure(images: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = [name for name in ("real", "before", "after", "fast_path") if name in images]
-    residuals = [name for name in ("after", "fast_path") if name in images]
-    fig, axes = plt.subplots(3, len(names) + len(residuals), figsize=(3.5 * (len(names) + len(residuals)), 9))
-    for c, ch in enumerate("rgb"):
-        for k, name in enumerate(names):
-            axes[c, k].imshow(images[name][..., c], vmin=0, vmax=1, cmap="gray")
-            axes[c, k].set_title(f"{name.replace('_', ' ')} ({ch})")
-        for k, name in enumerate(residuals, start=len(names)):
-            diff = np.where(images["judged"][..., c], images[name][..., c] - images["real"][..., c], np.nan)
-            im = axes[c, k].imshow(diff, vmin=-0.2, vmax=0.2, cmap="RdBu_r")
-            axes[c, k].set_title(f"{name.replace('_', ' ')} - real, held out ({ch})", fontsize=9)
-            fig.colorbar(im, ax=axes[c, k])
-    for ax in axes.ravel():
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
-def _fast_path_html(fast: dict | None) -> str:
-    if not fast:
-        return ""
-    rows = "".join(f"<tr><td>{ch}</td><td>{fast['solid']['heldout_r2'][ch]:.3f}</td><td>{fast['heldout_r2'][ch]:.3f}"
-                   f"</td><td>{fast['solid']['heldout_mae'][ch]:.4f}</td><td>{fast['heldout_mae'][ch]:.4f}</td></tr>"
-                   for ch in "rgb")
-    return (f"<h2>The fast path's background term</h2><p>{fast['background_model']}; the same split.</p>"
-            f"<table border=1><tr><th>channel</th><th>held-out R² solid colour</th><th>smooth model</th>"
-            f"<th>MAE solid</th><th>smooth</th></tr>{rows}</table>")
-
-
-def _taps_html(report: dict) -> str:
-    taps = report.get("taps")
-    if not taps:
-        return ""
-    fast = (report.get("fast_path") or {}).get("taps")
-
-    def row(name, scores):
-        return (f"<tr><td>{name}</td>" + "".join(f"<td>{scores['change_r2'].get(ch, float('nan')):.3f}</td>"
-                                                  for ch in "rgb")
-                + "".join(f"<td>{scores['mae'].get(ch, float('nan')):.4f}</td>" for ch in "rgb") + "</tr>")
-
-    rows = [row("reference, from the image alone", taps["heldout_before_taps"]),
-            row("reference, with taps", taps["heldout"])]
-    if fast:
-        rows += [row("fast path, the spec's LED constants", fast["heldout_before"]),
-                 row(f"fast path, fitted (shininess {fast['shininess']:g})", fast["heldout"])]
-    return (f"<h2>Taps</h2><p>Fitted: {', '.join(taps['fitted'])}; judged: {', '.join(taps['judged']) or 'none'}; "
-            f"without a visible contact: {', '.join(taps['without_contact']) or 'none'}. {taps['split']}.</p>"
-            "<table border=1><tr><th>held-out taps</th><th>change R² r</th><th>g</th><th>b</th><th>MAE r</th>"
-            f"<th>g</th><th>b</th></tr>{''.join(rows)}</table>")
-
-
-def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
-    """report.json, report.html, residual images and figure; profile.toml only for a
-    converged fit."""
-    from scenes.dataset import atomic_write_json
-    from scenes.images import write_rgb
-    from scenes.profile import write_profile
-
-    out.mkdir(parents=True, exist_ok=True)
-    report = {"data": what, **calibration.report}
-    images = calibration.images
-    np.save(out / "residual.npy", (images["after"] - images["real"]).astype(np.float32))
-    write_rgb(out / "after.png", images["after"])
-    write_rgb(out / "before.png", images["before"])
-    write_rgb(out / "residual.png", np.clip(0.5 + 2.5 * (images["after"] - images["real"]), 0, 1))
-    _figure(images, out / "residuals_figure.png")
-    paths = {"report": out / "report.json", "html": out / "report.html"}
-    if calibration.report["converged"]:
-        paths["profile"] = write_profile(calibration.profile, out / "profile.toml")
-    report["profile"] = str(paths["profile"]) if "profile" in paths else None
-    atomic_write_json(paths["report"], report)
-    rows = "".join(f"<tr><td>{ch}</td><td>{report['heldout_r2_before'][ch]:.3f}</td><td>{report['heldout_r2'][ch]:.3f}"
-                   f"</td><td>{report['heldout_mae_before'][ch]:.4f}</td><td>{report['heldout_mae'][ch]:.4f}</td>"
-                   f"<td>{'yes' if report['saturated'][ch] else 'no'}</td></tr>" for ch in "rgb")
-    status = ("converged" if report["converged"] else
-              "<b>did NOT converge: no profile was written</b>")
-    paths["html"].write_text(
-        f"<html><head><meta charset='utf-8'><title>Calibration</title></head><body><h1>Calibration of the reference</h1>"
-        f"<p>From {what}. Fit {status}; {report['split']}.</p>"
-        f"<table border=1><tr><th>channel</th><th>held-out R² before</th><th>after</th><th>MAE before</th>"
-        f"<th>after</th><th>saturated</th></tr>{rows}</table>"
-        f"<p>Best effects on the grid: {report['best_effects']}</p>{_fast_path_html(report.get('fast_path'))}"
-        f"{_taps_html(report)}"
-        f"<p>Not identifiable from this data:</p><ul>{''.join(f'<li>{x}</li>' for x in report['not_identifiable'])}</ul>"
-        f"<img src='residuals_figure.png'></body></html>")
-    return paths
+#: Re-exported: the calibration's own module is ``calibrate_capture``.
+__all__ = ["calibrate_capture", "capture_spec", "real_background", "write_outputs", "register"]
 
 
 def cmd_calibrate(args) -> int:
@@ -150,72 +18,27 @@ def cmd_calibrate(args) -> int:
             raise ValueError(f"--{name} is an option of 'tactile-sim calibrate benchmark'")
     if args.out is None:
         raise ValueError("calibrate needs --out DIR")
-    from tqdm import tqdm
-
-    from scenes.camera import Camera
-    from scenes.geometry import membrane_mesh
-    from scenes.images import read_rgb
-    from scenes.spec import load_spec
-
-    from .calibrate import GRID, calibrate_background
-    from scenes.captures import MAX_TAPS, load_real_taps
-    from scenes.dataset import read_samples
-
-    path, what = real_background(args.real, args.background_only)
-    spec = load_spec(args.spec) if args.spec is not None or args.real is None else capture_spec(args.real)
-    camera = Camera.from_spec(spec)
-    real = read_rgb(path)
-    grid = GRID if not args.grid else _grid(args.grid)
-    taps = None
-    count = MAX_TAPS if args.taps is None else args.taps
-    if not 0 <= count <= MAX_TAPS:
-        raise ValueError(f"--taps must be in [0, {MAX_TAPS}], got {count}")
-    fast_taps = None
-    if args.real is not None and count:
-        taps = load_real_taps(args.real, spec, camera, count)
-        what += f" and {len(taps.ids)} of its taps"
-        if args.fast_taps is not None:
-            fast_taps = load_real_taps(args.real, spec, camera, args.fast_taps or len(read_samples(args.real)))
-            what += f" ({len(fast_taps.ids)} for the fast path)"
-    elif args.taps or args.fast_taps is not None:
-        raise ValueError("--taps and --fast-taps need REAL, a capture dataset (--background-only has no taps)")
-    bar = tqdm(desc="calibrating", unit="grid point", disable=args.quiet)
-
-    def progress(done, total):
-        bar.total = total
-        bar.update(done - bar.n)
-
-    t0 = time.perf_counter()
+    result = calibrate_capture(args.real, args.out, fast_path_fit(), background_only=args.background_only,
+                               spec=args.spec, taps=args.taps, fast_taps=args.fast_taps,
+                               grid=_grid(args.grid) if args.grid else None, bootstrap=args.bootstrap,
+                               camera_known=args.camera_known, fast_only=args.fast_only, no_leak=args.no_leak,
+                               width=args.width, photons=args.photons, spp=args.spp, seed=args.seed,
+                               progress=not args.quiet)
+    paths, report = result["paths"], result["report"]
+    wrote = f"; wrote {', '.join(str(p) for p in paths.values())}"
     if args.fast_only:
-        if taps is None:
-            raise ValueError("--fast-only fits the fast path's LED constants to taps: give REAL, a capture dataset")
-        from .calibrate import calibrate_fast
-
-        cal = calibrate_fast(real, spec, membrane_mesh(spec), camera, fast_taps or taps, fast_path_fit(),
-                             seed=args.seed)
-        bar.close()
-        cal.report["seconds"] = time.perf_counter() - t0
-        paths = write_outputs(cal, Path(args.out), what + ", the fast path alone")
-        fast = cal.report["fast_path"]["taps"]
-        print("fast path: background held-out R^2 " + ", ".join(f"{ch} {cal.report['heldout_r2'][ch]:.3f}" for ch
+        fast = report["fast_path"]["taps"]
+        print("fast path: background held-out R^2 " + ", ".join(f"{ch} {report['heldout_r2'][ch]:.3f}" for ch
                                                                   in "rgb")
               + f"; LED constants of the {fast['field']} field, held-out change R^2 "
-              + ", ".join(f"{ch} {fast['heldout']['change_r2'][ch]:.3f}" for ch in "rgb")
-              + f"; wrote {', '.join(str(p) for p in paths.values())}")
+              + ", ".join(f"{ch} {fast['heldout']['change_r2'][ch]:.3f}" for ch in "rgb") + wrote)
         return 0
-    cal = calibrate_background(real, spec, membrane_mesh(spec), camera, film=(args.width, args.width * 3 // 4),
-                               grid=grid, photons=args.photons, spp=args.spp, seed=args.seed,
-                               bootstrap=args.bootstrap, leak=not args.no_leak, progress=progress, taps=taps,
-                               fast_path_fit=fast_path_fit(), fast_taps=fast_taps, camera_known=args.camera_known)
-    bar.close()
-    cal.report["seconds"] = time.perf_counter() - t0
-    paths = write_outputs(cal, Path(args.out), what)
-    r2 = cal.report["heldout_r2"]
-    print("held-out R^2 " + ", ".join(f"{ch} {r2[ch]:.3f}{' (saturated)' if cal.report['saturated'][ch] else ''}"
-                                      for ch in "rgb") + f"; wrote {', '.join(str(p) for p in paths.values())}")
-    if not cal.report["converged"]:
-        print(f"tactile-sim calibrate: the fit did not converge (loss {cal.report['loss']:.4g} from "
-              f"{cal.report['start_loss']:.4g}); no profile written, see {paths['report']}")
+    r2 = report["heldout_r2"]
+    print("held-out R^2 " + ", ".join(f"{ch} {r2[ch]:.3f}{' (saturated)' if report['saturated'][ch] else ''}"
+                                      for ch in "rgb") + wrote)
+    if not report["converged"]:
+        print(f"tactile-sim calibrate: the fit did not converge (loss {report['loss']:.4g} from "
+              f"{report['start_loss']:.4g}); no profile written, see {paths['report']}")
         return 1
     return 0
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -93,8 +94,13 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     if isinstance(reference_presses, bool) or not isinstance(reference_presses, (int, np.integer)) \
             or reference_presses < 1:
         raise ValueError(f"reference_presses must be a whole number >= 1, got {reference_presses!r}")
-    from scenes.cli import main
+    from pbr_tactile.calibrate_capture import calibrate_capture
+    from phong_reference import plugin as phong
+    from scenes.cli import REPORTED
+    from scenes.commands import name_values
     from scenes.dataset import atomic_write_json
+    from scenes.imports import DEFAULTS, FORMATS, TAXIM, import_capture
+    from scenes.spec import load_spec
     from scenes.reference_data import require_taxim_archive
     from studies.compare.run import compare
     from studies.gap.report import headline
@@ -103,7 +109,6 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     keep = work is not None
     work = Path(work) if keep else Path(tempfile.mkdtemp(prefix="bench-real-"))
     work.mkdir(parents=True, exist_ok=True)
-    q = ["--quiet"] if quiet else []
     seconds, t_all = {}, time.perf_counter()
 
     def stage(name, fn):
@@ -114,26 +119,25 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
 
     try:
         capture = work / "capture"
-        flags = [*(["--spec", str(spec)] if spec else []), *(["--ball-mm", str(ball_mm)] if ball_mm else []),
-                 *(["--pixel-mm", str(pixel_mm)] if pixel_mm else []),
-                 *(["--rim-share", str(rim_share)] if rim_share is not None else [])]
-
-        def run_main(argv):
-            code = main(argv)
-            if code != 0:
-                raise RuntimeError(f"tactile-sim {' '.join(argv[:2])} failed (exit {code})")
-
-        stage("import", lambda: run_main(["import", "taxim", str(archive), "--out", str(capture), *flags]))
+        defaults = DEFAULTS[TAXIM]  # tactile-sim import's, where an argument is not given
+        stage("import", lambda: import_capture(
+            FORMATS[TAXIM](archive), capture, load_spec(spec or defaults["spec"]),
+            ball_mm * 1e-3 if ball_mm else defaults["ball_m"], pixel_mm * 1e-3 if pixel_mm else defaults["pixel_m"],
+            fmt=TAXIM, rim_share=1.0 if rim_share is None else rim_share))
         fast_profile = work / "calibrated_fast" / "profile.toml"
-        stage("calibrate_fast", lambda: run_main(["calibrate", str(capture), "--out", str(fast_profile.parent),
-                                                  "--fast-only", "--fast-taps", "0", *q]))
+        stage("calibrate_fast", lambda: calibrate_capture(capture, fast_profile.parent, phong.calibrate,
+                                                          fast_taps=0, fast_only=True, progress=not quiet))
         ref_profile = work / "calibrated_reference" / "profile.toml"
         if reference:
-            grid_args = [a for g in grid for a in ("--grid", g)]
-            held = ["--camera-known"] if camera_known else []
-            stage("calibrate_reference", lambda: main(["calibrate", str(capture), "--out", str(ref_profile.parent),
-                                                       "--taps", str(REFERENCE_TAPS), "--bootstrap", "4", *grid_args,
-                                                       *held, *q]))
+            def calibrate_reference():
+                try:
+                    calibrate_capture(capture, ref_profile.parent, phong.calibrate, taps=REFERENCE_TAPS, bootstrap=4,
+                                      grid=name_values(list(grid), "--grid", "NAME=V1,V2,..."),
+                                      camera_known=camera_known, progress=not quiet)
+                except REPORTED as exc:  # the comparisons go on without the calibrated reference
+                    print(f"bench real: the reference's calibration failed: {exc}", file=sys.stderr)
+
+            stage("calibrate_reference", calibrate_reference)
         from scenes.profile import load_profile
         from scenes.replay import read_capture
 
@@ -152,7 +156,6 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                 reference=True, reference_taps=int(reference_presses), **common))
         core = sum(seconds.values())
 
-        from phong_reference import plugin as phong
         from scenes.replay import replay
         from studies.gap.diagnose import run as diagnose
 

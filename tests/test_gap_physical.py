@@ -309,7 +309,7 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
     from rig.cli import _unit
     from rig.virtual import unit_spec
     from studies.gap.physical import physical_catalogue
-    from studies.gap.physical_benchmark import HIDDEN, UNIT_HIDDEN, WITH, draw, effect_settings
+    from studies.gap.physical_benchmark import HIDDEN, UNIT_HIDDEN, WITH, capture_settings, draw
 
     drawn = [draw(case, seed=3) for case in range(len(HIDDEN) + 4)]
     assert sorted(next(iter(d)) for d in drawn[: len(HIDDEN)]) == sorted(HIDDEN)
@@ -321,10 +321,9 @@ def test_the_physical_benchmark_hides_every_effect_once_with_settings_the_render
     drawn += few
     assert set(HIDDEN) <= set(physical_catalogue(spec, Effects())[0])  # each a candidate of the diagnosis, by name
     for hidden in drawn:
-        settings = effect_settings(hidden)
-        flags, values = settings[0::2], settings[1::2]
-        effects = Effects().with_settings([v for f, v in zip(flags, values) if f == "--effect"])
-        unit, compliance = unit_spec(spec, _unit([v for f, v in zip(flags, values) if f == "--unit"]))
+        settings, unit_settings = capture_settings(hidden)
+        effects = Effects().with_settings(settings)
+        unit, compliance = unit_spec(spec, unit_settings)
         for name, value in hidden.items():
             if name == "membrane_compliance":
                 assert compliance == value and 0.75 <= value <= 1.25 and abs(value - 1) >= 0.15

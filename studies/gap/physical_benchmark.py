@@ -1,20 +1,20 @@
 """Blind validation of the diagnosis on physics: effects hidden in the reference itself.
 
-Each case is a "real" capture of the virtual rig (``tactile-sim rig run`` with the printer,
+Each case is a "real" capture of the virtual rig (``rig.capture.capture``: the printer,
 servo and camera twins, so through the driver's code path) whose camera is the reference
 with one or two physical effects (fields of ``pbr_tactile.effects.Effects``) at hidden
 values drawn from ``HIDDEN``; its simulated counterpart is the reference's replay of the
-same taps at the defaults with another seed (``tactile-sim dataset --replay``), so that
+same taps at the defaults with another seed (``scenes.replay.replay``), so that
 its Monte Carlo noise is its own. Cases on the same taps share that replay (and, through
 the basis cache, every per-source render of the diagnosis). The diagnosis sees only the
 two folders and is scored as the formula benchmark scores it (``benchmark.score``):
 top-1, top-3, the held-out share closed, and per effect.
 
 ``pairing="fast"`` is the realistic pairing instead: what a user with a real sensor and
-the fast path has. The fast path is calibrated (``tactile-sim calibrate``, with taps) to a
+the fast path has. The fast path is calibrated (``calibrate_capture``, with taps) to a
 capture of the same taps without hidden effects, which takes the renderers' difference
 at the defaults out; each case's capture is then diagnosed against the fast path's
-replay of it with that profile (``dataset --replay --renderer phong --profile``), with
+replay of it with that profile (the fast path's ``scenes.replay.replay``), with
 the fast catalogue. A case is scored on the hidden effects' counterparts in that
 catalogue (``physical.COUNTERPARTS``), and each case reports how much the counterpart
 closes per region of the image circle. What the calibrated fast path leaves on the capture
@@ -113,7 +113,7 @@ SIM_SEED = 1000
 #: The simulated sides a case can be diagnosed against: the reference's replay, or the
 #: fast path's replay with a profile calibrated to a capture without hidden effects.
 PAIRINGS = ("reference", "fast")
-#: Taps of that capture the fast path's calibration uses (``tactile-sim calibrate --taps``).
+#: Taps of that capture the fast path's calibration uses (``calibrate_capture``'s ``taps``).
 CALIBRATION_TAPS = 10
 #: A case is below its floor when what no candidate can close is at least this share of
 #: its held-out gap, so that the hidden effect makes at most a fifth of it: for the fast
@@ -171,59 +171,96 @@ def _side(rng) -> float:
     return float(rng.choice([-1.0, 1.0]))
 
 
-def effect_settings(hidden: dict) -> list[str]:
-    """``rig run`` arguments of ``hidden``: ``--effect NAME=VALUE`` for an Effects switch,
-    ``--unit NAME=VALUE`` for the twin's unit (``UNIT_HIDDEN``)."""
-    out = []
+def capture_settings(hidden: dict) -> tuple[list[str], dict]:
+    """What ``hidden`` sets on the virtual rig: the Effects switches as the renderer's
+    ``effects`` option (``NAME=VALUE`` settings, ``pbr_tactile.effects.Effects.with_settings``)
+    and the twin's unit (``UNIT_HIDDEN``; ``rig.virtual.unit_spec``'s {name: float or tuple})."""
+    effects, unit = [], {}
     for name, value in hidden.items():
-        text = (("true" if value else "false") if isinstance(value, bool) else
-                ",".join(str(v) for v in value) if isinstance(value, tuple) else str(value))
-        out += ["--unit" if name in UNIT_HIDDEN else "--effect", f"{name}={text}"]
-    return out
+        if name in UNIT_HIDDEN:
+            unit[name] = tuple(float(v) for v in value) if isinstance(value, tuple) else float(value)
+        else:
+            text = (("true" if value else "false") if isinstance(value, bool) else
+                    ",".join(str(v) for v in value) if isinstance(value, tuple) else str(value))
+            effects.append(f"{name}={text}")
+    return effects, unit
 
 
-def _run(argv: list[str]) -> None:
-    from scenes.cli import main
+def render_options(**more) -> dict:
+    """The reference's options for RENDER and ``more`` (renderer option keys), in the
+    command line's order (``scenes.commands.RENDERER_OPTIONS``)."""
+    from scenes.commands import RENDERER_OPTIONS
 
-    code = main(argv)
-    if code:
-        raise RuntimeError(f"tactile-sim {' '.join(argv)} exited {code}")
+    width, height = (int(x) for x in RENDER["film"].split("x"))
+    options = {"film": [width, height], "target_rse": float(RENDER["target_rse"]),
+               "max_passes": int(RENDER["max_passes"]), "photons": int(RENDER["photons"]), **more}
+    return {key: options[key] for key in RENDERER_OPTIONS if key in options}
+
+
+def _workers() -> int:
+    """The replay's worker processes: ``tactile-sim dataset``'s default."""
+    import os
+
+    return min(2, os.cpu_count() or 1)
 
 
 def capture(folder: Path, hidden: dict, progress: bool = False, taps: int = TAPS) -> Path:
-    """The case's "real" capture: the virtual rig with the reference as its camera, the
-    first ``taps`` taps of the base protocol on OBJECTS."""
-    render = [x for k, v in RENDER.items() for x in (f"--{k.replace('_', '-')}", v)]
-    _run(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--renderer", "pbr", *render,
-          *effect_settings(hidden), "--objects", OBJECTS, "--protocol", "base", "--limit", str(taps), "--yes",
-          "--out", str(folder)] + ([] if progress else ["--quiet"]))
+    """The case's "real" capture: the virtual rig (``rig.capture.capture``) with the
+    reference as its camera, the first ``taps`` taps of the base protocol on OBJECTS."""
+    from dataclasses import replace
+
+    from pbr_tactile import plugin as pbr
+    from phong_reference import plugin as phong
+    from rig.capture import alignment_hook, capture as run_rig
+    from scenes.body import checked_membrane
+    from scenes.commands import make_protocol
+    from scenes.spec import load_spec
+
+    spec = load_spec(None)
+    protocol = make_protocol("base", spec, checked_membrane(spec), tuple(OBJECTS.split(",")), seed=0)
+    if taps:
+        protocol = replace(protocol, taps=protocol.taps[:taps])
+    effects, unit = capture_settings(hidden)
+    options = render_options(**({"effects": effects} if effects else {}))
+    run_rig(folder, spec, protocol, pbr, options, unit=unit,
+            alignment=alignment_hook(spec, phong, who="studies.gap.physical_benchmark"), progress=progress)
     return folder
 
 
 def replay(capture_dir: Path, folder: Path, progress: bool = False) -> Path:
     """The simulated side: the reference at its defaults, replaying the capture's taps."""
-    render = [x for k, v in RENDER.items() for x in (f"--{k.replace('_', '-')}", v)]
-    _run(["dataset", "--replay", str(capture_dir), "--renderer", "pbr", *render, "--render-seed", str(SIM_SEED),
-          "--out", str(folder)] + ([] if progress else ["--quiet"]))
+    from pbr_tactile import plugin as pbr
+    from scenes.replay import read_capture, replay as render_replay
+
+    render_replay(read_capture(capture_dir), folder, pbr, render_options(seed=SIM_SEED), workers=_workers(),
+                  progress=progress)
     return folder
 
 
 def calibrated_fast_path(root: Path, progress: bool = False) -> Path:
     """The fast path's profile (``root/profile/profile.toml``), calibrated to a capture of
     the benchmark's taps without hidden effects (``root/clean``); both kept and reused."""
+    from pbr_tactile.calibrate_capture import calibrate_capture
+    from phong_reference import plugin as phong
+
     clean = capture(root / "clean", {}, progress)
     profile = root / "profile" / "profile.toml"
     if not profile.is_file():
-        _run(["calibrate", str(clean), "--taps", str(CALIBRATION_TAPS), "--out", str(profile.parent)]
-             + ([] if progress else ["--quiet"]))
+        report = calibrate_capture(clean, profile.parent, phong.calibrate, taps=CALIBRATION_TAPS,
+                                   progress=progress)["report"]
+        if not report["converged"]:
+            raise RuntimeError(f"the fast path's calibration to {clean} did not converge; see {profile.parent}")
     return profile
 
 
 def fast_replay(capture_dir: Path, profile: Path, folder: Path, progress: bool = False) -> Path:
     """The realistic pairing's simulated side: the fast path of the calibrated unit,
     replaying the capture's taps."""
-    _run(["dataset", "--replay", str(capture_dir), "--renderer", "phong", "--profile", str(profile),
-          "--out", str(folder)] + ([] if progress else ["--quiet"]))
+    from phong_reference import plugin as phong
+    from scenes.replay import read_capture, replay as render_replay
+
+    render_replay(read_capture(capture_dir), folder, phong, {"profile": str(profile)}, workers=_workers(),
+                  progress=progress)
     return folder
 
 
