@@ -262,13 +262,13 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
     from .report import write_json
 
     spec = default_spec() if spec is None else spec
+    if described and stratified:
+        raise ValueError("described and stratified are separate benchmarks; give one")
     if stratified:
         if not 0.0 <= strength <= 1.0:
             raise ValueError(f"strength must be in [0, 1], got {strength}")
         real_background()  # fail now, naming where it looked, rather than at the first real case
         cases = max(int(cases or 0), len(stratified_cells()))
-    if described and stratified:
-        raise ValueError("described and stratified are separate benchmarks; give one")
     if described:
         real_background()
     if hidden is not None and not stratified:
