@@ -4,10 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .calibrate_capture import calibrate_capture, capture_spec, real_background, write_outputs
-
-#: Re-exported: the calibration's own module is ``calibrate_capture``.
-__all__ = ["calibrate_capture", "capture_spec", "real_background", "write_outputs", "register"]
+from .calibrate_capture import calibrate_capture
 
 
 def cmd_calibrate(args) -> int:

@@ -173,7 +173,7 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
     those builds of the ``spec_path`` sensor with every mechanism on; the summary.
     ``grid``: the effects searched instead of each variant's (``variant_grid``)."""
     from pbr_tactile.calibrate import calibrate_background
-    from pbr_tactile.calibrate_cli import write_outputs
+    from pbr_tactile.calibrate_capture import write_outputs
     from pbr_tactile.real_image import image_circle
     from scenes.camera import Camera
     from scenes.profile import Alignment

@@ -13,7 +13,7 @@ import pytest
 from pbr_tactile import calibrate as cal
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
-from pbr_tactile.calibrate_cli import real_background
+from pbr_tactile.calibrate_capture import real_background
 from scenes.image_stats import r2
 from scenes.profile import (
     PROFILE_VERSION,
