@@ -38,11 +38,6 @@ from .spec import SensorSpec
 from .taps import Protocol, Tap
 
 
-def make_renderer(plugin: RendererPlugin, spec, mesh, camera, ref_depth, options: dict, shared=None) -> DatasetRenderer:
-    """A plugin's renderer: ``scenes.renderers.build_renderer`` of its ``make_renderer``."""
-    return build_renderer(plugin.make_renderer, spec, mesh, camera, ref_depth, options, shared)
-
-
 def measured_depth(depth: np.ndarray, ref_depth: np.ndarray, camera: Camera, tap: Tap, noise: float) -> float:
     """Deepest indentation in a captured depth map, along the tap's normal, metres.
 

@@ -68,7 +68,6 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     from scenes.captures import REGION_DILATION
     from scenes.contact import surface_point
     from scenes.dataset import atomic_write_json
-    from scenes.generate import make_renderer
     from scenes.geometry import membrane_mesh
     from scenes.image_stats import contact_strength
     from scenes.images import read_rgb, write_rgb
@@ -111,13 +110,13 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     ours = (reference_depth(mesh, camera)[0], camera, mesh)
     renderers = {}
     phong.prepare(spec, mesh, camera, {})
-    renderers["phong"] = make_renderer(phong, spec, mesh, camera, ours[0], {})
+    renderers["phong"] = phong.make_renderer(spec, mesh, camera, ours[0], {})
     pbr_options = {"photons": int(photons), **({"effects": list(effects)} if effects else {})}
     pbr_settings = None
     if reference:
         say(f"reference: its no-contact frame at {photons} photons per pass (cached after the first run)")
         pbr_settings = pbr.prepare(spec, mesh, camera, pbr_options)
-        renderers["pbr"] = make_renderer(pbr, spec, mesh, camera, ours[0], pbr_options)
+        renderers["pbr"] = pbr.make_renderer(spec, mesh, camera, ours[0], pbr_options)
     stage_seconds = {"prepare": time.perf_counter() - t0}
 
     out_tiles = {}
