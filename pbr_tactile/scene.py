@@ -113,19 +113,56 @@ def _film(camera: Camera, effects: Effects, width: int, height: int) -> dict:
     return film
 
 
+#: The place an LED of each entry (``scenes.spec.LED_ENTRIES``) emits from (``led_places``).
+ENTRY_PLACES = {"beside": "elastomer", "edge": "wall_end", "under": "tube"}
+
+
 def led_places(spec: SensorSpec) -> list[str]:
-    """Where each LED emits from, by where the spec puts it: "elastomer" (at or outside
-    the glass: moved radially into the middle of the elastomer wall, as the published
-    simulation's LEDs ring the membrane), "tube" (in the air inside the glass tube, where
+    """Where each LED emits from: by its entry (``ENTRY_PLACES``) where the spec states
+    one, else by where the spec puts it: "elastomer" (at or outside the glass: moved
+    radially into the middle of the elastomer wall, as the published simulation's LEDs
+    ring the membrane), "tube" (in the air inside the glass tube, or under a plate, where
     it is) or "wall_end" (under the glass wall's end, below the membrane's base: its
-    light enters the wall and is guided up it, so it emits from inside the wall's foot)."""
+    light enters the wall and is guided up it, so it emits from inside the wall's foot;
+    a plate's rim, ``glass_edges``)."""
     core, _, _ = tube_radii(spec)
     inner = core - spec.membrane.glass_wall
     places = []
-    for position in _tube_frame(spec, [led.position for led in spec.leds]):
+    for led, position in zip(spec.leds, _tube_frame(spec, [led.position for led in spec.leds])):
+        if led.entry is not None:
+            places.append(ENTRY_PLACES[led.entry])
+            continue
         r = math.hypot(position[0], position[1])
         places.append("elastomer" if r >= core else "tube" if r <= inner else "wall_end")
     return places
+
+
+def glass_edges(spec: SensorSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(L, 3) where each LED's light enters the glass' end face of a body not known in
+    closed form (a flat sensor's plate: its rim), and (L, 3) the face's unit inward normal
+    there, camera frame: the face spans the core's base loop and the glass' underside
+    under it (``pbr_tactile.scene.write_meshes``' ``glass_base``); the point is the middle
+    of its span at the base-loop vertex nearest the LED's azimuth, WALL_FOOT_M inside."""
+    from scenes.body import sensor_body
+
+    body = sensor_body(spec)
+    loop = body.base_loop
+    normals = body.normals[loop]
+    core = np.asarray(body.core.vertices)[loop]
+    middle = _tube_frame(spec, core - 0.5 * spec.membrane.glass_wall * normals)
+    along = np.roll(middle, -1, axis=0) - np.roll(middle, 1, axis=0)  # the loop's tangent
+    inward = trimesh.unitize(np.cross(_tube_frame(spec, normals) - _tube_frame(spec, np.zeros(3)), along))
+    inside = _tube_frame(spec, np.asarray(body.membrane.vertices)).mean(axis=0)
+    inward *= np.sign(np.einsum("ij,ij->i", inward, inside - middle))[:, None]  # into the body
+    centre = middle.mean(axis=0)
+    leds = _tube_frame(spec, [led.position for led in spec.leds])
+    azimuths = np.arctan2(middle[:, 1] - centre[1], middle[:, 0] - centre[0])
+    nearest = [int(np.argmin(np.abs(np.angle(np.exp(1j * (azimuths - math.atan2(p[1] - centre[1],
+                                                                                p[0] - centre[0])))))))
+               for p in leds]
+    points = middle[nearest] + WALL_FOOT_M * inward[nearest]
+    rotation = spec.camera.tube_to_camera()[:3, :3]
+    return _camera_frame(spec, points), inward[nearest] @ rotation.T
 
 
 def tube_radii(spec: SensorSpec) -> tuple[float, float, float]:
@@ -163,8 +200,25 @@ def led_centres(spec: SensorSpec) -> np.ndarray:
         for k, place in enumerate(places):
             if place == "elastomer":
                 out[k] = middle[k]
-        return out
-    return _led_centres_tube(spec)
+        return _at_glass_edges(spec, out)
+    return _at_glass_edges(spec, _led_centres_tube(spec))
+
+
+def _edge_entered(spec: SensorSpec) -> list[bool]:
+    """Which LEDs enter by the glass' end face found from the body (``glass_edges``):
+    those whose spec says ``entry = "edge"`` on a body not known in closed form (a tube's
+    wall foot is placed in closed form, ``_led_centres_tube``)."""
+    measured = family(spec.membrane.shape).tube(spec.membrane) is None
+    return [measured and led.entry == "edge" for led in spec.leds]
+
+
+def _at_glass_edges(spec: SensorSpec, out: np.ndarray) -> np.ndarray:
+    """``out`` with each edge-entered LED (``_edge_entered``) at its glass edge."""
+    entered = _edge_entered(spec)
+    if any(entered):
+        points, _ = glass_edges(spec)
+        out[entered] = points[entered]
+    return out
 
 
 def _led_centres_tube(spec: SensorSpec) -> np.ndarray:
@@ -195,16 +249,34 @@ def _camera_frame(spec: SensorSpec, points) -> np.ndarray:
     return trimesh.transform_points(np.reshape(points, (-1, 3)), spec.camera.tube_to_camera())
 
 
-def led_beam(led: LED, place: str, glass_ior: float = GLASS_IOR) -> tuple[tuple[float, float, float] | None, float]:
+def led_beam(led: LED, place: str, glass_ior: float = GLASS_IOR,
+             face_normal=None) -> tuple[tuple[float, float, float] | None, float]:
     """An LED's emitter's (cone axis, half-angle rad), where it emits from ``place``
     (``led_places``): its beam about its direction, refracted into the glass (of
     ``glass_ior``) where it enters the wall's end (Snell: a Lambertian LED's light fills
-    the glass's critical
-    cone); (None, 0) for a Lambertian emitter."""
+    the glass's critical cone); (None, 0) for a Lambertian emitter. ``face_normal``: the
+    end face's unit inward normal (``glass_edges``), about which the beam's axis refracts
+    (Snell's law for the central ray); None: the axis is the LED's direction (a tube's
+    wall foot, which its LEDs face)."""
     beam = led.beam_half_angle_rad
+    axis = np.asarray(led.direction, np.float64)
     if place == "wall_end":
         beam = math.asin(math.sin(beam if beam is not None else math.pi / 2) * IOR_AIR / glass_ior)
-    return (None, 0.0) if beam is None else (tuple(map(float, led.direction)), float(beam))
+        if face_normal is not None:
+            axis = _refracted(axis, np.asarray(face_normal, np.float64), IOR_AIR / glass_ior)
+    return (None, 0.0) if beam is None else (tuple(map(float, axis)), float(beam))
+
+
+def _refracted(d: np.ndarray, n: np.ndarray, eta: float) -> np.ndarray:
+    """The unit direction ``d`` refracted into a face of unit normal ``n`` (pointing
+    into the new medium) at the index ratio ``eta`` = n_1 / n_2 (< 1: no total internal
+    reflection); a direction away from the face is taken as along its normal."""
+    cos_i = float(np.dot(d, n))
+    if cos_i <= 0:
+        return n
+    tangent = d - cos_i * n
+    t = eta * tangent
+    return trimesh.unitize(t + math.sqrt(max(0.0, 1.0 - float(np.dot(t, t)))) * n)
 
 
 def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -> list[dict]:
@@ -225,8 +297,10 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
     places = led_places(spec)
     # up the tube's axis, in the camera frame
     up = tuple(map(float, spec.camera.tube_to_camera()[:3, :3] @ np.asarray(LEAK_AXIS, np.float64)))
+    entered = _edge_entered(spec)
+    edges = glass_edges(spec)[1] if any(entered) else None
     for m, (led, centre, power) in enumerate(zip(spec.leds, led_centres(spec), led_powers(spec, led_power))):
-        axis, half_angle = led_beam(led, places[m], spec.membrane.glass_ior)
+        axis, half_angle = led_beam(led, places[m], spec.membrane.glass_ior, edges[m] if entered[m] else None)
         shape = led_spectrum(led.peak_nm, led.fwhm_nm, effects.led_spectra)
         peak, fwhm = (led.peak_nm, led.fwhm_nm) if effects.led_spectra else (None, None)
         leak = effects.core_light_leak

@@ -45,6 +45,12 @@ TILT_BOUND_RAD = math.radians(15.0)
 #: The elastomer's thickness a spec may state by default, metres (``membrane.thickness_bounds``):
 #: under 0.5 mm a 2 mm tap would press on the glass, over 10 mm it is no membrane.
 THICKNESS_BOUNDS_M = (0.5e-3, 10.0e-3)
+#: Where an LED's light may enter the sensor (``LED.entry``; ``scenes.layout``):
+#: "beside" the membrane's base, in the elastomer at its edge; the glass' "edge" (a flat
+#: sensor's support plate's rim, a tube's wall's foot), through which it is guided by
+#: total internal reflection; or from the air "under" the glass (under a plate, inside a
+#: tube), where the LED sits, through the glass.
+LED_ENTRIES = ("beside", "edge", "under")
 
 
 @dataclass(frozen=True)
@@ -151,6 +157,7 @@ class LED:
     fwhm_nm: float | None = None  # emission full width at half maximum
     group: str | None = None  # the LEDGroup it belongs to; None for a single LED
     beam_half_angle_rad: float | None = None  # rad, its light leaves within this of ``direction``; None: Lambertian
+    entry: str | None = None  # where its light enters (LED_ENTRIES); None: by where it sits (pbr_tactile.scene)
 
 
 @dataclass(frozen=True)
@@ -174,6 +181,7 @@ class LEDGroup:
     peak_nm: float | None = None
     fwhm_nm: float | None = None
     beam_half_angle_rad: float | None = None  # rad, each LED's beam; None: Lambertian
+    entry: str | None = None  # where each LED's light enters (LED_ENTRIES); None: by where it sits
 
     def offsets(self) -> np.ndarray:
         """(count,) each LED's azimuth from the arc's centre, as a share of the span:
@@ -187,7 +195,7 @@ class LEDGroup:
         return LED(name=name, position=(self.ring_radius * c, self.ring_radius * s, self.height),
                    direction=(math.sin(t) * c, math.sin(t) * s, math.cos(t)), colour=self.colour, k_d=self.k_d,
                    k_s=self.k_s, peak_nm=self.peak_nm, fwhm_nm=self.fwhm_nm, group=self.name,
-                   beam_half_angle_rad=self.beam_half_angle_rad)
+                   beam_half_angle_rad=self.beam_half_angle_rad, entry=self.entry)
 
     def leds(self) -> tuple[LED, ...]:
         """The group's LEDs, named ``<name><j>``."""
@@ -215,6 +223,17 @@ class Elastic:
 
 
 @dataclass(frozen=True)
+class Housing:
+    """The unit's housing, as far as it bounds where its LEDs may sit (``scenes.layout``):
+    no LED further than ``radius`` from the camera's axis, none nearer the camera than
+    ``floor_z`` (camera frame, m). None: not recorded, bounded by the sensor's size alone
+    (MAX_SENSOR_SIZE_M)."""
+
+    radius: float | None = None  # m, the housing's inner wall from the camera's axis
+    floor_z: float | None = None  # m, camera frame: the housing's floor about the camera
+
+
+@dataclass(frozen=True)
 class SensorSpec:
     """A whole optical tactile sensor."""
 
@@ -225,6 +244,7 @@ class SensorSpec:
     material: Material
     elastic: Elastic
     led_groups: tuple[LEDGroup, ...] = ()  # the groups some of ``leds`` were laid out by
+    housing: Housing = Housing()  # what bounds where the LEDs may sit
 
     def digest(self) -> str:
         """Stable hash of every field, for cache keys."""
@@ -241,6 +261,7 @@ class SensorSpec:
         for key in others + ["params"] * (not m["params"]):
             del m[key]
         data["membrane"] = {k: v for k, v in m.items() if v is not None}
+        data["housing"] = {k: v for k, v in data["housing"].items() if v is not None}
         return json.loads(json.dumps(data))  # tuples as lists, as TOML and JSON hold them
 
     def replace(self, **changes) -> "SensorSpec":
@@ -339,6 +360,7 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     membrane = _membrane(data.get("membrane", {}), f"{source}: membrane")
 
     camera = _camera(data.get("camera", {}), f"{source}: camera", membrane)
+    housing = _housing(data.get("housing", {}), f"{source}: housing")
 
     leds_data = data.get("leds", [])
     groups_data = data.get("led_groups", [])
@@ -368,6 +390,8 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
     groups = tuple(_led_group(t, f"{source}: led_groups[{i}]", membrane) for i, t in enumerate(groups_data))
     for group in groups:
         leds.extend(group.leds())
+    for led in leds:
+        check_in_housing(led.position, housing, f"{source}: LED {led.name!r}")
     names = [led.name for led in leds] + [group.name for group in groups]
     repeated = sorted({n for n in names if names.count(n) > 1})
     if repeated:
@@ -395,7 +419,38 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
         material=material,
         elastic=elastic,
         led_groups=groups,
+        housing=housing,
     )
+
+
+def _housing(t, where: str) -> Housing:
+    """A [housing] table, checked: each bound a finite length in metres."""
+    if not isinstance(t, dict):
+        raise ValueError(f"{where} must be a table ([housing])")
+    unknown = sorted(set(t) - {"radius", "floor_z"})
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {', '.join(unknown)} (expected radius, floor_z)")
+    radius = _take(t, "radius", float, where, None)
+    floor_z = _take(t, "floor_z", float, where, None)
+    for name, value in (("radius", radius), ("floor_z", floor_z)):
+        if value is not None and not (math.isfinite(value) and abs(value) <= MAX_SENSOR_SIZE_M):
+            raise ValueError(f"{where}.{name} must be a finite length in metres, got {value}")
+    if radius is not None and radius <= 0:
+        raise ValueError(f"{where}.radius must be > 0 m, got {radius}")
+    return Housing(radius=radius, floor_z=floor_z)
+
+
+def check_in_housing(position, housing: Housing, where: str) -> None:
+    """Refuse a point (camera frame, m) outside the housing: further than its radius from
+    the camera's axis, or nearer the camera than its floor; ValueError naming ``where``
+    and the bound."""
+    radius = math.hypot(float(position[0]), float(position[1]))
+    if housing.radius is not None and radius > housing.radius * (1 + 1e-9):
+        raise ValueError(f"{where}: {radius * 1e3:.2f} mm from the axis is outside the housing, whose radius is "
+                         f"{housing.radius * 1e3:.2f} mm ([housing] radius)")
+    if housing.floor_z is not None and float(position[2]) < housing.floor_z - 1e-12:
+        raise ValueError(f"{where}: z = {float(position[2]) * 1e3:.2f} mm is below the housing's floor at z = "
+                         f"{housing.floor_z * 1e3:.2f} mm ([housing] floor_z)")
 
 
 def _membrane(m: dict, where: str) -> MembraneSpec:
@@ -557,7 +612,11 @@ def _optics(t: dict, where: str) -> dict:
         raise ValueError(f"{where}.colour must be linear RGB in [0, 1], got {colour}")
     out = {"colour": colour, "k_d": _take(t, "k_d", float, where), "k_s": _take(t, "k_s", float, where),
            "peak_nm": _take(t, "peak_nm", float, where, None), "fwhm_nm": _take(t, "fwhm_nm", float, where, None),
-           "beam_half_angle_rad": _take(t, "beam_half_angle_rad", float, where, None)}
+           "beam_half_angle_rad": _take(t, "beam_half_angle_rad", float, where, None),
+           "entry": _take(t, "entry", str, where, None)}
+    if out["entry"] is not None and out["entry"] not in LED_ENTRIES:
+        raise ValueError(f"{where}.entry must be one of {', '.join(LED_ENTRIES)} (where its light enters), got "
+                         f"{out['entry']!r}")
     for key in ("peak_nm", "fwhm_nm"):
         if out[key] is not None and not 1.0 <= out[key] <= 2000.0:
             raise ValueError(f"{where}.{key} must be in nanometres (1-2000), got {out[key]}")
