@@ -76,7 +76,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                          grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
                          seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
                          progress=None, taps=None, fast_path_fit=None, image_variance=None,
-                         fast_taps=None, camera_known: bool = False) -> Calibration:
+                         fast_taps=None, camera_known: bool = False, spectral_gains: bool = False) -> Calibration:
     """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1], and to
     its sensor's taps if given.
 
@@ -90,7 +90,11 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     the report's ``fast_path.taps`` section) that fits the fast path's LED constants to
     them (the phong renderer plugin's ``calibrate``: this package imports no other
     renderer); None leaves them out. ``fast_taps``: the taps it fits instead of ``taps``
-    (more than the reference can render: its fit costs no render of the reference). ``image_variance``: (h, w, 3) the real image's noise
+    (more than the reference can render: its fit costs no render of the reference).
+    ``spectral_gains``: each LED's light reaches the channels through its spectrum under
+    the camera's filters, one power per LED and one white balance per channel
+    (``pbr_tactile.image_model``), instead of a free gain per LED and channel.
+    ``image_variance``: (h, w, 3) the real image's noise
     variance at the film (without taps, the report's ``standard_errors`` then count it with
     the basis' own Monte Carlo noise; None: the basis' alone). Raises ValueError for a bad
     image; a fit that did not converge is reported (``report["converged"]`` False).
@@ -126,7 +130,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         effects = dataclasses.replace(base, **point)
         basis = emitter_basis(rendered, mesh, wide, effects, film, photons, spp, passes, seed, use_cache)
         model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans, rendered=wide,
-                           lens=not camera_known, known_alignment=camera_known)
+                           lens=not camera_known, known_alignment=camera_known,
+                           response=basis["response"] if spectral_gains else None)
         train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
         fit = ImageFitter(model, r, train, leak=leak).search()
         fits.append((debiased(fit, model, basis, [train]), point, basis, model))
@@ -196,6 +201,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "noise": f.noise, "converged": f.converged} for f, p, _, _ in fits],
         "best_effects": point, "parameters": _parameters(fit, tie=tie, spec=spec), "intervals": intervals,
+        "gains": "each LED's power times its film response times each channel's white balance" if spectral_gains
+        else "a free gain per LED and channel",
         "standard_errors": standard_errors,
         "camera": fitted_camera(nl, camera), "on_bound": on_bound(fit.nl, model, leak),
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,

@@ -8,6 +8,7 @@ profile (``calibrate.calibrate_background``) or the fast path's alone
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -156,12 +157,44 @@ def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
 
 
 
+def layout_seed_places(path: str | Path) -> list:
+    """The fast path's fitted LED places (L, 3), m, camera frame, from its calibration's
+    report.json (``fast_path.taps.places.places_m``); ValueError naming the file otherwise."""
+    path = Path(path)
+    try:
+        report = json.loads(path.read_text())
+        places = report["fast_path"]["taps"]["places"]["places_m"]
+    except FileNotFoundError:
+        raise FileNotFoundError(f"--layout-seed {path}: no such file (a fast-path calibration's report.json)") from None
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise ValueError(f"--layout-seed {path}: not a fast-path calibration's report.json with fitted LED places "
+                         f"(fast_path.taps.places.places_m): {exc!r}") from None
+    return places
+
+
+def _fit_layout(image, spec, mesh, camera, grid: dict, layout_seed, seed: int, camera_known: bool, leak: bool,
+                progress: bool, taps=None, spectral_gains: bool = False):
+    """The layout's fit (``pbr_tactile.layout_fit``) at the grid's first point, on the
+    no-contact image and the fitted half of ``taps``."""
+    from .basis import BASIS_EFFECTS
+    from .effects import Effects
+    from .layout_fit import fit_layout
+
+    point = {name: float(values[0]) for name, values in grid.items()}
+    effects = dataclasses.replace(Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()]), **point)
+    places = None if layout_seed is None else layout_seed_places(layout_seed)
+    say = (lambda text: print(f"layout: {text}", flush=True)) if progress else None
+    return fit_layout(image, spec, mesh, camera, effects, fast_places_m=places, taps=taps, seed=seed,
+                      known_alignment=camera_known, leak=leak, progress=say, spectral_gains=spectral_gains)
+
+
 def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: Callable, *,
                       background_only: str | Path | None = None, spec: str | Path | None = None,
                       taps: int | None = None, fast_taps: int | None = None, grid: dict | None = None,
                       bootstrap: int = BOOTSTRAP, camera_known: bool = False, fast_only: bool = False,
                       no_leak: bool = False, width: int = WIDTH, photons: int = PHOTONS, spp: int = SPP,
-                      seed: int = 0, progress: bool = True) -> dict:
+                      seed: int = 0, progress: bool = True, fit_layout: bool = False,
+                      layout_seed: str | Path | None = None, spectral_gains: bool = False) -> dict:
     """Calibrate to the capture dataset ``real`` (or the no-contact image
     ``background_only``) and write the outputs in ``out`` (``write_outputs``); returns
     ``{"paths": {name: Path}, "report": dict}`` (the report's ``converged``: whether a
@@ -181,6 +214,15 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
     no_leak : the leak into the glass core fixed at 0.
     width : film width of the basis renders, pixels (height: 3/4 of it).
     photons, spp : photons per LED and camera samples per pixel per pass of a basis render.
+    fit_layout : fit the LEDs' layout (where their light enters, their aim and beam:
+        ``pbr_tactile.layout_fit``) to the no-contact image first, at the grid's first
+        point, and calibrate the reference laid out so (the profile's
+        ``reference.layout``); the fast path's fit keeps the spec's LEDs.
+    spectral_gains : each LED's light reaches the channels through its spectrum under the
+        camera's filters (one power per LED, one white balance per channel), not a free
+        gain per LED and channel (``pbr_tactile.image_model``).
+    layout_seed : a fast-path calibration's report.json (``--fast-only``), whose fitted
+        LED places are one of the layout search's starts.
     """
     from tqdm import tqdm
 
@@ -225,10 +267,38 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
                              seed=seed)
         what += ", the fast path alone"
     else:
-        cal = calibrate_background(image, spec, membrane_mesh(spec), camera, film=(width, width * 3 // 4),
+        mesh = membrane_mesh(spec)
+        laid_out, fast_fit, layout = spec, fast_path_fit, None
+        held = None
+        if fit_layout:
+            from .layout_fit import presses_pin
+
+            pinned, why = presses_pin(real_taps, camera)
+            if pinned:
+                layout = _fit_layout(image, spec, mesh, camera, grid, layout_seed, seed, camera_known, not no_leak,
+                                     progress, real_taps, spectral_gains)
+                laid_out = layout.spec
+                what += ", its LEDs' layout fitted"
+
+                def fast_fit(_spec, *rest):  # the fast path's own LEDs are the spec's
+                    return fast_path_fit(spec, *rest)
+            else:
+                held = {"fitted": False, "why": why, "held": "every LED's entry, place, aim and beam at the spec's"}
+                print(f"calibrate: the LEDs' layout is not fitted, {why}; held at the spec's", flush=True)
+        elif layout_seed is not None:
+            raise ValueError("--layout-seed seeds the layout's fit: give --fit-layout too")
+        cal = calibrate_background(image, laid_out, mesh, camera, film=(width, width * 3 // 4),
                                    grid=grid, photons=photons, spp=spp, seed=seed, bootstrap=bootstrap,
-                                   leak=not no_leak, progress=advance, taps=real_taps, fast_path_fit=fast_path_fit,
-                                   fast_taps=fitted_fast, camera_known=camera_known)
+                                   leak=not no_leak, progress=advance, taps=real_taps, fast_path_fit=fast_fit,
+                                   fast_taps=fitted_fast, camera_known=camera_known, spectral_gains=spectral_gains)
+        if layout is not None:
+            from scenes.layout import layout_to_dicts
+
+            cal.profile = dataclasses.replace(cal.profile, reference={**cal.profile.reference,
+                                                                      "layout": layout_to_dicts(layout.layout)})
+            cal.report["layout"] = {"fitted": True, **layout.report}
+        elif held is not None:
+            cal.report["layout"] = held
     bar.close()
     cal.report["seconds"] = time.perf_counter() - t0
     return {"paths": write_outputs(cal, Path(out), what), "report": cal.report}

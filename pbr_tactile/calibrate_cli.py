@@ -20,7 +20,8 @@ def cmd_calibrate(args) -> int:
                                grid=_grid(args.grid) if args.grid else None, bootstrap=args.bootstrap,
                                camera_known=args.camera_known, fast_only=args.fast_only, no_leak=args.no_leak,
                                width=args.width, photons=args.photons, spp=args.spp, seed=args.seed,
-                               progress=not args.quiet)
+                               progress=not args.quiet, fit_layout=args.fit_layout, layout_seed=args.layout_seed,
+                               spectral_gains=args.spectral_gains)
     paths, report = result["paths"], result["report"]
     wrote = f"; wrote {', '.join(str(p) for p in paths.values())}"
     if args.fast_only:
@@ -147,6 +148,17 @@ def register(registry) -> None:
                    help="taps of REAL the fast path's LED constants are fitted (and judged) on, fitted and judged in "
                         "turn from its even and odd samples (0: all; default: the reference's --taps): the fast path "
                         "renders many taps in the time the reference renders one")
+    p.add_argument("--fit-layout", action="store_true",
+                   help="fit the LEDs' layout first (where each LED's light enters: under the glass, its edge or "
+                        "beside the elastomer; its place, aim and beam, within the spec's [housing]) to the "
+                        "no-contact image, and calibrate the reference laid out so (pbr_tactile.layout_fit)")
+    p.add_argument("--layout-seed", metavar="REPORT.json",
+                   help="with --fit-layout: a --fast-only calibration's report.json, whose fitted LED places are "
+                        "one of the layout search's starts (as LEDs under the glass)")
+    p.add_argument("--spectral-gains", action="store_true",
+                   help="each LED's light reaches the camera's channels through its spectrum under the camera's "
+                        "filters (one power per LED, one white balance per channel) instead of a free gain per LED "
+                        "and channel")
     p.add_argument("--cases", type=int, help="with REAL = benchmark: virtual sensors to recover (default 6)")
     p.add_argument("--json", metavar="PATH", help="with REAL = benchmark: where to write its results")
     add_quiet_argument(p)

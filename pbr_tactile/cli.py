@@ -82,12 +82,12 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     if args.profile:
         from scenes.profile import load_profile
 
-        from .profiled import profile_effects
+        from .profiled import profile_effects, reference_spec
 
         if args.estimator != "photons":
             raise ValueError("--profile needs the photon estimator (it renders one image per source)")
         profile = load_profile(args.profile, spec)
-        spec = profile.sensor_spec(spec)  # the unit's LEDs, turned as fitted
+        spec = reference_spec(profile, spec)  # the unit's LEDs, laid out and turned as fitted
         effects = profile_effects(profile, args.effect)
     else:
         effects = Effects().with_settings(args.effect or [])

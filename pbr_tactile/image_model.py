@@ -22,7 +22,12 @@ is modelled as
 - g_sc >= 0 : each source's gain in each channel, the product of its power, its spectrum
   under the camera's filters and the white balance, which one image cannot separate: they
   are fitted together, by non-negative least squares, for every value of the nonlinear
-  parameters (variable projection), and the core leak fraction is read from them;
+  parameters (variable projection), and the core leak fraction is read from them. With
+  the sources' film responses R (``ImageModel(response=)``: each LED's spectrum under the
+  camera's filters, ``pbr_tactile.render.source_response``) the gains are not a free mix
+  but g_mc = p_m R_mc w_c: one power p_m per LED and one white balance w_c per channel,
+  so each LED's light reaches the channels only as its spectrum does
+  (``solve_spectral_gains``);
 - V : the lens' relative illumination 1 + a1 r^2 + a2 r^4, non-increasing and positive;
 - gamma, o_c, sat_c : the camera's response, black offset and clip level. Clipped real
   pixels are censored: a prediction above the clip level there costs nothing.
@@ -171,7 +176,7 @@ class ImageModel:
 
     def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None,
                  arcs: list | None = None, spans: tuple = (), rendered: Camera | None = None, lens: bool = False,
-                 known_alignment: bool = False):
+                 known_alignment: bool = False, response: np.ndarray | None = None):
         """basis (h, w, S) per unit flux of sources ``names``, taken with the camera
         ``rendered`` (default: ``camera``, the spec's; ``basis_camera`` sees wider, so the
         fitted lens may too); ``arcs`` and ``spans`` (``basis_layout``): each unit's LEDs
@@ -179,7 +184,9 @@ class ImageModel:
         ``spans``), its source rendered at the arc's centre; None: each unit is one LED.
         ``lens``: the lens' k1 is fitted (else held at the spec's). ``known_alignment``:
         the real camera is the spec's (module doc): the rotation, scale, shift and k1 are
-        held there (``lens`` must be False)."""
+        held there (``lens`` must be False). ``response``: (S, 3) each source's film
+        response (the basis' ``response``): the gains follow each LED's (module doc); None:
+        a free gain per LED and channel."""
         if known_alignment and lens:
             raise ValueError("ImageModel: a known alignment holds the lens at the spec's; lens=True fits it")
         self.A = np.asarray(basis, np.float64)
@@ -198,6 +205,16 @@ class ImageModel:
         self.arcs = None if arcs is None else [np.asarray(a, np.float64) for a in arcs]
         self.spans = tuple(float(v) for v in spans)
         self._arcs: dict = {}  # (source, turns) -> the basis' arc image (``_arc``)
+        #: (L, 3) each LED's film response, its own source's, over its largest; None: free gains
+        self.response = None
+        if response is not None:
+            response = np.asarray(response, np.float64)
+            if response.shape != (self.S, 3) or not np.all(np.isfinite(response)) or np.any(response < 0):
+                raise ValueError(f"ImageModel: response must be ({self.S}, 3) finite and >= 0, got {response.shape}")
+            own = np.stack([response[np.flatnonzero((self.led == m) & ~self.has_leak)[0]] for m in range(self.leds)])
+            if np.any(own.max(axis=1) <= 0):
+                raise ValueError("ImageModel: an LED's film response is zero in every channel")
+            self.response = own / own.max(axis=1, keepdims=True)
         if self.arcs is not None and not len(self.arcs) == len(self.spans) == self.leds:
             raise ValueError(f"arcs: {len(self.arcs)} units and {len(self.spans)} spans for a basis of {self.leds} "
                              "LEDs")
@@ -352,6 +369,69 @@ def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float,
     return coef[:-1], offset
 
 
+def _rank_one_start(X, Y, clipped, gamma, response, weight) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(p, w, offsets): the free gains G (``solve_gains``, per channel) and the p and w that
+    make R_mc p_m w_c nearest them, by alternating least squares on the (L, 3) gains."""
+    L = X.shape[1]
+    G, offset = np.zeros((L, 3)), np.zeros(3)
+    for c in range(3):
+        G[:, c], offset[c] = solve_gains(X, Y[:, c], clipped[:, c], gamma, weight)
+    power, balance = np.ones(L), np.ones(3)
+    for _ in range(200):
+        balance = np.maximum((G * response * power[:, None]).sum(0), 0.0) / np.maximum(
+            (np.square(response) * np.square(power)[:, None]).sum(0), 1e-30)
+        power = np.maximum((G * response * balance[None, :]).sum(1), 0.0) / np.maximum(
+            (np.square(response) * np.square(balance)[None, :]).sum(1), 1e-30)
+        if power.max() > 0:
+            balance, power = balance * power.max(), power / power.max()
+    return (power if power.max() > 0 else np.ones(L)), balance, offset
+
+
+def solve_spectral_gains(X: np.ndarray, Y: np.ndarray, clipped: np.ndarray, gamma: float, response: np.ndarray,
+                         weight: np.ndarray | None = None, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Gains g_mc = p_m R_mc w_c (L, 3) and offsets (3,) for pixels X (N, L), real values
+    Y (N, 3) with ``clipped`` (N, 3) censored, each LED's film response R (L, 3): least
+    squares in linear units (Y^gamma) over the unclipped pixels by alternating
+    non-negative solves, each linear: the white balances w with the offsets for the powers
+    p, then the powers with the offsets for the white balances (the powers' scale is the
+    white balance's: max p = 1), from the free gains' nearest such product
+    (``_rank_one_start``); then each channel's balance and offset once more with the
+    censoring (``solve_gains``)."""
+    L = X.shape[1]
+    target = np.power(Y, gamma)
+    sw = np.ones(len(Y)) if weight is None else np.sqrt(weight)
+    use = ~clipped
+    power, balance, offset = _rank_one_start(X, Y, clipped, gamma, response, weight)
+    rhs = np.concatenate([target[use[:, c], c] * sw[use[:, c]] for c in range(3)])
+    one = [np.zeros((int(use[:, c].sum()), 3)) for c in range(3)]
+    for c in range(3):
+        one[c][:, c] = sw[use[:, c]]
+    for _ in range(iterations):
+        for c in range(3):
+            column = X[use[:, c]] @ (power * response[:, c])
+            coef, _ = optimize.nnls(np.c_[column, np.ones(len(column))] * sw[use[:, c], None],
+                                    target[use[:, c], c] * sw[use[:, c]])
+            balance[c], offset[c] = coef
+        if not np.any(balance > 0) or len(rhs) < L + 3:
+            break
+        rows = np.concatenate([np.c_[X[use[:, c]] * (response[:, c] * balance[c]) * sw[use[:, c], None], one[c]]
+                               for c in range(3)])
+        coef, _ = optimize.nnls(rows, rhs)
+        new, offset = coef[:L], coef[L:]
+        if not new.max() > 0:
+            break
+        balance = balance * new.max()
+        new = new / new.max()
+        done = np.allclose(new, power, rtol=1e-6, atol=1e-9)
+        power = new
+        if done:
+            break
+    for c in range(3):  # each channel's balance and offset for the powers found, with the censoring
+        scale, offset[c] = solve_gains((X @ (power * response[:, c]))[:, None], Y[:, c], clipped[:, c], gamma, weight)
+        balance[c] = float(scale[0])
+    return power[:, None] * response * balance[None, :], offset
+
+
 @dataclass
 class ImageFit:
     """A fitted image model: nonlinear parameters, gains (L, 3), offset (3,), loss."""
@@ -437,9 +517,12 @@ class ImageFitter:
         sw = np.sqrt(w / (3 * np.sum(w)))
         weight = None if self.weight is None and not self.taps else w
         gains, offset, residuals = np.zeros((self.model.leds, 3)), np.zeros(3), []
+        if self.model.response is not None:
+            gains, offset = solve_spectral_gains(X, self.y, self.y_clipped, nl.gamma, self.model.response, weight)
         for c in range(3):
             y, clipped = self.y[:, c], self.y_clipped[:, c]
-            gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight)
+            if self.model.response is None:
+                gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight)
             pred = np.clip(X @ gains[:, c] + offset[c], 0.0, None) ** (1.0 / nl.gamma)
             residuals.append(sw * np.where(clipped, np.minimum(pred - y, 0.0), pred - y))
         return gains, offset, np.concatenate(residuals)

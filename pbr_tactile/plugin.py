@@ -201,10 +201,10 @@ def unit_of(spec: SensorSpec, opts: dict):
         return spec, Camera.from_spec(spec), opts["effects"], None
     from scenes.profile import load_profile
 
-    from .profiled import profile_effects
+    from .profiled import profile_effects, reference_spec
 
     profile = load_profile(opts["profile"], spec)
-    unit = profile.sensor_spec(spec)
+    unit = reference_spec(profile, spec)
     try:
         effects = profile_effects(profile, opts["effect_settings"])
     except ValueError as exc:

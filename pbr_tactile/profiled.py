@@ -9,6 +9,7 @@ import numpy as np
 
 from scenes.camera import Camera
 from scenes.profile import Profile
+from scenes.spec import SensorSpec
 
 from .basis import BASIS_EFFECTS
 from .effects import Effects
@@ -24,6 +25,19 @@ def profile_effects(profile: Profile, settings: list[str] | None = None) -> Effe
         raise ValueError(f"profile reference.effects: {exc}") from None
     effects = effects.with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
     return effects.with_settings(settings or [])
+
+
+def reference_spec(profile: Profile, spec: SensorSpec) -> SensorSpec:
+    """``spec`` as the reference renders this unit: its LEDs laid out as the calibration
+    fitted them (``reference.layout``, ``scenes.layout``; none: the spec's), then turned
+    and its image circle set as for every renderer (``Profile.sensor_spec``)."""
+    from scenes.layout import layout_from_dicts, with_layout
+
+    profile.check(spec)
+    layout = profile.reference.get("layout")
+    if layout is not None:
+        spec = with_layout(spec, layout_from_dicts(layout, spec, "profile reference.layout"))
+    return profile.sensor_spec(spec)
 
 
 def profiled_image(per_source: np.ndarray, names, profile: Profile, camera: Camera) -> np.ndarray:

@@ -72,6 +72,15 @@ def _paired(a: dict, b: dict, scope: str = "contact") -> dict:
     return {**bootstrap_interval(diff), "presses": len(common)}
 
 
+def _layout_report(path: Path) -> dict | None:
+    """The reference calibration's fitted layout (its report's ``layout``: the starts'
+    losses, the layout found, renders and seconds), or None where it fitted none."""
+    if not path.is_file():
+        return None
+    layout = json.loads(path.read_text()).get("layout")
+    return None if layout is None else {k: v for k, v in layout.items() if k != "steps"}
+
+
 def _figure(row: dict | None) -> dict | None:
     if row is None:
         return None
@@ -84,13 +93,17 @@ def _figure(row: dict | None) -> dict | None:
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
         rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
-        reference_presses: int = REFERENCE_PRESSES) -> dict:
+        reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False) -> dict:
     """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
     calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
     spec's camera (``calibrate --camera-known``: the public set's spec is written from its
     camera's record), else searched; ``reference_presses``: the held-out presses the
     reference renders, spread evenly over them (all when it is at least their count), so
-    that a strength near a goal's bound can be confirmed on more than the default's few."""
+    that a strength near a goal's bound can be confirmed on more than the default's few;
+    ``fit_layout``: the reference's calibration fits its LEDs' layout first
+    (``calibrate --fit-layout``), from the spec's, the fast path's fitted places (its
+    calibration's report) and a coarse grid under the plate, on the no-contact frame and
+    the presses, with each LED's gains through its film response (``--spectral-gains``)."""
     if isinstance(reference_presses, bool) or not isinstance(reference_presses, (int, np.integer)) \
             or reference_presses < 1:
         raise ValueError(f"reference_presses must be a whole number >= 1, got {reference_presses!r}")
@@ -133,7 +146,9 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                 try:
                     calibrate_capture(capture, ref_profile.parent, phong.calibrate, taps=REFERENCE_TAPS, bootstrap=4,
                                       grid=name_values(list(grid), "--grid", "NAME=V1,V2,..."),
-                                      camera_known=camera_known, progress=not quiet)
+                                      camera_known=camera_known, progress=not quiet, fit_layout=fit_layout,
+                                      layout_seed=fast_profile.parent / "report.json" if fit_layout else None,
+                                      spectral_gains=fit_layout)
                 except REPORTED as exc:  # the comparisons go on without the calibrated reference
                     print(f"bench real: the reference's calibration failed: {exc}", file=sys.stderr)
 
@@ -189,7 +204,10 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         shipped = _row(raw, "peer", variant="shipped")
         out = {
             "archive": str(archive), "presses": len(unit.ids), "heldout": len(raw["taps"]),
-            "reference_calibration": {"grid": list(grid), "camera_known": camera_known} if reference else None,
+            "reference_calibration": {"grid": list(grid), "camera_known": camera_known, "fit_layout": fit_layout,
+                                      "spectral_gains": fit_layout,
+                                      "layout": _layout_report(ref_profile.parent / "report.json")}
+            if reference else None,
             "import": unit.meta.get("import"),
             "contact_strength": {"phong": fast_row["strength"]["median"] if fast_row else None,
                                  "pbr": ref_row["strength"]["median"] if ref_row else None},
@@ -246,7 +264,7 @@ def cmd_bench_real(args) -> int:
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share,
               grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
-              reference_presses=args.reference_presses)
+              reference_presses=args.reference_presses, fit_layout=args.fit_layout)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -280,6 +298,9 @@ def register(registry) -> None:
                    help=f"held-out presses the reference renders, spread evenly over them (default "
                         f"{REFERENCE_PRESSES}; each takes about a minute and a half here; all when N is at least "
                         "their count)")
+    p.add_argument("--fit-layout", action="store_true",
+                   help="the reference's calibration fits its LEDs' layout first (calibrate --fit-layout, seeded "
+                        "with the fast path's fitted LED places)")
     p.add_argument("--reference-diagnosis", action="store_true",
                    help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
     p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")

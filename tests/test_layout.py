@@ -272,3 +272,111 @@ def test_light_entering_the_plate_s_edge_reaches_the_pad_as_fresnel_says(photon_
     sigma = math.sqrt(expected * (1 - expected) / photons)
     # the photons' binomial noise and 1 % for the 1 mm facets (measured: 0.3838 against 0.3808, seed 3)
     assert abs(simulated - expected) < 4 * sigma + 0.01 * expected, (simulated, expected)
+
+
+@pytest.mark.slow
+def test_a_known_layout_is_recovered_from_presses_rendered_with_it(photon_mi):
+    """A blind unit: the flat GelSight with its LEDs under the plate, off the search's
+    coarse grid (1.5 mm further out, 0.15 rad less aim, a 0.3 rad wider beam than its
+    nearest point), its no-contact image and two ball presses rendered with another seed
+    and made an image through known powers, white balance, offset and response. The
+    layout's fit, on them, finds the LEDs under the plate and each within a few of its
+    steps of where they are."""
+    from pbr_tactile.basis import BASIS_EFFECTS, emitter_basis
+    from pbr_tactile.effects import Effects
+    from pbr_tactile.image_model import ImageModel, Nonlinear
+    from pbr_tactile.layout_fit import SEARCH_FILM, STEPS, UNDER_AIMS, UNDER_BEAMS, fit_layout, under_grid
+    from scenes.camera import Camera, reference_depth
+    from scenes.captures import RealTaps
+    from scenes.contact import press
+    from scenes.geometry import membrane_mesh
+    import trimesh
+
+    spec = load_spec(SENSORS_DIR / "gelsight.toml").at_resolution(160, 120)
+    camera, mesh = Camera.from_spec(spec), membrane_mesh(spec)
+    effects = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()]
+                                      + ["absorption_per_m=20", "scattering_per_m=0"])
+    grid = under_grid(spec, layout_of(spec))
+    near = grid[f"under_r0.65_a{math.degrees(UNDER_AIMS[1]):.0f}_b{math.degrees(UNDER_BEAMS[0]):.0f}"]
+    hidden = tuple(dataclasses.replace(p, radius_m=p.radius_m + 1.5e-3, aim_rad=p.aim_rad - 0.15,
+                                       beam_half_angle_rad=p.beam_half_angle_rad + 0.3) for p in near)
+    unit = with_layout(spec, hidden)
+    ref = reference_depth(mesh, camera)[0]
+    depths = np.stack([press(ref, camera, mesh, trimesh.primitives.Sphere(radius=0.002), pixel, 1.0e-3)
+                       for pixel in ((55.0, 50.0), (105.0, 72.0))])
+    renders = [emitter_basis(unit, mesh, camera, effects, SEARCH_FILM, 1 << 17, 16, 2, seed=11)]
+    renders += [emitter_basis(unit, mesh, camera, effects, SEARCH_FILM, 1 << 17, 16, 2, seed=11, depth=d,
+                              ref_depth=ref) for d in depths]
+    model = ImageModel(renders[0]["mean"], renders[0]["names"], camera, None, known_alignment=True,
+                       response=renders[0]["response"])
+    gains = np.array([1.0, 0.8, 0.9])[:, None] * model.response * np.array([0.5, 0.4, 0.6])[None, :]
+    scale = 0.6 / float(np.percentile(model.warped(model.start()) @ gains, 90))
+    nl = dataclasses.replace(Nonlinear.start(3, leak=0.2), gamma=1.8)
+
+    def image(change=None):
+        low = model.render(nl, gains * scale, (0.03, 0.03, 0.03), (1, 1, 1), change=change)
+        return np.repeat(np.repeat(low, 2, axis=0), 2, axis=1)  # at the camera's 160x120
+
+    real = image()
+    taps = RealTaps(np.stack([image(r["mean"] - renders[0]["mean"]) for r in renders[1:]]), depths, ref,
+                    ["a", "b"])
+    fit = fit_layout(real, spec, mesh, camera, effects, taps=taps, spectral_gains=True, rounds=3)
+    assert [p.entry for p in fit.layout] == ["under"] * 3
+    for found, truth in zip(fit.layout, hidden):
+        assert abs(found.radius_m - truth.radius_m) <= 4 * STEPS["radius_m"][1]
+        assert abs(found.aim_rad - truth.aim_rad) <= 4 * STEPS["aim_rad"][1]
+        assert abs(found.beam_half_angle_rad - truth.beam_half_angle_rad) <= 4 * STEPS["beam_half_angle_rad"][1]
+    assert fit.report["loss"] < fit.report["starts"]["spec"]["image_loss"]
+
+
+def test_presses_in_one_place_or_too_few_do_not_pin_a_layout():
+    from pbr_tactile.layout_fit import presses_pin
+    from scenes.camera import Camera
+    from scenes.captures import RealTaps
+
+    camera = Camera.from_spec(load_spec(SENSORS_DIR / "gelsight.toml").at_resolution(160, 120))
+    ref = np.full((120, 160), 0.03)
+
+    def taps(centres):
+        depths = np.stack([ref.copy() for _ in centres])
+        for d, (u, v) in zip(depths, centres):
+            d[v, u] -= 1e-3
+        return RealTaps(np.zeros((len(centres), 120, 160, 3)), depths, ref, [str(k) for k in range(len(centres))])
+
+    assert presses_pin(None, camera) == (False, "no presses: a layout needs presses to pin it")
+    # the fitted half is the even presses: two of four, 100 px apart, pin it
+    ok, why = presses_pin(taps([(30, 30), (0, 0), (130, 30), (0, 0)]), camera)
+    assert ok and why == "2 fitted presses spread over 100 px"
+    ok, why = presses_pin(taps([(30, 30), (0, 0)]), camera)
+    assert not ok and why == "1 fitted press(es), fewer than 2"
+    ok, why = presses_pin(taps([(80, 60), (0, 0), (90, 65), (0, 0)]), camera)
+    assert not ok and "lie within 11 px of each other, under 0.25 of the frame's 120 px: all in one place" in why
+
+
+def test_spectral_gains_are_each_led_s_response_times_a_power_and_a_white_balance():
+    """Pixels made by known powers p, white balances w and offsets through each LED's
+    film response R are solved back to g = p R w exactly, and the free per-channel gains
+    of the same pixels are not of that form when the pixels are not."""
+    from pbr_tactile.image_model import solve_spectral_gains
+    from pbr_tactile.real_image import CLIP_LEVEL
+
+    rng = np.random.default_rng(0)
+    X = rng.random((3000, 3))
+    R = np.array([[1.0, 0.1, 0.0], [0.13, 1.0, 0.15], [0.0, 0.22, 1.0]])
+    p, w, o = np.array([1.0, 0.6, 0.8]), np.array([0.5, 0.7, 0.4]), np.array([0.02, 0.01, 0.03])
+    G = p[:, None] * R * w[None, :]
+    Y = np.power(X @ G + o, 1 / 2.2)
+    g, offset = solve_spectral_gains(X, Y, np.zeros_like(Y, bool), 2.2, R)
+    np.testing.assert_allclose(g, G, atol=1e-5)
+    np.testing.assert_allclose(offset, o, atol=1e-5)
+    # clipped pixels are censored: a prediction above the clip level there costs nothing
+    bright = np.power(X @ (2 * G) + o, 1 / 2.2)
+    clipped = bright >= CLIP_LEVEL
+    assert 0.02 < clipped.mean() < 0.5
+    g2, _ = solve_spectral_gains(X, np.minimum(bright, CLIP_LEVEL), clipped, 2.2, R)
+    np.testing.assert_allclose(g2, 2 * G, atol=1e-5)
+    # gains outside the form are fitted only as far as it allows: the mix has no free cross-talk
+    mixed = G.copy()
+    mixed[2, 0] = 0.3  # the blue LED in the red channel, which its response does not allow
+    g3, _ = solve_spectral_gains(X, np.power(X @ mixed + o, 1 / 2.2), np.zeros_like(Y, bool), 2.2, R)
+    assert g3[2, 0] == pytest.approx(0.0, abs=1e-12)

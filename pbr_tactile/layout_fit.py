@@ -1,0 +1,385 @@
+"""Fit where the reference's light enters, its aim and its beam to a real unit's no-contact image.
+
+The LEDs' layout (``scenes.layout``: per LED its entry, place, aim and beam, bounded by
+the unit's housing) sets how evenly and from where the membrane is lit, which no gain,
+offset or response of the camera fitted afterwards can change. Here it is searched
+against the real no-contact frame and the training presses' contact regions, through the
+calibration's own image model (``pbr_tactile.image_model``, the camera held where
+``known_alignment`` says; the presses as ``pbr_tactile.calibrate_taps`` fits them, the
+LEDs turned as one ring) on the even angular sectors, at a small film and photon count.
+Each source's transport is independent of the others' places, so any LED's images (its
+no-contact image and its presses') can be swapped between renders of different layouts:
+
+1. every start (the spec's layout; the glass' edge; the fast path's calibrated places
+   carried over as LEDs under the glass; a coarse grid under the glass: ``starts``) is
+   rendered without contact and fitted; the SCREENED best (and the spec's, to judge the
+   fit by) also render the presses and are fitted with them;
+2. LED by LED, each takes whichever of those starts' images lowers the fitted loss (less
+   the basis' own Monte Carlo noise, ``image_model.debiased``) by more than MIN_GAIN;
+3. a pattern search then moves one parameter at a time (``scenes.layout.FREE``), every
+   LED's by +step in one render and by -step in another; each LED in turn takes the move
+   that lowers the loss, and a parameter that moves no LED has its step halved, down to
+   its smallest.
+
+Why a search and not Dr.Jit's derivatives: the light pass (``pbr_tactile.photons``)
+deposits photons on the coating through scatter-adds behind a weight window that splits
+and roulettes them, and an emitter's place moves which faces its photons reach
+(visibility): a derivative through it needs the boundary terms of a moving emitter and
+a differentiable window, which the estimator does not have. A render costs 3 s at the
+search's film, so a few dozen are affordable; a search seeded from two physical layouts
+is the alternative the issue names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenes.camera import Camera
+from scenes.captures import MIN_REGION
+from scenes.images import block_mean
+from scenes.layout import FREE, PARAMETERS, LEDLayout, layout_bounds, layout_of, with_layout
+from scenes.spec import SensorSpec
+
+from .basis import emitter_basis
+from .effects import Effects
+from .image_model import ImageFitter, ImageModel, debiased
+from .real_image import check_real, film_factor, image_circle, sector_index
+
+#: The search's film (px) and photons per LED: a render in about 3 s on 2 cores.
+SEARCH_FILM = (80, 60)
+SEARCH_PHOTONS = 1 << 16
+SEARCH_SPP = 16
+#: Each parameter's first step and smallest step (PARAMETERS' units: m, m, rad, rad).
+STEPS = {"radius_m": (3e-3, 0.5e-3), "height_m": (3e-3, 0.5e-3), "aim_rad": (0.3, 0.05),
+         "beam_half_angle_rad": (0.3, 0.05)}
+#: A move is kept when it lowers the debiased loss by more than this share.
+MIN_GAIN = 0.01
+#: Starts whose presses are rendered and fitted, the best by the no-contact fit.
+SCREENED = 5
+#: Training presses the search fits (the fitted half's, spread over it).
+SEARCH_TAPS = 3
+#: Presses that pin a layout: at least this many on the fitted half, their contacts'
+#: centres spread over at least this share of the frame's height (presses in one place
+#: see each LED from one side only).
+MIN_PRESSES = 2
+MIN_PRESS_SPREAD = 0.25
+#: Passes over the parameters at most. On the public GelSight's presses (3 of them in the
+#: loss) four passes moved one LED's aim once, in the first, in 139 renders and 22
+#: minutes on a shared 2-core machine: the starts and their combination carry the fit.
+ROUNDS = 1
+
+
+@dataclass
+class LayoutFit:
+    """What ``fit_layout`` found: the layout, the spec laid out by it, the start it came
+    from, and the report (JSON-able: every start's and step's loss, renders, seconds)."""
+
+    layout: tuple[LEDLayout, ...]
+    spec: SensorSpec
+    start: str
+    report: dict
+
+
+def fast_path_layout(spec: SensorSpec, places_m, beam_half_angle_rad: float = math.radians(60.0)
+                     ) -> tuple[LEDLayout, ...]:
+    """The fast path's calibrated LED places (camera frame, m; its profile report's
+    ``fast_path.taps.places.places_m``) as LEDs under the glass, each aimed at the
+    membrane's apex with a ``beam_half_angle_rad`` beam, moved into their bounds
+    (``scenes.layout.layout_bounds``: a place above the glass' lowest point goes down to it)."""
+    from scenes.body import sensor_body
+
+    layout = []
+    body = sensor_body(spec)
+    tube = _tube_points(spec, np.asarray(body.membrane.vertices))
+    apex = float(tube[np.argmin(np.hypot(tube[:, 0], tube[:, 1])), 2])
+    for p in _tube_points(spec, places_m):
+        bounds = layout_bounds(spec, "under")
+        radius = float(np.clip(math.hypot(p[0], p[1]), *bounds["radius_m"][:2]))
+        height = float(np.clip(p[2], *bounds["height_m"][:2]))
+        aim = math.atan2(radius, apex - height)
+        layout.append(LEDLayout("under", math.atan2(p[1], p[0]), radius, height, aim, beam_half_angle_rad))
+    return tuple(layout)
+
+
+def _tube_points(spec: SensorSpec, points) -> np.ndarray:
+    import trimesh
+
+    return trimesh.transform_points(np.reshape(np.asarray(points, np.float64), (-1, 3)),
+                                    np.linalg.inv(spec.camera.tube_to_camera()))
+
+
+def starts(spec: SensorSpec, fast_places_m=None, coarse: bool = True) -> dict[str, tuple[LEDLayout, ...]]:
+    """The search's starts: ``spec`` (its own layout), ``edge`` (each LED's light into the
+    glass' edge at its azimuth, aimed across, Lambertian), given the fast path's
+    calibrated places ``fast_path`` (``fast_path_layout``), and with ``coarse`` a coarse
+    grid of LEDs under the glass across the housing (``under_grid``)."""
+    own = layout_of(spec)
+    out = {"spec": own,
+           "edge": tuple(dataclasses.replace(p, entry="edge", aim_rad=math.pi / 2, beam_half_angle_rad=None)
+                         for p in own)}
+    if fast_places_m is not None:
+        out["fast_path"] = fast_path_layout(spec, fast_places_m)
+    if coarse:
+        out.update(under_grid(spec, own))
+    return out
+
+
+#: The coarse grid of LEDs under the glass (``under_grid``): distances from the axis as
+#: shares of the glass' reach (its base loop's mean radius), aims (rad) and beams (rad).
+UNDER_RADII = (0.35, 0.65, 0.95)
+UNDER_AIMS = (0.0, math.radians(35.0))
+UNDER_BEAMS = (math.radians(30.0), math.radians(60.0))
+
+
+def under_grid(spec: SensorSpec, own) -> dict[str, tuple[LEDLayout, ...]]:
+    """Starts with every LED under the glass at its own azimuth, CLEARANCE_M under the
+    glass' lowest point (or the housing's floor), at each of UNDER_RADII x UNDER_AIMS x
+    UNDER_BEAMS, named ``under_r<share>_a<deg>_b<deg>``."""
+    from scenes.body import sensor_body
+
+    body = sensor_body(spec)
+    loop = _tube_points(spec, np.asarray(body.membrane.vertices)[body.base_loop])
+    reach = float(np.hypot(loop[:, 0], loop[:, 1]).mean())
+    bounds = layout_bounds(spec, "under")
+    height = bounds["height_m"][1]
+    out = {}
+    for share in UNDER_RADII:
+        radius = float(np.clip(share * reach, *bounds["radius_m"][:2]))
+        for aim in UNDER_AIMS:
+            for beam in UNDER_BEAMS:
+                name = f"under_r{share:g}_a{math.degrees(aim):.0f}_b{math.degrees(beam):.0f}"
+                out[name] = tuple(LEDLayout("under", p.azimuth_rad, radius, height, aim, beam) for p in own)
+    return out
+
+
+def presses_pin(taps, camera: Camera) -> tuple[bool, str]:
+    """Whether the fitted half of ``taps`` (``scenes.captures.RealTaps``; None: no presses)
+    can pin a layout (MIN_PRESSES, MIN_PRESS_SPREAD), and why (one line)."""
+    from scenes import captures
+
+    if taps is None:
+        return False, "no presses: a layout needs presses to pin it"
+    fitted = np.flatnonzero(captures.split(len(taps.ids)))
+    if len(fitted) < MIN_PRESSES:
+        return False, f"{len(fitted)} fitted press(es), fewer than {MIN_PRESSES}"
+    centres = []
+    for t in fitted:
+        sunk = np.asarray(taps.ref_depth, np.float64) - np.asarray(taps.depths[t], np.float64)
+        v, u = np.unravel_index(np.argmax(sunk), sunk.shape)
+        centres.append((u, v))
+    centres = np.asarray(centres, np.float64)
+    spread = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
+    if spread < MIN_PRESS_SPREAD * camera.height:
+        return False, (f"the {len(fitted)} fitted presses lie within {spread:.0f} px of each other, under "
+                       f"{MIN_PRESS_SPREAD:g} of the frame's {camera.height} px: all in one place")
+    return True, f"{len(fitted)} fitted presses spread over {spread:.0f} px"
+
+
+class _Scorer:
+    """The fitted loss (less the basis' noise) of a candidate's renders: its no-contact
+    basis against the real image's training sectors, and with its presses' renders their
+    changes against the real presses' contact regions too (``calibrate_taps``)."""
+
+    def __init__(self, real, camera: Camera, film, known_alignment: bool, leak: bool, taps=None,
+                 spectral_gains: bool = False):
+        width, height = film
+        self.film = film
+        self.camera = camera
+        self.circle = image_circle(real)
+        self.r = block_mean(real, film_factor(real.shape, film))
+        s = height / camera.height
+        centre = (camera.cx, camera.cy) if self.circle is None else self.circle[:2]
+        self.sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
+        self.known = known_alignment
+        self.leak = leak
+        self.taps = taps
+        self.spectral = spectral_gains
+        self.fits = 0
+
+    def __call__(self, candidate: dict) -> tuple[float, object]:
+        from .calibrate_taps import film_views
+
+        basis = candidate["basis"]
+        model = ImageModel(basis["mean"], basis["names"], self.camera, self.circle, known_alignment=self.known,
+                           lens=False, response=basis["response"] if self.spectral else None)
+        train = (self.sector % 2 == 0) & model.inside
+        fit = ImageFitter(model, self.r, train, leak=self.leak).search()
+        pixels = [train]
+        if candidate.get("taps") is not None and self.taps is not None:
+            changes = {"change": np.stack([t["mean"] - basis["mean"] for t in candidate["taps"]]), "slope": None,
+                       "curve": None}
+            views = [v for v in film_views(self.taps, changes, self.r, model.inside, self.film)
+                     if v.pixels.sum() >= MIN_REGION]
+            if views:
+                fit = ImageFitter(model, self.r, train, leak=self.leak, taps=views, common_turn=True).fit(fit.nl)
+                pixels += [v.pixels for v in views]
+        fit = debiased(fit, model, basis, pixels)
+        self.fits += 1
+        return fit.loss - fit.noise, fit
+
+
+def _swap(candidate: dict, other: dict, led: int) -> dict:
+    """``candidate``'s renders (its no-contact ``basis`` and its presses' ``taps``) with LED
+    ``led``'s sources (``led<m>``, ``led<m>_leak``) taken from ``other``'s."""
+    names = [str(n) for n in candidate["basis"]["names"]]
+    if names != [str(n) for n in other["basis"]["names"]]:
+        raise ValueError("fit_layout: renders of one sensor must have the same sources")
+    take = np.array([n == f"led{led}" or n == f"led{led}_leak" for n in names])
+
+    def swapped(a: dict, b: dict) -> dict:
+        return {**a, "mean": np.where(take, b["mean"], a["mean"]), "variance": np.where(take, b["variance"],
+                                                                                          a["variance"])}
+
+    out = {"basis": swapped(candidate["basis"], other["basis"])}
+    if candidate.get("taps") is not None:
+        out["taps"] = [swapped(a, b) for a, b in zip(candidate["taps"], other["taps"])]
+    return out
+
+
+def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects: Effects,
+               fast_places_m=None, taps=None, film: tuple[int, int] = SEARCH_FILM, photons: int = SEARCH_PHOTONS,
+               spp: int = SEARCH_SPP, passes: int = 2, seed: int = 0, known_alignment: bool = True,
+               leak: bool = True, rounds: int = ROUNDS, screened: int = SCREENED, use_cache: bool = True,
+               progress=None, only: tuple[str, ...] | None = None, coarse: bool = True,
+               spectral_gains: bool = False) -> LayoutFit:
+    """The LEDs' layout that best explains the real no-contact image (H, W, 3) in [0, 1]
+    and the presses ``taps`` (``scenes.captures.RealTaps``, the training presses; SEARCH_TAPS
+    of them spread over the fitted half are rendered; None: the image alone), module doc.
+    ``effects``: the reference's (with the leak sources the image model fits,
+    ``basis.BASIS_EFFECTS``); ``fast_places_m``: (L, 3) the fast path's calibrated LED
+    places, a start; ``only``: the starts to try (names of ``starts``), default all;
+    ``coarse``: with the grid under the glass; ``spectral_gains``: the image model's gains
+    through each LED's film response (``pbr_tactile.image_model``); ``progress``: called
+    with a line of text per step."""
+    from scenes import captures
+
+    real = check_real(real, camera, "the real no-contact image")
+    t0 = time.perf_counter()
+    chosen_taps = None
+    if taps is not None:
+        fitted = np.flatnonzero(captures.split(len(taps.ids)))
+        pick = fitted[np.unique(np.round(np.linspace(0, len(fitted) - 1, min(SEARCH_TAPS, len(fitted)))).astype(int))]
+        chosen_taps = taps.subset(pick)
+    score = _Scorer(real, camera, film, known_alignment, leak, chosen_taps, spectral_gains)
+    renders = 0
+
+    def render(layout, with_taps: bool = True) -> dict:
+        nonlocal renders
+        laid = with_layout(spec, layout)
+        out = {"basis": emitter_basis(laid, mesh, camera, effects, film, photons, spp, passes, seed, use_cache)}
+        renders += 1
+        if with_taps and chosen_taps is not None:
+            out["taps"] = [emitter_basis(laid, mesh, camera, effects, film, photons, spp, passes, seed, use_cache,
+                                         depth=depth, ref_depth=chosen_taps.ref_depth) for depth in chosen_taps.depths]
+            renders += len(chosen_taps.depths)
+        return out
+
+    def say(text):
+        if progress is not None:
+            progress(text)
+
+    tried = starts(spec, fast_places_m, coarse=coarse)
+    if only is not None:
+        unknown = sorted(set(only) - set(tried))
+        if unknown:
+            raise ValueError(f"fit_layout: no start named {', '.join(unknown)} (have {', '.join(tried)})")
+        tried = {k: v for k, v in tried.items() if k in only}
+    report = {"starts": {}, "steps": [], "film": list(film), "photons": photons, "seed": seed,
+              "presses": [] if chosen_taps is None else list(chosen_taps.ids),
+              "method": "a search from physical starts (module doc of pbr_tactile.layout_fit), not Dr.Jit's "
+                        "derivatives: the light pass has none with respect to an emitter's place"}
+    renders_of = {}
+    for name, layout in tried.items():
+        renders_of[name] = (list(layout), render(layout, with_taps=False))
+        loss, _ = score(renders_of[name][1])
+        report["starts"][name] = {"image_loss": loss, "layout": [dataclasses.asdict(p) for p in layout]}
+        say(f"start {name}: loss {loss:.6g} (no-contact image)")
+    kept = sorted(renders_of, key=lambda name: report["starts"][name]["image_loss"])[:max(1, screened)]
+    kept += ["spec"] if "spec" in renders_of and "spec" not in kept else []  # the spec's, to judge the fit by
+    renders_of = {name: renders_of[name] for name in kept}
+    for name in kept:
+        if chosen_taps is not None:
+            renders_of[name] = (renders_of[name][0], render(renders_of[name][0]))
+        report["starts"][name]["loss"] = score(renders_of[name][1])[0]
+        say(f"start {name}: loss {report['starts'][name]['loss']:.6g}" + (" with the presses" if chosen_taps else ""))
+    start = min(kept, key=lambda name: report["starts"][name]["loss"])
+    loss, layout, candidate, chosen = _combine(renders_of, start, report["starts"][start]["loss"], score, say)
+    report["combined"] = {"loss": loss, "from": [chosen[m] for m in range(len(layout))]}
+    loss, layout, steps = _search(spec, layout, candidate, loss, score, render, rounds, say)
+    report["steps"] = steps
+    layout = tuple(layout)
+    report.update({"start": start, "loss": loss, "layout": [dataclasses.asdict(p) for p in layout],
+                   "renders": renders, "fits": score.fits, "seconds": time.perf_counter() - t0})
+    return LayoutFit(layout, with_layout(spec, layout), start, report)
+
+
+def _search(spec: SensorSpec, layout: list, candidate: dict, loss: float, score, render, rounds: int, say):
+    """The pattern search of the module doc from ``layout`` (its renders ``candidate``,
+    its ``loss``): (the loss, the layout, the steps' records)."""
+    steps = {name: STEPS[name][0] for name in PARAMETERS}
+    records = []
+    for round_ in range(rounds):
+        moved_any = False
+        for name in PARAMETERS:
+            movable = [m for m, p in enumerate(layout) if name in FREE[p.entry]]
+            if not movable or steps[name] < STEPS[name][1]:
+                continue
+            k = PARAMETERS.index(name)
+            trials = {}
+            for sign in (1.0, -1.0):
+                trial = []
+                for p in layout:
+                    v = p.vector()
+                    low, high, _ = layout_bounds(spec, p.entry)[name]
+                    v[k] = float(np.clip(v[k] + sign * steps[name], low, high))
+                    trial.append(p.with_vector(v))
+                trials[sign] = (trial, render(trial))
+            moved = []
+            for m in movable:
+                for sign, (trial, other) in trials.items():
+                    if np.allclose(trial[m].vector(), layout[m].vector()):
+                        continue
+                    swapped = _swap(candidate, other, m)
+                    value, _ = score(swapped)
+                    if value < loss - MIN_GAIN * abs(loss):
+                        loss, candidate = value, swapped
+                        layout[m] = trial[m]
+                        moved.append((m, sign))
+                        break
+            records.append({"round": round_, "parameter": name, "step": steps[name], "loss": loss,
+                            "moved": [{"led": spec.leds[m].name, "by": sign * steps[name]} for m, sign in moved]})
+            say(f"round {round_} {name} step {steps[name]:.4g}: loss {loss:.6g}, moved {len(moved)} LEDs")
+            if moved:
+                moved_any = True
+            else:
+                steps[name] /= 2
+        if not moved_any and all(steps[n] < STEPS[n][1] for n in PARAMETERS if any(n in FREE[p.entry] for p in layout)):
+            break
+    return loss, layout, records
+
+
+def _combine(renders_of: dict, start: str, loss: float, score, say, sweeps: int = 2):
+    """Each LED's images from whichever start's renders fit best with the others' (module
+    doc: sources are independent), LED by LED from ``start``'s, ``sweeps`` times over the
+    LEDs: (the loss, the layout, the renders, each LED's start's name)."""
+    layout, candidate = list(renders_of[start][0]), renders_of[start][1]
+    chosen = {m: start for m in range(len(layout))}
+    for sweep in range(sweeps):
+        changed = False
+        for m in range(len(layout)):
+            for name, (other_layout, other) in renders_of.items():
+                if name == chosen[m]:
+                    continue
+                swapped = _swap(candidate, other, m)
+                value, _ = score(swapped)
+                if value < loss - MIN_GAIN * abs(loss):
+                    loss, candidate, layout[m], chosen[m], changed = value, swapped, other_layout[m], name, True
+        say(f"combined, sweep {sweep}: loss {loss:.6g} ({', '.join(chosen[m] for m in range(len(layout)))})")
+        if not changed:
+            break
+    return loss, layout, candidate, chosen
