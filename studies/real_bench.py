@@ -33,7 +33,9 @@ camera fitted to the no-contact image can change (the change over the frame's sp
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import shutil
 import sys
 import tempfile
@@ -72,6 +74,53 @@ def _paired(a: dict, b: dict, scope: str = "contact") -> dict:
     return {**bootstrap_interval(diff), "presses": len(common)}
 
 
+def _fresh_cache(folder: Path):
+    """Renders and bases cached in ``folder`` (emptied first) for the duration: a run of
+    the reference's calibration that reuses nothing of another's."""
+    from unittest import mock
+
+    from scenes.cache import CACHE_ENV
+
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    return mock.patch.dict(os.environ, {CACHE_ENV: str(folder)})
+
+
+def _run_figures(folder: Path, table: dict | None) -> dict:
+    """One run of the reference's calibration and comparison: its no-contact image's
+    held-out R^2 per channel, and the calibrated reference's contact MAE and strength on
+    the held-out presses."""
+    report = folder / "report.json"
+    r2 = json.loads(report.read_text()).get("heldout_r2") if report.is_file() else None
+    row = _row(table, "reference") if table is not None else None
+    return {"heldout_r2": r2, "contact_mae": row["contact"]["mae"]["mean"] if row else None,
+            "strength_median": row["strength"]["median"] if row else None}
+
+
+#: Three runs of one calibration agree when their held-out R^2 lie within this in every
+#: channel and their contact MAE within this share of its mean (issue "the reference lit
+#: as the real unit is").
+AGREE_R2 = 0.03
+AGREE_MAE_SHARE = 0.05
+
+
+def _spread(runs: list[dict]) -> dict:
+    """The runs' spread: the range of the held-out R^2 per channel, of the contact MAE
+    (also over its mean) and of the strength, and whether they agree (AGREE_R2,
+    AGREE_MAE_SHARE)."""
+    done = [r for r in runs if r["heldout_r2"] is not None and r["contact_mae"] is not None]
+    if len(done) < 2:
+        return {"runs": len(done), "agree": None, "why": "fewer than two runs finished"}
+    r2 = {ch: max(r["heldout_r2"][ch] for r in done) - min(r["heldout_r2"][ch] for r in done) for ch in "rgb"}
+    mae = [r["contact_mae"] for r in done]
+    share = (max(mae) - min(mae)) / float(np.mean(mae))
+    strength = [r["strength_median"] for r in done]
+    return {"runs": len(done), "heldout_r2_range": r2, "contact_mae_range": max(mae) - min(mae),
+            "contact_mae_range_share": share, "strength_range": max(strength) - min(strength),
+            "agree": bool(max(r2.values()) <= AGREE_R2 and share <= AGREE_MAE_SHARE),
+            "rule": f"held-out R^2 within {AGREE_R2} in every channel, contact MAE within {AGREE_MAE_SHARE:.0%}"}
+
+
 def _layout_report(path: Path) -> dict | None:
     """The reference calibration's fitted layout (its report's ``layout``: the starts'
     losses, the layout found, renders and seconds), or None where it fitted none."""
@@ -93,7 +142,7 @@ def _figure(row: dict | None) -> dict | None:
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
         rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
-        reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False) -> dict:
+        reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False, runs: int = 1) -> dict:
     """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
     calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
     spec's camera (``calibrate --camera-known``: the public set's spec is written from its
@@ -103,10 +152,17 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     ``fit_layout``: the reference's calibration fits its LEDs' layout first
     (``calibrate --fit-layout``), from the spec's, the fast path's fitted places (its
     calibration's report) and a coarse grid under the plate, on the no-contact frame and
-    the presses, with each LED's gains through its film response (``--spectral-gains``)."""
+    the presses, with each LED's gains through its film response (``--spectral-gains``);
+    ``runs``: the reference's calibration and its calibrated comparison run this many times,
+    each from an empty cache (every render anew, the same seeds), and the JSON's
+    ``reference_runs`` holds each run's figures and their spread (``_spread``)."""
     if isinstance(reference_presses, bool) or not isinstance(reference_presses, (int, np.integer)) \
             or reference_presses < 1:
         raise ValueError(f"reference_presses must be a whole number >= 1, got {reference_presses!r}")
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
+        raise ValueError(f"runs must be a whole number >= 1, got {runs!r}")
+    if runs > 1 and not reference:
+        raise ValueError("runs repeats the reference's calibration: it needs the reference (no --no-reference)")
     from pbr_tactile.calibrate_capture import calibrate_capture
     from phong_reference import plugin as phong
     from scenes.cli import REPORTED
@@ -141,18 +197,21 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         stage("calibrate_fast", lambda: calibrate_capture(capture, fast_profile.parent, phong.calibrate,
                                                           fast_taps=0, fast_only=True, progress=not quiet))
         ref_profile = work / "calibrated_reference" / "profile.toml"
-        if reference:
-            def calibrate_reference():
-                try:
-                    calibrate_capture(capture, ref_profile.parent, phong.calibrate, taps=REFERENCE_TAPS, bootstrap=4,
-                                      grid=name_values(list(grid), "--grid", "NAME=V1,V2,..."),
-                                      camera_known=camera_known, progress=not quiet, fit_layout=fit_layout,
-                                      layout_seed=fast_profile.parent / "report.json" if fit_layout else None,
-                                      spectral_gains=fit_layout)
-                except REPORTED as exc:  # the comparisons go on without the calibrated reference
-                    print(f"bench real: the reference's calibration failed: {exc}", file=sys.stderr)
 
-            stage("calibrate_reference", calibrate_reference)
+        def calibrate_reference(folder: Path):
+            try:
+                calibrate_capture(capture, folder, phong.calibrate, taps=REFERENCE_TAPS, bootstrap=4,
+                                  grid=name_values(list(grid), "--grid", "NAME=V1,V2,..."),
+                                  camera_known=camera_known, progress=not quiet, fit_layout=fit_layout,
+                                  layout_seed=fast_profile.parent / "report.json" if fit_layout else None,
+                                  spectral_gains=fit_layout)
+            except REPORTED as exc:  # the comparisons go on without the calibrated reference
+                print(f"bench real: the reference's calibration failed: {exc}", file=sys.stderr)
+
+        fresh = _fresh_cache(work / "cache_run0") if runs > 1 else contextlib.nullcontext()
+        if reference:
+            with fresh:
+                stage("calibrate_reference", lambda: calibrate_reference(ref_profile.parent))
         from scenes.profile import load_profile
         from scenes.replay import read_capture
 
@@ -166,10 +225,21 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
             capture, work / "compare_calibrated_fast", profile=fast_profile, reference=False, **common))
         ref = None
         if reference and ref_profile.is_file():
-            ref = stage("compare_calibrated_reference", lambda: compare(
-                capture, work / "compare_calibrated_reference", profile=ref_profile, fields=(field,),
-                reference=True, reference_taps=int(reference_presses), **common))
+            with fresh:
+                ref = stage("compare_calibrated_reference", lambda: compare(
+                    capture, work / "compare_calibrated_reference", profile=ref_profile, fields=(field,),
+                    reference=True, reference_taps=int(reference_presses), **common))
         core = sum(seconds.values())
+        repeats = [_run_figures(ref_profile.parent, ref)] if runs > 1 else []
+        for k in range(1, runs):
+            folder = work / f"calibrated_reference_run{k}"
+            with _fresh_cache(work / f"cache_run{k}"):
+                t0 = time.perf_counter()
+                calibrate_reference(folder)
+                again = compare(capture, work / f"compare_calibrated_reference_run{k}", profile=folder / "profile.toml",
+                                fields=(field,), reference=True, reference_taps=int(reference_presses),
+                                **common) if (folder / "profile.toml").is_file() else None
+                repeats.append({**_run_figures(folder, again), "seconds": time.perf_counter() - t0})
 
         from scenes.replay import replay
         from studies.gap.diagnose import run as diagnose
@@ -219,6 +289,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                                  for k in ("none", "randomised", "diagnosed")} if loc else None),
             "localisation_mm_no_offset": ({k: loc["results"].get(f"filter/{k}", {}).get("real_no_offset", {}).get(
                 "localisation_mm_median") for k in ("none", "randomised", "diagnosed")} if loc else None),
+            "reference_runs": {"runs": repeats, "spread": _spread(repeats)} if repeats else None,
             "seconds": core,
             "seconds_what": "import, both calibrations and the comparisons together (the goal's 20 minutes)",
             "stage_seconds": seconds, "total_seconds": time.perf_counter() - t_all,
@@ -264,7 +335,7 @@ def cmd_bench_real(args) -> int:
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share,
               grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
-              reference_presses=args.reference_presses, fit_layout=args.fit_layout)
+              reference_presses=args.reference_presses, fit_layout=args.fit_layout, runs=args.runs)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -301,6 +372,9 @@ def register(registry) -> None:
     p.add_argument("--fit-layout", action="store_true",
                    help="the reference's calibration fits its LEDs' layout first (calibrate --fit-layout, seeded "
                         "with the fast path's fitted LED places)")
+    p.add_argument("--runs", type=positive_int, default=1, metavar="N",
+                   help="run the reference's calibration and its calibrated comparison N times, each from an empty "
+                        "cache, and write their figures and spread (reference_runs)")
     p.add_argument("--reference-diagnosis", action="store_true",
                    help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
     p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")

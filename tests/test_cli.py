@@ -171,3 +171,23 @@ def test_bench_real_takes_the_reference_presses_and_refuses_a_bad_count_before_a
     with pytest.raises(ValueError, match="reference_presses must be a whole number >= 1, got 0"):
         run(tmp_path / "real.json", work=tmp_path / "work", reference_presses=0)
     assert not (tmp_path / "work").exists() and not (tmp_path / "real.json").exists()
+    assert parser.parse_args(["bench", "real", "--json", "J", "--runs", "3", "--fit-layout"]).runs == 3
+    with pytest.raises(ValueError, match="runs must be a whole number >= 1, got 0"):
+        run(tmp_path / "real.json", work=tmp_path / "work", runs=0)
+    with pytest.raises(ValueError, match="runs repeats the reference's calibration: it needs the reference"):
+        run(tmp_path / "real.json", work=tmp_path / "work", runs=3, reference=False)
+    assert not (tmp_path / "work").exists() and not (tmp_path / "real.json").exists()
+
+
+def test_bench_real_s_runs_agree_by_the_issue_s_rule():
+    from studies.real_bench import _spread
+
+    def one(r, mae):
+        return {"heldout_r2": {"r": r, "g": 0.9, "b": 0.85}, "contact_mae": mae, "strength_median": 0.9}
+
+    close = _spread([one(0.80, 0.050), one(0.82, 0.051), one(0.81, 0.052)])
+    assert close["agree"] and close["heldout_r2_range"]["r"] == pytest.approx(0.02)
+    assert close["contact_mae_range_share"] == pytest.approx(0.002 / 0.051)
+    assert not _spread([one(0.80, 0.050), one(0.84, 0.050)])["agree"]  # red 0.04 apart
+    assert not _spread([one(0.80, 0.050), one(0.80, 0.054)])["agree"]  # MAE 8 % apart
+    assert _spread([one(0.8, 0.05), {"heldout_r2": None, "contact_mae": None, "strength_median": None}])["agree"] is None
