@@ -76,7 +76,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                          grid: dict | None = None, photons: int = 1 << 18, spp: int = 32, passes: int = 2,
                          seed: int = 0, bootstrap: int = BOOTSTRAP, leak: bool = True, use_cache: bool = True,
                          progress=None, taps=None, fast_path_fit=None, image_variance=None,
-                         fast_taps=None, camera_known: bool = False, spectral_gains: bool = False) -> Calibration:
+                         fast_taps=None, camera_known: bool = False, spectral_gains: bool = False,
+                         webcam: bool = False) -> Calibration:
     """Calibrate the reference to one real no-contact image (H, W, 3) in [0, 1], and to
     its sensor's taps if given.
 
@@ -94,6 +95,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     ``spectral_gains``: each LED's light reaches the channels through its spectrum under
     the camera's filters, one power per LED and one white balance per channel
     (``pbr_tactile.image_model``), instead of a free gain per LED and channel.
+    ``webcam``: the camera's response exponent and black level held to a webcam's
+    (``image_model.WEBCAM_GAMMA``, ``WEBCAM_BLACK``).
     ``image_variance``: (h, w, 3) the real image's noise
     variance at the film (without taps, the report's ``standard_errors`` then count it with
     the basis' own Monte Carlo noise; None: the basis' alone). Raises ValueError for a bad
@@ -131,7 +134,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         basis = emitter_basis(rendered, mesh, wide, effects, film, photons, spp, passes, seed, use_cache)
         model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans, rendered=wide,
                            lens=not camera_known, known_alignment=camera_known,
-                           response=basis["response"] if spectral_gains else None)
+                           response=basis["response"] if spectral_gains else None, webcam=webcam)
         train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
         fit = ImageFitter(model, r, train, leak=leak).search()
         fits.append((debiased(fit, model, basis, [train]), point, basis, model))
@@ -203,6 +206,8 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "best_effects": point, "parameters": _parameters(fit, tie=tie, spec=spec), "intervals": intervals,
         "gains": "each LED's power times its film response times each channel's white balance" if spectral_gains
         else "a free gain per LED and channel",
+        "camera_response": "held to a webcam's (exponent 1.8 to 2.6, black level at most 0.1)" if webcam
+        else "free (exponent 0.5 to 3, any offset)",
         "standard_errors": standard_errors,
         "camera": fitted_camera(nl, camera), "on_bound": on_bound(fit.nl, model, leak),
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,

@@ -173,7 +173,7 @@ def layout_seed_places(path: str | Path) -> list:
 
 
 def _fit_layout(image, spec, mesh, camera, grid: dict, layout_seed, seed: int, camera_known: bool, leak: bool,
-                progress: bool, taps=None, spectral_gains: bool = False):
+                progress: bool, taps=None, spectral_gains: bool = False, webcam: bool = False):
     """The layout's fit (``pbr_tactile.layout_fit``) at the grid's first point, on the
     no-contact image and the fitted half of ``taps``."""
     from .basis import BASIS_EFFECTS
@@ -185,7 +185,8 @@ def _fit_layout(image, spec, mesh, camera, grid: dict, layout_seed, seed: int, c
     places = None if layout_seed is None else layout_seed_places(layout_seed)
     say = (lambda text: print(f"layout: {text}", flush=True)) if progress else None
     return fit_layout(image, spec, mesh, camera, effects, fast_places_m=places, taps=taps, seed=seed,
-                      known_alignment=camera_known, leak=leak, progress=say, spectral_gains=spectral_gains)
+                      known_alignment=camera_known, leak=leak, progress=say, spectral_gains=spectral_gains,
+                      webcam=webcam)
 
 
 def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: Callable, *,
@@ -194,7 +195,8 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
                       bootstrap: int = BOOTSTRAP, camera_known: bool = False, fast_only: bool = False,
                       no_leak: bool = False, width: int = WIDTH, photons: int = PHOTONS, spp: int = SPP,
                       seed: int = 0, progress: bool = True, fit_layout: bool = False,
-                      layout_seed: str | Path | None = None, spectral_gains: bool = False) -> dict:
+                      layout_seed: str | Path | None = None, spectral_gains: bool = False,
+                      webcam: bool = False) -> dict:
     """Calibrate to the capture dataset ``real`` (or the no-contact image
     ``background_only``) and write the outputs in ``out`` (``write_outputs``); returns
     ``{"paths": {name: Path}, "report": dict}`` (the report's ``converged``: whether a
@@ -221,6 +223,8 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
     spectral_gains : each LED's light reaches the channels through its spectrum under the
         camera's filters (one power per LED, one white balance per channel), not a free
         gain per LED and channel (``pbr_tactile.image_model``).
+    webcam : the camera's response exponent and black level held to a webcam's
+        (``pbr_tactile.image_model.WEBCAM_GAMMA``, ``WEBCAM_BLACK``).
     layout_seed : a fast-path calibration's report.json (``--fast-only``), whose fitted
         LED places are one of the layout search's starts.
     """
@@ -276,7 +280,7 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
             pinned, why = presses_pin(real_taps, camera)
             if pinned:
                 layout = _fit_layout(image, spec, mesh, camera, grid, layout_seed, seed, camera_known, not no_leak,
-                                     progress, real_taps, spectral_gains)
+                                     progress, real_taps, spectral_gains, webcam)
                 laid_out = layout.spec
                 what += ", its LEDs' layout fitted"
 
@@ -290,7 +294,8 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
         cal = calibrate_background(image, laid_out, mesh, camera, film=(width, width * 3 // 4),
                                    grid=grid, photons=photons, spp=spp, seed=seed, bootstrap=bootstrap,
                                    leak=not no_leak, progress=advance, taps=real_taps, fast_path_fit=fast_fit,
-                                   fast_taps=fitted_fast, camera_known=camera_known, spectral_gains=spectral_gains)
+                                   fast_taps=fitted_fast, camera_known=camera_known, spectral_gains=spectral_gains,
+                                   webcam=webcam)
         if layout is not None:
             from scenes.layout import layout_to_dicts
 

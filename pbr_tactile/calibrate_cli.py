@@ -21,7 +21,7 @@ def cmd_calibrate(args) -> int:
                                camera_known=args.camera_known, fast_only=args.fast_only, no_leak=args.no_leak,
                                width=args.width, photons=args.photons, spp=args.spp, seed=args.seed,
                                progress=not args.quiet, fit_layout=args.fit_layout, layout_seed=args.layout_seed,
-                               spectral_gains=args.spectral_gains)
+                               spectral_gains=args.spectral_gains, webcam=args.webcam_response)
     paths, report = result["paths"], result["report"]
     wrote = f"; wrote {', '.join(str(p) for p in paths.values())}"
     if args.fast_only:
@@ -159,6 +159,9 @@ def register(registry) -> None:
                    help="each LED's light reaches the camera's channels through its spectrum under the camera's "
                         "filters (one power per LED, one white balance per channel) instead of a free gain per LED "
                         "and channel")
+    p.add_argument("--webcam-response", action="store_true",
+                   help="hold the camera's response to a webcam's: its exponent 1.8 to 2.6 (sRGB's 2.2) and its "
+                        "black level at most 0.1, instead of an exponent of 0.5 to 3 and any offset")
     p.add_argument("--cases", type=int, help="with REAL = benchmark: virtual sensors to recover (default 6)")
     p.add_argument("--json", metavar="PATH", help="with REAL = benchmark: where to write its results")
     add_quiet_argument(p)

@@ -70,6 +70,14 @@ SHIFT_BOUND_PX = 40.0
 #: The real lens' k1 (scenes.camera.lens_radius), where the fit searches it.
 K1_BOUNDS = (-0.5, 0.5)
 GAMMA_BOUNDS = (0.5, 3.0)
+#: A webcam's response, where the fit holds the camera to one (``ImageModel(webcam=True)``):
+#: its encoding's exponent (sRGB's 2.2, give or take 0.4) and its black level, the image
+#: value of no light, at most this. Free, the exponent and offsets also shape how evenly
+#: the frame is lit: on the public GelSight's frame, LEDs laid out under the plate were
+#: fitted at an exponent of 0.5 to 0.6 with offsets of 0.45 to 0.64, a camera that sees
+#: a third of its level without light (docs/results/real-gelsight.md).
+WEBCAM_GAMMA = (1.8, 2.6)
+WEBCAM_BLACK = 0.1
 #: The lens' fall-off V = 1 + a1 r^2 + a2 r^4 is searched as V(1) = 1 + a1 + a2 in
 #: [MIN_EDGE_ILLUMINATION, 1] and the r^4 share a2 / (a1 + a2) in [0, 1]: every value
 #: searched is a lens a profile accepts (non-increasing, positive).
@@ -176,7 +184,7 @@ class ImageModel:
 
     def __init__(self, basis: np.ndarray, names, camera: Camera, circle: tuple[float, float, float] | None,
                  arcs: list | None = None, spans: tuple = (), rendered: Camera | None = None, lens: bool = False,
-                 known_alignment: bool = False, response: np.ndarray | None = None):
+                 known_alignment: bool = False, response: np.ndarray | None = None, webcam: bool = False):
         """basis (h, w, S) per unit flux of sources ``names``, taken with the camera
         ``rendered`` (default: ``camera``, the spec's; ``basis_camera`` sees wider, so the
         fitted lens may too); ``arcs`` and ``spans`` (``basis_layout``): each unit's LEDs
@@ -186,7 +194,8 @@ class ImageModel:
         the real camera is the spec's (module doc): the rotation, scale, shift and k1 are
         held there (``lens`` must be False). ``response``: (S, 3) each source's film
         response (the basis' ``response``): the gains follow each LED's (module doc); None:
-        a free gain per LED and channel."""
+        a free gain per LED and channel. ``webcam``: the camera's response held to a
+        webcam's (WEBCAM_GAMMA, WEBCAM_BLACK)."""
         if known_alignment and lens:
             raise ValueError("ImageModel: a known alignment holds the lens at the spec's; lens=True fits it")
         self.A = np.asarray(basis, np.float64)
@@ -205,6 +214,8 @@ class ImageModel:
         self.arcs = None if arcs is None else [np.asarray(a, np.float64) for a in arcs]
         self.spans = tuple(float(v) for v in spans)
         self._arcs: dict = {}  # (source, turns) -> the basis' arc image (``_arc``)
+        #: the offsets' cap as an image value without light (WEBCAM_BLACK), None: free
+        self.black = WEBCAM_BLACK if webcam else None
         #: (L, 3) each LED's film response, its own source's, over its largest; None: free gains
         self.response = None
         if response is not None:
@@ -231,6 +242,8 @@ class ImageModel:
         """The search's bounds (``_bounds``) for this model's units and lens; with a known
         alignment, the rotation, scale and shift held at the camera's."""
         bounds = _bounds(self.leds, leak, self.arcs, None if self.lens else self.camera.k1)
+        if self.black is not None:
+            bounds = [WEBCAM_GAMMA if name == "gamma" else b for name, b in zip(self.start().names(), bounds)]
         if self.known_alignment:
             held = ("rotation_rad", "log_scale", "shift_u", "shift_v")
             bounds = [(0.0, 0.0) if name in held else b for name, b in zip(self.start().names(), bounds)]
@@ -346,10 +359,11 @@ class ImageModel:
 
 
 def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float, weight: np.ndarray | None = None,
-                iterations: int = 4) -> tuple[np.ndarray, float]:
+                iterations: int = 4, black: float | None = None) -> tuple[np.ndarray, float]:
     """One channel's non-negative gains (S,) and offset for pixels X (N, S), real values
     y (N,) with ``clipped`` (N,) censored: least squares in linear units (y^gamma), the
-    censored pixels entering only where the prediction falls below the clip level."""
+    censored pixels entering only where the prediction falls below the clip level.
+    ``black``: the offset at most black^gamma (an image value of ``black`` without light)."""
     target = np.power(y, gamma)
     level = CLIP_LEVEL**gamma
     sw = np.ones(len(y)) if weight is None else np.sqrt(weight)
@@ -359,7 +373,7 @@ def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float,
     for _ in range(iterations):
         if use.sum() < Xo.shape[1]:
             break
-        coef, _ = optimize.nnls(Xo[use] * sw[use, None], target[use] * sw[use])
+        coef = _nonnegative(Xo[use] * sw[use, None], target[use] * sw[use], None if black is None else black**gamma)
         below = clipped & (Xo @ coef < level)
         new = ~clipped | below
         if np.array_equal(new, use):
@@ -369,13 +383,35 @@ def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float,
     return coef[:-1], offset
 
 
-def _rank_one_start(X, Y, clipped, gamma, response, weight) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _nonnegative(A: np.ndarray, b: np.ndarray, cap: float | None = None, capped: int = 1) -> np.ndarray:
+    """argmin |A x - b| over x >= 0 (``scipy.optimize.nnls``), the last ``capped``
+    coefficients at most ``cap`` where given: those whose unbounded optimum passes the cap
+    are held at it and the rest solved again, until none passes (the problem is convex,
+    so an optimum past a bound has that bound active)."""
+    x = optimize.nnls(A, b)[0]
+    if cap is None:
+        return x
+    n = A.shape[1]
+    held = np.zeros(n, bool)
+    for _ in range(capped):
+        over = np.zeros(n, bool)
+        over[n - capped:] = x[n - capped:] > cap
+        if not np.any(over & ~held):
+            break
+        held |= over
+        x = np.zeros(n)
+        x[held] = cap
+        x[~held] = optimize.nnls(A[:, ~held], b - A[:, held] @ x[held])[0]
+    return x
+
+
+def _rank_one_start(X, Y, clipped, gamma, response, weight, black=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(p, w, offsets): the free gains G (``solve_gains``, per channel) and the p and w that
     make R_mc p_m w_c nearest them, by alternating least squares on the (L, 3) gains."""
     L = X.shape[1]
     G, offset = np.zeros((L, 3)), np.zeros(3)
     for c in range(3):
-        G[:, c], offset[c] = solve_gains(X, Y[:, c], clipped[:, c], gamma, weight)
+        G[:, c], offset[c] = solve_gains(X, Y[:, c], clipped[:, c], gamma, weight, black=black)
     power, balance = np.ones(L), np.ones(3)
     for _ in range(200):
         balance = np.maximum((G * response * power[:, None]).sum(0), 0.0) / np.maximum(
@@ -388,7 +424,8 @@ def _rank_one_start(X, Y, clipped, gamma, response, weight) -> tuple[np.ndarray,
 
 
 def solve_spectral_gains(X: np.ndarray, Y: np.ndarray, clipped: np.ndarray, gamma: float, response: np.ndarray,
-                         weight: np.ndarray | None = None, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+                         weight: np.ndarray | None = None, iterations: int = 3, black: float | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Gains g_mc = p_m R_mc w_c (L, 3) and offsets (3,) for pixels X (N, L), real values
     Y (N, 3) with ``clipped`` (N, 3) censored, each LED's film response R (L, 3): least
     squares in linear units (Y^gamma) over the unclipped pixels by alternating
@@ -396,12 +433,13 @@ def solve_spectral_gains(X: np.ndarray, Y: np.ndarray, clipped: np.ndarray, gamm
     p, then the powers with the offsets for the white balances (the powers' scale is the
     white balance's: max p = 1), from the free gains' nearest such product
     (``_rank_one_start``); then each channel's balance and offset once more with the
-    censoring (``solve_gains``)."""
+    censoring (``solve_gains``). ``black``: every offset at most black^gamma."""
     L = X.shape[1]
     target = np.power(Y, gamma)
     sw = np.ones(len(Y)) if weight is None else np.sqrt(weight)
     use = ~clipped
-    power, balance, offset = _rank_one_start(X, Y, clipped, gamma, response, weight)
+    power, balance, offset = _rank_one_start(X, Y, clipped, gamma, response, weight, black)
+    cap = None if black is None else black**gamma
     rhs = np.concatenate([target[use[:, c], c] * sw[use[:, c]] for c in range(3)])
     one = [np.zeros((int(use[:, c].sum()), 3)) for c in range(3)]
     for c in range(3):
@@ -409,14 +447,13 @@ def solve_spectral_gains(X: np.ndarray, Y: np.ndarray, clipped: np.ndarray, gamm
     for _ in range(iterations):
         for c in range(3):
             column = X[use[:, c]] @ (power * response[:, c])
-            coef, _ = optimize.nnls(np.c_[column, np.ones(len(column))] * sw[use[:, c], None],
-                                    target[use[:, c], c] * sw[use[:, c]])
-            balance[c], offset[c] = coef
+            balance[c], offset[c] = _nonnegative(np.c_[column, np.ones(len(column))] * sw[use[:, c], None],
+                                                 target[use[:, c], c] * sw[use[:, c]], cap)
         if not np.any(balance > 0) or len(rhs) < L + 3:
             break
         rows = np.concatenate([np.c_[X[use[:, c]] * (response[:, c] * balance[c]) * sw[use[:, c], None], one[c]]
                                for c in range(3)])
-        coef, _ = optimize.nnls(rows, rhs)
+        coef = _nonnegative(rows, rhs, cap, capped=3)
         new, offset = coef[:L], coef[L:]
         if not new.max() > 0:
             break
@@ -427,7 +464,8 @@ def solve_spectral_gains(X: np.ndarray, Y: np.ndarray, clipped: np.ndarray, gamm
         if done:
             break
     for c in range(3):  # each channel's balance and offset for the powers found, with the censoring
-        scale, offset[c] = solve_gains((X @ (power * response[:, c]))[:, None], Y[:, c], clipped[:, c], gamma, weight)
+        scale, offset[c] = solve_gains((X @ (power * response[:, c]))[:, None], Y[:, c], clipped[:, c], gamma, weight,
+                                       black=black)
         balance[c] = float(scale[0])
     return power[:, None] * response * balance[None, :], offset
 
@@ -518,11 +556,12 @@ class ImageFitter:
         weight = None if self.weight is None and not self.taps else w
         gains, offset, residuals = np.zeros((self.model.leds, 3)), np.zeros(3), []
         if self.model.response is not None:
-            gains, offset = solve_spectral_gains(X, self.y, self.y_clipped, nl.gamma, self.model.response, weight)
+            gains, offset = solve_spectral_gains(X, self.y, self.y_clipped, nl.gamma, self.model.response, weight,
+                                                 black=self.model.black)
         for c in range(3):
             y, clipped = self.y[:, c], self.y_clipped[:, c]
             if self.model.response is None:
-                gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight)
+                gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight, black=self.model.black)
             pred = np.clip(X @ gains[:, c] + offset[c], 0.0, None) ** (1.0 / nl.gamma)
             residuals.append(sw * np.where(clipped, np.minimum(pred - y, 0.0), pred - y))
         return gains, offset, np.concatenate(residuals)

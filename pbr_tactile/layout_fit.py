@@ -12,8 +12,8 @@ no-contact image and its presses') can be swapped between renders of different l
 
 1. every start (the spec's layout; the glass' edge; the fast path's calibrated places
    carried over as LEDs under the glass; a coarse grid under the glass: ``starts``) is
-   rendered without contact and fitted; the SCREENED best (and the spec's, to judge the
-   fit by) also render the presses and are fitted with them;
+   rendered without contact and fitted; the physical starts and the grid's SCREENED best
+   also render the presses and are fitted with them;
 2. LED by LED, each takes whichever of those starts' images lowers the fitted loss (less
    the basis' own Monte Carlo noise, ``image_model.debiased``) by more than MIN_GAIN;
 3. a pattern search then moves one parameter at a time (``scenes.layout.FREE``), every
@@ -59,8 +59,9 @@ STEPS = {"radius_m": (3e-3, 0.5e-3), "height_m": (3e-3, 0.5e-3), "aim_rad": (0.3
          "beam_half_angle_rad": (0.3, 0.05)}
 #: A move is kept when it lowers the debiased loss by more than this share.
 MIN_GAIN = 0.01
-#: Starts whose presses are rendered and fitted, the best by the no-contact fit.
-SCREENED = 5
+#: Starts of the coarse grid whose presses are rendered and fitted, the best by the
+#: no-contact fit (the physical starts' always are).
+SCREENED = 3
 #: Training presses the search fits (the fitted half's, spread over it).
 SEARCH_TAPS = 3
 #: Presses that pin a layout: at least this many on the fitted half, their contacts'
@@ -186,7 +187,7 @@ class _Scorer:
     changes against the real presses' contact regions too (``calibrate_taps``)."""
 
     def __init__(self, real, camera: Camera, film, known_alignment: bool, leak: bool, taps=None,
-                 spectral_gains: bool = False):
+                 spectral_gains: bool = False, webcam: bool = False):
         width, height = film
         self.film = film
         self.camera = camera
@@ -199,6 +200,7 @@ class _Scorer:
         self.leak = leak
         self.taps = taps
         self.spectral = spectral_gains
+        self.webcam = webcam
         self.fits = 0
 
     def __call__(self, candidate: dict) -> tuple[float, object]:
@@ -206,7 +208,7 @@ class _Scorer:
 
         basis = candidate["basis"]
         model = ImageModel(basis["mean"], basis["names"], self.camera, self.circle, known_alignment=self.known,
-                           lens=False, response=basis["response"] if self.spectral else None)
+                           lens=False, response=basis["response"] if self.spectral else None, webcam=self.webcam)
         train = (self.sector % 2 == 0) & model.inside
         fit = ImageFitter(model, self.r, train, leak=self.leak).search()
         pixels = [train]
@@ -246,7 +248,7 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
                spp: int = SEARCH_SPP, passes: int = 2, seed: int = 0, known_alignment: bool = True,
                leak: bool = True, rounds: int = ROUNDS, screened: int = SCREENED, use_cache: bool = True,
                progress=None, only: tuple[str, ...] | None = None, coarse: bool = True,
-               spectral_gains: bool = False) -> LayoutFit:
+               spectral_gains: bool = False, webcam: bool = False) -> LayoutFit:
     """The LEDs' layout that best explains the real no-contact image (H, W, 3) in [0, 1]
     and the presses ``taps`` (``scenes.captures.RealTaps``, the training presses; SEARCH_TAPS
     of them spread over the fitted half are rendered; None: the image alone), module doc.
@@ -254,8 +256,9 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
     ``basis.BASIS_EFFECTS``); ``fast_places_m``: (L, 3) the fast path's calibrated LED
     places, a start; ``only``: the starts to try (names of ``starts``), default all;
     ``coarse``: with the grid under the glass; ``spectral_gains``: the image model's gains
-    through each LED's film response (``pbr_tactile.image_model``); ``progress``: called
-    with a line of text per step."""
+    through each LED's film response (``pbr_tactile.image_model``); ``webcam``: the
+    camera's response held to a webcam's; ``progress``: called with a line of text per
+    step."""
     from scenes import captures
 
     real = check_real(real, camera, "the real no-contact image")
@@ -265,7 +268,7 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
         fitted = np.flatnonzero(captures.split(len(taps.ids)))
         pick = fitted[np.unique(np.round(np.linspace(0, len(fitted) - 1, min(SEARCH_TAPS, len(fitted)))).astype(int))]
         chosen_taps = taps.subset(pick)
-    score = _Scorer(real, camera, film, known_alignment, leak, chosen_taps, spectral_gains)
+    score = _Scorer(real, camera, film, known_alignment, leak, chosen_taps, spectral_gains, webcam)
     renders = 0
 
     def render(layout, with_taps: bool = True) -> dict:
@@ -299,8 +302,13 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
         loss, _ = score(renders_of[name][1])
         report["starts"][name] = {"image_loss": loss, "layout": [dataclasses.asdict(p) for p in layout]}
         say(f"start {name}: loss {loss:.6g} (no-contact image)")
-    kept = sorted(renders_of, key=lambda name: report["starts"][name]["image_loss"])[:max(1, screened)]
-    kept += ["spec"] if "spec" in renders_of and "spec" not in kept else []  # the spec's, to judge the fit by
+    # the physical starts always, the grid's best by the image: light that enters beside the
+    # pad or by the plate's edge reaches the paint at grazing angles and shades a dent more
+    # than light from under it, which the no-contact image alone does not see
+    physical = [name for name in ("spec", "edge", "fast_path") if name in renders_of]
+    grid = [name for name in sorted(renders_of, key=lambda name: report["starts"][name]["image_loss"])
+            if name not in physical]
+    kept = physical + grid[:max(1, screened)]
     renders_of = {name: renders_of[name] for name in kept}
     for name in kept:
         if chosen_taps is not None:

@@ -152,7 +152,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     ``fit_layout``: the reference's calibration fits its LEDs' layout first
     (``calibrate --fit-layout``), from the spec's, the fast path's fitted places (its
     calibration's report) and a coarse grid under the plate, on the no-contact frame and
-    the presses, with each LED's gains through its film response (``--spectral-gains``);
+    the presses, with each LED's gains through its film response (``--spectral-gains``) and
+    the camera's response held to a webcam's (``--webcam-response``);
     ``runs``: the reference's calibration and its calibrated comparison run this many times,
     each from an empty cache (every render anew, the same seeds), and the JSON's
     ``reference_runs`` holds each run's figures and their spread (``_spread``)."""
@@ -204,7 +205,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                                   grid=name_values(list(grid), "--grid", "NAME=V1,V2,..."),
                                   camera_known=camera_known, progress=not quiet, fit_layout=fit_layout,
                                   layout_seed=fast_profile.parent / "report.json" if fit_layout else None,
-                                  spectral_gains=fit_layout)
+                                  spectral_gains=fit_layout, webcam=fit_layout)
             except REPORTED as exc:  # the comparisons go on without the calibrated reference
                 print(f"bench real: the reference's calibration failed: {exc}", file=sys.stderr)
 
@@ -275,7 +276,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         out = {
             "archive": str(archive), "presses": len(unit.ids), "heldout": len(raw["taps"]),
             "reference_calibration": {"grid": list(grid), "camera_known": camera_known, "fit_layout": fit_layout,
-                                      "spectral_gains": fit_layout,
+                                      "spectral_gains": fit_layout, "webcam_response": fit_layout,
                                       "layout": _layout_report(ref_profile.parent / "report.json")}
             if reference else None,
             "import": unit.meta.get("import"),

@@ -380,3 +380,33 @@ def test_spectral_gains_are_each_led_s_response_times_a_power_and_a_white_balanc
     mixed[2, 0] = 0.3  # the blue LED in the red channel, which its response does not allow
     g3, _ = solve_spectral_gains(X, np.power(X @ mixed + o, 1 / 2.2), np.zeros_like(Y, bool), 2.2, R)
     assert g3[2, 0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_webcam_s_response_holds_the_exponent_and_caps_the_black_level():
+    """``ImageModel(webcam=True)``: the exponent is searched within WEBCAM_GAMMA, and every
+    offset is solved at most WEBCAM_BLACK^gamma (an image value of 0.1 without light),
+    exactly as a bounded least squares would (``_nonnegative`` against scipy's)."""
+    from scipy import optimize
+
+    from pbr_tactile.image_model import WEBCAM_BLACK, WEBCAM_GAMMA, ImageModel, _nonnegative, solve_gains
+    from scenes.camera import Camera
+
+    camera = Camera.from_spec(load_spec(SENSORS_DIR / "gelsight.toml").at_resolution(16, 12))
+    names = ["led0", "led0_leak", "led1", "led1_leak", "led2", "led2_leak"]
+    basis = np.random.default_rng(0).random((12, 16, 6))
+    free, held = ImageModel(basis, names, camera, None), ImageModel(basis, names, camera, None, webcam=True)
+    index = free.start().names().index("gamma")
+    assert free.bounds(True)[index] == (0.5, 3.0) and held.bounds(True)[index] == WEBCAM_GAMMA
+    # a bright floor the gains cannot make: the free offset takes it, the held one stops at the cap
+    rng = np.random.default_rng(1)
+    X = rng.random((500, 3))
+    y = np.power(X @ np.array([0.1, 0.05, 0.02]) + 0.3, 1 / 2.2)
+    _, offset = solve_gains(X, y, np.zeros(500, bool), 2.2)
+    assert offset == pytest.approx(0.3, abs=1e-9)
+    gains, capped = solve_gains(X, y, np.zeros(500, bool), 2.2, black=WEBCAM_BLACK)
+    assert capped == pytest.approx(WEBCAM_BLACK**2.2) and np.all(gains >= 0)
+    for trial in range(50):
+        A, b = rng.random((40, 4)), rng.random(40) * 2
+        x = _nonnegative(A, b, 0.1, capped=2)
+        ref = optimize.lsq_linear(A, b, bounds=(np.zeros(4), [np.inf, np.inf, 0.1, 0.1])).x
+        assert np.sum((A @ x - b) ** 2) <= np.sum((A @ ref - b) ** 2) + 1e-9 and x.min() >= 0 and x[2:].max() <= 0.1
