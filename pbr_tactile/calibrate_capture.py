@@ -277,10 +277,13 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
         if fit_layout:
             from .layout_fit import presses_pin
 
-            pinned, why = presses_pin(real_taps, camera)
+            # every press of the capture's fitted half may pin the layout (it renders a few of
+            # them, the furthest apart), not only the taps the calibration renders
+            every = None if real is None else load_real_taps(real, spec, camera, len(read_samples(real)))
+            pinned, why = presses_pin(every, camera)
             if pinned:
                 layout = _fit_layout(image, spec, mesh, camera, grid, layout_seed, seed, camera_known, not no_leak,
-                                     progress, real_taps, spectral_gains, webcam)
+                                     progress, every, spectral_gains, webcam)
                 laid_out = layout.spec
                 what += ", its LEDs' layout fitted"
 

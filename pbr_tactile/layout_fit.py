@@ -158,6 +158,24 @@ def under_grid(spec: SensorSpec, own) -> dict[str, tuple[LEDLayout, ...]]:
     return out
 
 
+def press_centres(taps) -> np.ndarray:
+    """(T, 2) each press's centre (u, v) px: where its depth map sinks deepest under the
+    no-contact one."""
+    sunk = np.asarray(taps.ref_depth, np.float64)[None] - np.asarray(taps.depths, np.float64)
+    v, u = np.unravel_index(np.argmax(sunk.reshape(len(sunk), -1), axis=1), sunk.shape[1:])
+    return np.stack([u, v], axis=1).astype(np.float64)
+
+
+def _farthest(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of ``count`` of ``points`` (N, 2) spread as far apart as a greedy
+    farthest-point pick from the first makes them, in their order."""
+    pick = [0]
+    while len(pick) < min(count, len(points)):
+        gap = np.min(np.linalg.norm(points[:, None] - points[pick][None], axis=-1), axis=1)
+        pick.append(int(np.argmax(gap)))
+    return np.array(sorted(pick))
+
+
 def presses_pin(taps, camera: Camera) -> tuple[bool, str]:
     """Whether the fitted half of ``taps`` (``scenes.captures.RealTaps``; None: no presses)
     can pin a layout (MIN_PRESSES, MIN_PRESS_SPREAD), and why (one line)."""
@@ -168,12 +186,7 @@ def presses_pin(taps, camera: Camera) -> tuple[bool, str]:
     fitted = np.flatnonzero(captures.split(len(taps.ids)))
     if len(fitted) < MIN_PRESSES:
         return False, f"{len(fitted)} fitted press(es), fewer than {MIN_PRESSES}"
-    centres = []
-    for t in fitted:
-        sunk = np.asarray(taps.ref_depth, np.float64) - np.asarray(taps.depths[t], np.float64)
-        v, u = np.unravel_index(np.argmax(sunk), sunk.shape)
-        centres.append((u, v))
-    centres = np.asarray(centres, np.float64)
+    centres = press_centres(taps)[fitted]
     spread = float(np.max(np.linalg.norm(centres[:, None] - centres[None], axis=-1)))
     if spread < MIN_PRESS_SPREAD * camera.height:
         return False, (f"the {len(fitted)} fitted presses lie within {spread:.0f} px of each other, under "
@@ -250,8 +263,9 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
                progress=None, only: tuple[str, ...] | None = None, coarse: bool = True,
                spectral_gains: bool = False, webcam: bool = False) -> LayoutFit:
     """The LEDs' layout that best explains the real no-contact image (H, W, 3) in [0, 1]
-    and the presses ``taps`` (``scenes.captures.RealTaps``, the training presses; SEARCH_TAPS
-    of them spread over the fitted half are rendered; None: the image alone), module doc.
+    and the presses ``taps`` (``scenes.captures.RealTaps``: SEARCH_TAPS of its fitted half,
+    ``scenes.captures.split``, spread as far apart in the image as they go, are rendered;
+    None: the image alone), module doc.
     ``effects``: the reference's (with the leak sources the image model fits,
     ``basis.BASIS_EFFECTS``); ``fast_places_m``: (L, 3) the fast path's calibrated LED
     places, a start; ``only``: the starts to try (names of ``starts``), default all;
@@ -266,8 +280,7 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
     chosen_taps = None
     if taps is not None:
         fitted = np.flatnonzero(captures.split(len(taps.ids)))
-        pick = fitted[np.unique(np.round(np.linspace(0, len(fitted) - 1, min(SEARCH_TAPS, len(fitted)))).astype(int))]
-        chosen_taps = taps.subset(pick)
+        chosen_taps = taps.subset(fitted[_farthest(press_centres(taps)[fitted], SEARCH_TAPS)])
     score = _Scorer(real, camera, film, known_alignment, leak, chosen_taps, spectral_gains, webcam)
     renders = 0
 
