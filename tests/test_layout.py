@@ -410,3 +410,23 @@ def test_a_webcam_s_response_holds_the_exponent_and_caps_the_black_level():
         x = _nonnegative(A, b, 0.1, capped=2)
         ref = optimize.lsq_linear(A, b, bounds=(np.zeros(4), [np.inf, np.inf, 0.1, 0.1])).x
         assert np.sum((A @ x - b) ** 2) <= np.sum((A @ ref - b) ** 2) + 1e-9 and x.min() >= 0 and x[2:].max() <= 0.1
+
+
+def test_the_layout_figure_reads_a_fitted_layout_and_draws_it(tmp_path, gelsight):
+    import json
+
+    from studies.layout_figure import figure, read_fitted
+
+    fitted = tuple(LEDLayout("under", p.azimuth_rad, 0.014, 0.02, 0.6, math.radians(30)) for p in layout_of(gelsight))
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"layout": {"fitted": True, "layout": layout_to_dicts(fitted)}}))
+    assert read_fitted(report, gelsight) == fitted
+    profile = tmp_path / "profile.toml"
+    profile.write_text("[reference]\nled_gains = []\n" + "".join(
+        "[[reference.layout]]\n" + "".join(f"{k} = {v!r}\n" for k, v in d.items()) for d in layout_to_dicts(fitted)))
+    assert read_fitted(profile, gelsight) == fitted
+    (tmp_path / "none.json").write_text(json.dumps({"layout": {"fitted": False}}))
+    with pytest.raises(ValueError, match="holds no fitted layout"):
+        read_fitted(tmp_path / "none.json", gelsight)
+    out = figure(gelsight, {"the spec's": layout_of(gelsight), "fitted": fitted}, tmp_path / "layout.png")
+    assert out.stat().st_size > 10_000 and out.read_bytes()[:4] == b"\x89PNG"
