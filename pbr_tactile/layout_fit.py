@@ -42,7 +42,7 @@ import numpy as np
 from scenes.camera import Camera
 from scenes.captures import MIN_REGION
 from scenes.images import block_mean
-from scenes.layout import FREE, PARAMETERS, LEDLayout, layout_bounds, layout_of, with_layout
+from scenes.layout import FREE, PARAMETERS, LEDLayout, layout_bounds, layout_of, tube_frame, with_layout
 from scenes.spec import SensorSpec
 
 from .basis import emitter_basis
@@ -96,22 +96,15 @@ def fast_path_layout(spec: SensorSpec, places_m, beam_half_angle_rad: float = ma
 
     layout = []
     body = sensor_body(spec)
-    tube = _tube_points(spec, np.asarray(body.membrane.vertices))
+    tube = tube_frame(spec, np.asarray(body.membrane.vertices))
     apex = float(tube[np.argmin(np.hypot(tube[:, 0], tube[:, 1])), 2])
-    for p in _tube_points(spec, places_m):
+    for p in tube_frame(spec, places_m):
         bounds = layout_bounds(spec, "under")
         radius = float(np.clip(math.hypot(p[0], p[1]), *bounds["radius_m"][:2]))
         height = float(np.clip(p[2], *bounds["height_m"][:2]))
         aim = math.atan2(radius, apex - height)
         layout.append(LEDLayout("under", math.atan2(p[1], p[0]), radius, height, aim, beam_half_angle_rad))
     return tuple(layout)
-
-
-def _tube_points(spec: SensorSpec, points) -> np.ndarray:
-    import trimesh
-
-    return trimesh.transform_points(np.reshape(np.asarray(points, np.float64), (-1, 3)),
-                                    np.linalg.inv(spec.camera.tube_to_camera()))
 
 
 def starts(spec: SensorSpec, fast_places_m=None, coarse: bool = True) -> dict[str, tuple[LEDLayout, ...]]:
@@ -144,7 +137,7 @@ def under_grid(spec: SensorSpec, own) -> dict[str, tuple[LEDLayout, ...]]:
     from scenes.body import sensor_body
 
     body = sensor_body(spec)
-    loop = _tube_points(spec, np.asarray(body.membrane.vertices)[body.base_loop])
+    loop = tube_frame(spec, np.asarray(body.membrane.vertices)[body.base_loop])
     reach = float(np.hypot(loop[:, 0], loop[:, 1]).mean())
     bounds = layout_bounds(spec, "under")
     height = bounds["height_m"][1]

@@ -22,6 +22,7 @@ import numpy as np
 import trimesh
 
 from scenes.camera import Camera
+from scenes.layout import camera_frame, tube_frame
 from scenes.shapes import family
 from scenes.spec import GLASS_IOR, GLASS_WALL_M, LED, SensorSpec
 
@@ -128,7 +129,7 @@ def led_places(spec: SensorSpec) -> list[str]:
     core, _, _ = tube_radii(spec)
     inner = core - spec.membrane.glass_wall
     places = []
-    for led, position in zip(spec.leds, _tube_frame(spec, [led.position for led in spec.leds])):
+    for led, position in zip(spec.leds, tube_frame(spec, [led.position for led in spec.leds])):
         if led.entry is not None:
             places.append(ENTRY_PLACES[led.entry])
             continue
@@ -149,20 +150,20 @@ def glass_edges(spec: SensorSpec) -> tuple[np.ndarray, np.ndarray]:
     loop = body.base_loop
     normals = body.normals[loop]
     core = np.asarray(body.core.vertices)[loop]
-    middle = _tube_frame(spec, core - 0.5 * spec.membrane.glass_wall * normals)
+    middle = tube_frame(spec, core - 0.5 * spec.membrane.glass_wall * normals)
     along = np.roll(middle, -1, axis=0) - np.roll(middle, 1, axis=0)  # the loop's tangent
-    inward = trimesh.unitize(np.cross(_tube_frame(spec, normals) - _tube_frame(spec, np.zeros(3)), along))
-    inside = _tube_frame(spec, np.asarray(body.membrane.vertices)).mean(axis=0)
+    inward = trimesh.unitize(np.cross(tube_frame(spec, normals) - tube_frame(spec, np.zeros(3)), along))
+    inside = tube_frame(spec, np.asarray(body.membrane.vertices)).mean(axis=0)
     inward *= np.sign(np.einsum("ij,ij->i", inward, inside - middle))[:, None]  # into the body
     centre = middle.mean(axis=0)
-    leds = _tube_frame(spec, [led.position for led in spec.leds])
+    leds = tube_frame(spec, [led.position for led in spec.leds])
     azimuths = np.arctan2(middle[:, 1] - centre[1], middle[:, 0] - centre[0])
     nearest = [int(np.argmin(np.abs(np.angle(np.exp(1j * (azimuths - math.atan2(p[1] - centre[1],
                                                                                 p[0] - centre[0])))))))
                for p in leds]
     points = middle[nearest] + WALL_FOOT_M * inward[nearest]
     rotation = spec.camera.tube_to_camera()[:3, :3]
-    return _camera_frame(spec, points), inward[nearest] @ rotation.T
+    return camera_frame(spec, points), inward[nearest] @ rotation.T
 
 
 def tube_radii(spec: SensorSpec) -> tuple[float, float, float]:
@@ -176,7 +177,7 @@ def tube_radii(spec: SensorSpec) -> tuple[float, float, float]:
     from scenes.body import sensor_body
 
     body = sensor_body(spec)
-    loop = _tube_frame(spec, np.asarray(body.membrane.vertices)[body.base_loop])
+    loop = tube_frame(spec, np.asarray(body.membrane.vertices)[body.base_loop])
     centre = loop[:, :2].mean(axis=0)
     outer = float(np.linalg.norm(loop[:, :2] - centre, axis=1).mean())
     return body.core_base_radius, outer, float(loop[:, 2].mean())
@@ -226,7 +227,7 @@ def _led_centres_tube(spec: SensorSpec) -> np.ndarray:
     (``led_places``; ``tube_radii``)."""
     m = spec.membrane
     core, outer, base_z = tube_radii(spec)
-    pos = _tube_frame(spec, [led.position for led in spec.leds])
+    pos = tube_frame(spec, [led.position for led in spec.leds])
     radial = np.linalg.norm(pos[:, :2], axis=1, keepdims=True)
     unit = np.where(radial > 0, pos[:, :2] / np.where(radial > 0, radial, 1), 0.0)
     out = pos.copy()
@@ -235,18 +236,7 @@ def _led_centres_tube(spec: SensorSpec) -> np.ndarray:
             out[k, :2] = unit[k] * 0.5 * (core + outer)
         elif place == "wall_end":
             out[k] = [*(unit[k] * (core - 0.5 * m.glass_wall)), base_z + WALL_FOOT_M]
-    return _camera_frame(spec, out)
-
-
-def _tube_frame(spec: SensorSpec, points) -> np.ndarray:
-    """(N, 3) camera-frame points in the tube's frame (``CameraSpec.tube_to_camera``),
-    where the glass and membrane have their nominal radii about the z axis."""
-    return trimesh.transform_points(np.reshape(points, (-1, 3)), np.linalg.inv(spec.camera.tube_to_camera()))
-
-
-def _camera_frame(spec: SensorSpec, points) -> np.ndarray:
-    """(N, 3) tube-frame points in the camera frame."""
-    return trimesh.transform_points(np.reshape(points, (-1, 3)), spec.camera.tube_to_camera())
+    return camera_frame(spec, out)
 
 
 def led_beam(led: LED, place: str, glass_ior: float = GLASS_IOR,
@@ -311,9 +301,9 @@ def led_sources(spec: SensorSpec, effects: Effects = Effects(), led_power=1.0) -
                             "cone_axis": axis, "cone_half_angle_rad": half_angle})
         if leak > 0:
             r = tube_radii(spec)[0] - spec.membrane.glass_wall / 2
-            tube = _tube_frame(spec, centre)[0]
+            tube = tube_frame(spec, centre)[0]
             tube[:2] *= r / max(np.linalg.norm(tube[:2]), 1e-12)
-            inside = _camera_frame(spec, tube)[0]
+            inside = camera_frame(spec, tube)[0]
             sources.append({"name": f"led{m}_leak", "centre": tuple(map(float, inside)),
                             "radius": LED_RADIUS_M, "spectrum": shape * power * leak, "peak_nm": peak,
                             "fwhm_nm": fwhm, "scale": power * leak, "in_elastomer": False,

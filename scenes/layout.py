@@ -84,16 +84,20 @@ class LEDLayout:
         return dataclasses.replace(self, radius_m=radius, height_m=height, aim_rad=aim, beam_half_angle_rad=beam)
 
 
-def _tube(spec: SensorSpec, points) -> np.ndarray:
+def tube_frame(spec: SensorSpec, points) -> np.ndarray:
+    """(N, 3) camera-frame points in the tube's frame (``CameraSpec.tube_to_camera``),
+    where the glass and membrane have their nominal radii about the z axis."""
     import trimesh
 
-    return trimesh.transform_points(np.reshape(points, (-1, 3)), np.linalg.inv(spec.camera.tube_to_camera()))
+    return trimesh.transform_points(np.reshape(np.asarray(points, np.float64), (-1, 3)),
+                                    np.linalg.inv(spec.camera.tube_to_camera()))
 
 
-def _camera(spec: SensorSpec, points) -> np.ndarray:
+def camera_frame(spec: SensorSpec, points) -> np.ndarray:
+    """(N, 3) tube-frame points in the camera frame."""
     import trimesh
 
-    return trimesh.transform_points(np.reshape(points, (-1, 3)), spec.camera.tube_to_camera())
+    return trimesh.transform_points(np.reshape(np.asarray(points, np.float64), (-1, 3)), spec.camera.tube_to_camera())
 
 
 def layout_of(spec: SensorSpec, entries: tuple[str, ...] | str | None = None) -> tuple[LEDLayout, ...]:
@@ -106,7 +110,7 @@ def layout_of(spec: SensorSpec, entries: tuple[str, ...] | str | None = None) ->
         entries = (entries,) * len(leds)
     if len(entries) != len(leds):
         raise ValueError(f"layout_of: {len(entries)} entries for {len(leds)} LEDs")
-    positions = _tube(spec, [led.position for led in leds])
+    positions = tube_frame(spec, [led.position for led in leds])
     rotation = np.linalg.inv(spec.camera.tube_to_camera())[:3, :3]
     low = None
     out = []
@@ -130,7 +134,7 @@ def with_layout(spec: SensorSpec, layout) -> SensorSpec:
     groups are laid out as their LEDs: the result has single LEDs."""
     layout = tuple(layout)
     check_layout(spec, layout)
-    positions = _camera(spec, [p.position() for p in layout])
+    positions = camera_frame(spec, [p.position() for p in layout])
     rotation = spec.camera.tube_to_camera()[:3, :3]
     leds = tuple(dataclasses.replace(led, position=tuple(map(float, x)), direction=tuple(map(float, rotation @ p.direction())),
                                      beam_half_angle_rad=p.beam_half_angle_rad, entry=p.entry, group=None)
@@ -152,7 +156,7 @@ def glass_floor(spec: SensorSpec) -> float:
     loop = body.base_loop
     core = np.asarray(body.core.vertices)[loop]
     underside = core - spec.membrane.glass_wall * body.normals[loop]
-    return float(_tube(spec, underside)[:, 2].min())
+    return float(tube_frame(spec, underside)[:, 2].min())
 
 
 def layout_bounds(spec: SensorSpec, entry: str) -> dict[str, tuple[float, float, str]]:
@@ -165,7 +169,7 @@ def layout_bounds(spec: SensorSpec, entry: str) -> dict[str, tuple[float, float,
     housing = spec.housing
     outer = (housing.radius, "the housing's radius") if housing.radius is not None else (
         MAX_SENSOR_SIZE_M, "the largest sensor")
-    floor = (_tube(spec, [0.0, 0.0, housing.floor_z])[0, 2], "the housing's floor") if housing.floor_z is not None \
+    floor = (tube_frame(spec, [0.0, 0.0, housing.floor_z])[0, 2], "the housing's floor") if housing.floor_z is not None \
         else (-MAX_SENSOR_SIZE_M, "the largest sensor")
     top = (glass_floor(spec) - CLEARANCE_M, "the glass' lowest point") if entry == "under" else (
         MAX_SENSOR_SIZE_M, "the largest sensor")
