@@ -38,6 +38,7 @@ from .real_image import (
     SECTORS,
     check_real,
     film_factor,
+    film_sectors,
     heldout_interval,
     image_circle,
     sector_index,
@@ -119,9 +120,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     share = [float(clipped_full[..., c][inside_full].mean()) for c in range(3)]
     saturated = {ch: share[c] > SATURATED_SHARE for c, ch in enumerate("rgb")}
     clipped = block_mean(clipped_full.astype(np.float64), factor) > 0.5
-    s = height / camera.height
-    centre = (camera.cx, camera.cy) if circle is None else circle[:2]
-    sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
+    sector = film_sectors(camera, circle, film)
     rendered, arcs, spans, unit, share_of_span = basis_layout(spec)
     # without taps the basis sees wider than the spec's camera, so the fitted lens may;
     # a tap's change is rendered with the spec's camera, and so is its basis

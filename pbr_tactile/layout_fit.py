@@ -49,7 +49,7 @@ from scenes.spec import SensorSpec
 from .basis import emitter_basis
 from .effects import Effects
 from .image_model import ImageFitter, ImageModel, debiased
-from .real_image import check_real, film_factor, image_circle, sector_index
+from .real_image import check_real, film_factor, film_sectors, image_circle
 
 #: The search's film (px) and photons per LED: a render in about 3 s on 2 cores.
 SEARCH_FILM = (80, 60)
@@ -203,14 +203,11 @@ class _Scorer:
 
     def __init__(self, real, camera: Camera, film, known_alignment: bool, leak: bool, taps=None,
                  spectral_gains: bool = False, webcam: bool = False):
-        width, height = film
         self.film = film
         self.camera = camera
         self.circle = image_circle(real)
         self.r = block_mean(real, film_factor(real.shape, film))
-        s = height / camera.height
-        centre = (camera.cx, camera.cy) if self.circle is None else self.circle[:2]
-        self.sector = sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
+        self.sector = film_sectors(camera, self.circle, film)
         self.known = known_alignment
         self.leak = leak
         self.taps = taps

@@ -61,6 +61,16 @@ def sector_index(shape: tuple[int, int], centre: tuple[float, float], sectors: i
     return np.minimum((angle / (2 * math.pi) * sectors).astype(int), sectors - 1)
 
 
+def film_sectors(camera: Camera, circle: tuple[float, float, float] | None, film: tuple[int, int]) -> np.ndarray:
+    """(h, w) int: ``sector_index`` at a film of ``film`` (w, h) px about the image
+    circle's centre (``circle``, at the camera's size; None: the principal point), moved
+    to the film's pixels."""
+    width, height = film
+    s = height / camera.height
+    centre = (camera.cx, camera.cy) if circle is None else circle[:2]
+    return sector_index((height, width), ((centre[0] + 0.5) * s - 0.5, (centre[1] + 0.5) * s - 0.5))
+
+
 def film_factor(shape: tuple[int, ...], film: tuple[int, int]) -> int:
     """The whole factor k between an (H, W, ...) camera image and the film (w, h)."""
     H, W = shape[:2]
