@@ -554,14 +554,17 @@ class ImageFitter:
         w = self.w
         sw = np.sqrt(w / (3 * np.sum(w)))
         weight = None if self.weight is None and not self.taps else w
-        gains, offset, residuals = np.zeros((self.model.leds, 3)), np.zeros(3), []
         if self.model.response is not None:
             gains, offset = solve_spectral_gains(X, self.y, self.y_clipped, nl.gamma, self.model.response, weight,
                                                  black=self.model.black)
+        else:
+            gains, offset = np.zeros((self.model.leds, 3)), np.zeros(3)
+            for c in range(3):
+                gains[:, c], offset[c] = solve_gains(X, self.y[:, c], self.y_clipped[:, c], nl.gamma, weight,
+                                                     black=self.model.black)
+        residuals = []
         for c in range(3):
             y, clipped = self.y[:, c], self.y_clipped[:, c]
-            if self.model.response is None:
-                gains[:, c], offset[c] = solve_gains(X, y, clipped, nl.gamma, weight, black=self.model.black)
             pred = np.clip(X @ gains[:, c] + offset[c], 0.0, None) ** (1.0 / nl.gamma)
             residuals.append(sw * np.where(clipped, np.minimum(pred - y, 0.0), pred - y))
         return gains, offset, np.concatenate(residuals)
