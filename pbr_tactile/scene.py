@@ -150,9 +150,10 @@ def glass_edges(spec: SensorSpec) -> tuple[np.ndarray, np.ndarray]:
     loop = body.base_loop
     normals = body.normals[loop]
     core = np.asarray(body.core.vertices)[loop]
+    rotation = spec.camera.tube_to_camera()[:3, :3]  # tube to camera; its transpose back
     middle = tube_frame(spec, core - 0.5 * spec.membrane.glass_wall * normals)
     along = np.roll(middle, -1, axis=0) - np.roll(middle, 1, axis=0)  # the loop's tangent
-    inward = trimesh.unitize(np.cross(tube_frame(spec, normals) - tube_frame(spec, np.zeros(3)), along))
+    inward = trimesh.unitize(np.cross(normals @ rotation, along))
     inside = tube_frame(spec, np.asarray(body.membrane.vertices)).mean(axis=0)
     inward *= np.sign(np.einsum("ij,ij->i", inward, inside - middle))[:, None]  # into the body
     centre = middle.mean(axis=0)
@@ -162,7 +163,6 @@ def glass_edges(spec: SensorSpec) -> tuple[np.ndarray, np.ndarray]:
                                                                                 p[0] - centre[0])))))))
                for p in leds]
     points = middle[nearest] + WALL_FOOT_M * inward[nearest]
-    rotation = spec.camera.tube_to_camera()[:3, :3]
     return camera_frame(spec, points), inward[nearest] @ rotation.T
 
 
