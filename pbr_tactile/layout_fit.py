@@ -41,12 +41,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenes.camera import Camera
-from scenes.captures import MIN_REGION
+from scenes.body import sensor_body
+from scenes.captures import MIN_REGION, split
 from scenes.images import block_mean
 from scenes.layout import FREE, PARAMETERS, LEDLayout, layout_bounds, layout_of, tube_frame, with_layout
 from scenes.spec import SensorSpec
 
 from .basis import emitter_basis
+from .calibrate_taps import film_views
 from .effects import Effects
 from .image_model import ImageFitter, ImageModel, debiased
 from .real_image import check_real, film_factor, film_sectors, image_circle
@@ -101,14 +103,11 @@ def fast_path_layout(spec: SensorSpec, places_m, beam_half_angle_rad: float = ma
     ``fast_path.taps.places.places_m``) as LEDs under the glass, each aimed at the
     membrane's apex with a ``beam_half_angle_rad`` beam, moved into their bounds
     (``scenes.layout.layout_bounds``: a place above the glass' lowest point goes down to it)."""
-    from scenes.body import sensor_body
-
     layout = []
-    body = sensor_body(spec)
-    tube = tube_frame(spec, np.asarray(body.membrane.vertices))
+    tube = tube_frame(spec, np.asarray(sensor_body(spec).membrane.vertices))
     apex = float(tube[np.argmin(np.hypot(tube[:, 0], tube[:, 1])), 2])
+    bounds = layout_bounds(spec, "under")
     for p in tube_frame(spec, places_m):
-        bounds = layout_bounds(spec, "under")
         radius = float(np.clip(math.hypot(p[0], p[1]), *bounds["radius_m"][:2]))
         height = float(np.clip(p[2], *bounds["height_m"][:2]))
         aim = math.atan2(radius, apex - height)
@@ -143,8 +142,6 @@ def under_grid(spec: SensorSpec, own) -> dict[str, tuple[LEDLayout, ...]]:
     """Starts with every LED under the glass at its own azimuth, CLEARANCE_M under the
     glass' lowest point (or the housing's floor), at each of UNDER_RADII x UNDER_AIMS x
     UNDER_BEAMS, named ``under_r<share>_a<deg>_b<deg>``."""
-    from scenes.body import sensor_body
-
     body = sensor_body(spec)
     loop = tube_frame(spec, np.asarray(body.membrane.vertices)[body.base_loop])
     reach = float(np.hypot(loop[:, 0], loop[:, 1]).mean())
@@ -181,11 +178,9 @@ def _farthest(points: np.ndarray, count: int) -> np.ndarray:
 def presses_pin(taps, camera: Camera) -> tuple[bool, str]:
     """Whether the fitted half of ``taps`` (``scenes.captures.RealTaps``; None: no presses)
     can pin a layout (MIN_PRESSES, MIN_PRESS_SPREAD), and why (one line)."""
-    from scenes import captures
-
     if taps is None:
         return False, "no presses: a layout needs presses to pin it"
-    fitted = np.flatnonzero(captures.split(len(taps.ids)))
+    fitted = np.flatnonzero(split(len(taps.ids)))
     if len(fitted) < MIN_PRESSES:
         return False, f"{len(fitted)} fitted press(es), fewer than {MIN_PRESSES}"
     centres = press_centres(taps)[fitted]
@@ -216,8 +211,6 @@ class _Scorer:
         self.fits = 0
 
     def __call__(self, candidate: dict) -> tuple[float, object]:
-        from .calibrate_taps import film_views
-
         basis = candidate["basis"]
         model = ImageModel(basis["mean"], basis["names"], self.camera, self.circle, known_alignment=self.known,
                            lens=False, response=basis["response"] if self.spectral else None, webcam=self.webcam)
@@ -280,13 +273,11 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
     through each LED's film response (``pbr_tactile.image_model``); ``webcam``: the
     camera's response held to a webcam's; ``progress``: called with a line of text per
     step."""
-    from scenes import captures
-
     real = check_real(real, camera, "the real no-contact image")
     t0 = time.perf_counter()
     chosen_taps = None
     if taps is not None:
-        fitted = np.flatnonzero(captures.split(len(taps.ids)))
+        fitted = np.flatnonzero(split(len(taps.ids)))
         chosen_taps = taps.subset(fitted[_farthest(press_centres(taps)[fitted], SEARCH_TAPS)])
     score = _Scorer(real, camera, film, known_alignment, leak, chosen_taps, spectral_gains, webcam)
     renders = 0
