@@ -30,7 +30,17 @@ from . import calibrate_taps as ct
 from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis
 from .effects import Effects
 from .fast_background import fit_fast_background
-from .image_model import ImageFit, ImageFitter, ImageModel, TapView, debiased, tied_errors
+from .image_model import (
+    GAMMA_BOUNDS,
+    WEBCAM_BLACK,
+    WEBCAM_GAMMA,
+    ImageFit,
+    ImageFitter,
+    ImageModel,
+    TapView,
+    debiased,
+    tied_errors,
+)
 from .real_image import (
     CIRCLE_THRESHOLD,
     CLIP_LEVEL,
@@ -205,8 +215,9 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "best_effects": point, "parameters": _parameters(fit, tie=tie, spec=spec), "intervals": intervals,
         "gains": "each LED's power times its film response times each channel's white balance" if spectral_gains
         else "a free gain per LED and channel",
-        "camera_response": "held to a webcam's (exponent 1.8 to 2.6, black level at most 0.1)" if webcam
-        else "free (exponent 0.5 to 3, any offset)",
+        "camera_response": (f"held to a webcam's (exponent {WEBCAM_GAMMA[0]:g} to {WEBCAM_GAMMA[1]:g}, black level "
+                            f"at most {WEBCAM_BLACK:g})") if webcam
+        else f"free (exponent {GAMMA_BOUNDS[0]:g} to {GAMMA_BOUNDS[1]:g}, any offset)",
         "standard_errors": standard_errors,
         "camera": fitted_camera(nl, camera), "on_bound": on_bound(fit.nl, model, leak),
         "not_identifiable": NOT_IDENTIFIABLE if taps is None else NOT_IDENTIFIABLE_WITH_TAPS, "fast_path": fast_path,
