@@ -239,6 +239,8 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
 
     from .calibrate import GRID, calibrate_background, calibrate_fast
 
+    if layout_seed is not None and not fit_layout:
+        raise ValueError("--layout-seed seeds the layout's fit: give --fit-layout too")
     real = None if real is None else str(real)
     path, what = real_background(real, None if background_only is None else str(background_only))
     spec = load_spec(spec) if spec is not None or real is None else capture_spec(real)
@@ -292,8 +294,6 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
             else:
                 held = {"fitted": False, "why": why, "held": "every LED's entry, place, aim and beam at the spec's"}
                 print(f"calibrate: the LEDs' layout is not fitted, {why}; held at the spec's", flush=True)
-        elif layout_seed is not None:
-            raise ValueError("--layout-seed seeds the layout's fit: give --fit-layout too")
         cal = calibrate_background(image, laid_out, mesh, camera, film=(width, width * 3 // 4),
                                    grid=grid, photons=photons, spp=spp, seed=seed, bootstrap=bootstrap,
                                    leak=not no_leak, progress=advance, taps=real_taps, fast_path_fit=fast_fit,

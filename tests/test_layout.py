@@ -437,3 +437,33 @@ def test_the_layout_figure_reads_a_fitted_layout_and_draws_it(tmp_path, gelsight
         read_fitted(tmp_path / "none.json", gelsight)
     out = figure(gelsight, {"the spec's": layout_of(gelsight), "fitted": fitted}, tmp_path / "layout.png")
     assert out.stat().st_size > 10_000 and out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_layout_s_inputs_are_refused_by_name(tmp_path, gelsight):
+    """A layout seed that is no fast-path report, a seed without the fit, and a start the
+    search does not have: each a clear error naming what was expected."""
+    import json
+
+    from pbr_tactile.calibrate_capture import calibrate_capture, layout_seed_places
+    from pbr_tactile.layout_fit import fit_layout
+    from scenes.camera import Camera
+
+    with pytest.raises(FileNotFoundError, match=r"--layout-seed .*missing.json: no such file \(a fast-path"):
+        layout_seed_places(tmp_path / "missing.json")
+    bad = tmp_path / "report.json"
+    bad.write_text(json.dumps({"fast_path": {"taps": {}}}))
+    with pytest.raises(ValueError, match=r"not a fast-path calibration's report.json with fitted LED places"):
+        layout_seed_places(bad)
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match=r"--layout-seed .*report.json: not a fast-path"):
+        layout_seed_places(bad)
+    bad.write_text(json.dumps({"fast_path": {"taps": {"places": {"places_m": [[0.02, 0.0, 0.02]] * 3}}}}))
+    assert layout_seed_places(bad) == [[0.02, 0.0, 0.02]] * 3
+    with pytest.raises(ValueError, match="--layout-seed seeds the layout's fit: give --fit-layout too"):
+        calibrate_capture(None, tmp_path / "out", lambda *a: None, background_only=tmp_path / "none.png",
+                          layout_seed=bad)
+    assert not (tmp_path / "out").exists()
+    spec = gelsight.at_resolution(16, 12)
+    camera = Camera.from_spec(spec)
+    with pytest.raises(ValueError, match=r"fit_layout: no start named nowhere \(have spec, edge, under_r0.35"):
+        fit_layout(np.full((12, 16, 3), 0.5), spec, None, camera, None, only=("spec", "nowhere"), film=(16, 12))
