@@ -231,7 +231,9 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                     capture, work / "compare_calibrated_reference", profile=ref_profile, fields=(field,),
                     reference=True, reference_taps=int(reference_presses), **common))
         core = sum(seconds.values())
-        repeats = [_run_figures(ref_profile.parent, ref)] if runs > 1 else []
+        repeats = [{**_run_figures(ref_profile.parent, ref),
+                    "seconds": seconds.get("calibrate_reference", 0.0) + seconds.get("compare_calibrated_reference", 0.0)}
+                   ] if runs > 1 else []
         for k in range(1, runs):
             folder = work / f"calibrated_reference_run{k}"
             with _fresh_cache(work / f"cache_run{k}"):
