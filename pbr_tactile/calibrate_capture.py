@@ -288,6 +288,11 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
                                      progress, every, spectral_gains, webcam)
                 laid_out = layout.spec
                 what += ", its LEDs' layout fitted"
+                fitted_material = layout.report.get("material", {}).get("fitted", {})
+                if fitted_material:
+                    # the reference is calibrated in the paint and clarity fitted with the layout
+                    grid = {**grid, **{name: (value,) for name, value in fitted_material.items()}}
+                    what += " with its paint and clarity"
 
                 def fast_fit(_spec, *rest):  # the fast path's own LEDs are the spec's
                     return fast_path_fit(spec, *rest)

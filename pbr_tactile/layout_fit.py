@@ -84,17 +84,37 @@ MIN_PRESS_SPREAD = 0.25
 #: loss) four passes moved one LED's aim once, in the first, in 139 renders and 22
 #: minutes on a shared 2-core machine: the starts and their combination carry the fit.
 ROUNDS = 1
+#: The paint and the elastomer's clarity, fitted with the layout where presses are given
+#: (``pbr_tactile.effects.Effects`` names): each one's search bounds, first step and
+#: smallest step. The roughness stays at 0.1 or more: a narrower lobe is not resolved by
+#: the search's photons. On the public GelSight's presses at the spec's LEDs (80x60, 3
+#: presses), gloss 0 / 0.3 / 0.5 / 0.8 (roughness 0.3; 0.15 for 0.8) gave a loss of
+#: 0.0064 / 0.0059 / 0.0063 / 0.034 and contacts 0.62 / 0.68 / 0.74 / 1.09 of the real's:
+#: the paint sets how strongly a dent shades, which no gain of the image model can.
+MATERIAL = {"coating_gloss": (0.0, 1.0, 0.2, 0.05), "coating_roughness": (0.1, 0.6, 0.1, 0.025),
+            "scattering_per_m": (0.0, 250.0, 40.0, 10.0)}
+#: What the fit holds at the record, and why.
+MATERIAL_HELD = {"coating_albedo": "it scales every LED's light alike, as the image model's gains do: "
+                                   "the images cannot tell it from the LEDs' powers",
+                 "absorption_per_m": "held at the calibration grid's point: of the clarity the search fits "
+                                     "the scattering, which spreads the light that shades a dent; the "
+                                     "absorption dims light as it crosses the pad, as the LEDs' places do"}
+#: Passes over the material's parameters at most.
+MATERIAL_ROUNDS = 2
 
 
 @dataclass
 class LayoutFit:
     """What ``fit_layout`` found: the layout, the spec laid out by it, the start it came
-    from, and the report (JSON-able: every start's and step's loss, renders, seconds)."""
+    from, the report (JSON-able: every start's and step's loss, renders, seconds) and the
+    effects it was fitted with (the paint and clarity fitted where presses were given:
+    MATERIAL)."""
 
     layout: tuple[LEDLayout, ...]
     spec: SensorSpec
     start: str
     report: dict
+    effects: Effects | None = None
 
 
 def fast_path_layout(spec: SensorSpec, places_m, beam_half_angle_rad: float = math.radians(60.0)
@@ -261,7 +281,7 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
                spp: int = SEARCH_SPP, passes: int = 2, seed: int = 0, known_alignment: bool = True,
                leak: bool = True, rounds: int = ROUNDS, screened: int = SCREENED, use_cache: bool = True,
                progress=None, only: tuple[str, ...] | None = None, coarse: bool = True,
-               spectral_gains: bool = False, webcam: bool = False) -> LayoutFit:
+               spectral_gains: bool = False, webcam: bool = False, material: bool = True) -> LayoutFit:
     """The LEDs' layout that best explains the real no-contact image (H, W, 3) in [0, 1]
     and the presses ``taps`` (``scenes.captures.RealTaps``: SEARCH_TAPS of its fitted half,
     ``scenes.captures.split``, spread as far apart in the image as they go, are rendered;
@@ -271,8 +291,10 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
     places, a start; ``only``: the starts to try (names of ``starts``), default all;
     ``coarse``: with the grid under the glass; ``spectral_gains``: the image model's gains
     through each LED's film response (``pbr_tactile.image_model``); ``webcam``: the
-    camera's response held to a webcam's; ``progress``: called with a line of text per
-    step."""
+    camera's response held to a webcam's; ``material``: with presses, the paint and the
+    elastomer's clarity (MATERIAL) fitted too (``_material_search``), after the starts'
+    combination, which is then made again in the fitted paint; ``progress``: called with a
+    line of text per step."""
     real = check_real(real, camera, "the real no-contact image")
     t0 = time.perf_counter()
     chosen_taps = None
@@ -282,9 +304,12 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
     score = _Scorer(real, camera, film, known_alignment, leak, chosen_taps, spectral_gains, webcam)
     renders = 0
 
-    def render(layout, with_taps: bool = True) -> dict:
+    looks = effects  # the paint and clarity the renders use: the record's until fitted
+
+    def render(layout, with_taps: bool = True, effects: Effects | None = None) -> dict:
         nonlocal renders
         laid = with_layout(spec, layout)
+        effects = looks if effects is None else effects
         out = {"basis": emitter_basis(laid, mesh, camera, effects, film, photons, spp, passes, seed, use_cache)}
         renders += 1
         if with_taps and chosen_taps is not None:
@@ -329,12 +354,35 @@ def fit_layout(real: np.ndarray, spec: SensorSpec, mesh, camera: Camera, effects
     start = min(kept, key=lambda name: report["starts"][name]["loss"])
     loss, layout, candidate, chosen = _combine(renders_of, start, report["starts"][start]["loss"], score, say)
     report["combined"] = {"loss": loss, "from": [chosen[m] for m in range(len(layout))]}
+    if material and chosen_taps is not None:
+        record = {name: getattr(effects, name) for name in MATERIAL}
+        loss, looks, candidate, material_steps = _material_search(effects, layout, candidate, loss, score, render,
+                                                                  MATERIAL_ROUNDS, say)
+        if looks != effects:
+            # the kept starts again in the fitted paint, and LED by LED the best of them
+            for name in kept:
+                renders_of[name] = (renders_of[name][0], render(renders_of[name][0]))
+            again = {name: score(renders_of[name][1])[0] for name in kept}
+            best = min(again, key=again.get)
+            recombined = _combine(renders_of, best, again[best], score, say)
+            if recombined[0] < loss:
+                loss, layout, candidate, chosen = recombined
+            report["combined_again"] = {"starts": again, "loss": loss,
+                                        "from": [chosen[m] for m in range(len(layout))]}
+        report["material"] = {"fitted": {name: getattr(looks, name) for name in MATERIAL}, "record": record,
+                              "steps": material_steps, "held": MATERIAL_HELD,
+                              "intervals": material_intervals(material_steps)}
+    else:
+        report["material"] = {"fitted": {}, "held": {**{name: "no presses: the no-contact frame alone does not pin "
+                                                          "how strongly a dent shades" for name in MATERIAL},
+                                                     **MATERIAL_HELD}}
     loss, layout, steps = _search(spec, layout, candidate, loss, score, render, rounds, say)
     report["steps"] = steps
+    report["intervals"] = layout_intervals(spec, layout, steps, loss)
     layout = tuple(layout)
     report.update({"start": start, "loss": loss, "layout": [dataclasses.asdict(p) for p in layout],
                    "renders": renders, "fits": score.fits, "seconds": time.perf_counter() - t0})
-    return LayoutFit(layout, with_layout(spec, layout), start, report)
+    return LayoutFit(layout, with_layout(spec, layout), start, report, looks)
 
 
 def _search(spec: SensorSpec, layout: list, candidate: dict, loss: float, score, render, rounds: int, say):
@@ -358,20 +406,24 @@ def _search(spec: SensorSpec, layout: list, candidate: dict, loss: float, score,
                     v[k] = float(np.clip(v[k] + sign * steps[name], low, high))
                     trial.append(p.with_vector(v))
                 trials[sign] = (trial, render(trial))
-            moved = []
+            moved, tried = [], {}
             for m in movable:
+                base = loss
+                tried[m] = {"from": float(layout[m].vector()[k]), "loss": base, "trials": []}
                 for sign, (trial, other) in trials.items():
                     if np.allclose(trial[m].vector(), layout[m].vector()):
                         continue
                     swapped = _swap(candidate, other, m)
                     value, _ = score(swapped)
+                    tried[m]["trials"].append({"value": float(trial[m].vector()[k]), "loss": value})
                     if value < loss - MIN_GAIN * abs(loss):
                         loss, candidate = value, swapped
                         layout[m] = trial[m]
                         moved.append((m, sign))
                         break
             records.append({"round": round_, "parameter": name, "step": steps[name], "loss": loss,
-                            "moved": [{"led": spec.leds[m].name, "by": sign * steps[name]} for m, sign in moved]})
+                            "moved": [{"led": spec.leds[m].name, "by": sign * steps[name]} for m, sign in moved],
+                            "leds": {spec.leds[m].name: t for m, t in tried.items()}})
             say(f"round {round_} {name} step {steps[name]:.4g}: loss {loss:.6g}, moved {len(moved)} LEDs")
             if moved:
                 moved_any = True
@@ -380,6 +432,108 @@ def _search(spec: SensorSpec, layout: list, candidate: dict, loss: float, score,
         if not moved_any and all(steps[n] < STEPS[n][1] for n in PARAMETERS if any(n in FREE[p.entry] for p in layout)):
             break
     return loss, layout, records
+
+
+def _material_search(effects: Effects, layout, candidate: dict, loss: float, score, render, rounds: int, say):
+    """The pattern search of the paint and clarity (MATERIAL) at ``layout`` (its renders
+    ``candidate`` in ``effects``, its ``loss``): each parameter in turn is rendered at
+    +step and -step (within its bounds); the better is kept where it lowers the loss by
+    more than MIN_GAIN, else the step is halved, down to its smallest. Returns (the loss,
+    the effects, their renders, the steps' records)."""
+    steps = {name: first for name, (_, _, first, _) in MATERIAL.items()}
+    records = []
+    for round_ in range(rounds):
+        moved_any = False
+        for name, (low, high, _, smallest) in MATERIAL.items():
+            if steps[name] < smallest:
+                continue
+            here = float(getattr(effects, name))
+            trials = []
+            for sign in (1.0, -1.0):
+                value = float(np.clip(here + sign * steps[name], low, high))
+                if math.isclose(value, here):
+                    continue
+                trial = dataclasses.replace(effects, **{name: value})
+                rendered = render(layout, effects=trial)
+                trials.append((score(rendered)[0], value, trial, rendered))
+            records.append({"round": round_, "parameter": name, "step": steps[name], "from": here, "loss": loss,
+                            "trials": [{"value": value, "loss": value_loss} for value_loss, value, _, _ in trials]})
+            best = min(trials, key=lambda t: t[0], default=None)
+            if best is not None and best[0] < loss - MIN_GAIN * abs(loss):
+                loss, _, effects, candidate = best
+                moved_any = True
+            else:
+                steps[name] /= 2
+            records[-1]["to"] = float(getattr(effects, name))
+            say(f"material round {round_} {name} step {records[-1]['step']:.4g}: loss {loss:.6g}, "
+                f"{name} {records[-1]['to']:.4g}")
+        if not moved_any and all(steps[n] < MATERIAL[n][3] for n in MATERIAL):
+            break
+    return loss, effects, candidate, records
+
+
+def resolution(value: float, loss: float, trials: list[dict], bounds: tuple[float, float],
+               tolerance: float) -> dict:
+    """The range of a parameter at ``value`` (its ``loss``) within which a parabola through
+    its ``trials`` ({"value", "loss"} either side; one side: the parabola's vertex at
+    ``value``, as at a bound) rises by less than ``tolerance``: the values the fit cannot
+    tell apart. ``identified``: the loss curves up and the range is within ``bounds`` and
+    under half their span. Returns {"value", "low", "high", "identified"}."""
+    low, high = bounds
+    out = {"value": value, "low": low, "high": high, "identified": False}
+    sides = {math.copysign(1.0, t["value"] - value): t for t in trials if not math.isclose(t["value"], value)}
+    if not sides:
+        return out
+    if len(sides) == 2:
+        (a, la), (b, lb) = [(abs(sides[s]["value"] - value), sides[s]["loss"] - loss) for s in (-1.0, 1.0)]
+        # the parabola through (-a, la), (0, 0), (b, lb): its second derivative
+        curvature = 2.0 * (la * b + lb * a) / (a * b * (a + b))
+    else:
+        (t,) = sides.values()
+        curvature = 2.0 * (t["loss"] - loss) / (t["value"] - value) ** 2
+    if curvature <= 0:
+        return out
+    half = math.sqrt(2.0 * tolerance / curvature)
+    out.update(low=max(low, value - half), high=min(high, value + half))
+    out["identified"] = bool(out["high"] - out["low"] < 0.5 * (high - low)
+                             and (out["low"] > low or out["high"] < high))
+    return out
+
+
+def material_intervals(records: list[dict]) -> dict:
+    """Each material parameter's ``resolution`` from its last step's trials, the loss and
+    tolerance (MIN_GAIN of it: the search's own) those of that step. A parameter moved at
+    its last step has no trials around its value: it is reported unidentified."""
+    out = {}
+    for name, r in {r["parameter"]: r for r in records}.items():
+        bounds = MATERIAL[name][:2]
+        if not math.isclose(r["to"], r["from"]):
+            out[name] = {"value": r["to"], "low": bounds[0], "high": bounds[1], "identified": False}
+            continue
+        out[name] = resolution(r["from"], r["loss"], r["trials"], bounds, MIN_GAIN * abs(r["loss"]))
+    return out
+
+
+def layout_intervals(spec: SensorSpec, layout, records: list[dict], loss: float) -> dict:
+    """Each LED's free parameters' ``resolution`` (``{led: {parameter: ...}}``) from the
+    last step at which that LED did not move (its trials either side; MIN_GAIN of
+    ``loss`` the tolerance). A parameter moved at its last step has no trials around its
+    value: it is reported unidentified."""
+    out = {}
+    for m, p in enumerate(layout):
+        led = spec.leds[m].name
+        bounds = layout_bounds(spec, p.entry)
+        out[led] = {}
+        for name in FREE[p.entry]:
+            mine = [r for r in records if r["parameter"] == name and led in r.get("leds", {})]
+            value = float(p.vector()[PARAMETERS.index(name)])
+            if not mine or not math.isclose(mine[-1]["leds"][led]["from"], value):
+                out[led][name] = {"value": value, "low": bounds[name][0], "high": bounds[name][1],
+                                  "identified": False}
+                continue
+            last = mine[-1]["leds"][led]
+            out[led][name] = resolution(value, last["loss"], last["trials"], bounds[name][:2], MIN_GAIN * abs(loss))
+    return out
 
 
 def _combine(renders_of: dict, start: str, loss: float, score, say, sweeps: int = 2):

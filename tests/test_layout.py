@@ -327,13 +327,98 @@ def test_a_known_layout_is_recovered_from_presses_rendered_with_it(photon_mi):
     # minutes: the beam, 0.3 rad off, must move by a whole first step
     starts = ("spec", "edge", "under_r0.65_a35_b30", "under_r0.35_a0_b60", "under_r0.65_a0_b60")
     fit = fit_layout(real, spec, mesh, camera, effects, taps=taps, spectral_gains=True, webcam=True, rounds=1,
-                     screened=2, only=starts)
+                     screened=2, only=starts, material=False)
     assert [p.entry for p in fit.layout] == ["under"] * 3
     for found, truth in zip(fit.layout, hidden):
         assert abs(found.radius_m - truth.radius_m) <= 4 * STEPS["radius_m"][1]
         assert abs(found.aim_rad - truth.aim_rad) <= 4 * STEPS["aim_rad"][1]
         assert abs(found.beam_half_angle_rad - truth.beam_half_angle_rad) <= 4 * STEPS["beam_half_angle_rad"][1]
     assert fit.report["loss"] < fit.report["starts"]["spec"]["loss"]
+
+
+def test_a_parameter_s_resolution_is_where_its_parabola_rises_by_the_tolerance():
+    from pbr_tactile.layout_fit import resolution
+
+    # loss 2 (x - 0.5)^2 + 1, trials 0.1 and 0.3 either side: curvature 4, a rise of 0.02
+    # within 0.1 of 0.5
+    loss = lambda x: 2 * (x - 0.5) ** 2 + 1.0  # noqa: E731
+    r = resolution(0.5, loss(0.5), [{"value": 0.4, "loss": loss(0.4)}, {"value": 0.8, "loss": loss(0.8)}],
+                   (0.0, 1.0), 0.02)
+    assert r["low"] == pytest.approx(0.4) and r["high"] == pytest.approx(0.6) and r["identified"]
+    # at a bound, one side: the vertex taken at the bound, the range clipped to it
+    r = resolution(0.0, loss(0.5), [{"value": 0.2, "loss": loss(0.5) + 0.08}], (0.0, 1.0), 0.02)
+    assert r["low"] == 0.0 and r["high"] == pytest.approx(0.1) and r["identified"]
+    # flat or curving down: nothing pinned, the whole bounds
+    for trials in ([{"value": 0.4, "loss": 1.0}, {"value": 0.6, "loss": 1.0}],
+                   [{"value": 0.4, "loss": 0.9}, {"value": 0.6, "loss": 0.95}], []):
+        r = resolution(0.5, 1.0, trials, (0.0, 1.0), 0.02)
+        assert (r["low"], r["high"], r["identified"]) == (0.0, 1.0, False)
+    # a range wider than half the bounds is not identified either
+    assert not resolution(0.5, 1.0, [{"value": 0.4, "loss": 1.0001}, {"value": 0.6, "loss": 1.0001}],
+                          (0.0, 1.0), 0.02)["identified"]
+
+
+def test_the_paint_search_finds_a_loss_s_minimum_and_reports_its_resolution():
+    """The material search against a loss written as a sum of parabolas (no render): it
+    ends within each parameter's smallest step of the minimum, where no step of that
+    size gains MIN_GAIN, and reports each parameter's range around it."""
+    from pbr_tactile.effects import Effects
+    from pbr_tactile.layout_fit import MATERIAL, MIN_GAIN, _material_search, material_intervals
+
+    truth = {"coating_gloss": 0.43, "coating_roughness": 0.22, "scattering_per_m": 35.0}
+    scales = {"coating_gloss": 1.0, "coating_roughness": 2.0, "scattering_per_m": 0.01}
+
+    def score(candidate):
+        e = candidate["effects"]
+        return 1.0 + sum((scales[n] * (getattr(e, n) - truth[n])) ** 2 for n in truth), None
+
+    calls = []
+
+    def render(layout, effects=None):
+        calls.append(effects)
+        return {"effects": effects}
+
+    start = Effects(coating_gloss=0.0, coating_roughness=0.3, scattering_per_m=0.0)
+    loss, fitted, candidate, records = _material_search(start, None, {"effects": start},
+                                                        score({"effects": start})[0], score, render, 6, lambda _: None)
+    assert candidate["effects"] is fitted and loss == pytest.approx(score(candidate)[0])
+    for name, (low, high, _, smallest) in MATERIAL.items():
+        assert abs(getattr(fitted, name) - truth[name]) <= smallest, name
+        for sign in (1, -1):
+            moved = dataclasses.replace(fitted, **{name: float(np.clip(getattr(fitted, name) + sign * smallest,
+                                                                         low, high))})
+            assert score({"effects": moved})[0] >= loss - MIN_GAIN * loss
+    assert all(low <= getattr(e, n) <= high for e in calls for n, (low, high, _, _) in MATERIAL.items())
+    intervals = material_intervals(records)
+    assert set(intervals) == set(MATERIAL)
+    for name, r in intervals.items():
+        assert r["low"] <= getattr(fitted, name) <= r["high"]
+        assert r["low"] <= truth[name] + MATERIAL[name][3] and truth[name] - MATERIAL[name][3] <= r["high"]
+
+
+def test_each_led_s_intervals_come_from_its_last_unmoved_step(gelsight):
+    from pbr_tactile.layout_fit import layout_intervals
+
+    layout = layout_of(gelsight)  # beside the pad: aim and beam free
+    aim = layout[0].aim_rad
+    records = [
+        # red's aim moved at the first step, then held at the second: its range is the second's
+        {"parameter": "aim_rad", "leds": {"red": {"from": aim - 0.3, "loss": 1.2, "trials": []}}},
+        {"parameter": "aim_rad", "leds": {"red": {"from": aim, "loss": 1.0, "trials": [
+            {"value": aim - 0.15, "loss": 1.045}]}}},
+        # green's aim was tried last from another value (it moved there): not identified
+        {"parameter": "aim_rad", "leds": {"green": {"from": aim - 0.15, "loss": 1.0, "trials": []}}},
+    ]
+    out = layout_intervals(gelsight, layout, records, 1.0)
+    assert set(out) == {"red", "green", "blue"} and set(out["red"]) == set(FREE["beside"])
+    red = out["red"]["aim_rad"]
+    # one side: the parabola 2 x 0.045 / 0.15^2 = 4 per rad^2, a rise of 0.01 within 0.0707 rad
+    assert red["identified"] and red["low"] == pytest.approx(aim - math.sqrt(0.005))
+    assert red["high"] == pytest.approx(min(aim + math.sqrt(0.005), math.pi / 2))
+    for led in ("green", "blue"):
+        assert not out[led]["aim_rad"]["identified"]
+        assert (out[led]["aim_rad"]["low"], out[led]["aim_rad"]["high"]) == (-math.pi / 2, math.pi / 2)
+    assert not out["red"]["beam_half_angle_rad"]["identified"]
 
 
 def test_presses_in_one_place_or_too_few_do_not_pin_a_layout():
