@@ -2,7 +2,8 @@
 
 Image metrics over a region (MAE; SSIM and PSNR from ``skimage.metrics``), the
 per-sample metrics a study compares images by, R^2 over pixels, Pearson's r, how
-strongly a press shows (the contact strength), the Monte Carlo noise floor of a render's
+strongly a press shows (the contact strength) and its profile in rings about its centre,
+the Monte Carlo noise floor of a render's
 variance map, and intervals of a mean over samples: the percentile bootstrap
 (``scipy.stats.bootstrap``, samples resampled as units) and Student's t
 (``scipy.stats.t``). Every study, and the calibration, imports them from here.
@@ -202,6 +203,30 @@ def contact_strength(images: np.ndarray, no_contact: np.ndarray, regions: np.nda
     regions : (N, H, W) bool, or (H, W) for all. A press with an empty region is NaN.
     """
     return contact_contrast(images, no_contact, regions)["change"].mean(axis=1)
+
+
+def ring_profile(values: np.ndarray, centre_px, bin_px: float, reach_px: float | None = None,
+                 min_pixels: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mean of ``values`` (H, W) over rings ``bin_px`` wide about ``centre_px`` (u =
+    column, v = row, pixel centres at integers), out to ``reach_px`` (default: the frame's
+    farthest pixel): (each ring's middle radius px, its mean, NaN where it holds fewer than
+    ``min_pixels`` pixels, its pixel count)."""
+    values = np.asarray(values, np.float64)
+    if values.ndim != 2:
+        raise ValueError(f"ring_profile: values must be (H, W), got shape {values.shape}")
+    if not bin_px > 0:
+        raise ValueError(f"ring_profile: bin_px must be > 0, got {bin_px}")
+    h, w = values.shape
+    v, u = np.mgrid[:h, :w]
+    r = np.hypot(u - float(centre_px[0]), v - float(centre_px[1])).ravel()
+    reach = float(r.max()) if reach_px is None else float(reach_px)
+    keep = (r < reach) & np.isfinite(values.ravel())
+    bins = np.floor(r[keep] / bin_px).astype(np.int64)
+    n = int(np.ceil(reach / bin_px))
+    count = np.bincount(bins, minlength=n)[:n]
+    total = np.bincount(bins, values.ravel()[keep], minlength=n)[:n]
+    mean = np.where(count >= max(1, min_pixels), total / np.maximum(count, 1), np.nan)
+    return (np.arange(n) + 0.5) * bin_px, mean, count
 
 
 def contact_contrast(images: np.ndarray, no_contact: np.ndarray, regions: np.ndarray) -> dict[str, np.ndarray]:

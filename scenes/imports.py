@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import DatasetError, DatasetWriter, read_samples, sample_id, write_sample_files
+from .image_stats import ring_profile
 
 #: Defaults of each format: the sensor spec, the ball's diameter (metres) and the pixel's
 #: size on the membrane (metres) of the set the format was published with.
@@ -184,15 +185,9 @@ def contact_edge_px(frame: np.ndarray, no_contact: np.ndarray, centre_px, ball_r
     the peak lies at either end of the search (no rim inside it).
     """
     change = np.abs(np.asarray(frame, np.float64) - np.asarray(no_contact, np.float64)).mean(axis=2)
-    h, w = change.shape
-    v, u = np.mgrid[:h, :w]
-    r = np.hypot(u - centre_px[0], v - centre_px[1]).ravel()
     lo, hi = PROFILE_SEARCH[0] * ball_radius_px, PROFILE_SEARCH[1] * ball_radius_px
-    bins = np.floor(r / PROFILE_BIN_PX).astype(np.int64)
-    count = np.bincount(bins, minlength=int(hi / PROFILE_BIN_PX) + 2)
-    total = np.bincount(bins, change.ravel(), minlength=len(count))
-    radius = (np.arange(len(count)) + 0.5) * PROFILE_BIN_PX
-    profile = np.where(count >= PROFILE_MIN_PIXELS, total / np.maximum(count, 1), np.nan)
+    radius, profile, _ = ring_profile(change, centre_px, PROFILE_BIN_PX, (int(hi / PROFILE_BIN_PX) + 2) * PROFILE_BIN_PX,
+                                      PROFILE_MIN_PIXELS)
     search = np.flatnonzero((radius >= lo) & (radius <= hi) & np.isfinite(profile))
     if len(search) < 3:
         raise ValueError(f"the press at ({centre_px[0]:g}, {centre_px[1]:g}) px has too little of its ring inside "
