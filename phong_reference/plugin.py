@@ -12,6 +12,7 @@ import numpy as np
 
 from scenes.camera import CONTACT_EPS_M, Camera
 from scenes.elastic import MembraneLayer, check_model
+from scenes.elastic_solid import BondedLayer
 from scenes.spec import SensorSpec
 
 from .background import make_background
@@ -78,7 +79,8 @@ class PhongDatasetRenderer:
         opts = options_from(options)
         unit, profile = unit_spec(spec, opts)
         fields = bake(mesh, camera, unit.leds, opts["field"])
-        layer = MembraneLayer(mesh, spec, camera) if opts["elastic_model"] == "layer" else None
+        layer = {"layer": lambda: MembraneLayer(mesh, spec, camera), "bonded": lambda: BondedLayer(spec, camera),
+                 "published": lambda: None}[opts["elastic_model"]]()
         L = light_vectors(fields, opts["rectify"])
         if profile is None:
             self._renderer = Renderer(spec, camera, ref_depth, L, make_background(opts["background"], camera), layer)

@@ -240,8 +240,9 @@ def add_renderer_arguments(p, skip: tuple[str, ...] = ()) -> None:
         "rectify": (("--rectify",), {"action": "store_true", "default": None,
                                      "help": "phong: rectify the light vectors"}),
         "elastic": (("--elastic",), {"choices": MODELS, "help": "phong: the membrane model, published (the paper's "
-                                     "smoothing, default) or layer (the elastic layer the pbr renderer deforms, so "
-                                     "both renderers see one surface)"}),
+                                     "smoothing, default), layer (the elastic layer the pbr renderer deforms, so "
+                                     "both renderers see one surface) or bonded (an elastic solid of the elastomer's "
+                                     "thickness bonded to its support, flat membranes; needs the contact extra)"}),
         "target_rse": (("--target-rse",), {"type": float, "metavar": "R", "help": "pbr: add passes until the RMS "
                                            "relative standard error over the contact is at most R (default 0.05)"}),
         "max_passes": (("--max-passes",), {"type": int, "metavar": "N",

@@ -1,6 +1,6 @@
 """The membrane's elastic response to a rigid contact, shared by both renderers.
 
-Two models, by name (:data:`MODELS`):
+Three models, by name (:data:`MODELS`):
 
 - ``"published"``: the paper's image-space smoothing of the contact depth map,
   D_def = min(D, D_ref - G * (D_ref - D)) (:func:`deform`). Fast, and what the authors
@@ -21,6 +21,11 @@ Two models, by name (:data:`MODELS`):
   less MIN_GAP_M, so the surface never enters the glass core, and on a convex membrane
   whose curvature radius exceeds the thickness it cannot fold: moving inward along the
   normal only shrinks the tangent plane by (1 - w kappa) > 0.
+
+- ``"bonded"``: the elastomer as an elastic solid of its thickness and Poisson's ratio
+  bonded to its support (``scenes.elastic_solid``), on a flat membrane seen head-on;
+  there the surface sinks outside the contact as a solid's does and an incompressible
+  layer bulges round it. The fast path takes it; the reference does not yet.
 
 ``MembraneLayer`` holds the expensive per-membrane state (refined mesh, normals, the
 stiffness matrix) and turns a contact depth map into the deformed surface
@@ -47,7 +52,7 @@ from .shapes.mesh import base_loop
 from .spec import Elastic, SensorSpec
 
 #: The elastic models, by name.
-MODELS = ("published", "layer")
+MODELS = ("published", "layer", "bonded")
 #: Border handling of G; 'mirror' is OpenCV's default BORDER_REFLECT_101, which the
 #: published implementation used.
 BORDER_MODE = "mirror"

@@ -46,7 +46,7 @@ def plate():
 
 
 def test_models_are_named():
-    assert MODELS == ("published", "layer")
+    assert MODELS == ("published", "layer", "bonded")
 
 
 def test_the_decay_length_is_vlasovs(spec):

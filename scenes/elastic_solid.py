@@ -1,0 +1,173 @@
+"""The membrane as an elastic solid: a layer of the unit's thickness bonded to its rigid
+support, pressed by a rigid indenter (the elastic model ``"bonded"``, scenes.elastic).
+
+The surface's displacement u (m, into the membrane) of a linear elastic layer of
+thickness h and Poisson's ratio nu, bonded to a rigid flat, under the frictionless normal
+pressure p of a rigid indenter that reaches delta past the undeformed surface (a contact
+depth map's D_ref - D), is u = G * p with the contact's conditions
+
+    u >= delta,   p >= 0,   p (u - delta) = 0,
+
+G the layer's Green's function in Fourier space (Carbone and Mangialardi, JMPS 2008,
+eq. A.30, as ``ContactMechanics`` implements it; h = None: the elastic half-space's, so
+that a ball makes Hertz's contact), solved by the constrained conjugate gradients of
+Polonsky and Keer (``ContactMechanics.Optimization``). Unlike the layer model
+(``scenes.elastic``, which decays over 0.29 h for an incompressible gel), the surface
+outside the contact sinks as a solid's does, and an incompressible layer keeps its
+volume: what the indenter pushes in rises round it.
+
+It works on the image grid, the membrane taken flat in its tangent plane at the contact
+(a pixel's size at the deepest point), on a window PAD_THICKNESSES thicknesses wider
+than the contact on every side, so that the periodic solution's neighbours do not reach
+it. The displacement does not depend on Young's modulus; the load does (``young_pa``).
+``ContactMechanics`` is the optional ``contact`` extra, imported where a contact is solved.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: A layer's periodic window reaches this many of its thicknesses past the grid on every
+#: side (its response decays over about one).
+PAD_THICKNESSES = 4.0
+#: Poisson's ratio is held below 0.5 by this much: at 0.5 the layer's uniform
+#: compression is infinitely stiff (the Green's function's q = 0 term is 1 / (1 - 2 nu)).
+#: At 1e-4 from it the layer's mean displacement stays within a few parts in 10^4 of
+#: its absolute one; at 1e-7 the conjugate gradients did not converge in 3000 steps.
+INCOMPRESSIBLE_MARGIN = 1e-4
+#: The solver's convergence: penetration left in the contact, as a share of the deepest
+#: reach, and force outside it, as a share of the load.
+PENETRATION_SHARE = 1e-4
+FORCE_SHARE = 1e-6
+
+
+@dataclass
+class Contact:
+    """A solved contact: the surface's displacement ``u`` (H, W) m into the membrane, the
+    pressure on each pixel ``pressure`` (H, W) Pa, the contact's pixels ``contact`` (H,
+    W) bool, the indenter's load ``load_n`` N (at ``young_pa``) and the volume the
+    surface lost, ``volume_m3``, over the whole solved window (an incompressible layer's
+    is 0: its bulge gives back what the indenter pushes in)."""
+
+    u: np.ndarray
+    pressure: np.ndarray
+    contact: np.ndarray
+    load_n: float
+    volume_m3: float = 0.0
+
+
+def check_material(thickness_m: float | None, poisson: float) -> None:
+    """Refuse a layer that is not a physical solid: a thickness not > 0 or a Poisson's
+    ratio outside [0, 0.5]; one line naming the value."""
+    if thickness_m is not None and not (math.isfinite(thickness_m) and thickness_m > 0):
+        raise ValueError(f"the elastic layer's thickness must be a finite length > 0 m, got {thickness_m!r}")
+    if not (math.isfinite(poisson) and 0.0 <= poisson <= 0.5):
+        raise ValueError(f"the elastic layer's Poisson's ratio must lie in [0, 0.5], got {poisson!r}")
+
+
+def solve(delta: np.ndarray, pixel_m: float, thickness_m: float | None, poisson: float,
+          young_pa: float = 1.0) -> Contact:
+    """The contact (module doc) of an indenter reaching ``delta`` (H, W) m past the
+    undeformed surface (negative where it stays off it), on pixels ``pixel_m`` m square,
+    of a layer ``thickness_m`` thick (None: a half-space) with Poisson's ratio ``poisson``
+    and Young's modulus ``young_pa``. The whole (H, W) grid is solved (a layer's padded by
+    PAD_THICKNESSES of its thickness); pass a window round the contact."""
+    from ContactMechanics import FreeFFTElasticHalfSpace, PeriodicFFTElasticHalfSpace
+    from ContactMechanics.Optimization.ConstrainedConjugateGradients import constrained_conjugate_gradients
+    from ContactMechanics.Tools.Logger import quiet
+    from SurfaceTopography import Topography
+
+    delta = np.asarray(delta, np.float64)
+    if delta.ndim != 2 or not np.all(np.isfinite(delta)):
+        raise ValueError(f"an indenter's reach must be a finite (H, W) map, got shape {delta.shape}"
+                         + ("" if delta.ndim != 2 else " with NaN or inf"))
+    if not (math.isfinite(pixel_m) and pixel_m > 0):
+        raise ValueError(f"a pixel's size must be > 0 m, got {pixel_m!r}")
+    check_material(thickness_m, poisson)
+    reach = float(delta.max())
+    if reach <= 0:
+        zero = np.zeros_like(delta)
+        return Contact(zero, zero.copy(), np.zeros(delta.shape, bool), 0.0)
+    h, w = delta.shape
+    nu = min(poisson, 0.5 - INCOMPRESSIBLE_MARGIN)
+    # the half-space's solver is not periodic (it pads itself); a layer's is
+    pad = 0 if thickness_m is None else int(math.ceil(PAD_THICKNESSES * thickness_m / pixel_m))
+    shape = (h + 2 * pad, w + 2 * pad)
+    sizes = (shape[0] * pixel_m, shape[1] * pixel_m)
+    floor = float(delta.min()) - reach  # off the indenter: far below the surface
+    heights = np.full(shape, min(floor, -reach))
+    heights[pad:pad + h, pad:pad + w] = delta
+    if thickness_m is None:
+        substrate = FreeFFTElasticHalfSpace(shape, young_pa / (1 - nu * nu), sizes)
+    else:
+        substrate = PeriodicFFTElasticHalfSpace(shape, young_pa, sizes, thickness=thickness_m, poisson=nu)
+    load_scale = young_pa * reach * pixel_m
+    result = constrained_conjugate_gradients(substrate, Topography(heights, sizes), offset=0.0,
+                                             pentol=PENETRATION_SHARE * reach, forcetol=FORCE_SHARE * load_scale,
+                                             logger=quiet)
+    if not result.success:
+        raise RuntimeError(f"the elastic contact did not converge: {result.message}")
+    full = np.asarray(result.x)[:shape[0], :shape[1]]
+    force = np.asarray(result.jac)[:shape[0], :shape[1]]
+    pressure = force[pad:pad + h, pad:pad + w] / (pixel_m * pixel_m)
+    return Contact(full[pad:pad + h, pad:pad + w], pressure, pressure > 0, float(force.sum()),
+                   float(full.sum()) * pixel_m * pixel_m)
+
+
+#: The window solved reaches this many layer thicknesses past the indenter's footprint
+#: (an incompressible layer's bulge lies within about two).
+MARGIN_THICKNESSES = 3.0
+
+
+class BondedLayer:
+    """The ``"bonded"`` elastic model on a flat membrane seen head-on (a ``pad``): the
+    contact's surface from its depth map, as ``MembraneLayer.depth`` gives the layer
+    model's (the fast path's renderer takes either). The thickness is the spec's
+    elastomer's, the ratio its ``[elastic] poisson_ratio``; the displacement is taken along
+    the view, in the membrane's tangent plane at the footprint's deepest point."""
+
+    def __init__(self, spec, camera):
+        if spec.membrane.shape != "pad":
+            raise ValueError(f"elastic model 'bonded' works in the image of a flat membrane (shape 'pad'); sensor "
+                             f"{spec.name!r} is a {spec.membrane.shape!r}: use 'layer' or 'published'")
+        if not camera.is_pinhole:
+            raise ValueError(f"elastic model 'bonded' needs a pinhole camera without distortion; sensor {spec.name!r}'s "
+                             f"is {camera.projection} (k1 {camera.k1}, k2 {camera.k2})")
+        self.thickness = spec.membrane.elastomer_thickness
+        self.poisson = spec.elastic.poisson_ratio
+        check_material(self.thickness, self.poisson)
+        self.camera = camera
+
+    def solved(self, depth: np.ndarray, ref_depth: np.ndarray) -> tuple[Contact | None, tuple[slice, slice]]:
+        """The contact of ``depth`` over ``ref_depth`` (H, W, m) on its window (rows,
+        columns), None where nothing presses."""
+        depth, ref_depth = np.asarray(depth, np.float64), np.asarray(ref_depth, np.float64)
+        if depth.shape != ref_depth.shape or depth.ndim != 2:
+            raise ValueError(f"depth {depth.shape} and ref_depth {ref_depth.shape} must be the same (H, W)")
+        if not (np.all(np.isfinite(depth)) and np.all(np.isfinite(ref_depth))):
+            raise ValueError("depth and ref_depth must be finite (NaN or inf found)")
+        reach = ref_depth - depth
+        pressed = reach > 0
+        if not pressed.any():
+            return None, (slice(0, 0), slice(0, 0))
+        v, u = np.unravel_index(np.argmax(reach), reach.shape)
+        pixel_m = ref_depth[v, u] / self.camera.f
+        margin = int(math.ceil(MARGIN_THICKNESSES * self.thickness / pixel_m))
+        rows, cols = np.flatnonzero(pressed.any(axis=1)), np.flatnonzero(pressed.any(axis=0))
+        window = (slice(max(0, rows[0] - margin), min(reach.shape[0], rows[-1] + 1 + margin)),
+                  slice(max(0, cols[0] - margin), min(reach.shape[1], cols[-1] + 1 + margin)))
+        # off the footprint the indenter's surface is not in the map: taken far from the membrane
+        delta = np.where(pressed[window], reach[window], -float(reach.max()))
+        return solve(delta, pixel_m, self.thickness, self.poisson), window
+
+    def depth(self, depth: np.ndarray, ref_depth: np.ndarray) -> np.ndarray:
+        """(H, W) the deformed membrane's depth, m: D_ref - u, u the surface's
+        displacement along the view (its bulge, where it rises, nearer the camera)."""
+        contact, window = self.solved(depth, ref_depth)
+        out = np.array(ref_depth, np.float64)
+        if contact is not None:
+            out[window] -= contact.u
+        return out

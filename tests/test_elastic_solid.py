@@ -1,0 +1,114 @@
+"""The elastic solid contact model (scenes.elastic_solid) against closed forms.
+
+Hertz's contact of a ball on an elastic half-space (the model without a thickness, the
+limit of a thick layer): the contact's radius sqrt(R d), the load 4/3 E* sqrt(R) d^1.5
+and the surface outside the contact, u(r) = d / pi ((2 - r^2/a^2) asin(a/r) + sqrt(r^2/a^2
+- 1)) (Johnson, Contact Mechanics, 3.42). An incompressible bonded layer keeps its volume
+and bulges; a compressible one does not; a thinner layer is stiffer.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip("ContactMechanics", reason="the elastic solid model needs the contact extra "
+                    "(pip install -e '.[contact]')")
+
+from scenes.elastic_solid import BondedLayer, check_material, solve  # noqa: E402
+
+R, D = 2.0e-3, 0.2e-3  # a 4 mm ball pressed 0.2 mm
+
+
+def _ball(n: int, pixel: float):
+    x = (np.arange(n) - n / 2 + 0.5) * pixel
+    r = np.hypot(*np.meshgrid(x, x, indexing="ij"))
+    return D - r * r / (2 * R), r
+
+
+def test_a_ball_on_a_half_space_makes_hertz_s_contact():
+    pixel = 0.1e-3
+    delta, r = _ball(96, pixel)
+    young, nu = 1.0e6, 0.5
+    c = solve(delta, pixel, None, nu, young)
+    a = math.sqrt(R * D)
+    assert math.sqrt(c.contact.sum() * pixel * pixel / math.pi) == pytest.approx(a, abs=pixel / 2)
+    assert c.load_n == pytest.approx(4 / 3 * young / (1 - nu * nu) * math.sqrt(R) * D**1.5, rel=0.01)
+    out = r > 1.2 * a  # the surface outside the contact sinks as Hertz's does
+    q = r[out] / a
+    hertz = D / math.pi * ((2 - q * q) * np.arcsin(1 / q) + np.sqrt(q * q - 1))
+    assert np.max(np.abs(c.u[out] - hertz)) < 2e-3 * D
+    assert c.u[48, 48] == pytest.approx(D - (0.05e-3 * math.sqrt(2)) ** 2 / (2 * R), rel=1e-3)  # conforms inside
+
+
+def test_an_incompressible_layer_keeps_its_volume_and_bulges():
+    pixel = 0.1e-3
+    delta, r = _ball(120, pixel)
+    pushed = solve(delta, pixel, 2.5e-3, 0.3).u.clip(min=0).sum() * pixel * pixel
+    tight = solve(delta, pixel, 2.5e-3, 0.5)
+    # to a few parts in 10^3 (the ratio is held INCOMPRESSIBLE_MARGIN under 0.5)
+    assert abs(tight.volume_m3) < 3e-3 * tight.u.clip(min=0).sum() * pixel * pixel
+    assert tight.u.min() < -0.01 * D  # the bulge round the contact
+    loose = solve(delta, pixel, 2.5e-3, 0.3)
+    assert loose.volume_m3 > 0.5 * pushed  # a compressible layer loses volume
+
+
+def test_a_thinner_layer_is_stiffer_and_the_half_space_the_softest():
+    pixel = 0.1e-3
+    delta, _ = _ball(120, pixel)
+    loads = [solve(delta, pixel, h, 0.5, 1.0e6).load_n for h in (2.5e-3, 5e-3, None)]
+    assert loads[0] > loads[1] > loads[2]
+
+
+def test_the_fast_path_s_surface_from_a_press_on_the_gelsight():
+    import trimesh
+
+    from scenes.camera import Camera, reference_depth
+    from scenes.contact import press
+    from scenes.geometry import membrane_mesh
+    from scenes.spec import SENSORS_DIR, load_spec
+
+    spec = load_spec(SENSORS_DIR / "gelsight.toml").at_resolution(160, 120)
+    camera, mesh = Camera.from_spec(spec), membrane_mesh(spec)
+    ref = reference_depth(mesh, camera)[0]
+    depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=2e-3), (80.0, 60.0), 1.0e-3)
+    layer = BondedLayer(spec, camera)
+    out = layer.depth(depth, ref)
+    contact, window = layer.solved(depth, ref)
+    pressed = ref - depth > 0
+    # where the ball presses the surface is the ball's (within the solver's tolerance);
+    # where the ball's footprint reaches past that contact the surface sinks below the
+    # ball (the elastic contact is narrower than the geometric one, as Hertz's a^2 = R d
+    # is half the chord's 2 R d); around it it sinks less the further it is, and an
+    # incompressible gel rises somewhere
+    touching = np.zeros_like(pressed)
+    touching[window] = contact.contact
+    assert touching.sum() > 0.5 * pressed.sum() and not (touching & ~pressed).any()
+    assert np.allclose(out[touching], depth[touching], atol=2e-6)
+    assert np.all(out[pressed] <= depth[pressed] + 2e-6)
+    sunk = ref - out
+    v, u = np.mgrid[:120, :160]
+    ring = lambda lo, hi: sunk[(np.hypot(u - 80, v - 60) >= lo) & (np.hypot(u - 80, v - 60) < hi) & ~pressed]  # noqa: E731
+    # (at 1 mm into a 2.5 mm incompressible gel: 225, 91 and 24 um down 1.5 to 2.0 mm from
+    # the centre, then up by 53 um at 3.4 mm)
+    assert ring(12, 14).mean() > ring(14, 16).mean() > ring(16, 18).mean() > 0
+    assert ring(24, 30).mean() < -10e-6
+
+
+def test_bad_layers_and_maps_are_refused_by_name():
+    for thickness, nu, match in ((0.0, 0.5, "thickness"), (-1e-3, 0.3, "thickness"), (2e-3, 0.6, "Poisson"),
+                                 (2e-3, -0.1, "Poisson"), (2e-3, float("nan"), "Poisson")):
+        with pytest.raises(ValueError, match=match):
+            check_material(thickness, nu)
+    with pytest.raises(ValueError, match="finite"):
+        solve(np.full((8, 8), np.nan), 1e-4, 2e-3, 0.5)
+    with pytest.raises(ValueError, match="pixel"):
+        solve(np.zeros((8, 8)), 0.0, 2e-3, 0.5)
+    from scenes.camera import Camera
+    from scenes.spec import SENSORS_DIR, load_spec
+
+    geltip = load_spec(SENSORS_DIR / "geltip.toml")
+    with pytest.raises(ValueError, match="flat membrane"):
+        BondedLayer(geltip, Camera.from_spec(geltip))
