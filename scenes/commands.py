@@ -170,7 +170,9 @@ def cmd_import(args) -> int:
                              rim_share=args.rim_share)
     d = summary["depth_mm"]
     rims = (f", rims at {summary['rim_share']:g} of the contact's radius, {summary['rims_capped']} capped at the ball's"
-            if summary["rim_share"] != 1.0 else "")
+            if summary["rim_share"] != 1.0 else
+            f", {summary['rims_capped']} rims wider than the deepest press the layer was solved at, given its depth"
+            if summary["depth"] == "elastic" else "")
     print(f"{summary['presses']} presses of {args.archive} in {args.out} ({summary['object']}, depth by "
           f"{summary['depth']}{rims}: median {d['median']:.3f} mm, {d['min']:.3f} to {d['max']:.3f} mm; "
           f"{summary['camera']})")
@@ -493,8 +495,9 @@ def register(registry) -> None:
     p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the membrane at the frames' "
                    f"resolution, mm (taxim default {DEFAULTS['taxim']['pixel_m'] * 1e3:g})")
     p.add_argument("--depth", choices=DEPTH_METHODS, default="profile",
-                   help="each press's depth from its contact rim fitted to the image (profile, default) or from "
-                        "its annotated radius (radius)")
+                   help="each press's depth from its contact rim fitted to the image (profile, default), from "
+                        "its annotated radius (radius), or from that rim taken as the edge of the elastic contact "
+                        "the spec's membrane makes (elastic: the bonded layer, needs the contact extra)")
     p.add_argument("--rim-share", type=float, default=1.0, metavar="K",
                    help="with --depth profile: the share of the contact's radius at which a press's change peaks "
                         "(default 1: at the rim); the contact's radius is the peak's over K, at most the ball's")

@@ -171,3 +171,60 @@ class BondedLayer:
         if contact is not None:
             out[window] -= contact.u
         return out
+
+
+#: The depths, as shares of the ball's radius, at which ``ball_contact_radius`` is
+#: tabulated for ``ball_depth_for_contact``, and the pixels across the ball's radius in
+#: those solves (the contact's radius is its area's, good to a small share of a pixel).
+DEPTH_SHARES = (0.02, 0.05, 0.1, 0.2, 0.3, 0.45, 0.6, 0.75, 0.9, 0.98)
+BALL_PIXELS = 30
+
+
+def ball_contact_radius(depth_m: float, ball_radius_m: float, thickness_m: float | None, poisson: float) -> float:
+    """The contact's radius, m (its area's equivalent), of a rigid ball of
+    ``ball_radius_m`` pressed ``depth_m`` into the layer (module doc; the ball's own
+    sphere, not Hertz's paraboloid)."""
+    if not 0 < depth_m < ball_radius_m:
+        raise ValueError(f"a ball {ball_radius_m * 1e3:g} mm in radius is pressed between 0 and its radius, got "
+                         f"{depth_m * 1e3:g} mm")
+    pixel = ball_radius_m / BALL_PIXELS
+    n = 2 * BALL_PIXELS + 2
+    x = (np.arange(n) - n / 2 + 0.5) * pixel
+    r = np.hypot(*np.meshgrid(x, x, indexing="ij"))
+    cap = ball_radius_m - np.sqrt(np.clip(ball_radius_m**2 - r * r, 0.0, None))
+    delta = np.where(r < ball_radius_m, depth_m - cap, -ball_radius_m)
+    contact = solve(delta, pixel, thickness_m, poisson)
+    return math.sqrt(contact.contact.sum() / math.pi) * pixel
+
+
+def _radii(ball_radius_m: float, thickness_m: float | None, poisson: float) -> tuple[np.ndarray, np.ndarray]:
+    key = (ball_radius_m, thickness_m, poisson)
+    if key not in _TABLES:
+        depths = np.array(DEPTH_SHARES) * ball_radius_m
+        _TABLES[key] = (depths, np.array([ball_contact_radius(d, ball_radius_m, thickness_m, poisson) for d in depths]))
+    return _TABLES[key]
+
+
+_TABLES: dict = {}
+
+
+def ball_depth_for_contact(contact_radius_m: float, ball_radius_m: float, thickness_m: float | None,
+                           poisson: float, cap: bool = False) -> float:
+    """The depth, m, at which a rigid ball of ``ball_radius_m`` leaves an elastic contact
+    ``contact_radius_m`` in radius on this layer: ``ball_contact_radius`` tabulated at
+    DEPTH_SHARES of the ball's radius (once per ball and layer) and inverted, linearly in
+    the contact's squared radius (Hertz's depth is proportional to it). ValueError for a
+    contact outside the table (a press deeper than its last share of the ball's radius);
+    with ``cap``, a contact wider than the table's widest is given its depth instead."""
+    check_material(thickness_m, poisson)
+    depths, radii = _radii(ball_radius_m, thickness_m, poisson)
+    if np.any(np.diff(radii) <= 0):
+        raise RuntimeError(f"the ball's contact radii did not grow with depth: {radii}")
+    a = float(contact_radius_m)
+    if cap and a > radii[-1]:
+        return float(depths[-1])
+    if not radii[0] <= a <= radii[-1]:
+        raise ValueError(f"a contact {a * 1e3:.3g} mm in radius lies outside what a ball {ball_radius_m * 1e3:g} mm "
+                         f"in radius leaves on this layer ({radii[0] * 1e3:.3g} to {radii[-1] * 1e3:.3g} mm, pressed "
+                         f"{depths[0] * 1e3:.3g} to {depths[-1] * 1e3:.3g} mm)")
+    return float(np.interp(a * a, radii * radii, depths))

@@ -28,7 +28,12 @@ is the same for every format (:func:`import_capture`):
   (``contact_radius_capped``). With ``depth="radius"`` a is
   the annotated radius, which a published annotation may draw round the visible ring
   instead (the Taxim set's 17 px circles are 2.1 mm at 0.1245 mm a pixel, wider than its
-  2 mm ball: that mode refuses them).
+  2 mm ball: that mode refuses them). With ``depth="elastic"`` the rim fitted to the image
+  is taken as the edge of the elastic contact the spec's membrane makes (the ``bonded``
+  model of ``scenes.elastic_solid``, its elastomer's thickness and Poisson's ratio): the
+  depth is the one at which the ball leaves a contact that wide on that layer
+  (``ball_depth_for_contact``), deeper than the chord's, since an elastic contact is
+  narrower than the ball's footprint.
 
 The Taxim format (``taxim``, :func:`read_taxim`) is the calibration data pack of the
 Taxim simulator (Si and Yuan, RA-L 2022; Robo-Touch/Taxim, ``calibs/dataPack*.npz``): an
@@ -58,7 +63,7 @@ TAXIM = "taxim"
 DEFAULTS = {TAXIM: {"spec": Path(__file__).with_name("sensors") / "gelsight.toml", "ball_m": 4.0e-3,
                     "pixel_m": 0.1245e-3}}
 #: How a press's depth is found (module doc).
-DEPTH_METHODS = ("profile", "radius")
+DEPTH_METHODS = ("profile", "radius", "elastic")
 #: The profile's radial bins, pixels, and where its peak is sought: this share of the
 #: ball's radius in pixels, at least and at most.
 PROFILE_BIN_PX = 0.5
@@ -283,7 +288,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     ----------
     spec : the unit's ``SensorSpec`` (its camera is put at the frames' size and pixel).
     ball_m : the ball's diameter, metres. pixel_m : a pixel's size on the membrane, metres.
-    depth : "profile" or "radius" (module doc). rim_share : the share of the contact's
+    depth : "profile", "radius" or "elastic" (module doc). rim_share : the share of the contact's
         radius at which a press's change peaks, in (0, 1] (module doc; profile only).
     layout : the rig's ``RigLayout`` the poses are for (default: the project's rig).
 
@@ -320,11 +325,33 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     camera = Camera.from_spec(unit)
     mesh = membrane_mesh(unit)
 
+    if depth == "elastic":
+        from .elastic_solid import ball_depth_for_contact
+
+        thickness, poisson = unit.membrane.elastomer_thickness, unit.elastic.poisson_ratio
+
+        def elastic_depth(contact_radius_m: float) -> float:
+            return ball_depth_for_contact(contact_radius_m, R, thickness, poisson, cap=True)
+
     taps, fitted, capped = [], [], []
     for i, (centre, radius) in enumerate(zip(archive.centres_px, archive.radii_px)):
         name = f"archive {archive.path}: press {i} ({archive.names[i]})"
         if depth == "radius":
             edge_px = float(radius)
+        elif depth == "elastic":
+            try:
+                edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
+                d = elastic_depth(edge_px * pixel_m)
+            except ValueError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+            # a rim wider than the deepest tabulated press leaves is given that depth, and says so
+            capped.append(d >= elastic_depth(math.inf))
+            try:
+                taps.append(press_tap(i, obj, unit, mesh, camera, centre, d))
+            except ValueError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+            fitted.append(edge_px)
+            continue
         else:
             try:
                 edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
@@ -382,7 +409,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         record = {**tap_fields(tap), "commanded_pose": pose, "measured_pose": pose, "measured_depth": tap.depth,
                   "contact_center_px": [float(c) for c in centre], "contact_radius_px": float(radius),
                   "contact_edge_px": edge_px, "source_name": name,
-                  **({"contact_radius_capped": cap} if rim_share != 1.0 else {})}
+                  **({"contact_radius_capped": cap} if rim_share != 1.0 or depth == "elastic" else {})}
         files = write_sample_files(out, sid, archive.frames[tap.index], None)
         writer.append({**record, **files})
     depths = np.array([t.depth for t in taps])

@@ -112,3 +112,42 @@ def test_bad_layers_and_maps_are_refused_by_name():
     geltip = load_spec(SENSORS_DIR / "geltip.toml")
     with pytest.raises(ValueError, match="flat membrane"):
         BondedLayer(geltip, Camera.from_spec(geltip))
+
+
+def test_a_ball_s_depth_from_its_elastic_contact():
+    from scenes.elastic_solid import DEPTH_SHARES, ball_contact_radius, ball_depth_for_contact
+
+    R = 2e-3
+    # on the half-space a shallow ball is Hertz's: a^2 = R d (the sphere is its paraboloid)
+    assert ball_contact_radius(0.1e-3, R, None, 0.5) == pytest.approx(math.sqrt(R * 0.1e-3), rel=0.03)
+    assert ball_depth_for_contact(math.sqrt(R * 0.15e-3), R, None, 0.5) == pytest.approx(0.15e-3, rel=0.03)
+    # a thin bonded layer is stiffer: the same contact is made by a shallower press
+    a = 1.2e-3
+    assert ball_depth_for_contact(a, R, 2.5e-3, 0.5) < ball_depth_for_contact(a, R, None, 0.5)
+    # the chord through a contact that wide is shallower still: an elastic contact is
+    # narrower than the ball's footprint
+    assert ball_depth_for_contact(a, R, 2.5e-3, 0.5) > R - math.sqrt(R * R - a * a)
+    widest = ball_contact_radius(DEPTH_SHARES[-1] * R, R, 2.5e-3, 0.5)
+    with pytest.raises(ValueError, match="outside what a ball"):
+        ball_depth_for_contact(1.01 * widest, R, 2.5e-3, 0.5)
+    assert ball_depth_for_contact(1.01 * widest, R, 2.5e-3, 0.5, cap=True) == pytest.approx(DEPTH_SHARES[-1] * R)
+
+
+def test_an_import_takes_the_rim_as_the_elastic_contact_s_edge(tmp_path):
+    from scenes import imports
+    from scenes.dataset import read_meta, read_samples
+    from scenes.elastic_solid import ball_depth_for_contact
+    from test_import_capture import run_import, write_pack
+
+    pack = write_pack(tmp_path / "dataPack.npz")  # rings peaking 13.5 px from their centres
+    R, pixel = imports.DEFAULTS["taxim"]["ball_m"] / 2, imports.DEFAULTS["taxim"]["pixel_m"]
+    run_import(tmp_path, pack, out="chord")
+    chord = {r["id"]: r for r in read_samples(tmp_path / "chord")}
+    summary = run_import(tmp_path, pack, out="elastic", depth="elastic")
+    assert summary["depth"] == "elastic" and summary["rims_capped"] == 0
+    assert read_meta(tmp_path / "elastic")["import"]["depth"] == "elastic"
+    for r in read_samples(tmp_path / "elastic"):
+        edge = r["contact_edge_px"]
+        assert edge == pytest.approx(chord[r["id"]]["contact_edge_px"])
+        assert r["measured_depth"] == pytest.approx(ball_depth_for_contact(edge * pixel, R, 2.5e-3, 0.5), rel=1e-9)
+        assert r["measured_depth"] > chord[r["id"]]["measured_depth"] and r["contact_radius_capped"] is False
