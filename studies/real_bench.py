@@ -142,7 +142,8 @@ def _figure(row: dict | None) -> dict | None:
 def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=None, reference: bool = True,
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
         rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
-        reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False, runs: int = 1) -> dict:
+        reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False, runs: int = 1,
+        depth: str = "profile") -> dict:
     """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
     calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
     spec's camera (``calibrate --camera-known``: the public set's spec is written from its
@@ -154,6 +155,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     calibration's report) and a coarse grid under the plate, on the no-contact frame and
     the presses, with each LED's gains through its film response (``--spectral-gains``) and
     the camera's response held to a webcam's (``--webcam-response``);
+    ``depth``: how the import gives each press its depth (``tactile-sim import --depth``:
+    ``elastic``, from the spec's layer, gives ours and Taxim the same physical depths);
     ``runs``: the reference's calibration and its calibrated comparison run this many times,
     each from an empty cache (every render anew, the same seeds), and the JSON's
     ``reference_runs`` holds each run's figures and their spread (``_spread``)."""
@@ -193,7 +196,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         stage("import", lambda: import_capture(
             FORMATS[TAXIM](archive), capture, load_spec(spec or defaults["spec"]),
             ball_mm * 1e-3 if ball_mm else defaults["ball_m"], pixel_mm * 1e-3 if pixel_mm else defaults["pixel_m"],
-            fmt=TAXIM, rim_share=1.0 if rim_share is None else rim_share))
+            fmt=TAXIM, rim_share=1.0 if rim_share is None else rim_share, depth=depth))
         fast_profile = work / "calibrated_fast" / "profile.toml"
         stage("calibrate_fast", lambda: calibrate_capture(capture, fast_profile.parent, phong.calibrate,
                                                           fast_taps=0, fast_only=True, progress=not quiet))
@@ -336,7 +339,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
 def cmd_bench_real(args) -> int:
     out = run(args.json, args.archive, args.spec, args.ball_mm, args.pixel_mm, args.work,
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
-              localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share,
+              localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share, depth=args.depth,
               grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
               reference_presses=args.reference_presses, fit_layout=args.fit_layout, runs=args.runs)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
@@ -356,6 +359,9 @@ def register(registry) -> None:
     p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (default the set's, 4)")
     p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the gel, mm (default the set's, "
                                                                 "0.1245)")
+    p.add_argument("--depth", choices=("profile", "elastic"), default="profile",
+                   help="how the import gives each press its depth (tactile-sim import's --depth; elastic: the rim "
+                        "is the edge of the elastic contact the spec's layer makes, the same depths for every model)")
     p.add_argument("--rim-share", type=float, metavar="K", help="the import's share of a contact's radius at which "
                    "its change peaks (default 1: tactile-sim import's --rim-share)")
     p.add_argument("--work", metavar="DIR", help="keep every dataset, profile and report here (default: a temporary "
