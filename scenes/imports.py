@@ -333,41 +333,37 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         def elastic_depth(contact_radius_m: float) -> float:
             return ball_depth_for_contact(contact_radius_m, R, thickness, poisson, cap=True)
 
+        deepest = elastic_depth(math.inf)
+
     taps, fitted, capped = [], [], []
     for i, (centre, radius) in enumerate(zip(archive.centres_px, archive.radii_px)):
         name = f"archive {archive.path}: press {i} ({archive.names[i]})"
         if depth == "radius":
             edge_px = float(radius)
-        elif depth == "elastic":
-            try:
-                edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
-                d = elastic_depth(edge_px * pixel_m)
-            except ValueError as exc:
-                raise ValueError(f"{name}: {exc}") from None
-            # a rim wider than the deepest tabulated press leaves is given that depth, and says so
-            capped.append(d >= elastic_depth(math.inf))
-            try:
-                taps.append(press_tap(i, obj, unit, mesh, camera, centre, d))
-            except ValueError as exc:
-                raise ValueError(f"{name}: {exc}") from None
-            fitted.append(edge_px)
-            continue
         else:
             try:
                 edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
-        contact_px = edge_px / rim_share
-        capped.append(bool(rim_share != 1.0 and contact_px > RIM_CAP * R / pixel_m))
-        if capped[-1]:
-            contact_px = RIM_CAP * R / pixel_m
-        try:
-            d = ball_depth(contact_px * pixel_m, R)
-        except ValueError as exc:
-            what = "its annotated radius" if depth == "radius" else "the rim fitted to its image"
-            raise ValueError(f"{name}: {what}, {edge_px:.2f} px at {pixel_m * 1e3:g} mm a pixel: {exc}"
-                             + ("; --depth profile fits the rim from the image instead" if depth == "radius" else "")
-                             ) from None
+        if depth == "elastic":
+            try:
+                d = elastic_depth(edge_px * pixel_m)
+            except ValueError as exc:
+                raise ValueError(f"{name}: {exc}") from None
+            # a rim wider than the deepest tabulated press leaves is given that depth, and says so
+            capped.append(d >= deepest)
+        else:
+            contact_px = edge_px / rim_share
+            capped.append(bool(rim_share != 1.0 and contact_px > RIM_CAP * R / pixel_m))
+            if capped[-1]:
+                contact_px = RIM_CAP * R / pixel_m
+            try:
+                d = ball_depth(contact_px * pixel_m, R)
+            except ValueError as exc:
+                what = "its annotated radius" if depth == "radius" else "the rim fitted to its image"
+                raise ValueError(f"{name}: {what}, {edge_px:.2f} px at {pixel_m * 1e3:g} mm a pixel: {exc}"
+                                 + ("; --depth profile fits the rim from the image instead" if depth == "radius"
+                                    else "")) from None
         try:
             taps.append(press_tap(i, obj, unit, mesh, camera, centre, d))
         except ValueError as exc:
