@@ -25,6 +25,7 @@ it. The displacement does not depend on Young's modulus; the load does (``young_
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -97,8 +98,8 @@ def solve(delta: np.ndarray, pixel_m: float, thickness_m: float | None, poisson:
     pad = 0 if thickness_m is None else int(math.ceil(PAD_THICKNESSES * thickness_m / pixel_m))
     shape = (h + 2 * pad, w + 2 * pad)
     sizes = (shape[0] * pixel_m, shape[1] * pixel_m)
-    floor = float(delta.min()) - reach  # off the indenter: far below the surface
-    heights = np.full(shape, min(floor, -reach))
+    # the padding is off the indenter: a reach further from the surface than any in the map
+    heights = np.full(shape, min(float(delta.min()), 0.0) - reach)
     heights[pad:pad + h, pad:pad + w] = delta
     if thickness_m is None:
         substrate = FreeFFTElasticHalfSpace(shape, young_pa / (1 - nu * nu), sizes)
@@ -197,15 +198,11 @@ def ball_contact_radius(depth_m: float, ball_radius_m: float, thickness_m: float
     return math.sqrt(contact.contact.sum() / math.pi) * pixel
 
 
+@functools.lru_cache(maxsize=8)
 def _radii(ball_radius_m: float, thickness_m: float | None, poisson: float) -> tuple[np.ndarray, np.ndarray]:
-    key = (ball_radius_m, thickness_m, poisson)
-    if key not in _TABLES:
-        depths = np.array(DEPTH_SHARES) * ball_radius_m
-        _TABLES[key] = (depths, np.array([ball_contact_radius(d, ball_radius_m, thickness_m, poisson) for d in depths]))
-    return _TABLES[key]
-
-
-_TABLES: dict = {}
+    """(depths, contact radii) at DEPTH_SHARES of the ball's radius, solved once per ball and layer."""
+    depths = np.array(DEPTH_SHARES) * ball_radius_m
+    return depths, np.array([ball_contact_radius(d, ball_radius_m, thickness_m, poisson) for d in depths])
 
 
 def ball_depth_for_contact(contact_radius_m: float, ball_radius_m: float, thickness_m: float | None,
