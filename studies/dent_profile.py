@@ -131,6 +131,9 @@ def capture_presses(folder: str | Path):
 
     spec = capture_spec(str(folder))
     camera = Camera.from_spec(spec)
+    if not camera.is_pinhole:  # a pixel's size on the membrane is read as depth over focal length
+        raise ValueError(f"CAPTURE {folder}: its camera is a {camera.projection} lens with distortion (k1 {camera.k1}, "
+                         f"k2 {camera.k2}); the study reads a pixel's size as a pinhole's")
     meta = read_meta(folder)
     ball_mm = (meta.get("import") or {}).get("ball_mm")
     if ball_mm is None:
@@ -154,6 +157,7 @@ def centres_px(taps) -> np.ndarray:
 def measure(folder: str | Path, sims: dict[str, str | Path] | None = None) -> dict:
     """The study (module doc) of the capture ``folder`` and, at its centres and rims'
     search, the datasets ``sims`` ({name: folder}) of the same presses."""
+    from scenes.camera import CONTACT_EPS_M
     from scenes.dataset import load_sample, read_samples
     from scenes.images import read_rgb
     from scenes.imports import contact_edge_px
@@ -172,18 +176,21 @@ def measure(folder: str | Path, sims: dict[str, str | Path] | None = None) -> di
     for name, sim in (sims or {}).items():
         images = np.stack([load_sample(sim, records[name][i], shape)[0] for i in taps.ids])
         sets[name] = (images, read_rgb(Path(sim) / "background.png", shape))
+    # each press's pixel at its centre, mm, and the disc its depth map presses, px: the same for every set
+    geometry = []
+    for k in range(len(taps.ids)):
+        u, v = (int(round(c)) for c in centres[k])
+        v, u = min(max(v, 0), ref.shape[0] - 1), min(max(u, 0), ref.shape[1] - 1)
+        pressed = (ref - np.asarray(taps.depths[k], np.float64)) > CONTACT_EPS_M
+        geometry.append((ref[v, u] / camera.f * 1e3, math.sqrt(pressed.sum() / math.pi) if pressed.any() else None))
     out = {"capture": str(folder), "presses": len(taps.ids), "ball_radius_mm": ball_m * 1e3, "bin_px": BIN_PX,
            "shares_of_rim": SHARES.tolist(), "sets": {}}
     for name, (images, no_contact) in sets.items():
         rows = []
         real_rims = {r["id"]: r["rim_mm"] for r in out["sets"].get("real", {}).get("presses", []) if "rim_mm" in r}
         for k, tap_id in enumerate(taps.ids):
-            u, v = (int(round(c)) for c in centres[k])
-            v, u = min(max(v, 0), ref.shape[0] - 1), min(max(u, 0), ref.shape[1] - 1)
-            pixel_mm = ref[v, u] / camera.f * 1e3
+            pixel_mm, contact_px = geometry[k]
             ball_px = ball_m * 1e3 / pixel_mm
-            pressed = (ref - np.asarray(taps.depths[k], np.float64)) > 1e-6
-            contact_px = math.sqrt(pressed.sum() / math.pi) if pressed.any() else None
             try:
                 rim_px = contact_edge_px(images[k], no_contact, centres[k], ball_px)
             except ValueError as exc:
