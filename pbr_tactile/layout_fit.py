@@ -408,8 +408,7 @@ def _search(spec: SensorSpec, layout: list, candidate: dict, loss: float, score,
                 trials[sign] = (trial, render(trial))
             moved, tried = [], {}
             for m in movable:
-                base = loss
-                tried[m] = {"from": float(layout[m].vector()[k]), "loss": base, "trials": []}
+                tried[m] = {"from": float(layout[m].vector()[k]), "loss": loss, "trials": []}
                 for sign, (trial, other) in trials.items():
                     if np.allclose(trial[m].vector(), layout[m].vector()):
                         continue
