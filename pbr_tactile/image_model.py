@@ -385,24 +385,14 @@ def solve_gains(X: np.ndarray, y: np.ndarray, clipped: np.ndarray, gamma: float,
 
 def _nonnegative(A: np.ndarray, b: np.ndarray, cap: float | None = None, capped: int = 1) -> np.ndarray:
     """argmin |A x - b| over x >= 0 (``scipy.optimize.nnls``), the last ``capped``
-    coefficients at most ``cap`` where given: those whose unbounded optimum passes the cap
-    are held at it and the rest solved again, until none passes (the problem is convex,
-    so an optimum past a bound has that bound active)."""
-    x = optimize.nnls(A, b)[0]
+    coefficients also at most ``cap`` where given (``scipy.optimize.lsq_linear``'s
+    bounded-variable least squares)."""
     if cap is None:
-        return x
-    n = A.shape[1]
-    held = np.zeros(n, bool)
-    for _ in range(capped):
-        over = np.zeros(n, bool)
-        over[n - capped:] = x[n - capped:] > cap
-        if not np.any(over & ~held):
-            break
-        held |= over
-        x = np.zeros(n)
-        x[held] = cap
-        x[~held] = optimize.nnls(A[:, ~held], b - A[:, held] @ x[held])[0]
-    return x
+        return optimize.nnls(A, b)[0]
+    upper = np.full(A.shape[1], np.inf)
+    upper[A.shape[1] - capped:] = cap
+    # (clipped: the solver may leave a coefficient at its bound a rounding error past it)
+    return np.clip(optimize.lsq_linear(A, b, bounds=(0.0, upper), method="bvls").x, 0.0, upper)
 
 
 def _rank_one_start(X, Y, clipped, gamma, response, weight, black=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
