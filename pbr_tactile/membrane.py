@@ -44,10 +44,19 @@ class ElastomerBuilder:
     ----------
     membrane : the undeformed outer membrane surface, open at its base, camera frame.
     edge : target edge of the refined outer surface, metres.
+    elastic : None, the layer model's dent; or the ``bonded`` model's (``{"model": "bonded",
+        "thickness_m", "poisson_ratio"}``, either None for the spec's), as the fast path's
+        ``BondedLayer`` solves it (its bulge left out).
     """
 
-    def __init__(self, membrane: trimesh.Trimesh, spec: SensorSpec, camera: Camera, edge: float = LAYER_EDGE_M):
-        self.layer = MembraneLayer(membrane, spec, camera, edge)
+    def __init__(self, membrane: trimesh.Trimesh, spec: SensorSpec, camera: Camera, edge: float = LAYER_EDGE_M,
+                 elastic: dict | None = None):
+        bonded = None
+        if elastic is not None:  # the bonded layer's dent instead of the layer model's
+            from scenes.elastic_solid import BondedLayer
+
+            bonded = BondedLayer(spec, camera, elastic.get("thickness_m"), elastic.get("poisson_ratio"))
+        self.layer = MembraneLayer(membrane, spec, camera, edge, bonded=bonded)
         thickness = self.layer.thickness  # under each vertex, from the sensor's body (scenes.body)
         outer = self.layer.mesh
         inner = trimesh.Trimesh(self.layer.vertices - thickness[:, None] * self.layer.normals, outer.faces,
@@ -184,7 +193,7 @@ _builders: OrderedDict = OrderedDict()
 
 
 def shared_builder(membrane: trimesh.Trimesh, spec: SensorSpec, camera: Camera,
-                   edge: float = LAYER_EDGE_M) -> ElastomerBuilder:
+                   edge: float = LAYER_EDGE_M, elastic: dict | None = None) -> ElastomerBuilder:
     """The ElastomerBuilder of this membrane, kept across calls: building one refines and
     checks the membrane and ray-casts the glass core's depth map (about 1.6 s of an
     80x60 render's 5.7 s here). Keyed by the mesh, the camera, the refinement and the
@@ -193,8 +202,8 @@ def shared_builder(membrane: trimesh.Trimesh, spec: SensorSpec, camera: Camera,
     from scenes.cache import make_key
 
     key = make_key(np.asarray(membrane.vertices), np.asarray(membrane.faces), dataclasses.asdict(spec.membrane),
-                   dataclasses.asdict(spec.elastic), dataclasses.asdict(camera), edge)
-    return _kept(_builders, key, lambda: ElastomerBuilder(membrane, spec, camera, edge), KEPT_BUILDERS)
+                   dataclasses.asdict(spec.elastic), dataclasses.asdict(camera), edge, elastic)
+    return _kept(_builders, key, lambda: ElastomerBuilder(membrane, spec, camera, edge, elastic), KEPT_BUILDERS)
 
 
 def _kept(store: OrderedDict, key: str, build, size: int):

@@ -76,6 +76,7 @@ DEFAULTS = {
     "seed": 0,
     "profile": None,
     "led_power": None,
+    "elastic": None,
 }
 #: The no-contact frame's EXPOSURE_PERCENTILE inside the image circle maps to this value.
 EXPOSURE_LEVEL = 0.8
@@ -183,7 +184,29 @@ def options_from(options: dict, camera: Camera) -> dict:
     if power is not None and profile is not None:
         raise ValueError("option led_power cannot go with a profile (the profile's gains are its LEDs' powers)")
     opts["led_power"] = None if power is None else list(power)
+    opts["elastic"] = elastic_option(given["elastic"])
     return opts
+
+
+def elastic_option(value) -> dict | None:
+    """The dent the reference renders: None or "layer", the layer model's; "bonded", the
+    bonded layer's with the spec's thickness and ratio; or a joint fit's entry
+    ``{"model": "bonded", "thickness_m", "poisson_ratio"}``. ValueError naming anything else."""
+    if value is None or value == "layer":
+        return None
+    if value == "bonded":
+        return {"model": "bonded", "thickness_m": None, "poisson_ratio": None}
+    if isinstance(value, dict) and value.get("model") == "bonded":
+        from scenes.elastic_solid import check_material
+
+        try:
+            thickness, poisson = float(value["thickness_m"]), float(value["poisson_ratio"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"option elastic must give thickness_m and poisson_ratio, got {value!r}") from None
+        check_material(thickness, poisson)
+        return {"model": "bonded", "thickness_m": thickness, "poisson_ratio": poisson}
+    raise ValueError(f"option elastic must be 'layer', 'bonded' or a bonded layer's entry {{model, thickness_m, "
+                     f"poisson_ratio}}, got {value!r}")
 
 
 def _led_power(spec: SensorSpec, opts: dict):
@@ -351,7 +374,7 @@ class PbrDatasetRenderer:
                                float(frame["rse"]))
         self._memo = dict(inputs["deposits"])  # read first, then filled by any miss
         self._control = None if inputs["control"] is None else Control(**inputs["control"])
-        self._solids = shared_builder(mesh, spec, camera)  # refined and checked once per process
+        self._solids = shared_builder(mesh, spec, camera, elastic=opts["elastic"])  # refined, checked once per process
 
     def camera_size(self, image: np.ndarray) -> np.ndarray:
         """A film-sized (h, w, 3) image at the camera's (H, W, 3), float32 (see RESAMPLING)."""

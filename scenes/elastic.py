@@ -259,7 +259,8 @@ class MembraneLayer:
     """
 
     def __init__(self, mesh: trimesh.Trimesh, spec: SensorSpec, camera: Camera, edge: float | None = LAYER_EDGE_M,
-                 thickness=None):
+                 thickness=None, bonded=None):
+        self.bonded = bonded
         self.mesh = refine(mesh, edge) if edge is not None else mesh
         self.camera = camera
         self.vertices = np.asarray(self.mesh.vertices, dtype=np.float64)
@@ -338,7 +339,9 @@ class MembraneLayer:
                             max_reach=float(self.thickness.max()) + PENETRATION_TOLERANCE_M)
         w = np.zeros(len(delta))
         touching = np.flatnonzero(delta > 0)
-        if len(touching):
+        if len(touching) and self.bonded is not None:
+            w = self._bonded_displacement(depth, ref_depth, np.minimum(delta, self.thickness - MIN_GAP_M))
+        elif len(touching):
             cap = self.thickness - MIN_GAP_M
             obstacle = np.minimum(delta, cap)
             # Solve near the contact only; beyond, w is below exp(-SUPPORT_LENGTHS).
@@ -353,6 +356,31 @@ class MembraneLayer:
             w[patch] = np.clip(solve_layer(K, local), 0.0, cap[patch])
         vertices = self.vertices - w[:, None] * self.normals
         return LayerDeformation(vertices, w, delta)
+
+    def _bonded_displacement(self, depth: np.ndarray, ref_depth: np.ndarray, reach: np.ndarray) -> np.ndarray:
+        """(V,) w of the ``bonded`` model (``scenes.elastic_solid.BondedLayer``): its
+        displacement, solved on the contact's tangent plane from the depth maps, read at
+        each vertex the camera places in its window and near the contact (bilinearly), then
+        held between the indenter's ``reach`` (where it reaches a vertex) and the gap
+        above the core. Its bulge (u < 0) is left out: a dent here only takes elastomer
+        away (the reference's solids and fluence grids rely on it)."""
+        contact, window, _ = self.bonded._found(depth, ref_depth)
+        w = np.zeros(len(self.vertices))
+        if contact is not None:
+            rows, cols = window
+            pressed = np.where(ref_depth > depth, ref_depth - depth, -np.inf)
+            v, u = np.unravel_index(np.argmax(pressed), pressed.shape)
+            rays = self.camera.rays_channels_first
+            centre = ref_depth[v, u] * rays[:, v, u]
+            points = ref_depth[window] * rays[(slice(None),) + window]
+            near = np.linalg.norm(points - centre[:, None, None], axis=0).max()
+            uv = project(self.vertices, self.camera)
+            r, c = uv[:, 1] - rows.start, uv[:, 0] - cols.start
+            h, wd = contact.u.shape
+            seen = (r >= 0) & (r <= h - 1) & (c >= 0) & (c <= wd - 1) & (
+                np.linalg.norm(self.vertices - centre, axis=1) <= near)
+            w[seen] = ndimage.map_coordinates(contact.u, [r[seen], c[seen]], order=1, mode="nearest")
+        return np.clip(np.maximum(w, reach), 0.0, self.thickness - MIN_GAP_M)
 
     def surface(self, depth: np.ndarray, ref_depth: np.ndarray) -> trimesh.Trimesh:
         """The deformed outer surface (the refined mesh's faces) for a contact."""

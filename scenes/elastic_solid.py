@@ -16,16 +16,17 @@ Polonsky and Keer (``ContactMechanics.Optimization``). Unlike the layer model
 outside the contact sinks as a solid's does, and an incompressible layer keeps its
 volume: what the indenter pushes in rises round it.
 
-It works on the image grid, the membrane taken flat in its tangent plane at the contact
-(a pixel's size at the deepest point), on a window PAD_THICKNESSES thicknesses wider
-than the contact on every side, so that the periodic solution's neighbours do not reach
-it. The displacement does not depend on Young's modulus; the load does (``young_pa``).
+It works on a square grid in the membrane's tangent plane at the contact (a pixel's size
+there; ``BondedLayer`` maps a depth map's pixels onto it and back, on any membrane shape),
+on a window PAD_THICKNESSES thicknesses wider than the contact on every side, so that the
+periodic solution's neighbours do not reach it. The displacement does not depend on Young's modulus; the load does (``young_pa``).
 ``ContactMechanics`` is the optional ``contact`` extra, imported where a contact is solved.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 from dataclasses import dataclass
 
@@ -121,30 +122,49 @@ def solve(delta: np.ndarray, pixel_m: float, thickness_m: float | None, poisson:
 #: The window solved reaches this many layer thicknesses past the indenter's footprint
 #: (an incompressible layer's bulge lies within about two).
 MARGIN_THICKNESSES = 3.0
+#: Contacts a BondedLayer keeps, by their depth maps (the oldest dropped first).
+MEMO_SIZE = 256
 
 
 class BondedLayer:
-    """The ``"bonded"`` elastic model on a flat membrane seen head-on (a ``pad``): the
-    contact's surface from its depth map, as ``MembraneLayer.depth`` gives the layer
-    model's (the fast path's renderer takes either). The thickness is the spec's
-    elastomer's, the ratio its ``[elastic] poisson_ratio``; the displacement is taken along
-    the view, in the membrane's tangent plane at the footprint's deepest point."""
+    """The ``"bonded"`` elastic model on any membrane: the contact's surface from its depth
+    map, as ``MembraneLayer.depth`` gives the layer model's (the fast path's renderer
+    takes either). The thickness is the spec's elastomer's, the ratio its ``[elastic]
+    poisson_ratio``; ``thickness`` and ``poisson`` replace them (a layer fitted to presses:
+    ``phong_reference.elastic_fit``).
 
-    def __init__(self, spec, camera):
-        if spec.membrane.shape != "pad":
-            raise ValueError(f"elastic model 'bonded' works in the image of a flat membrane (shape 'pad'); sensor "
-                             f"{spec.name!r} is a {spec.membrane.shape!r}: use 'layer' or 'published'")
-        if not camera.is_pinhole:
-            raise ValueError(f"elastic model 'bonded' needs a pinhole camera without distortion; sensor {spec.name!r}'s "
-                             f"is {camera.projection} (k1 {camera.k1}, k2 {camera.k2})")
-        self.thickness = spec.membrane.elastomer_thickness
-        self.poisson = spec.elastic.poisson_ratio
+    The layer is taken flat in the membrane's tangent plane at the footprint's deepest
+    point (a contact small beside the membrane's curvature: a 4 mm ball's on the GelTip's
+    11.5 mm tube, or on a flat pad): each pixel of a window round the footprint is placed
+    in that plane by its undeformed surface point, the indenter's reach along the plane's
+    normal resampled on a square grid of the pixels' size there (linearly), the contact
+    solved (:func:`solve`), and the surface's displacement u read back at each pixel
+    (bilinearly) and moved along the normal: the pixel's depth falls by u over the cosine
+    between its ray and the normal. Any camera the spec's rays describe works. The last
+    MEMO_SIZE contacts are kept by their depth maps, so that a calibration that renders the
+    same presses under many lights solves each dent once."""
+
+    def __init__(self, spec, camera, thickness: float | None = None, poisson: float | None = None):
+        self.thickness = spec.membrane.elastomer_thickness if thickness is None else float(thickness)
+        self.poisson = spec.elastic.poisson_ratio if poisson is None else float(poisson)
+        if self.thickness is None:
+            raise ValueError(f"elastic model 'bonded' needs the elastomer's thickness; sensor {spec.name!r} states none "
+                             "(its core is a mesh)")
         check_material(self.thickness, self.poisson)
         self.camera = camera
+        self._memo: dict[bytes, tuple] = {}
 
     def solved(self, depth: np.ndarray, ref_depth: np.ndarray) -> tuple[Contact | None, tuple[slice, slice]]:
         """The contact of ``depth`` over ``ref_depth`` (H, W, m) on its window (rows,
-        columns), None where nothing presses."""
+        columns), None where nothing presses: its ``u`` (m, along the tangent plane's
+        normal), ``pressure`` and ``contact`` read back at the window's pixels (a pixel is
+        in contact where the nearest grid point is and the indenter reaches it), its load
+        and volume the grid's."""
+        return self._found(depth, ref_depth)[:2]
+
+    def _found(self, depth, ref_depth):
+        """(the contact, its window, each window pixel's ray-normal cosine), solved once
+        per depth map (MEMO_SIZE kept)."""
         depth, ref_depth = np.asarray(depth, np.float64), np.asarray(ref_depth, np.float64)
         if depth.shape != ref_depth.shape or depth.ndim != 2:
             raise ValueError(f"depth {depth.shape} and ref_depth {ref_depth.shape} must be the same (H, W)")
@@ -153,24 +173,77 @@ class BondedLayer:
         reach = ref_depth - depth
         pressed = reach > 0
         if not pressed.any():
-            return None, (slice(0, 0), slice(0, 0))
-        v, u = np.unravel_index(np.argmax(reach), reach.shape)
-        pixel_m = ref_depth[v, u] / self.camera.f
-        margin = int(math.ceil(MARGIN_THICKNESSES * self.thickness / pixel_m))
+            return None, (slice(0, 0), slice(0, 0)), None
+        key = hashlib.sha1(reach.tobytes()).digest() + str(reach.shape).encode()
+        if key not in self._memo:
+            if len(self._memo) >= MEMO_SIZE:
+                self._memo.pop(next(iter(self._memo)))
+            self._memo[key] = self._solve(reach, pressed, ref_depth)
+        return self._memo[key]
+
+    def _solve(self, reach, pressed, ref_depth):
+        from scipy.interpolate import RegularGridInterpolator, griddata
+
+        H, W = reach.shape
+        rays = np.asarray(self.camera.rays_channels_first, np.float64)  # planar z: P = D ray
+        v, u = np.unravel_index(np.argmax(np.where(pressed, reach, -np.inf)), reach.shape)
+        P = lambda r, c: ref_depth[r, c] * rays[:, r, c]  # noqa: E731
+        du = P(v, min(u + 1, W - 1)) - P(v, max(u - 1, 0))
+        dv = P(min(v + 1, H - 1), u) - P(max(v - 1, 0), u)
+        n = np.cross(du, dv)
+        n /= np.linalg.norm(n)
+        if np.dot(n, P(v, u)) > 0:  # facing the camera: the way the indenter pushes the surface
+            n = -n
+        t1 = np.cross(n, [0.0, 1.0, 0.0] if abs(n[1]) < 0.9 else [1.0, 0.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        spacing = 0.5 * (np.linalg.norm(du) / max(min(u + 1, W - 1) - max(u - 1, 0), 1)
+                         + np.linalg.norm(dv) / max(min(v + 1, H - 1) - max(v - 1, 0), 1))
+        margin = int(math.ceil(MARGIN_THICKNESSES * self.thickness / spacing))
         rows, cols = np.flatnonzero(pressed.any(axis=1)), np.flatnonzero(pressed.any(axis=0))
-        window = (slice(max(0, rows[0] - margin), min(reach.shape[0], rows[-1] + 1 + margin)),
-                  slice(max(0, cols[0] - margin), min(reach.shape[1], cols[-1] + 1 + margin)))
-        # off the footprint the indenter's surface is not in the map: taken far from the membrane
-        delta = np.where(pressed[window], reach[window], -float(reach.max()))
-        return solve(delta, pixel_m, self.thickness, self.poisson), window
+        window = (slice(max(0, rows[0] - margin), min(H, rows[-1] + 1 + margin)),
+                  slice(max(0, cols[0] - margin), min(W, cols[-1] + 1 + margin)))
+        Pw = ref_depth[window] * rays[(slice(None),) + window]  # (3, h, w)
+        rel = Pw - P(v, u)[:, None, None]
+        x, y = np.einsum("k,khw->hw", t1, rel), np.einsum("k,khw->hw", t2, rel)
+        cosine = -np.einsum("k,khw->hw", n, rays[(slice(None),) + window])  # ray (z = 1) along the normal
+        delta_px = reach[window] * cosine  # the indenter's reach along the normal
+        inside = pressed[window]
+        # the grid: the window's extent in the plane, in steps of a pixel's size
+        xs = np.arange(x.min(), x.max() + spacing, spacing)
+        ys = np.arange(y.min(), y.max() + spacing, spacing)
+        gx, gy = np.meshgrid(xs, ys, indexing="xy")  # (len(ys), len(xs))
+        top = float(delta_px[inside].max())
+        delta = griddata((x[inside], y[inside]), delta_px[inside], (gx, gy), method="linear", fill_value=np.nan)
+        delta = np.where(np.isfinite(delta), delta, -top)
+        contact = solve(delta, spacing, self.thickness, self.poisson)
+        read = dict(bounds_error=False, fill_value=0.0)
+        at = np.stack([y.ravel(), x.ravel()], axis=1)
+        u_px = RegularGridInterpolator((ys, xs), contact.u, **read)(at).reshape(x.shape)
+        pressure = RegularGridInterpolator((ys, xs), contact.pressure, **read)(at).reshape(x.shape)
+        touching = RegularGridInterpolator((ys, xs), contact.contact.astype(float), method="nearest",
+                                           **read)(at).reshape(x.shape) > 0.5
+        mapped = Contact(u_px, pressure, touching & inside, contact.load_n, contact.volume_m3)
+        return mapped, window, cosine
 
     def depth(self, depth: np.ndarray, ref_depth: np.ndarray) -> np.ndarray:
-        """(H, W) the deformed membrane's depth, m: D_ref - u, u the surface's
-        displacement along the view (its bulge, where it rises, nearer the camera)."""
-        contact, window = self.solved(depth, ref_depth)
+        """(H, W) the deformed membrane's depth, m: each pixel's D_ref less u over the
+        cosine between its ray and the normal (the surface moved by u along the normal
+        towards the camera; where u < 0, its bulge, away from it), on the indenter where
+        it touches and never past it."""
+        contact, window, cosine = self._found(depth, ref_depth)
         out = np.array(ref_depth, np.float64)
         if contact is not None:
-            out[window] -= contact.u
+            out[window] -= contact.u / cosine
+            # the contact's conditions, as the solver holds them on its grid, held again on the
+            # pixels (the resampling's rounding, a few um): on the indenter where it touches,
+            # nowhere past it
+            depth = np.asarray(depth, np.float64)
+            pressed = depth < ref_depth
+            out[pressed] = np.minimum(out[pressed], depth[pressed])
+            touching = np.zeros_like(pressed)
+            touching[window] = contact.contact
+            out[touching] = depth[touching]
         return out
 
 

@@ -62,29 +62,45 @@ def test_a_thinner_layer_is_stiffer_and_the_half_space_the_softest():
     assert loads[0] > loads[1] > loads[2]
 
 
-def test_the_fast_path_s_surface_from_a_press_on_the_gelsight():
+def _press(spec, where=(80.0, 60.0), depth_m=1.0e-3):
+    """``spec`` at 160x120: its camera, mesh, no-contact depth, and a 4 mm ball pressed
+    ``depth_m`` where the camera sees ``where`` (the frame's centre by default)."""
     import trimesh
 
     from scenes.camera import Camera, reference_depth
     from scenes.contact import press
     from scenes.geometry import membrane_mesh
-    from scenes.spec import SENSORS_DIR, load_spec
 
-    spec = load_spec(SENSORS_DIR / "gelsight.toml").at_resolution(160, 120)
+    spec = spec.at_resolution(160, 120)
     camera, mesh = Camera.from_spec(spec), membrane_mesh(spec)
     ref = reference_depth(mesh, camera)[0]
-    depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=2e-3), (80.0, 60.0), 1.0e-3)
+    return spec, camera, mesh, ref, press(ref, camera, mesh, trimesh.primitives.Sphere(radius=2e-3), where, depth_m)
+
+
+def _gelsight_press():
+    from scenes.spec import SENSORS_DIR, load_spec
+
+    return _press(load_spec(SENSORS_DIR / "gelsight.toml"))
+
+
+def _bonded(spec, camera, depth, ref):
+    """(the deformed depth, the pixels the ball touches, those it reaches, the layer's window)."""
     layer = BondedLayer(spec, camera)
     out = layer.depth(depth, ref)
     contact, window = layer.solved(depth, ref)
-    pressed = ref - depth > 0
+    touching = np.zeros(np.shape(ref), bool)
+    touching[window] = contact.contact
+    return out, touching, ref - depth > 0, window
+
+
+def test_the_fast_path_s_surface_from_a_press_on_the_gelsight():
+    spec, camera, mesh, ref, depth = _gelsight_press()
+    out, touching, pressed, _ = _bonded(spec, camera, depth, ref)
     # where the ball presses the surface is the ball's (within the solver's tolerance);
     # where the ball's footprint reaches past that contact the surface sinks below the
     # ball (the elastic contact is narrower than the geometric one, as Hertz's a^2 = R d
     # is half the chord's 2 R d); around it it sinks less the further it is, and an
     # incompressible gel rises somewhere
-    touching = np.zeros_like(pressed)
-    touching[window] = contact.contact
     assert touching.sum() > 0.5 * pressed.sum() and not (touching & ~pressed).any()
     assert np.allclose(out[touching], depth[touching], atol=2e-6)
     assert np.all(out[pressed] <= depth[pressed] + 2e-6)
@@ -106,12 +122,45 @@ def test_bad_layers_and_maps_are_refused_by_name():
         solve(np.full((8, 8), np.nan), 1e-4, 2e-3, 0.5)
     with pytest.raises(ValueError, match="pixel"):
         solve(np.zeros((8, 8)), 0.0, 2e-3, 0.5)
-    from scenes.camera import Camera
-    from scenes.spec import SENSORS_DIR, load_spec
+    from types import SimpleNamespace as NS
 
-    geltip = load_spec(SENSORS_DIR / "geltip.toml")
-    with pytest.raises(ValueError, match="flat membrane"):
-        BondedLayer(geltip, Camera.from_spec(geltip))
+    cored = NS(name="cored", membrane=NS(elastomer_thickness=None), elastic=NS(poisson_ratio=0.5))
+    with pytest.raises(ValueError, match="states none"):
+        BondedLayer(cored, None)
+    with pytest.raises(ValueError, match="Poisson"):
+        BondedLayer(cored, None, thickness=2e-3, poisson=0.7)
+
+
+def test_a_press_on_the_geltip_s_curved_membrane():
+    """The GelTip's tube (11.5 mm, a 2.5 mm elastomer) pressed on its side by a 4 mm ball
+    0.6 mm deep: the surface is the ball's where it touches and never past it, sinks round
+    the contact, less the further, and the contact's area is close to the flat layer's
+    under the same ball (the tangent plane's approximation of a contact small beside the
+    tube)."""
+    from scenes.elastic_solid import ball_contact_radius
+    from scenes.spec import default_spec
+
+    where = (130.0, 60.0)  # on the tube's side, seen obliquely
+    spec, camera, mesh, ref, depth = _press(default_spec(), where, 0.6e-3)
+    out, touching, pressed, window = _bonded(spec, camera, depth, ref)
+    assert touching.any() and not (touching & ~pressed).any()
+    assert np.allclose(out[touching], depth[touching]) and np.all(out[pressed] <= depth[pressed] + 1e-9)
+    assert np.all(out[window] - ref[window] <= 0.2e-3)  # the bulge stays small
+    # the contact's area on the surface, from its pixels' footprints, against the flat layer's
+    rays = camera.rays_channels_first
+    P = ref * rays
+    du, dv = np.gradient(P, axis=2), np.gradient(P, axis=1)
+    area = np.linalg.norm(np.cross(du, dv, axis=0), axis=0)
+    radius = math.sqrt(area[touching].sum() / math.pi)
+    flat = ball_contact_radius(0.6e-3, 2e-3, spec.membrane.elastomer_thickness, spec.elastic.poisson_ratio)
+    assert radius == pytest.approx(flat, rel=0.15)
+    # round the contact the surface sinks, less the further from it (along the surface)
+    sunk = (ref - out)[window]
+    far = np.linalg.norm(P[(slice(None),) + window] - P[:, int(where[1]), int(where[0])][:, None, None], axis=0)
+    outside = ~pressed[window]
+    near = sunk[outside & (far > 1.2 * flat) & (far < 1.6 * flat)].mean()
+    further = sunk[outside & (far > 2.0 * flat) & (far < 2.6 * flat)].mean()
+    assert near > further and near > 20e-6
 
 
 def test_a_ball_s_depth_from_its_elastic_contact():
@@ -151,3 +200,41 @@ def test_an_import_takes_the_rim_as_the_elastic_contact_s_edge(tmp_path):
         assert edge == pytest.approx(chord[r["id"]]["contact_edge_px"])
         assert r["measured_depth"] == pytest.approx(ball_depth_for_contact(edge * pixel, R, 2.5e-3, 0.5), rel=1e-9)
         assert r["measured_depth"] > chord[r["id"]]["measured_depth"] and r["contact_radius_capped"] is False
+
+
+def test_the_reference_s_membrane_takes_the_bonded_dent():
+    """The reference's refined membrane dented by the bonded model: every vertex the ball
+    reaches is on it, and every vertex near the press sinks as the fast path's surface
+    does at the vertex's pixel (the same solve read at the vertices), except that it never
+    rises: the reference leaves the bulge out."""
+    from scipy import ndimage
+
+    from scenes.camera import project
+    from scenes.elastic import MembraneLayer
+
+    spec, camera, mesh, ref, depth = _gelsight_press()
+    solver = BondedLayer(spec, camera)
+    membrane = MembraneLayer(mesh, spec, camera, bonded=solver)
+    bonded = membrane.deformation(depth, ref)
+    reached = bonded.penetration > 1e-6
+    assert reached.sum() > 100 and np.all(bonded.displacement[reached] >= bonded.penetration[reached] - 1e-12)
+    assert np.all(bonded.displacement >= 0)
+    sink = ref - solver.depth(depth, ref)  # the fast path's, along the view (head-on: the normal)
+    uv = project(membrane.vertices, camera)
+    near = np.hypot(uv[:, 0] - 80, uv[:, 1] - 60) < 30
+    fast = ndimage.map_coordinates(sink, [uv[near, 1], uv[near, 0]], order=1)
+    np.testing.assert_allclose(bonded.displacement[near], np.clip(fast, 0, None), atol=8e-6)
+    assert (fast < -20e-6).any() and np.all(bonded.displacement[near][fast < 0] < 8e-6)
+
+
+def test_the_reference_s_elastic_option():
+    from pbr_tactile.plugin import elastic_option
+
+    assert elastic_option(None) is None and elastic_option("layer") is None
+    assert elastic_option("bonded") == {"model": "bonded", "thickness_m": None, "poisson_ratio": None}
+    assert elastic_option({"model": "bonded", "thickness_m": 5e-3, "poisson_ratio": 0.45}) == {
+        "model": "bonded", "thickness_m": 5e-3, "poisson_ratio": 0.45}
+    for bad, match in (("published", "must be 'layer', 'bonded'"), ({"model": "bonded"}, "thickness_m and"),
+                       ({"model": "bonded", "thickness_m": 5e-3, "poisson_ratio": 0.55}, "Poisson")):
+        with pytest.raises(ValueError, match=match):
+            elastic_option(bad)
