@@ -37,8 +37,15 @@ from scenes.elastic import MembraneLayer
 from scenes.profile import Profile
 from scenes.spec import SensorSpec
 
+from . import environment
 from .profiled import ProfiledRenderer
 
+#: The coefficient an environment term is rendered with alone (``_environment_terms``), on
+#: the background: its change (terms of a few units at most) stays far from where the
+#: image clips, at 0 and at 1.
+ENVIRONMENT_PROBE = 1e-3
+#: The environment's terms are fitted with a ridge of this share of each term's energy.
+ENVIRONMENT_RIDGE = 1e-3
 #: The shininess values searched.
 SHININESS = (5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
 #: Each LED's place searched (:func:`fit_led_places`): its height moved along the camera's
@@ -61,10 +68,19 @@ PLACE_REFINE_GAIN = 1e-6
 
 
 def _changes(spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile, depths, layer,
-             leds: list[dict], shininess: float) -> np.ndarray:
-    """(T, H, W, 3) the fast path's change per tap for the given LED constants, with no
-    background (its ambient 0)."""
-    phong = {**profile.phong, "ambient": 0.0, "leds": leds, "shininess": shininess}
+             leds: list[dict], shininess: float, environment_coefficients: np.ndarray | None = None,
+             ambient: float | None = None) -> np.ndarray:
+    """(T, H, W, 3) the fast path's change per tap for the given LED constants and, where
+    given, the environment's coefficients (``phong_reference.environment``). Without an
+    environment, on no background (its ambient 0: a change above it does not clip); with
+    one, on the profile's background (ambient 1: the environment's change may be
+    negative), as the calibrated unit renders; ``ambient`` chooses."""
+    if ambient is None:
+        ambient = 0.0 if environment_coefficients is None else 1.0
+    phong = {k: v for k, v in profile.phong.items() if k != "environment"}
+    phong = {**phong, "ambient": ambient, "leds": leds, "shininess": shininess,
+             **({} if environment_coefficients is None else {"environment": environment.entry(
+                 environment_coefficients)})}
     renderer = ProfiledRenderer(spec, ref_depth, L, dataclasses.replace(profile, phong=phong), layer)
     return np.stack([renderer.render(d) - renderer.base for d in depths])
 
@@ -83,6 +99,59 @@ def _unit_terms(spec, ref_depth, L, profile, depths, layer, kind: str, shininess
         for j in group:
             out[j] = change[..., j - first]
     return out
+
+
+def _environment_terms(spec, ref_depth, L, profile, depths, layer) -> np.ndarray:
+    """(len(environment.TERMS), T, H, W, 3) each environment term's change alone
+    (``phong_reference.environment``) per unit coefficient in every channel, the LEDs
+    dark, through the whole profiled renderer (its alignment's move included)."""
+    dark = [{"k_d": 0.0, "k_s": 0.0, "colour": [0.0, 0.0, 0.0]} for _ in spec.leds]
+    K = len(environment.TERMS)
+    out = np.zeros((K, len(depths)) + np.shape(ref_depth) + (3,), np.float32)
+    for k in range(K):
+        unit = np.zeros((K, 3), np.float32)
+        unit[k] = ENVIRONMENT_PROBE  # small and on the background, so that neither sign clips
+        out[k] = _changes(spec, ref_depth, L, profile, depths, layer, dark, spec.material.shininess, unit)
+    return out / ENVIRONMENT_PROBE
+
+
+def fit_terms(spec: SensorSpec, ref_depth: np.ndarray, L: np.ndarray, profile: Profile, depths, layer,
+              real: np.ndarray, regions: np.ndarray, shininess=SHININESS,
+              with_environment: bool = True) -> tuple[list[dict], float, float, np.ndarray | None]:
+    """The LED constants that fit the changes ``real`` (T, H, W, 3) of taps ``depths`` (T,
+    H, W) best over ``regions`` (T, H, W) (module doc): (the Phong model's LED constants,
+    the shininess, the least squares' summed squared residual, the environment's
+    coefficients (len(environment.TERMS), 3) or None), each channel's coefficients by
+    non-negative least squares (an environment term's sign is free: it enters as itself
+    and its negative), the best shininess of ``shininess``. ``with_environment``: fit the
+    environment's terms (``phong_reference.environment``) beside the LEDs'."""
+    best = None
+    D = _unit_terms(spec, ref_depth, L, profile, depths, layer, "k_d", spec.material.shininess)
+    E = _environment_terms(spec, ref_depth, L, profile, depths, layer)[:, regions] if with_environment else None
+    M = len(spec.leds)
+    for alpha in shininess:
+        S = _unit_terms(spec, ref_depth, L, profile, depths, layer, "k_s", alpha)
+        X = np.concatenate([D[:, regions], S[:, regions]]).T  # (N, 2M)
+        coef, loss = np.zeros((2 * M, 3)), 0.0
+        signed = None if E is None else np.zeros((len(E), 3))
+        for c in range(3):
+            if E is None:
+                coef[:, c], res = optimize.nnls(X, real[regions][:, c])
+            else:
+                Ec = E[..., c].T  # (N, K)
+                # a light ridge on the environment's terms: collinear ones (a frame lit evenly makes
+                # each "lit" term its plain one's multiple) stay small instead of cancelling
+                ridge = np.diag(np.sqrt(ENVIRONMENT_RIDGE * len(Ec) * np.mean(Ec * Ec, axis=0)) + 1e-12)
+                A = np.concatenate([np.concatenate([X, Ec, -Ec], axis=1),
+                                    np.concatenate([np.zeros((len(E), 2 * M)), ridge, -ridge], axis=1)])
+                both, res = optimize.nnls(A, np.concatenate([real[regions][:, c], np.zeros(len(E))]))
+                coef[:, c] = both[:2 * M]
+                signed[:, c] = both[2 * M:2 * M + len(E)] - both[2 * M + len(E):]
+            loss += res**2
+        if best is None or loss < best[0]:
+            best = (loss, alpha, coef, signed)
+    loss, alpha, coef, signed = best
+    return phong_form(coef[:M], coef[M:]), float(alpha), float(loss), signed
 
 
 def phong_form(a: np.ndarray, b: np.ndarray) -> list[dict]:
@@ -122,32 +191,21 @@ def _changes_to_fit(spec: SensorSpec, profile: Profile, taps: RealTaps, backgrou
 
 def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L: np.ndarray, profile: Profile,
                       taps: RealTaps, background: np.ndarray, layer: MembraneLayer | None = None,
-                      shininess=SHININESS) -> tuple[dict, dict]:
+                      shininess=SHININESS, with_environment: bool = True) -> tuple[dict, dict]:
     """The fast path's LED constants from a unit's taps (module doc).
 
     L : light vectors baked for ``profile.sensor_spec(spec)``'s LEDs; taps and background
-    at ``camera``'s size. Returns (the profile's ``phong`` entries ``leds`` and
-    ``shininess``, the report)."""
+    at ``camera``'s size. ``with_environment``: fit the environment's terms beside the
+    LEDs' (``phong_reference.environment``). Returns (the profile's ``phong`` entries
+    ``leds``, ``shininess`` and ``environment``, the report)."""
     background = np.asarray(background, np.float64)
     if background.shape != (camera.height, camera.width, 3) or taps.images.shape[1:] != background.shape:
         raise ValueError(f"taps and background must be {camera.width}x{camera.height} RGB, got "
                          f"{taps.images.shape[1:]} and {background.shape}")
     real, regions, fitted = _changes_to_fit(spec, profile, taps, background, "the fast path's LED constants")
-    best = None
-    D = _unit_terms(spec, ref_depth, L, profile, taps.depths, layer, "k_d", spec.material.shininess)
-    for alpha in shininess:
-        S = _unit_terms(spec, ref_depth, L, profile, taps.depths, layer, "k_s", alpha)
-        X = np.concatenate([D[:, fitted][:, regions[fitted]], S[:, fitted][:, regions[fitted]]]).T  # (N, 2M)
-        coef, loss = np.zeros((X.shape[1], 3)), 0.0
-        for c in range(3):
-            coef[:, c], res = optimize.nnls(X, real[fitted][regions[fitted]][:, c])
-            loss += res**2
-        if best is None or loss < best[0]:
-            best = (loss, alpha, coef)
-    loss, alpha, coef = best
-    M = len(spec.leds)
-    leds = phong_form(coef[:M], coef[M:])
-    after = _changes(spec, ref_depth, L, profile, taps.depths, layer, leds, alpha)
+    leds, alpha, _, env = fit_terms(spec, ref_depth, L, profile, taps.depths[fitted], layer, real[fitted],
+                                    regions[fitted], shininess, with_environment)
+    after = _changes(spec, ref_depth, L, profile, taps.depths, layer, leds, alpha, env)
     own = [{"k_d": led.k_d, "k_s": led.k_s, "colour": list(led.colour)} for led in spec.leds]
     before = _changes(spec, ref_depth, L, profile, taps.depths, layer, own, spec.material.shininess)
     held = ~fitted
@@ -159,7 +217,10 @@ def fit_led_constants(spec: SensorSpec, camera: Camera, ref_depth: np.ndarray, L
         "heldout": _scores(after[held], real[held], regions[held]),
         "heldout_before": _scores(before[held], real[held], regions[held]),
     }
-    return {"leds": leds, "shininess": float(alpha)}, report
+    if env is not None:
+        report["environment"] = environment.entry(env)
+    return {"leds": leds, "shininess": float(alpha), **({"environment": environment.entry(env)} if env is not None
+                                                        else {})}, report
 
 
 def _gram_nnls(G: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -37,7 +37,9 @@ from scenes.elastic import MembraneLayer
 from scenes.profile import Profile, align_image
 from scenes.spec import SensorSpec
 
-from .render import Renderer
+from . import environment
+from .normals import normals
+from .render import Renderer, _changed_box, _grow, _inner, _slices
 
 
 def profile_background(profile: Profile, camera: Camera, full: Camera | None = None) -> np.ndarray:
@@ -143,11 +145,49 @@ class ProfiledRenderer:
         moved = align_image(self._membrane.base, profile.alignment, self.camera)
         self._moved_base = moved if self.by_change else 0.0  # subtracted from every image: only the change adds
         self.base = (np.clip(moved - self._moved_base + self.background, 0.0, 1.0) * self._mask).astype(np.float32)
+        # the light from everywhere but the LEDs, and the gel's thinning (phong_reference.environment)
+        table = (profile.phong.get("fields") or {}).get(field, profile.phong) if field is not None else profile.phong
+        self.environment = environment.coefficients(table.get("environment"))
+        if self.environment is not None:
+            rays = whole.rays_channels_first
+            self._N0 = normals(self.ref_depth * rays)[0]
+            # the no-contact image the "lit" terms scale by: the background term at full ambient
+            lit = profile_background(dataclasses.replace(profile, phong={**profile.phong, "ambient": 1.0}),
+                                     self.camera)
+            self._lit = np.ascontiguousarray(lit.transpose(2, 0, 1), np.float32)
+
+    def environment_terms(self, depth: np.ndarray) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """(the window, (len(environment.TERMS), 3, h, w) each term's change there) of a
+        contact depth map, in the membrane's frame (before the alignment's move); None
+        where the surface does not move."""
+        d_def = self._membrane.deformed(depth)
+        box = _changed_box(self.ref_depth - d_def)
+        if box is None:
+            return None
+        shape = self.camera.shape
+        shaded = _grow(box, 1, shape)
+        stencil = _grow(shaded, 1, shape)
+        P = d_def[_slices(stencil)] * self._membrane.camera.rays_channels_first[(slice(None),) + _slices(stencil)]
+        N = normals(P)[0][(slice(None),) + _inner(stencil, shaded)]
+        window = _slices(shaded)
+        at = (slice(None),) + window
+        return window, environment.terms(N, self._N0[at], self.ref_depth[window] - d_def[window], self._lit[at])
+
+    def _membrane_image(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W, 3) the membrane's shading under a contact, with the environment's change."""
+        membrane = self._membrane.render(depth)
+        if self.environment is None:
+            return membrane
+        found = self.environment_terms(depth)
+        if found is not None:
+            window, T = found
+            membrane[window] += environment.change(self.environment, T).transpose(1, 2, 0)
+        return membrane
 
     def render(self, depth: np.ndarray) -> np.ndarray:
         """(H, W) float metres -> (H, W, 3) float32 in [0, 1]. Only the window where the
         moved membrane changes is moved again (the rest is the no-contact image)."""
-        membrane = self._membrane.render(depth)
+        membrane = self._membrane_image(depth)
         rows = np.flatnonzero(np.any(membrane != self._membrane.base, axis=(1, 2)))
         if rows.size == 0:
             return self.base.copy()

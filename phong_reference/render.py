@@ -160,6 +160,14 @@ class Renderer:
     ) -> "Renderer":
         return cls(spec, camera, fields.depth, light_vectors(fields, rectify), background)
 
+    def deformed(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W) float32 metres: the deformed membrane's depth D_def under a contact depth
+        map (the published smoothing's, or the layer's), on the whole frame."""
+        depth = check_depth(depth, self.camera).astype(np.float32, copy=False)
+        if self.layer is None:
+            return deform(depth, self.ref_depth, self.spec.elastic).astype(np.float32, copy=False)
+        return self.layer.depth(depth, self.ref_depth).astype(np.float32)
+
     def render(self, depth: np.ndarray) -> np.ndarray:
         """(H, W) float metres -> (H, W, 3) float32 linear RGB in [0, 1]."""
         depth = check_depth(depth, self.camera).astype(np.float32, copy=False)

@@ -250,3 +250,100 @@ def test_offset_takes_the_fitted_presses_mean_error_off_the_centres():
     assert errors(model, test, 1e-4)["localisation_mm_median"] == pytest.approx(0.0, abs=1e-9)
     assert errors(Offset(Shifted()), test, 1e-4)["localisation_mm_median"] == pytest.approx(np.hypot(2, 1) * 0.1)
     np.testing.assert_allclose(model.predict(test.differences())[1], 1e-3)  # the depth is the model's own
+
+
+# --- the environment's terms (phong_reference.environment) ------------------------------------
+
+
+def test_the_environment_s_terms_from_normals_displacement_and_light():
+    from phong_reference import environment as env
+
+    up = np.zeros((3, 2, 2), np.float32)
+    up[2] = -1.0  # facing the camera
+    np.testing.assert_allclose(env.harmonics(up)[:, 0, 0], [0, 0, -1, 0, 0, 0, 0, 2])
+    tilted = up.copy()
+    tilted[0], tilted[2] = 0.6, -0.8
+    u = np.array([[0.0, 1e-3], [2e-3, 0.0]], np.float32)
+    lit = np.full((3, 2, 2), 0.5, np.float32)
+    T = env.terms(tilted, up, u, lit)
+    assert T.shape == (len(env.TERMS), 3, 2, 2)
+    np.testing.assert_allclose(T[0], 0.6)  # x
+    np.testing.assert_allclose(T[2], 0.2)  # z: -0.8 - (-1)
+    np.testing.assert_allclose(T[7], 3 * 0.64 - 3 * 1.0)  # 3z^2 - 1
+    np.testing.assert_allclose(T[8], 0.3)  # x, lit by half
+    np.testing.assert_allclose(T[16][0], [[0.0, 1.0], [2.0, 0.0]])  # the thinning in mm
+    np.testing.assert_allclose(T[17][1], [[0.0, 0.5], [1.0, 0.0]])
+    assert not env.terms(up, up, np.zeros((2, 2)), lit).any()
+    c = np.zeros((len(env.TERMS), 3), np.float32)
+    c[16] = (0.01, -0.02, 0.03)
+    np.testing.assert_allclose(env.change(c, T)[:, 1, 0], [0.02, -0.04, 0.06], rtol=1e-6)
+    assert env.coefficients(None) is None
+    np.testing.assert_allclose(env.coefficients(env.entry(c)), c)
+    for bad in ({"terms": ["x"], "coefficients": [[0, 0, 0]]}, {"coefficients": c.tolist()},
+                {"terms": list(env.TERMS), "coefficients": np.full((18, 3), np.nan).tolist()}):
+        with pytest.raises(ValueError, match="phong.environment must"):
+            env.coefficients(bad)
+
+
+def _hidden_environment():
+    from phong_reference import environment as env
+
+    c = np.zeros((len(env.TERMS), 3))
+    c[env.TERMS.index("z")] = (0.05, 0.0, -0.08)
+    c[env.TERMS.index("xx-yy lit")] = (0.0, 0.1, 0.0)
+    c[env.TERMS.index("thinning")] = (-0.01, -0.02, 0.04)
+    return c
+
+
+def test_a_profile_s_environment_is_rendered_as_its_terms(flat):
+    """LEDs dark, the thinning alone: the change is its coefficient times the surface's
+    displacement in mm, channel by channel."""
+    from phong_reference import environment as env
+    from phong_reference.bake import bake
+    from phong_reference.profiled import ProfiledRenderer
+    from phong_reference.render import light_vectors
+
+    spec, mesh, camera, ref, depths = flat
+    c = np.zeros((len(env.TERMS), 3))
+    c[env.TERMS.index("thinning")] = (0.01, -0.02, 0.03)
+    dark = [{"k_d": 0.0, "k_s": 0.0, "colour": [0.0, 0.0, 0.0]} for _ in spec.leds]
+    unit = _profile(spec, {"leds": dark, "shininess": 10.0, "composition": "change", "environment": env.entry(c)})
+    renderer = ProfiledRenderer(spec, ref, light_vectors(bake(mesh, camera, spec.leds, "linear")), unit)
+    u_mm = (ref - renderer._membrane.deformed(depths[2])) * 1e3
+    assert u_mm.max() > 0.5
+    change = renderer.render(depths[2]) - renderer.base
+    inside = camera.mask
+    for ch in range(3):
+        np.testing.assert_allclose(change[..., ch][inside], c[16, ch] * u_mm[inside], atol=2e-6)
+    # without the entry, the same dark profile does not change at all
+    plain = ProfiledRenderer(spec, ref, light_vectors(bake(mesh, camera, spec.leds, "linear")),
+                             _profile(spec, {"leds": dark, "shininess": 10.0, "composition": "change"}))
+    assert np.abs(plain.render(depths[2]) - plain.base).max() < 1e-6
+
+
+def test_the_calibration_finds_a_hidden_environment(flat):
+    """Taps whose change holds, beside the LEDs', an environment of three terms (an
+    order-1 and an order-2 harmonic and the thinning): fitted with the environment the
+    held-out taps' change is recovered; with the LEDs alone it is not."""
+    from phong_reference import environment as env
+    from phong_reference.bake import bake
+    from phong_reference.calibrate import fit_led_constants
+    from phong_reference.profiled import ProfiledRenderer
+    from phong_reference.render import light_vectors
+    from scenes.captures import RealTaps
+
+    spec, mesh, camera, ref, depths = flat
+    truth = [{"k_d": 0.5, "k_s": 0.0, "colour": [1.0, 0.1, 0.0]}, {"k_d": 0.3, "k_s": 0.0, "colour": [0.0, 1.0, 0.2]},
+             {"k_d": 0.7, "k_s": 0.0, "colour": [0.1, 0.0, 1.0]}]
+    L = light_vectors(bake(mesh, camera, spec.leds, "linear"))
+    hidden = _profile(spec, {"leds": truth, "shininess": 20.0, "composition": "change",
+                             "environment": env.entry(_hidden_environment())})
+    renderer = ProfiledRenderer(spec, ref, L, hidden)
+    taps = RealTaps(np.stack([renderer.render(d) for d in depths]), depths, ref, [f"t{i}" for i in range(len(depths))])
+    start = _profile(spec)  # as calibrate_fast starts: composed by sum, nothing calibrated
+    table, report = fit_led_constants(spec, camera, ref, L, start, taps, renderer.base)
+    assert min(report["heldout"]["change_r2"].values()) > 0.995
+    assert table["environment"]["terms"] == list(env.TERMS)
+    _, alone = fit_led_constants(spec, camera, ref, L, start, taps, renderer.base, with_environment=False)
+    assert min(alone["heldout"]["change_r2"].values()) < 0.98
+    assert "environment" not in alone
