@@ -15,7 +15,12 @@ def cmd_calibrate(args) -> int:
             raise ValueError(f"--{name} is an option of 'tactile-sim calibrate benchmark'")
     if args.out is None:
         raise ValueError("calibrate needs --out DIR")
-    result = calibrate_capture(args.real, args.out, fast_path_fit(), background_only=args.background_only,
+    fit = fast_path_fit()
+    if args.elastic_fit is not None:
+        if not args.fast_only:
+            raise ValueError("--elastic-fit calibrates the fast path under the fitted layer: give --fast-only")
+        fit = fast_path_fit(elastic_entry(args.elastic_fit))
+    result = calibrate_capture(args.real, args.out, fit, background_only=args.background_only,
                                spec=args.spec, taps=args.taps, fast_taps=args.fast_taps,
                                grid=_grid(args.grid) if args.grid else None, bootstrap=args.bootstrap,
                                camera_known=args.camera_known, fast_only=args.fast_only, no_leak=args.no_leak,
@@ -95,16 +100,34 @@ def cmd_bench_calibrate(args) -> int:
     return 0
 
 
-def fast_path_fit():
+def fast_path_fit(elastic: dict | None = None):
     """The fast path's fit of its LED constants to a unit's taps (its renderer plugin's
-    ``calibrate``), which a calibration with taps writes into the profile. Looked up by
-    name: this package imports no other renderer, and only the command line chooses one."""
+    ``calibrate``), which a calibration with taps writes into the profile; with
+    ``elastic``, under that elastic model (``{"model": "bonded", "thickness_m",
+    "poisson_ratio"}``). Looked up by name: this package imports no other renderer, and
+    only the command line chooses one."""
+    import functools
+
     from scenes.renderers import Calibrates, get_renderer
 
     phong = get_renderer("phong")
     if not isinstance(phong, Calibrates):
         raise ValueError("the renderer 'phong' offers no calibrate (scenes.renderers.Calibrates)")
-    return phong.calibrate
+    return phong.calibrate if elastic is None else functools.partial(phong.calibrate, elastic=elastic)
+
+
+def elastic_entry(path) -> dict:
+    """The elastic model a joint fit's report (``tactile-sim fit-elastic``) found: its
+    ``elastic`` entry; ValueError naming the file where it has none."""
+    import json
+
+    try:
+        entry = json.loads(Path(path).read_text())["elastic"]
+        return {"model": str(entry["model"]), "thickness_m": float(entry["thickness_m"]),
+                "poisson_ratio": float(entry["poisson_ratio"])}
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"--elastic-fit {path}: not a joint fit's report with elastic.model, thickness_m and "
+                         f"poisson_ratio ({type(exc).__name__}: {exc})") from None
 
 
 def _grid(items: list[str]) -> dict:
@@ -144,6 +167,9 @@ def register(registry) -> None:
     p.add_argument("--fast-only", action="store_true",
                    help="calibrate the fast path alone (its background term and LED constants per light field, "
                         "seconds): no render of the reference, whose profile table stays empty")
+    p.add_argument("--elastic-fit", metavar="FIT.json",
+                   help="with --fast-only: fit the fast path under the bonded layer a joint fit found (tactile-sim "
+                        "fit-elastic's report), instead of the published smoothing; the profile records it")
     p.add_argument("--fast-taps", type=int, metavar="N",
                    help="taps of REAL the fast path's LED constants are fitted (and judged) on, fitted and judged in "
                         "turn from its even and odd samples (0: all; default: the reference's --taps): the fast path "

@@ -219,7 +219,34 @@ def cmd_bench_bake(args) -> int:
     return 0
 
 
+def cmd_fit_elastic(args) -> int:
+    from .elastic_fit import fit
+
+    report = fit(args.capture, args.profile, args.out, progress=None if args.quiet else print)
+    e, i = report["elastic"], report["intervals"]
+    print(f"bonded layer h {e['thickness_m'] * 1e3:g} mm [{i['thickness_m'][0] * 1e3:g}, "
+          f"{i['thickness_m'][1] * 1e3:g}], nu {e['poisson_ratio']:g} [{i['poisson_ratio'][0]:g}, "
+          f"{i['poisson_ratio'][1]:g}]; depth share k {report['depth_share']['k']:.3f}; depths median "
+          f"{report['depth_median_m'] * 1e3:.3f} mm (per press interval median width "
+          f"{report['depth_interval_median_width_m'] * 1e3:.3f} mm); {len(report['reaches_support'])} reach the "
+          f"support; wrote {args.out}")
+    return 0
+
+
 def register(registry) -> None:
+    from scenes.commands import add_quiet_argument
+
+    p = registry.command("fit-elastic", cmd_fit_elastic,
+                         "fit the bonded layer's thickness and Poisson's ratio and each press's depth together to a "
+                         "capture's fitted presses, with the fast path's calibrated profile "
+                         "(phong_reference.elastic_fit)")
+    p.add_argument("capture", metavar="CAPTURE", help="an imported capture of ball presses (tactile-sim import)")
+    p.add_argument("--profile", required=True, metavar="PROFILE.toml",
+                   help="the fast path calibrated on it (tactile-sim calibrate --fast-only): its field and lights")
+    p.add_argument("--out", required=True, metavar="FIT.json", help="the report: the layer, the share k, every "
+                   "press's depth (tactile-sim import --depth fitted --depth-fit FIT.json reads it)")
+    add_quiet_argument(p)
+
     p = registry.command("demo", cmd_demo, "bake a sensor's light fields, press contacts and render every field and "
                          "background; --spec all: every shipped sensor, with a sheet of them all")
     _add_sensor_args(p, spec_help="sensor spec (default: the embedded GelTip), or 'all': every shipped sensor "

@@ -40,6 +40,8 @@ def options_from(options: dict) -> dict:
     background = str(options.get("background", "none"))
     # The published smoothing, or the layer model: the surface the reference renders.
     elastic = check_model(options.get("elastic", "published"), "elastic")
+    if "elastic" not in options and profile is not None:
+        elastic = None  # the profile's (phong.elastic), else the published smoothing: see make_layer
     return {"field": field, "background": background, "rectify": bool(options.get("rectify", False)),
             "elastic_model": elastic, "profile": None if profile is None else str(profile)}
 
@@ -79,8 +81,7 @@ class PhongDatasetRenderer:
         opts = options_from(options)
         unit, profile = unit_spec(spec, opts)
         fields = bake(mesh, camera, unit.leds, opts["field"])
-        layer = {"layer": lambda: MembraneLayer(mesh, spec, camera), "bonded": lambda: BondedLayer(spec, camera),
-                 "published": lambda: None}[opts["elastic_model"]]()
+        layer = make_layer(opts["elastic_model"], profile, spec, mesh, camera)
         L = light_vectors(fields, opts["rectify"])
         if profile is None:
             self._renderer = Renderer(spec, camera, ref_depth, L, make_background(opts["background"], camera), layer)
@@ -100,6 +101,30 @@ class PhongDatasetRenderer:
         return self._renderer.render(depth)
 
 
+def elastic_layer(entry: dict, spec: SensorSpec, camera: Camera) -> BondedLayer:
+    """The dent a profile's ``phong.elastic`` entry names: ``{"model": "bonded",
+    "thickness_m", "poisson_ratio"}``; ValueError naming a malformed entry."""
+    try:
+        model, thickness, poisson = entry["model"], float(entry["thickness_m"]), float(entry["poisson_ratio"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"profile phong.elastic must hold model, thickness_m and poisson_ratio, got {entry!r}") from None
+    if model != "bonded":
+        raise ValueError(f"profile phong.elastic.model must be 'bonded' (a layer with physical parameters), got "
+                         f"{model!r}")
+    return BondedLayer(spec, camera, thickness, poisson)
+
+
+def make_layer(model: str | None, profile, spec: SensorSpec, mesh, camera: Camera):
+    """The elastic model's dent for the renderer: ``model`` by name (scenes.elastic.MODELS),
+    or None: the profile's ``phong.elastic`` where it has one, else the published smoothing
+    (no layer)."""
+    if model is None:
+        entry = None if profile is None else profile.phong.get("elastic")
+        return None if entry is None else elastic_layer(entry, spec, camera)
+    return {"layer": lambda: MembraneLayer(mesh, spec, camera), "bonded": lambda: BondedLayer(spec, camera),
+            "published": lambda: None}[model]()
+
+
 def make_renderer(spec, mesh, camera, ref_depth, options) -> PhongDatasetRenderer:
     return PhongDatasetRenderer(spec, mesh, camera, ref_depth, options)
 
@@ -110,7 +135,7 @@ SIGMA_SCALES = (0.35, 0.5, 0.7, 1.0, 1.4)
 
 
 def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background: np.ndarray,
-              fields=METHODS) -> tuple[dict, dict]:
+              fields=METHODS, elastic: dict | None = None) -> tuple[dict, dict]:
     """The fast path's LED constants from a unit's taps (``phong_reference.calibrate``), with
     each light field of ``fields`` baked for the profile's LEDs: (entries of the profile's
     ``phong`` table, the report). Each field gets its own constants (``phong.fields``),
@@ -120,14 +145,25 @@ def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background:
     is the one that fits the fitted taps best. The top-level ``leds`` and ``shininess``
     are those of the field that fits the fitted taps best (the lowest MAE of their
     change over their contact regions), and the profile composes by change
-    (``phong_reference.profiled``)."""
+    (``phong_reference.profiled``).
+
+    ``elastic``: the dent of an elastic model with physical parameters instead of the
+    published smoothing (``elastic_layer``: ``{"model": "bonded", "thickness_m",
+    "poisson_ratio"}``, as ``phong_reference.elastic_fit`` fits it); no spread is searched,
+    and the table records it (``elastic``), so that the profile renders with it."""
     from .calibrate import fit_led_constants, fit_led_places
+
+    physical = None if elastic is None else dict(elastic)  # the name ``elastic`` is the spread's below
+    layer = None if physical is None else elastic_layer(physical, spec, camera)
 
     def fit_loss(report: dict) -> float:
         return float(np.mean(list(report["fit"]["mae"].values())))
 
     def spreads(L):
         out = {}
+        if layer is not None:  # a physical dent has no published spread to search
+            return {1.0: (spec.elastic, *fit_led_constants(spec, camera, taps.ref_depth, L, profile, taps, background,
+                                                            layer))}
         for scale in SIGMA_SCALES:
             sigma = spec.elastic.sigma_px * scale
             elastic = dataclasses.replace(spec.elastic, sigma_px=sigma, radius_px=max(1, int(round(3 * sigma))))
@@ -140,7 +176,7 @@ def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background:
         leds, places = profile.sensor_spec(spec).leds, None
         free = field_method(field).free_sources  # its light leaves each LED's own place
         if free:
-            positions, places = fit_led_places(spec, mesh, camera, profile, taps, background, field)
+            positions, places = fit_led_places(spec, mesh, camera, profile, taps, background, field, layer)
             leds = tuple(dataclasses.replace(led, position=p) for led, p in zip(leds, positions))
         spread = spreads(light_vectors(bake(mesh, camera, leds, field)))
         scale = min(spread, key=lambda k: fit_loss(spread[k][2]))
@@ -160,10 +196,11 @@ def calibrate(spec: SensorSpec, mesh, camera: Camera, profile, taps, background:
             # the same fit with the LEDs where the unit has them, and the spec's constants there ("before")
             unmoved = fit_led_constants(spec, camera, taps.ref_depth,
                                         light_vectors(bake(mesh, camera, profile.sensor_spec(spec).leds, field)),
-                                        profile, taps, background)[1]
+                                        profile, taps, background, layer)[1]
             reports[field]["heldout_before"] = unmoved["heldout_before"]
             reports[field]["places"] = {**places, "heldout_at_the_units_places": unmoved["heldout"]}
     best = min(fields, key=lambda f: fit_loss(reports[f]))
-    table = {**by_field[best], "field": best, "fields": by_field, "composition": "change"}
+    table = {**by_field[best], "field": best, "fields": by_field, "composition": "change",
+             **({"elastic": physical} if physical is not None else {})}
     return table, {**reports[best], "field": best, "by_field": reports,
                    "chosen": "the field whose constants fit the fitted taps' changes best (mean MAE over channels)"}

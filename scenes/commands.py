@@ -166,13 +166,21 @@ def cmd_import(args) -> int:
     ball = defaults["ball_m"] if args.ball_mm is None else args.ball_mm * 1e-3
     pixel = defaults["pixel_m"] if args.pixel_mm is None else args.pixel_mm * 1e-3
     archive = FORMATS[args.format](args.archive)
+    if (args.depth == "fitted") != (args.depth_fit is not None):
+        raise ValueError("--depth fitted takes --depth-fit FIT.json (the joint fit's report), and only it does")
+    fit = None
+    if args.depth_fit is not None:
+        try:
+            fit = json.loads(Path(args.depth_fit).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"--depth-fit {args.depth_fit}: not a readable JSON ({exc})") from None
     summary = import_capture(archive, args.out, spec, ball, pixel, depth=args.depth, fmt=args.format,
-                             rim_share=args.rim_share)
+                             rim_share=args.rim_share, fit=fit)
     d = summary["depth_mm"]
     rims = (f", rims at {summary['rim_share']:g} of the contact's radius, {summary['rims_capped']} capped at the ball's"
             if summary["rim_share"] != 1.0 else
             f", {summary['rims_capped']} rims wider than the deepest press the layer was solved at, given its depth"
-            if summary["depth"] == "elastic" else "")
+            if summary["depth"] in ("elastic", "fitted") else "")
     print(f"{summary['presses']} presses of {args.archive} in {args.out} ({summary['object']}, depth by "
           f"{summary['depth']}{rims}: median {d['median']:.3f} mm, {d['min']:.3f} to {d['max']:.3f} mm; "
           f"{summary['camera']})")
@@ -497,7 +505,11 @@ def register(registry) -> None:
     p.add_argument("--depth", choices=DEPTH_METHODS, default="profile",
                    help="each press's depth from its contact rim fitted to the image (profile, default), from "
                         "its annotated radius (radius), or from that rim taken as the edge of the elastic contact "
-                        "the spec's membrane makes (elastic: the bonded layer, needs the contact extra)")
+                        "the spec's membrane makes (elastic: the bonded layer, needs the contact extra), or from a "
+                        "joint fit of the layer and the presses' depths (fitted, with --depth-fit: tactile-sim "
+                        "fit-elastic's report)")
+    p.add_argument("--depth-fit", metavar="FIT.json",
+                   help="with --depth fitted: the joint fit's report (its layer, share and fitted presses' depths)")
     p.add_argument("--rim-share", type=float, default=1.0, metavar="K",
                    help="with --depth profile: the share of the contact's radius at which a press's change peaks "
                         "(default 1: at the rim); the contact's radius is the peak's over K, at most the ball's")

@@ -33,7 +33,11 @@ is the same for every format (:func:`import_capture`):
   model of ``scenes.elastic_solid``, its elastomer's thickness and Poisson's ratio): the
   depth is the one at which the ball leaves a contact that wide on that layer
   (``ball_depth_for_contact``), deeper than the chord's, since an elastic contact is
-  narrower than the ball's footprint.
+  narrower than the ball's footprint. With ``depth="fitted"`` the layer and depths are
+  those a joint fit to the presses found (``fit``: the report of
+  ``phong_reference.elastic_fit``): each press it gave a depth keeps it (its fitted
+  presses' own, the others' by its rule), any other press gets the fitted model's
+  rim-to-depth relation (``relation_mm``) times the fit's share k, held at its ball limit.
 
 The Taxim format (``taxim``, :func:`read_taxim`) is the calibration data pack of the
 Taxim simulator (Si and Yuan, RA-L 2022; Robo-Touch/Taxim, ``calibs/dataPack*.npz``): an
@@ -63,7 +67,7 @@ TAXIM = "taxim"
 DEFAULTS = {TAXIM: {"spec": Path(__file__).with_name("sensors") / "gelsight.toml", "ball_m": 4.0e-3,
                     "pixel_m": 0.1245e-3}}
 #: How a press's depth is found (module doc).
-DEPTH_METHODS = ("profile", "radius", "elastic")
+DEPTH_METHODS = ("profile", "radius", "elastic", "fitted")
 #: The profile's radial bins, pixels, and where its peak is sought: this share of the
 #: ball's radius in pixels, at least and at most.
 PROFILE_BIN_PX = 0.5
@@ -219,6 +223,17 @@ def ball_depth(contact_radius_m: float, ball_radius_m: float) -> float:
     return R - math.sqrt(R * R - a * a)
 
 
+def rim_depth(edge_px: float, pixel_m: float, ball_radius_m: float, rim_share: float = 1.0) -> tuple[float, bool]:
+    """(the depth, m, whose chord meets the contact that ``edge_px`` is ``rim_share`` of,
+    whether that contact lay past RIM_CAP of the ball's radius and was set to it; only a
+    share under 1 caps) for a rim ``edge_px`` px at ``pixel_m`` m a pixel (module doc)."""
+    contact_px = edge_px / rim_share
+    capped = bool(rim_share != 1.0 and contact_px > RIM_CAP * ball_radius_m / pixel_m)
+    if capped:
+        contact_px = RIM_CAP * ball_radius_m / pixel_m
+    return ball_depth(contact_px * pixel_m, ball_radius_m), capped
+
+
 def capture_spec(spec, width: int, height: int, pixel_m: float):
     """The spec's sensor with a camera of the frames' size whose pixel spans ``pixel_m``
     metres where its optical axis meets the membrane (module doc); returns (spec, note)."""
@@ -281,7 +296,8 @@ def _sha256(path: str) -> str:
 
 
 def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel_m: float,
-                   depth: str = "profile", fmt: str = TAXIM, layout=None, rim_share: float = 1.0) -> dict:
+                   depth: str = "profile", fmt: str = TAXIM, layout=None, rim_share: float = 1.0,
+                   fit: dict | None = None) -> dict:
     """Write ``archive`` as a capture dataset in ``out`` (module doc); returns a summary.
 
     Parameters
@@ -291,6 +307,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     depth : "profile", "radius" or "elastic" (module doc). rim_share : the share of the contact's
         radius at which a press's change peaks, in (0, 1] (module doc; profile only).
     layout : the rig's ``RigLayout`` the poses are for (default: the project's rig).
+    fit : with depth "fitted", the joint fit's report (module doc).
 
     A folder that holds another capture, or files but no dataset, is refused and left as
     it is; the same import again completes what an interrupted one left (resumable).
@@ -325,7 +342,35 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     camera = Camera.from_spec(unit)
     mesh = membrane_mesh(unit)
 
-    if depth == "elastic":
+    if (depth == "fitted") != (fit is not None):
+        raise ValueError("depth 'fitted' takes the joint fit's report (fit), and only it does")
+    if depth == "fitted" and len(set(archive.names)) != len(archive.names):
+        raise ValueError(f"archive {archive.path}: its presses' names repeat, so the joint fit's depths cannot be "
+                         "matched to them")
+    own, fitted_names = {}, set()
+    if depth == "fitted":
+        from .elastic_solid import check_material
+
+        try:
+            thickness, poisson = float(fit["elastic"]["thickness_m"]), float(fit["elastic"]["poisson_ratio"])
+            share, limit = float(fit["depth_share"]["k"]), float(fit["ball_limit_m"])
+            relation = np.asarray(fit["relation_mm"], np.float64) * 1e-3  # (depths, rims)
+            own = {p["name"]: float(p["depth_mm"]) * 1e-3 for p in fit["presses"]}
+            fitted_names = {p["name"] for p in fit["presses"] if p["fitted"]}
+        except (KeyError, TypeError, ValueError):
+            raise ValueError("the joint fit's report must hold elastic.thickness_m, elastic.poisson_ratio, "
+                             "depth_share.k, ball_limit_m, relation_mm and presses [{name, depth_mm, fitted}] "
+                             "(phong_reference.elastic_fit)") from None
+        check_material(thickness, poisson)
+        if relation.ndim != 2 or relation.shape[0] != 2 or relation.shape[1] < 2:
+            raise ValueError(f"the joint fit's relation_mm must be [depths, rims], got shape {relation.shape}")
+
+        def elastic_depth(contact_radius_m: float) -> float:
+            # the fitted model's own rim-to-depth relation times k, as the fit gave its held-out presses
+            return min(share * float(np.interp(contact_radius_m ** 2, relation[1] ** 2, relation[0])), limit)
+
+        deepest = limit
+    elif depth == "elastic":
         from .elastic_solid import ball_depth_for_contact
 
         thickness, poisson = unit.membrane.elastomer_thickness, unit.elastic.poisson_ratio
@@ -345,20 +390,17 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
                 edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
-        if depth == "elastic":
+        if depth in ("elastic", "fitted"):
             try:
-                d = elastic_depth(edge_px * pixel_m)
+                d = own[archive.names[i]] if archive.names[i] in own else elastic_depth(edge_px * pixel_m)
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
             # a rim wider than the deepest tabulated press leaves is given that depth, and says so
             capped.append(d >= deepest)
         else:
-            contact_px = edge_px / rim_share
-            capped.append(bool(rim_share != 1.0 and contact_px > RIM_CAP * R / pixel_m))
-            if capped[-1]:
-                contact_px = RIM_CAP * R / pixel_m
             try:
-                d = ball_depth(contact_px * pixel_m, R)
+                d, cap = rim_depth(edge_px, pixel_m, R, rim_share)
+                capped.append(cap)
             except ValueError as exc:
                 what = "its annotated radius" if depth == "radius" else "the rim fitted to its image"
                 raise ValueError(f"{name}: {what}, {edge_px:.2f} px at {pixel_m * 1e3:g} mm a pixel: {exc}"
@@ -385,6 +427,8 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         "rig": {"layout": layout.to_dict(), "virtual": False, "printer": None, "servos": None},
         "import": {"format": fmt, "archive": archive.path, "sha256": digest, "ball_mm": ball_m * 1e3,
                    "pixel_mm": pixel_m * 1e3, "depth": depth, "rim_share": rim_share,
+                   **({"elastic_fit": {"thickness_m": thickness, "poisson_ratio": poisson, "depth_share": share,
+                                       "fitted_presses": len(fitted_names)}} if depth == "fitted" else {}),
                    "rims_capped": int(sum(capped)), "camera": camera_note,
                    "poses": "each press's measured_pose is the rig's pose that presses the ball as annotated: on the "
                             "membrane where the camera sees the annotated centre, along its normal, to the depth "
@@ -405,7 +449,8 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         record = {**tap_fields(tap), "commanded_pose": pose, "measured_pose": pose, "measured_depth": tap.depth,
                   "contact_center_px": [float(c) for c in centre], "contact_radius_px": float(radius),
                   "contact_edge_px": edge_px, "source_name": name,
-                  **({"contact_radius_capped": cap} if rim_share != 1.0 or depth == "elastic" else {})}
+                  **({"contact_radius_capped": cap} if rim_share != 1.0 or depth in ("elastic", "fitted") else {}),
+                  **({"depth_source": "fitted" if name in fitted_names else "rule"} if depth == "fitted" else {})}
         files = write_sample_files(out, sid, archive.frames[tap.index], None)
         writer.append({**record, **files})
     depths = np.array([t.depth for t in taps])
