@@ -34,6 +34,7 @@ camera fitted to the no-contact image can change (the change over the frame's sp
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import shutil
@@ -143,7 +144,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
         rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
         reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False, runs: int = 1,
-        depth: str = "profile") -> dict:
+        depth: str = "profile", diagnosis_on: bool = True) -> dict:
     """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
     calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
     spec's camera (``calibrate --camera-known``: the public set's spec is written from its
@@ -156,7 +157,14 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     the presses, with each LED's gains through its film response (``--spectral-gains``) and
     the camera's response held to a webcam's (``--webcam-response``);
     ``depth``: how the import gives each press its depth (``tactile-sim import --depth``:
-    ``elastic``, from the spec's layer, gives ours and Taxim the same physical depths);
+    ``elastic``, from the spec's layer, gives ours and Taxim the same physical depths;
+    ``fitted``: the bonded layer and the fitted half's depths fitted together
+    (``phong_reference.elastic_fit``, from the spec's layer's depths and the fast path
+    calibrated at them), the capture imported again at those depths, the fast path
+    calibrated under that layer; Taxim's ``refit_share`` row chooses its own depth
+    setting, a rim share, on the fitted half);
+    ``diagnosis_on``: diagnose the capture against the calibrated fast path's replay (the
+    localisation study needs it);
     ``runs``: the reference's calibration and its calibrated comparison run this many times,
     each from an empty cache (every render anew, the same seeds), and the JSON's
     ``reference_runs`` holds each run's figures and their spread (``_spread``)."""
@@ -165,6 +173,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         raise ValueError(f"reference_presses must be a whole number >= 1, got {reference_presses!r}")
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValueError(f"runs must be a whole number >= 1, got {runs!r}")
+    if localisation and not diagnosis_on:
+        raise ValueError("the localisation study uses the diagnosis: --no-diagnosis needs --no-localisation")
     if runs > 1 and not reference:
         raise ValueError("runs repeats the reference's calibration: it needs the reference (no --no-reference)")
     from pbr_tactile.calibrate_capture import calibrate_capture
@@ -193,12 +203,31 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     try:
         capture = work / "capture"
         defaults = DEFAULTS[TAXIM]  # tactile-sim import's, where an argument is not given
-        stage("import", lambda: import_capture(
-            FORMATS[TAXIM](archive), capture, load_spec(spec or defaults["spec"]),
-            ball_mm * 1e-3 if ball_mm else defaults["ball_m"], pixel_mm * 1e-3 if pixel_mm else defaults["pixel_m"],
-            fmt=TAXIM, rim_share=1.0 if rim_share is None else rim_share, depth=depth))
+
+        def import_as(folder, how, fit=None):
+            return import_capture(
+                FORMATS[TAXIM](archive), folder, load_spec(spec or defaults["spec"]),
+                ball_mm * 1e-3 if ball_mm else defaults["ball_m"], pixel_mm * 1e-3 if pixel_mm else defaults["pixel_m"],
+                fmt=TAXIM, rim_share=1.0 if rim_share is None else rim_share, depth=how, fit=fit)
+
         fast_profile = work / "calibrated_fast" / "profile.toml"
-        stage("calibrate_fast", lambda: calibrate_capture(capture, fast_profile.parent, phong.calibrate,
+        depth_fit, fast_fit = None, phong.calibrate
+        if depth == "fitted":
+            # the layer and the fitted half's depths fitted together, from the spec's layer's depths and the
+            # fast path calibrated at them; then the capture anew at the fitted depths
+            from phong_reference.elastic_fit import fit as fit_elastic
+
+            first = work / "capture_spec_layer"
+            stage("import_spec_layer", lambda: import_as(first, "elastic"))
+            stage("calibrate_fast_spec_layer", lambda: calibrate_capture(
+                first, work / "calibrated_fast_spec_layer", phong.calibrate, fast_taps=0, fast_only=True,
+                progress=not quiet))
+            depth_fit = stage("fit_elastic", lambda: fit_elastic(
+                first, work / "calibrated_fast_spec_layer" / "profile.toml", work / "elastic_fit.json",
+                progress=None if quiet else print))
+            fast_fit = functools.partial(phong.calibrate, elastic=depth_fit["elastic"])
+        stage("import", lambda: import_as(capture, depth, depth_fit))
+        stage("calibrate_fast", lambda: calibrate_capture(capture, fast_profile.parent, fast_fit,
                                                           fast_taps=0, fast_only=True, progress=not quiet))
         ref_profile = work / "calibrated_reference" / "profile.toml"
 
@@ -251,11 +280,13 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         from studies.gap.diagnose import run as diagnose
 
         replayed = work / "replay_calibrated_fast"
-        stage("replay_calibrated_fast", lambda: replay(unit, replayed, phong, {"field": field,
-                                                                                "profile": str(fast_profile)},
-                                                       workers=2, progress=not quiet))
+        if diagnosis_on:
+            stage("replay_calibrated_fast", lambda: replay(unit, replayed, phong, {"field": field,
+                                                                                    "profile": str(fast_profile)},
+                                                           workers=2, progress=not quiet))
         diagnosis = stage("diagnose_fast", lambda: diagnose(capture, replayed, work / "diagnosis_fast",
-                                                           progress=not quiet, split_by="alternate"))
+                                                           progress=not quiet, split_by="alternate")) \
+            if diagnosis_on else None
         diagnosis_ref = None
         if reference_diagnosis and ref_profile.is_file():
             from pbr_tactile import plugin as pbr
@@ -277,6 +308,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         fast_row = _row(fast, "fast", field=field)
         ref_row = _row(ref, "reference") if ref is not None else None
         taxim = _row(raw, "peer", variant="refit")
+        taxim_share = _row(raw, "peer", variant="refit_share")
         shipped = _row(raw, "peer", variant="shipped")
         out = {
             "archive": str(archive), "presses": len(unit.ids), "heldout": len(raw["taps"]),
@@ -290,7 +322,17 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
             "contact_mae": {"phong": fast_row["contact"]["mae"]["mean"] if fast_row else None,
                             "pbr": ref_row["contact"]["mae"]["mean"] if ref_row else None,
                             "taxim": taxim["contact"]["mae"]["mean"] if taxim else None,
-                            "taxim_shipped": shipped["contact"]["mae"]["mean"] if shipped else None},
+                            "taxim_shipped": shipped["contact"]["mae"]["mean"] if shipped else None,
+                            "taxim_share": taxim_share["contact"]["mae"]["mean"] if taxim_share else None},
+            "change_r2": json.loads((fast_profile.parent / "report.json").read_text())["fast_path"]["taps"]["heldout"][
+                "change_r2"],
+            "change_r2_what": "the calibrated fast path's held-out presses' change R^2 over their contact regions, per "
+                              "channel (its calibration's report)",
+            "depth_fit": None if depth_fit is None else {
+                k: depth_fit[k] for k in ("elastic", "intervals", "record", "depth_share", "depth_median_m",
+                                          "depth_median_interval_m", "depth_interval_median_width_m",
+                                          "reaches_support", "shares_at_search_end", "loss_at_rim_depths",
+                                          "loss_at_fitted_depths", "seconds")},
             "localisation_mm": ({k: loc["results"].get(f"filter/{k}", {}).get("real", {}).get("localisation_mm_median")
                                  for k in ("none", "randomised", "diagnosed")} if loc else None),
             "localisation_mm_no_offset": ({k: loc["results"].get(f"filter/{k}", {}).get("real_no_offset", {}).get(
@@ -306,11 +348,14 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                                  "pbr": _figure(_row(raw, "reference"))},
                 "taxim": {"refit": _figure(taxim), "shipped": _figure(shipped), "peers": raw.get("peers")},
                 "phong_minus_taxim_contact_mae": _paired(fast_row, taxim) if fast_row and taxim else None,
+                "phong_minus_taxim_share_contact_mae": _paired(fast_row, taxim_share) if fast_row and taxim_share
+                else None,
+                "taxim_share": _figure(taxim_share),
                 "pbr_minus_taxim_contact_mae": _paired(ref_row, taxim) if ref_row and taxim else None,
                 "field": field,
                 "reference_presses": ref["reference_taps"] if ref else [],
-                "diagnosis_fast": {"answer": headline(diagnosis),
-                                   "explained": diagnosis["explained"]},
+                "diagnosis_fast": None if diagnosis is None else {"answer": headline(diagnosis),
+                                                                  "explained": diagnosis["explained"]},
                 "diagnosis_reference": None if diagnosis_ref is None else {
                     "answer": headline(diagnosis_ref),
                     "explained": diagnosis_ref["explained"]},
@@ -341,7 +386,8 @@ def cmd_bench_real(args) -> int:
               reference=not args.no_reference, reference_diagnosis=args.reference_diagnosis,
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share, depth=args.depth,
               grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
-              reference_presses=args.reference_presses, fit_layout=args.fit_layout, runs=args.runs)
+              reference_presses=args.reference_presses, fit_layout=args.fit_layout, runs=args.runs,
+              diagnosis_on=not args.no_diagnosis)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -359,9 +405,11 @@ def register(registry) -> None:
     p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (default the set's, 4)")
     p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the gel, mm (default the set's, "
                                                                 "0.1245)")
-    p.add_argument("--depth", choices=("profile", "elastic"), default="profile",
+    p.add_argument("--depth", choices=("profile", "elastic", "fitted"), default="profile",
                    help="how the import gives each press its depth (tactile-sim import's --depth; elastic: the rim "
-                        "is the edge of the elastic contact the spec's layer makes, the same depths for every model)")
+                        "is the edge of the elastic contact the spec's layer makes, the same depths for every model; "
+                        "fitted: the bonded layer and the fitted half's depths fitted together (tactile-sim "
+                        "fit-elastic) and the fast path calibrated under that layer)")
     p.add_argument("--rim-share", type=float, metavar="K", help="the import's share of a contact's radius at which "
                    "its change peaks (default 1: tactile-sim import's --rim-share)")
     p.add_argument("--work", metavar="DIR", help="keep every dataset, profile and report here (default: a temporary "
@@ -387,4 +435,6 @@ def register(registry) -> None:
     p.add_argument("--reference-diagnosis", action="store_true",
                    help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
     p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")
+    p.add_argument("--no-diagnosis", action="store_true",
+                   help="leave the diagnosis of the fast path's replay out (with --no-localisation, which uses it)")
     add_quiet_argument(p)

@@ -176,7 +176,12 @@ def test_bench_real_takes_the_reference_presses_and_refuses_a_bad_count_before_a
         run(tmp_path / "real.json", work=tmp_path / "work", runs=0)
     with pytest.raises(ValueError, match="runs repeats the reference's calibration: it needs the reference"):
         run(tmp_path / "real.json", work=tmp_path / "work", runs=3, reference=False)
+    with pytest.raises(ValueError, match="--no-diagnosis needs --no-localisation"):
+        run(tmp_path / "real.json", work=tmp_path / "work", diagnosis_on=False)
     assert not (tmp_path / "work").exists() and not (tmp_path / "real.json").exists()
+    args = parser.parse_args(["bench", "real", "--json", "J", "--depth", "fitted", "--no-diagnosis",
+                              "--no-localisation"])
+    assert args.depth == "fitted" and args.no_diagnosis
 
 
 def test_bench_real_s_runs_agree_by_the_issue_s_rule():

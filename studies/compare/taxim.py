@@ -718,9 +718,13 @@ def render_presses(calib_folder, centres_px, depths_m, ball_radius_m: float, pix
     return peer.render_presses(centres_px, depths_m, ball_radius_m, pixel_m, shape)
 
 
-#: The peer's variants a comparison renders: Taxim's shipped calibration, and one fitted
-#: on the capture's own fitted half.
-VARIANTS = ("shipped", "refit")
+#: The peer's variants a comparison renders: Taxim's shipped calibration, one fitted on the
+#: capture's own fitted half at the capture's depths, and that one at its own depth setting.
+VARIANTS = ("shipped", "refit", "refit_share")
+#: The rim shares among which ``refit_share`` chooses Taxim's depth setting on the fitted
+#: half (``scenes.imports.rim_depth``: each press's depth is the chord's for a contact
+#: whose radius is its rim over the share).
+RIM_SHARES = (0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 
 
 def capture_presses(capture, ids) -> dict:
@@ -744,7 +748,34 @@ def capture_presses(capture, ids) -> dict:
     return {"centres": np.array([r["contact_center_px"] for r in records], np.float64),
             "radii": np.array([r["contact_radius_px"] for r in records], np.float64),
             "depths": np.array([r["measured_depth"] for r in records], np.float64),
+            "edges": np.array([r.get("contact_edge_px", np.nan) for r in records], np.float64),
             "ball_radius_m": diameters.pop() / 2, "pixel_m": float(block["pixel_mm"]) * 1e-3}
+
+
+def share_depths(presses: dict, share: float) -> np.ndarray:
+    """(N,) m, each press's depth at rim share ``share`` (``scenes.imports.rim_depth``),
+    from ``capture_presses``' rims."""
+    from scenes.imports import rim_depth
+
+    return np.array([rim_depth(e, presses["pixel_m"], presses["ball_radius_m"], share)[0] for e in presses["edges"]])
+
+
+def choose_rim_share(peer, fitted: dict, real_fitted: np.ndarray, no_contact: np.ndarray,
+                     shares=RIM_SHARES) -> tuple[float, dict]:
+    """(the share of ``shares`` whose depths give the least mean contact MAE over the
+    fitted presses ``fitted`` (``capture_presses``), their real frames ``real_fitted``,
+    {share: that MAE}): Taxim's depth setting chosen on the fitted half alone."""
+    from scenes.captures import contact_disc
+
+    h, w = no_contact.shape[:2]
+    discs = np.stack([contact_disc((h, w), c, r) for c, r in zip(fitted["centres"], fitted["radii"])])
+    losses = {}
+    for share in shares:
+        images = peer.render_presses(fitted["centres"], share_depths(fitted, share), fitted["ball_radius_m"],
+                                     fitted["pixel_m"], (h, w))
+        losses[float(share)] = float(np.mean([np.abs(im[d] - y[d]).mean() for im, y, d in
+                                              zip(images, real_fitted, discs)]))
+    return min(losses, key=losses.get), losses
 
 
 def peer_renders(capture, ids, fitted_ids, real_fitted: np.ndarray, no_contact: np.ndarray,
@@ -755,7 +786,10 @@ def peer_renders(capture, ids, fitted_ids, real_fitted: np.ndarray, no_contact: 
     ``shipped``: the port's own calibration (another session of the Taxim set's sensor),
     with the capture's no-contact frame as background; ``refit``: a table fitted
     (:func:`fit_polytable`) on the presses ``fitted_ids`` (their real frames
-    ``real_fitted``, (K, H, W, 3)) and the shipped gel map and shadow table. Each peer's
+    ``real_fitted``, (K, H, W, 3)) and the shipped gel map and shadow table;
+    ``refit_share`` (where every press records its rim, ``contact_edge_px``): the refit at
+    the depths of the rim share it fits the fitted presses best with (``choose_rim_share``),
+    its own depth setting chosen on the fitted half. Each peer's
     no-contact image is its render of the gel untouched. ImportError where the port or
     JAX is missing; ValueError where the capture is not one it can render
     (:func:`capture_presses`).
@@ -778,9 +812,18 @@ def peer_renders(capture, ids, fitted_ids, real_fitted: np.ndarray, no_contact: 
                             "of this sensor design), the capture's no-contact frame as background",
                  "refit": f"a table fitted on the capture's {len(fitted_ids)} fitted presses (their real frames), the "
                           "shipped gel map and shadow table"}
+        depths = {"shipped": presses["depths"], "refit": presses["depths"]}
+        if np.all(np.isfinite(presses["edges"])) and np.all(np.isfinite(fitted["edges"])):
+            share, losses = choose_rim_share(TaximPeer(folders["refit"], no_contact=no_contact, with_shadow=with_shadow),
+                                             fitted, real_fitted, no_contact)
+            folders["refit_share"] = folders["refit"]
+            depths["refit_share"] = share_depths(presses, share)
+            notes["refit_share"] = (f"the refit, each press's depth the chord's at its rim over {share:g}: the rim share "
+                                    f"of {list(RIM_SHARES)} whose fitted presses' contact MAE is least "
+                                    f"({', '.join(f'{k:g}: {v:.4f}' for k, v in losses.items())})")
         for variant, folder in folders.items():
             peer = TaximPeer(folder, no_contact=no_contact, with_shadow=with_shadow)
-            images = peer.render_presses(presses["centres"], presses["depths"], presses["ball_radius_m"],
+            images = peer.render_presses(presses["centres"], depths[variant], presses["ball_radius_m"],
                                          presses["pixel_m"], (h, w))
             rest = peer.render(np.full((h, w), 10.0), presses["pixel_m"])  # the gel untouched, 10 mm away
             out[variant] = {"images": images.astype(np.float32), "no_contact": rest.astype(np.float32),

@@ -53,13 +53,15 @@ def _factors(scores: dict) -> dict:
 
 def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] | None = None,
         reference: bool = True, photons: int = PHOTONS, quiet: bool = True, effects: tuple[str, ...] = (),
-        images_dir=None) -> dict:
+        images_dir=None, elastic: str = "published") -> dict:
     """The benchmark (module doc): every column of ``tiles_dir`` recovered and scored;
     writes ``json_path`` atomically and returns what it wrote. ``effects``: the
     reference's effects as NAME=VALUE settings (``pbr_tactile.effects.Effects``; none:
     its defaults), to judge a change of its physics on the real tiles. ``images_dir``:
     each column's ``change_figure`` written there, ``colK_recovered.png`` and
-    ``colK_at_real_place.png``, and their paths in ``tiles.K.images``.
+    ``colK_at_real_place.png``, and their paths in ``tiles.K.images``. ``elastic``: the
+    dent both renderers draw (``scenes.elastic.MODELS``; the fast path's "published" by
+    default, the reference's its layer model unless "bonded").
 
     Besides the recovered tap, each column is scored with the tap moved by the offset
     between the real tile's contact patch and the published tile's (``at_real_place``:
@@ -109,9 +111,11 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     mesh = membrane_mesh(spec)
     ours = (reference_depth(mesh, camera)[0], camera, mesh)
     renderers = {}
-    phong.prepare(spec, mesh, camera, {})
-    renderers["phong"] = phong.make_renderer(spec, mesh, camera, ours[0], {})
-    pbr_options = {"photons": int(photons), **({"effects": list(effects)} if effects else {})}
+    phong_options = {} if elastic == "published" else {"elastic": elastic}
+    phong.prepare(spec, mesh, camera, phong_options)
+    renderers["phong"] = phong.make_renderer(spec, mesh, camera, ours[0], phong_options)
+    pbr_options = {"photons": int(photons), **({"effects": list(effects)} if effects else {}),
+                   **({"elastic": "bonded"} if elastic == "bonded" else {})}
     pbr_settings = None
     if reference:
         say(f"reference: its no-contact frame at {photons} photons per pass (cached after the first run)")
@@ -228,7 +232,8 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
         "real_no_contact": how,
         "region": f"mean |real - no-contact| over channels > {CHANGE_LEVEL}, dilated by {REGION_DILATION} px, inside "
                   "the image circle less a px",
-        "renderers": {"phong": {"options": {}, "field": "plane (the plugin's default)", "background": "none"},
+        "elastic": elastic,
+        "renderers": {"phong": {"options": phong_options, "field": "plane (the plugin's default)", "background": "none"},
                       "pbr": pbr_info},
         "seconds": time.perf_counter() - t_all,
         "stage_seconds": stage_seconds,

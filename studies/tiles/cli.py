@@ -21,7 +21,8 @@ def parse_objects(items) -> dict[int, str]:
 
 def cmd_bench_tiles(args) -> int:
     out = run(args.json, args.tiles, objects=parse_objects(args.object), reference=not args.no_reference,
-              photons=args.photons, quiet=args.quiet, effects=tuple(args.effects or ()), images_dir=args.images)
+              photons=args.photons, quiet=args.quiet, effects=tuple(args.effects or ()), images_dir=args.images,
+              elastic=args.elastic)
     keys = ("object", "depth_mm", "strength_ratio", "shape_corr")
     summary = {k: {key: t[key] for key in keys} for k, t in out["tiles"].items()}
     print(json.dumps(summary, indent=1))
@@ -31,6 +32,7 @@ def cmd_bench_tiles(args) -> int:
 
 def register(registry) -> None:
     from scenes.commands import add_quiet_argument
+    from scenes.elastic import MODELS
 
     p = registry.bench("tiles", cmd_bench_tiles, "recover the GelTip figure's contacts from the published "
                        "simulations and score the reference and the fast path on the real tiles")
@@ -49,4 +51,7 @@ def register(registry) -> None:
                    help="write each column's real and simulated changes side by side there (colK_recovered.png, "
                         "colK_at_real_place.png: real tile, its change, region, then per renderer its no-contact "
                         "tile and change through the real camera's exposure; grey is no change)")
+    p.add_argument("--elastic", choices=MODELS, default="published",
+                   help="the dent both renderers draw (default: the fast path's published smoothing, the reference's "
+                        "layer model; bonded: the bonded layer in both)")
     add_quiet_argument(p)
