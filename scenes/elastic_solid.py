@@ -122,6 +122,10 @@ def solve(delta: np.ndarray, pixel_m: float, thickness_m: float | None, poisson:
 #: The window solved reaches this many layer thicknesses past the indenter's footprint
 #: (an incompressible layer's bulge lies within about two).
 MARGIN_THICKNESSES = 3.0
+#: A BondedLayer solves on a grid no finer than this, metres: a dent is smooth on the scale
+#: of a tenth of a millimetre, and a 640x480 GelSight's 0.031 mm pixels made its solve 8
+#: to 14 s (the pixels in contact are set on the indenter after the read-back either way).
+GRID_STEP_M = 1e-4
 #: Contacts a BondedLayer keeps, by their depth maps (the oldest dropped first).
 MEMO_SIZE = 256
 
@@ -137,9 +141,9 @@ class BondedLayer:
     point (a contact small beside the membrane's curvature: a 4 mm ball's on the GelTip's
     11.5 mm tube, or on a flat pad): each pixel of a window round the footprint is placed
     in that plane by its undeformed surface point, the indenter's reach along the plane's
-    normal resampled on a square grid of the pixels' size there (linearly), the contact
-    solved (:func:`solve`), and the surface's displacement u read back at each pixel
-    (bilinearly) and moved along the normal: the pixel's depth falls by u over the cosine
+    normal resampled on a square grid of the pixels' size there (at least GRID_STEP_M;
+    linearly), the contact solved (:func:`solve`), and the surface's displacement u read
+    back at each pixel (bilinearly) and moved along the normal: the pixel's depth falls by u over the cosine
     between its ray and the normal. Any camera the spec's rays describe works. The last
     MEMO_SIZE contacts are kept by their depth maps, so that a calibration that renders the
     same presses under many lights solves each dent once."""
@@ -200,6 +204,7 @@ class BondedLayer:
         spacing = 0.5 * (np.linalg.norm(du) / max(min(u + 1, W - 1) - max(u - 1, 0), 1)
                          + np.linalg.norm(dv) / max(min(v + 1, H - 1) - max(v - 1, 0), 1))
         margin = int(math.ceil(MARGIN_THICKNESSES * self.thickness / spacing))
+        step = max(spacing, GRID_STEP_M)  # the solve's grid: no finer than GRID_STEP_M
         rows, cols = np.flatnonzero(pressed.any(axis=1)), np.flatnonzero(pressed.any(axis=0))
         window = (slice(max(0, rows[0] - margin), min(H, rows[-1] + 1 + margin)),
                   slice(max(0, cols[0] - margin), min(W, cols[-1] + 1 + margin)))
@@ -210,13 +215,13 @@ class BondedLayer:
         delta_px = reach[window] * cosine  # the indenter's reach along the normal
         inside = pressed[window]
         # the grid: the window's extent in the plane, in steps of a pixel's size
-        xs = np.arange(x.min(), x.max() + spacing, spacing)
-        ys = np.arange(y.min(), y.max() + spacing, spacing)
+        xs = np.arange(x.min(), x.max() + step, step)
+        ys = np.arange(y.min(), y.max() + step, step)
         gx, gy = np.meshgrid(xs, ys, indexing="xy")  # (len(ys), len(xs))
         top = float(delta_px[inside].max())
         delta = griddata((x[inside], y[inside]), delta_px[inside], (gx, gy), method="linear", fill_value=np.nan)
         delta = np.where(np.isfinite(delta), delta, -top)
-        contact = solve(delta, spacing, self.thickness, self.poisson)
+        contact = solve(delta, step, self.thickness, self.poisson)
         read = dict(bounds_error=False, fill_value=0.0)
         at = np.stack([y.ravel(), x.ravel()], axis=1)
         u_px = RegularGridInterpolator((ys, xs), contact.u, **read)(at).reshape(x.shape)
