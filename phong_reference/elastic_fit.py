@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import time
 from pathlib import Path
 
@@ -96,6 +95,7 @@ class Presses:
 
         from .bake import bake
         from .calibrate import _changes_to_fit
+        from .environment import coefficients
         from .plugin import options_from, unit_spec
         from .render import light_vectors
 
@@ -133,8 +133,6 @@ class Presses:
         phong = calibrated.phong.get("fields", {}).get(self.field, calibrated.phong)
         self.constants = (phong.get("leds") or calibrated.phong["leds"],
                           float(phong.get("shininess") or calibrated.phong["shininess"]))
-        from .environment import coefficients
-
         self.environment = coefficients(phong.get("environment", calibrated.phong.get("environment")))
         self.profile = dataclasses.replace(calibrated, phong={
             **{k: calibrated.phong[k] for k in ("ambient", "background") if k in calibrated.phong},
@@ -186,9 +184,11 @@ class Presses:
         """(T,) each press's depth, m, from its rim by a rim-to-depth ``relation``
         (:meth:`rim_relation`), linear in the rim's square between its points, and (T,)
         bool where the rim lies outside them (given the nearest end's depth)."""
+        from scenes.elastic_solid import depth_at_radius
+
         depths, rims = relation
         outside = (self.rims_m < rims[0]) | (self.rims_m > rims[-1])
-        return np.interp(self.rims_m ** 2, rims ** 2, depths), outside
+        return depth_at_radius(self.rims_m, rims, depths), outside
 
     def layer(self, thickness_m: float, poisson: float):
         from scenes.elastic_solid import BondedLayer
@@ -223,7 +223,7 @@ def score_layers(presses: Presses, thicknesses=THICKNESSES_M, ratios=RATIOS, pro
             out.append({"thickness_m": h, "poisson_ratio": nu, "losses": losses, "leds": leds, "shininess": alpha,
                         "environment": env,
                         "relation_mm": [[float(d * 1e3) for d in relation[0]], [float(a * 1e3) for a in relation[1]]],
-                        "depths_m": depths, "capped": capped, "layer": layer, "maps": maps})
+                        "depths_m": depths, "capped": capped, "layer": layer})
             if progress:
                 progress(f"layer h {h * 1e3:g} mm, nu {nu:g}: loss {np.nanmean(losses):.5f}")
     return {"fitted": fitted, "layers": out}

@@ -276,6 +276,13 @@ def ball_contact_radius(depth_m: float, ball_radius_m: float, thickness_m: float
     return math.sqrt(contact.contact.sum() / math.pi) * pixel
 
 
+def depth_at_radius(radius_m, radii_m, depths_m):
+    """The depth at a contact's (or a rim's) radius from a tabulated relation (radii_m,
+    depths_m), linear in the radius's square between its points (Hertz's depth is
+    proportional to it) and held at its ends."""
+    return np.interp(np.square(radius_m), np.square(radii_m), depths_m)
+
+
 @functools.lru_cache(maxsize=8)
 def _radii(ball_radius_m: float, thickness_m: float | None, poisson: float) -> tuple[np.ndarray, np.ndarray]:
     """(depths, contact radii) at DEPTH_SHARES of the ball's radius, solved once per ball and layer."""
@@ -302,4 +309,4 @@ def ball_depth_for_contact(contact_radius_m: float, ball_radius_m: float, thickn
         raise ValueError(f"a contact {a * 1e3:.3g} mm in radius lies outside what a ball {ball_radius_m * 1e3:g} mm "
                          f"in radius leaves on this layer ({radii[0] * 1e3:.3g} to {radii[-1] * 1e3:.3g} mm, pressed "
                          f"{depths[0] * 1e3:.3g} to {depths[-1] * 1e3:.3g} mm)")
-    return float(np.interp(a * a, radii * radii, depths))
+    return float(depth_at_radius(a, radii, depths))

@@ -349,7 +349,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
                          "matched to them")
     own, fitted_names = {}, set()
     if depth == "fitted":
-        from .elastic_solid import check_material
+        from .elastic_solid import check_material, depth_at_radius
 
         try:
             thickness, poisson = float(fit["elastic"]["thickness_m"]), float(fit["elastic"]["poisson_ratio"])
@@ -367,7 +367,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
 
         def elastic_depth(contact_radius_m: float) -> float:
             # the fitted model's own rim-to-depth relation times k, as the fit gave its held-out presses
-            return min(share * float(np.interp(contact_radius_m ** 2, relation[1] ** 2, relation[0])), limit)
+            return min(share * float(depth_at_radius(contact_radius_m, relation[1], relation[0])), limit)
 
         deepest = limit
     elif depth == "elastic":
