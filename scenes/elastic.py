@@ -364,16 +364,10 @@ class MembraneLayer:
         held between the indenter's ``reach`` (where it reaches a vertex) and the gap
         above the core. Its bulge (u < 0) is left out: a dent here only takes elastomer
         away (the reference's solids and fluence grids rely on it)."""
-        contact, window, _ = self.bonded._found(depth, ref_depth)
+        contact, window, _, centre, near = self.bonded._found(depth, ref_depth)
         w = np.zeros(len(self.vertices))
         if contact is not None:
             rows, cols = window
-            pressed = np.where(ref_depth > depth, ref_depth - depth, -np.inf)
-            v, u = np.unravel_index(np.argmax(pressed), pressed.shape)
-            rays = self.camera.rays_channels_first
-            centre = ref_depth[v, u] * rays[:, v, u]
-            points = ref_depth[window] * rays[(slice(None),) + window]
-            near = np.linalg.norm(points - centre[:, None, None], axis=0).max()
             uv = project(self.vertices, self.camera)
             r, c = uv[:, 1] - rows.start, uv[:, 0] - cols.start
             h, wd = contact.u.shape

@@ -167,8 +167,9 @@ class BondedLayer:
         return self._found(depth, ref_depth)[:2]
 
     def _found(self, depth, ref_depth):
-        """(the contact, its window, each window pixel's ray-normal cosine), solved once
-        per depth map (MEMO_SIZE kept)."""
+        """(the contact, its window, each window pixel's ray-normal cosine, the deepest
+        point's undeformed surface point (3,) m, the window's furthest surface point from
+        it, m), solved once per depth map (MEMO_SIZE kept)."""
         depth, ref_depth = np.asarray(depth, np.float64), np.asarray(ref_depth, np.float64)
         if depth.shape != ref_depth.shape or depth.ndim != 2:
             raise ValueError(f"depth {depth.shape} and ref_depth {ref_depth.shape} must be the same (H, W)")
@@ -177,7 +178,7 @@ class BondedLayer:
         reach = ref_depth - depth
         pressed = reach > 0
         if not pressed.any():
-            return None, (slice(0, 0), slice(0, 0)), None
+            return None, (slice(0, 0), slice(0, 0)), None, None, 0.0
         key = hashlib.sha1(reach.tobytes()).digest() + str(reach.shape).encode()
         if key not in self._memo:
             if len(self._memo) >= MEMO_SIZE:
@@ -229,14 +230,14 @@ class BondedLayer:
         touching = RegularGridInterpolator((ys, xs), contact.contact.astype(float), method="nearest",
                                            **read)(at).reshape(x.shape) > 0.5
         mapped = Contact(u_px, pressure, touching & inside, contact.load_n, contact.volume_m3)
-        return mapped, window, cosine
+        return mapped, window, cosine, P(v, u), float(np.linalg.norm(rel, axis=0).max())
 
     def depth(self, depth: np.ndarray, ref_depth: np.ndarray) -> np.ndarray:
         """(H, W) the deformed membrane's depth, m: each pixel's D_ref less u over the
         cosine between its ray and the normal (the surface moved by u along the normal
         towards the camera; where u < 0, its bulge, away from it), on the indenter where
         it touches and never past it."""
-        contact, window, cosine = self._found(depth, ref_depth)
+        contact, window, cosine = self._found(depth, ref_depth)[:3]
         out = np.array(ref_depth, np.float64)
         if contact is not None:
             out[window] -= contact.u / cosine
