@@ -158,15 +158,24 @@ def cmd_replay(args) -> int:
 
 
 def cmd_import(args) -> int:
-    """``tactile-sim import FORMAT ARCHIVE --out DIR``: a published capture as a capture dataset."""
-    from .imports import DEFAULTS, FORMATS, import_capture
+    """``tactile-sim import FORMAT ARCHIVE --out DIR``: a published capture, or a folder of
+    presses, as a capture dataset."""
+    from .imports import import_capture, open_set
 
-    defaults = DEFAULTS[args.format]
-    spec = load_spec(args.spec or defaults["spec"])
-    ball = defaults["ball_m"] if args.ball_mm is None else args.ball_mm * 1e-3
-    pixel = defaults["pixel_m"] if args.pixel_mm is None else args.pixel_mm * 1e-3
-    archive = FORMATS[args.format](args.archive)
-    if (args.depth == "fitted") != (args.depth_fit is not None):
+    columns = None
+    if args.columns:
+        columns = {}
+        for item in args.columns:
+            role, sep, name = item.partition("=")
+            if not sep or not role.strip() or not name.strip():
+                raise ValueError(f"--columns {item!r}: expected ROLE=NAME, e.g. x=cx")
+            columns[role.strip()] = name.strip()
+    archive, spec, ball, pixel, how = open_set(
+        args.archive, args.format, spec=args.spec, ball_mm=args.ball_mm, pixel_mm=args.pixel_mm, turn=args.turn,
+        table=args.table, no_contact=args.no_contact, columns=columns, channels=args.channels, markers=args.markers)
+    depth = args.depth or ("given" if archive.depths_m is not None and not np.isnan(archive.depths_m).any()
+                           else "profile")
+    if (depth == "fitted") != (args.depth_fit is not None):
         raise ValueError("--depth fitted takes --depth-fit FIT.json (the joint fit's report), and only it does")
     fit = None
     if args.depth_fit is not None:
@@ -174,16 +183,22 @@ def cmd_import(args) -> int:
             fit = json.loads(Path(args.depth_fit).read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise ValueError(f"--depth-fit {args.depth_fit}: not a readable JSON ({exc})") from None
-    summary = import_capture(archive, args.out, spec, ball, pixel, depth=args.depth, fmt=args.format,
+    summary = import_capture(archive, args.out, spec, ball, pixel, depth=depth, fmt=how["format"],
                              rim_share=args.rim_share, fit=fit)
     d = summary["depth_mm"]
     rims = (f", rims at {summary['rim_share']:g} of the contact's radius, {summary['rims_capped']} capped at the ball's"
             if summary["rim_share"] != 1.0 else
             f", {summary['rims_capped']} rims wider than the deepest press the layer was solved at, given its depth"
             if summary["depth"] in ("elastic", "fitted") else "")
-    print(f"{summary['presses']} presses of {args.archive} in {args.out} ({summary['object']}, depth by "
-          f"{summary['depth']}{rims}: median {d['median']:.3f} mm, {d['min']:.3f} to {d['max']:.3f} mm; "
-          f"{summary['camera']})")
+    settled = "; ".join(f"{k} from {v}" for k, v in sorted(how["from"].items()))
+    turned = f"; frames turned {how['turn_deg']} deg clockwise with their centres" if how["turn_deg"] else ""
+    if how["markers"] == "inpaint":
+        m = archive.notes["markers"]
+        turned += (f"; marker dots inpainted ({m['no_contact_share']:.1%} of the no-contact frame, a median "
+                   f"{m['frame_share_median']:.1%} of each press's)")
+    print(f"{summary['presses']} presses of {args.archive} ({how['format']}, sensor {spec.name}: {settled}{turned}) "
+          f"in {args.out} ({summary['object']}, depth by {summary['depth']}{rims}: median {d['median']:.3f} mm, "
+          f"{d['min']:.3f} to {d['max']:.3f} mm; {summary['camera']})")
     return 0
 
 
@@ -488,26 +503,48 @@ def register(registry) -> None:
                    help="ray: the head of a running Ray cluster (default: start one here with --workers CPUs)")
     p.add_argument("--out", required=True, metavar="DIR")
 
-    from .imports import DEFAULTS, DEPTH_METHODS, FORMATS
+    from .imports import (CHANNELS, COLUMNS, DEFAULTS, DEPTH_METHODS, FORMATS, MARKERS, NO_CONTACT_NAMES, SET_RECORDS,
+                          TURNS)
 
-    p = registry.command("import", cmd_import, "import a published capture (a real sensor's presses with known "
-                         "geometry) as a capture dataset that replay, compare, calibrate and diagnose take")
-    p.add_argument("format", choices=sorted(FORMATS), help="the archive's format (taxim: a Taxim calibration pack)")
-    p.add_argument("archive", metavar="ARCHIVE", help="the archive: a file, or a folder holding one")
+    p = registry.command("import", cmd_import, "import a set of real presses with known geometry (a published "
+                         "archive, or a folder of images and a table) as a capture dataset that replay, compare, "
+                         "calibrate and diagnose take")
+    p.add_argument("format", choices=sorted(FORMATS), help="the archive's format (taxim: a Taxim calibration pack; "
+                   "folder: a folder of PNG or JPEG frames, a no-contact frame and a CSV or JSON table of the "
+                   "presses, docs/dataset-format.md)")
+    p.add_argument("archive", metavar="ARCHIVE", help="the archive: a file, or a folder holding one; or the folder of "
+                   f"presses. Its records ({SET_RECORDS} in the folder, or X.toml beside X.npz) give any option not "
+                   "given here")
     p.add_argument("--out", required=True, metavar="DIR", help="the capture dataset's folder (new or empty, or the "
                    "same import's to complete it)")
-    p.add_argument("--spec", metavar="TOML", help="the unit's sensor spec (default: the format's set's, "
-                   f"taxim: {DEFAULTS['taxim']['spec'].name})")
-    p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (taxim default "
-                   f"{DEFAULTS['taxim']['ball_m'] * 1e3:g})")
+    p.add_argument("--spec", metavar="TOML", help="the unit's sensor spec: a TOML, or a shipped sensor's name "
+                   f"(digit, gelsight_mini, ...; default: the set's records', else {DEFAULTS['taxim']['spec'].name})")
+    p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm, for presses whose table "
+                   f"gives none (taxim default {DEFAULTS['taxim']['ball_m'] * 1e3:g}; a folder has none)")
     p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the membrane at the frames' "
-                   f"resolution, mm (taxim default {DEFAULTS['taxim']['pixel_m'] * 1e3:g})")
-    p.add_argument("--depth", choices=DEPTH_METHODS, default="profile",
-                   help="each press's depth from its contact rim fitted to the image (profile, default), from "
+                   f"resolution, mm (taxim default {DEFAULTS['taxim']['pixel_m'] * 1e3:g}; a folder's: the spec's "
+                   "camera's at the frames' size, where its axis meets the membrane)")
+    p.add_argument("--turn", choices=[str(t) for t in TURNS] + ["auto"],
+                   help="turn the frames, and their annotated centres with them, this many degrees clockwise (auto: "
+                        "a quarter turn when their orientation is not the spec camera's); default 0: frames of "
+                        "another aspect than the spec's camera set its sensor instead")
+    p.add_argument("--table", metavar="FILE", help="folder: the press table (default: the folder's one .csv or .json)")
+    p.add_argument("--no-contact", metavar="FILE", help="folder: the no-contact frame (default: the one named "
+                   + ", ".join(NO_CONTACT_NAMES) + " with .png or .jpg)")
+    p.add_argument("--columns", action="append", metavar="ROLE=NAME",
+                   help="folder: a table column's name for a role (" + ", ".join(f"{k} (default {v})" for k, v in
+                                                                         COLUMNS.items()) + "); repeat for more")
+    p.add_argument("--channels", choices=CHANNELS, help="folder: how the images store their channels (default rgb, "
+                   "as PNG and JPEG files are written by all but OpenCV)")
+    p.add_argument("--markers", choices=MARKERS, help="printed marker dots on the membrane: keep them (default) or "
+                   "find each frame's and fill them from around them (inpaint, scenes.markers)")
+    p.add_argument("--depth", choices=DEPTH_METHODS,
+                   help="each press's depth from its contact rim fitted to the image (profile, the default unless "
+                        "the table gives every press's depth), from "
                         "its annotated radius (radius), or from that rim taken as the edge of the elastic contact "
                         "the spec's membrane makes (elastic: the bonded layer, needs the contact extra), or from a "
                         "joint fit of the layer and the presses' depths (fitted, with --depth-fit: tactile-sim "
-                        "fit-elastic's report)")
+                        "fit-elastic's report), or the table's own (given, the default where it gives every press's)")
     p.add_argument("--depth-fit", metavar="FIT.json",
                    help="with --depth fitted: the joint fit's report (its layer, share and fitted presses' depths)")
     p.add_argument("--rim-share", type=float, default=1.0, metavar="K",

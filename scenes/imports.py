@@ -50,7 +50,9 @@ as OpenCV reads them, BGR: the reader turns them to RGB.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -67,7 +69,7 @@ TAXIM = "taxim"
 DEFAULTS = {TAXIM: {"spec": Path(__file__).with_name("sensors") / "gelsight.toml", "ball_m": 4.0e-3,
                     "pixel_m": 0.1245e-3}}
 #: How a press's depth is found (module doc).
-DEPTH_METHODS = ("profile", "radius", "elastic", "fitted")
+DEPTH_METHODS = ("profile", "radius", "elastic", "fitted", "given")
 #: The profile's radial bins, pixels, and where its peak is sought: this share of the
 #: ball's radius in pixels, at least and at most.
 PROFILE_BIN_PX = 0.5
@@ -92,6 +94,11 @@ class Archive:
     names : (N,) the presses' names in the archive.
     path : where it was read from.
     notes : what the reader did (e.g. the channel order it turned).
+    depths_m : (N,) float64 or None, each press's depth where the archive records it
+        (NaN where it does not), metres.
+    balls_m : (N,) float64 or None, each press's ball diameter where the archive records
+        it (NaN where it does not), metres.
+    sha256 : a digest of what was read (default: of the file at ``path``).
     """
 
     no_contact: np.ndarray
@@ -101,6 +108,9 @@ class Archive:
     names: tuple[str, ...]
     path: str
     notes: dict = field(default_factory=dict)
+    depths_m: np.ndarray | None = None
+    balls_m: np.ndarray | None = None
+    sha256: str | None = None
 
 
 def _npz_file(path: Path, pattern: str) -> Path:
@@ -154,8 +164,287 @@ def read_taxim(path: str | Path) -> Archive:
                    path=str(path.resolve()), notes={"channels": "stored BGR (OpenCV), turned to RGB"})
 
 
+#: The folder format (``folder``, :func:`read_folder`): the press table's columns by role
+#: (``--columns ROLE=NAME``), those it needs, the names its no-contact frame is looked for
+#: under (any of IMAGE_SUFFIXES), and the file of a set's records beside an archive.
+FOLDER = "folder"
+COLUMNS = {"image": "image", "name": "name", "x": "x", "y": "y", "radius": "radius", "depth": "depth_mm",
+           "ball": "ball_mm"}
+REQUIRED_COLUMNS = ("image", "x", "y", "radius")
+NO_CONTACT_NAMES = ("background", "no_contact", "nocontact", "f0", "ref", "reference")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+#: How a folder's images store their channels (stated, never guessed; RGB the default, as
+#: PNG and JPEG files are written by every library but OpenCV).
+CHANNELS = ("rgb", "bgr")
+#: The quarter turns, clockwise in degrees, that frames and their annotations may be turned by.
+TURNS = (0, 90, 180, 270)
+#: What is done with printed marker dots on the membrane (``scenes.markers``).
+MARKERS = ("keep", "inpaint")
+
+
+def _read_8bit(path: Path, channels: str) -> np.ndarray:
+    """An 8-bit colour image as (H, W, 3) uint8 in RGB order (``channels`` says how it is
+    stored); ValueError naming the file for any other kind."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            mode = im.mode
+            if mode not in ("RGB", "RGBA"):
+                raise ValueError(f"image {path} is a {mode!r} image; an 8-bit colour (RGB) PNG or JPEG was expected")
+            rgb = np.asarray(im.convert("RGB"), np.uint8)
+    except OSError as exc:
+        raise ValueError(f"image {path} could not be read as PNG or JPEG: {exc}") from None
+    return rgb[..., ::-1] if channels == "bgr" else rgb
+
+
+def _press_table(folder: Path, table: str | Path | None) -> Path:
+    if table is not None:
+        path = Path(table) if Path(table).is_absolute() else folder / table
+        if not path.is_file():
+            raise ValueError(f"folder {folder}: its press table {path} does not exist")
+        return path
+    found = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".csv", ".json") and p.is_file())
+    if len(found) != 1:
+        raise ValueError(f"folder {folder} must hold one press table (a .csv or .json file), found "
+                         f"{[p.name for p in found] or 'none'}; name it with --table FILE")
+    return found[0]
+
+
+def _table_rows(path: Path, columns: dict) -> list[dict]:
+    """The table's rows as {role: value} (module doc of the folder format); ValueError
+    naming the table, the row and the column for anything missing or not a number."""
+    import csv
+
+    where = f"press table {path}"
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(path.read_text())
+            rows = data.get("presses") if isinstance(data, dict) else data
+            if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+                raise ValueError(f"{where}: a JSON table must be a list of objects, one per press, or "
+                                 "{\"presses\": [...]}")
+        else:
+            with open(path, newline="", encoding="utf-8-sig") as fh:
+                rows = list(csv.DictReader(fh))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, csv.Error) as exc:
+        raise ValueError(f"{where} could not be read: {exc}") from None
+    if not rows:
+        raise ValueError(f"{where} holds no presses")
+    have = set().union(*(r.keys() for r in rows))
+    missing = [role for role in REQUIRED_COLUMNS if columns[role] not in have]
+    if missing:
+        what = ", ".join(f"{role} ({columns[role]!r})" for role in missing)
+        raise ValueError(f"{where} has no column for {what}: each press needs its image, its centre (x = column, "
+                         f"y = row, px) and radius (px); its columns are {sorted(have)}; name them with "
+                         "--columns ROLE=NAME")
+    out = []
+    for i, row in enumerate(rows):
+        got = {}
+        for role, column in columns.items():
+            value = row.get(column)
+            if value is None or (isinstance(value, str) and not value.strip()):
+                if role in REQUIRED_COLUMNS:
+                    raise ValueError(f"{where}: row {i + 1} has no {role} (column {column!r})")
+                got[role] = None
+                continue
+            if role in ("image", "name"):
+                got[role] = str(value).strip()
+                continue
+            try:
+                got[role] = float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"{where}: row {i + 1}, column {column!r}: {value!r} is not a number") from None
+        out.append(got)
+    return out
+
+
+def _no_contact_path(folder: Path, name: str | None) -> Path:
+    if name is not None:
+        path = folder / name
+        if not path.is_file():
+            raise ValueError(f"folder {folder} has no no-contact frame {name!r}")
+        return path
+    found = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+                   and p.stem.lower() in NO_CONTACT_NAMES)
+    if len(found) != 1:
+        names = ", ".join(f"{n}.png" for n in NO_CONTACT_NAMES)
+        if not found:
+            raise ValueError(f"folder {folder} has no no-contact frame (looked for {names} or .jpg); a capture needs "
+                             "one: name it with --no-contact FILE")
+        raise ValueError(f"folder {folder} has {len(found)} no-contact frames ({[p.name for p in found]}); name one "
+                         "with --no-contact FILE")
+    return found[0]
+
+
+def read_folder(path: str | Path, table: str | Path | None = None, no_contact: str | None = None,
+                columns: dict | None = None, channels: str = "rgb") -> Archive:
+    """Read a folder of presses (module doc, ``docs/dataset-format.md``): its images named
+    in a press table, and its no-contact frame. ValueError naming the folder, the table's
+    row or the image for anything missing or malformed; nothing is written.
+
+    table : the press table, a .csv or .json in the folder (default: its only one).
+    no_contact : the no-contact frame's file name (default: the one named as NO_CONTACT_NAMES).
+    columns : {role: column name} over COLUMNS' defaults.
+    channels : how the images store their channels, "rgb" (default) or "bgr".
+    """
+    folder = Path(path)
+    if not folder.is_dir():
+        raise ValueError(f"folder {folder} does not exist or is not a folder (a folder of images, a no-contact frame "
+                         "and a press table was expected)")
+    if channels not in CHANNELS:
+        raise ValueError(f"channels must be one of {CHANNELS}, got {channels!r}")
+    unknown = sorted(set(columns or {}) - set(COLUMNS))
+    if unknown:
+        raise ValueError(f"--columns: unknown roles {unknown}; the roles are {sorted(COLUMNS)}")
+    columns = {**COLUMNS, **(columns or {})}
+    table_path = _press_table(folder, table)
+    rows = _table_rows(table_path, columns)
+    f0_path = _no_contact_path(folder, no_contact)
+    digest = hashlib.sha256()
+    for p in (table_path, f0_path):
+        digest.update(p.name.encode() + b"\0" + p.read_bytes())
+    f0 = _read_8bit(f0_path, channels)
+    frames = np.empty((len(rows), *f0.shape), np.uint8)
+    for i, row in enumerate(rows):
+        name = f"folder {folder}: press {i} ({row['image']})"
+        image = folder / row["image"]
+        if image.resolve() == f0_path.resolve():
+            raise ValueError(f"{name} names the no-contact frame {f0_path.name} as a press")
+        if not image.is_file():
+            raise ValueError(f"{name}: its image {image} is missing")
+        frame = _read_8bit(image, channels)
+        if frame.shape != f0.shape:
+            raise ValueError(f"{name}: its image is {frame.shape[1]}x{frame.shape[0]} px, the no-contact frame "
+                             f"{f0_path.name} {f0.shape[1]}x{f0.shape[0]} px; every frame must be the same size")
+        frames[i] = frame
+        digest.update(image.name.encode() + b"\0" + image.read_bytes())
+
+    def column(role, scale=1.0):
+        values = np.array([np.nan if r[role] is None else r[role] * scale for r in rows], np.float64)
+        return None if np.isnan(values).all() else values
+
+    return Archive(no_contact=f0 / 255.0, frames=frames / 255.0,
+                   centres_px=np.array([[r["x"], r["y"]] for r in rows], np.float64),
+                   radii_px=np.array([r["radius"] for r in rows], np.float64),
+                   names=tuple(r["name"] or r["image"] for r in rows), path=str(folder.resolve()),
+                   notes={"channels": f"stored {channels.upper()}" + (", turned to RGB" if channels == "bgr" else ""),
+                          "table": table_path.name, "no_contact": f0_path.name},
+                   depths_m=column("depth", 1e-3), balls_m=column("ball", 1e-3), sha256=digest.hexdigest())
+
+
+def write_folder(archive: Archive, folder: str | Path, table: str = "presses.csv") -> Path:
+    """Write ``archive`` as a folder of presses (:func:`read_folder` reads it back to the
+    same frames, centres, radii and names): 8-bit RGB PNGs (lossless), ``background.png``,
+    and a CSV table with the default columns. The folder must be new or empty."""
+    import csv
+    import io
+
+    from .dataset import atomic_write_bytes
+    from .images import png_bytes
+
+    folder = Path(folder)
+    if folder.exists() and any(folder.iterdir()):
+        raise ValueError(f"folder {folder} is not empty; write a set of presses into a new folder")
+    check_archive(archive)
+    atomic_write_bytes(folder / "background.png", png_bytes(archive.no_contact))
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    roles = ["image", "name", "x", "y", "radius"] + [r for r, v in (("depth", archive.depths_m),
+                                                                    ("ball", archive.balls_m)) if v is not None]
+    writer.writerow([COLUMNS[r] for r in roles])
+    for i, name in enumerate(archive.names):
+        image = f"press_{i:04d}.png"
+        atomic_write_bytes(folder / image, png_bytes(archive.frames[i]))
+        row = [image, name, repr(float(archive.centres_px[i, 0])), repr(float(archive.centres_px[i, 1])),
+               repr(float(archive.radii_px[i]))]
+        for values in (archive.depths_m, archive.balls_m):
+            if values is not None:
+                row.append("" if np.isnan(values[i]) else repr(float(values[i]) * 1e3))
+        writer.writerow(row)
+    atomic_write_bytes(folder / table, buf.getvalue().encode())
+    return folder
+
+
+def turn_archive(archive: Archive, degrees: int) -> Archive:
+    """``archive`` with its frames turned ``degrees`` (a multiple of 90) clockwise, and each
+    press's annotated centre turned with them (radii, names and depths unchanged). Pixel
+    centres lie on integers: a clockwise quarter turn of a W x H frame takes (u, v) to
+    (H - 1 - v, u)."""
+    if degrees not in TURNS:
+        raise ValueError(f"a turn must be one of {TURNS} degrees clockwise, got {degrees!r}")
+    k = degrees // 90
+    if k == 0:
+        return archive
+    h, w = archive.no_contact.shape[:2]
+    u, v = archive.centres_px[:, 0], archive.centres_px[:, 1]
+    turned = {1: (h - 1 - v, u), 2: (w - 1 - u, h - 1 - v), 3: (v, w - 1 - u)}[k]
+    return dataclasses.replace(
+        archive, no_contact=np.rot90(archive.no_contact, -k, axes=(0, 1)).copy(),
+        frames=np.rot90(archive.frames, -k, axes=(1, 2)).copy(), centres_px=np.stack(turned, axis=1),
+        notes={**archive.notes, "turned": f"frames turned {degrees} deg clockwise, their annotated centres with them"})
+
+
+def orientation_turn(spec, width: int, height: int) -> int:
+    """The quarter turn (0 or 90 degrees clockwise) that gives ``width`` x ``height`` frames
+    the orientation (portrait or landscape) of the spec's camera."""
+    c = spec.camera
+    return 0 if (width >= height) == (c.width >= c.height) or width == height else 90
+
+
+#: Keys a set's records (SET_RECORDS) may hold, and what each is.
+SET_RECORDS = "set.toml"
+SET_KEYS = {"format": "the archive's format (taxim, folder)", "spec": "a shipped sensor's name or a spec TOML's path",
+            "ball_mm": "the ball's diameter, mm", "pixel_mm": "a pixel's size on the gel at the frames' size, mm",
+            "channels": "rgb or bgr", "table": "the press table's file", "no_contact": "the no-contact frame's file",
+            "columns": "a table of ROLE = column name", "turn": "0, 90, 180, 270 or auto",
+            "markers": "keep or inpaint (printed marker dots)", "name": "the set's name", "notes": "free text"}
+
+
+def set_records_path(archive: str | Path) -> Path | None:
+    """Where a set's records sit beside ``archive``: ``set.toml`` in a folder, ``X.toml`` beside
+    a file ``X.npz`` (or ``set.toml`` in its folder); None where there are none."""
+    archive = Path(archive)
+    for path in ([archive / SET_RECORDS] if archive.is_dir() else
+                 [archive.with_suffix(".toml"), archive.parent / SET_RECORDS]):
+        if path.is_file():
+            return path
+    return None
+
+
+def read_set_records(archive: str | Path) -> dict:
+    """The records of the set at ``archive`` (SET_KEYS), or {} where it has none; a spec
+    given by a path is made absolute against the records' folder, a bare name is a shipped
+    sensor (``scenes/sensors/<name>.toml``). ValueError naming the file and the key."""
+    import tomllib
+
+    path = set_records_path(archive)
+    if path is None:
+        return {}
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"set records {path} could not be read: {exc}") from None
+    unknown = sorted(set(data) - set(SET_KEYS))
+    if unknown:
+        raise ValueError(f"set records {path}: unknown keys {unknown}; the keys are "
+                         + "; ".join(f"{k}: {v}" for k, v in SET_KEYS.items()))
+    for key in ("ball_mm", "pixel_mm"):
+        if key in data and not (isinstance(data[key], (int, float)) and not isinstance(data[key], bool)
+                                and data[key] > 0):
+            raise ValueError(f"set records {path}: {key} must be a positive number of millimetres, got {data[key]!r}")
+    if "columns" in data and not (isinstance(data["columns"], dict)
+                                  and all(isinstance(v, str) for v in data["columns"].values())):
+        raise ValueError(f"set records {path}: columns must be a table of ROLE = \"column name\"")
+    if "spec" in data:
+        from .spec import spec_file
+
+        data["spec"] = str(spec_file(data["spec"], path.parent))
+    return {**data, "records": str(path)}
+
+
 #: Format name -> reader.
-FORMATS: dict[str, Callable[[str | Path], Archive]] = {TAXIM: read_taxim}
+FORMATS: dict[str, Callable[..., Archive]] = {TAXIM: read_taxim, FOLDER: read_folder}
 
 
 def check_archive(archive: Archive) -> None:
@@ -234,11 +523,63 @@ def rim_depth(edge_px: float, pixel_m: float, ball_radius_m: float, rim_share: f
     return ball_depth(contact_px * pixel_m, ball_radius_m), capped
 
 
+def frames_spec(spec, width: int, height: int):
+    """(the spec's sensor with a camera of ``width`` x ``height`` pixels, how it was set).
+
+    Frames of the camera's aspect: ``SensorSpec.at_resolution``. Frames of another aspect
+    (a portrait frame from a landscape camera, or any other crop): the camera's sensor is
+    set from the frames: a pinhole of the frames' size whose pixel count is the spec's
+    times s^2 (focal length s times the spec's, in pixels), its principal point and image
+    circle moved to the frames' centre (an image circle that covered the spec's frame
+    covers the new one), the published smoothing's Gaussian scaled by s. A lens with
+    distortion is refused (turn the frames instead: ``turn_archive``)."""
+    c = spec.camera
+    if abs(width * c.height - height * c.width) <= 1e-9 * width * c.height:
+        return spec.at_resolution(width, height), "the spec's camera at the frames' size"
+    if not (isinstance(width, int) and isinstance(height, int) and width >= 2 and height >= 2):
+        raise ValueError(f"a camera's size must be whole pixels, at least 2x2, got {width!r}x{height!r}")
+    if c.projection != "pinhole" or any(c.distortion):
+        raise ValueError(f"{width}x{height} frames have another aspect than the {c.width}x{c.height} camera of sensor "
+                         f"{spec.name!r}, whose {c.projection} lens with distortion {list(c.distortion)} cannot be set "
+                         "from them; turn the frames (--turn) or give a spec whose camera has the frames' aspect")
+    s = math.sqrt(width * height / (c.width * c.height))
+    f = c.height / 2 / math.tan(c.fov_y / 2) * s
+    old = ((c.width - 1) / 2, (c.height - 1) / 2)
+    new = ((width - 1) / 2, (height - 1) / 2)
+
+    def moved(point):
+        return None if point is None else tuple(n + (p - o) * s for p, o, n in zip(point, old, new))
+
+    covered = c.mask_radius_px >= 0.5 * math.hypot(c.width - 1, c.height - 1) and c.mask_center_px in (None, old)
+    camera = dataclasses.replace(
+        c, width=width, height=height, fov_y=2 * math.atan(height / 2 / f),
+        mask_radius_px=0.5 * math.hypot(width, height) if covered else c.mask_radius_px * s,
+        mask_center_px=None if c.mask_center_px is None else new if covered else moved(c.mask_center_px),
+        principal_point_px=moved(c.principal_point_px))
+    elastic = dataclasses.replace(spec.elastic, sigma_px=spec.elastic.sigma_px * s,
+                                  radius_px=max(1, int(round(spec.elastic.radius_px * s))))
+    return spec.replace(camera=camera, elastic=elastic), (
+        f"the camera's sensor set from the {width}x{height} frames (the spec's is {c.width}x{c.height}: "
+        f"focal length {s:.4g} of its, in pixels)")
+
+
+def spec_pixel_m(spec, width: int, height: int) -> float:
+    """A pixel's size on the membrane, metres, where the optical axis of the spec's camera,
+    at ``width`` x ``height`` (:func:`frames_spec`), meets it: the folder format's default
+    pixel size."""
+    from .camera import Camera
+    from .contact import surface_point
+    from .geometry import membrane_mesh
+
+    scaled, _ = frames_spec(spec, width, height)
+    camera = Camera.from_spec(scaled)
+    point, _ = surface_point(membrane_mesh(scaled), camera, (camera.cx, camera.cy))
+    return float(point[2]) / camera.f
+
+
 def capture_spec(spec, width: int, height: int, pixel_m: float):
     """The spec's sensor with a camera of the frames' size whose pixel spans ``pixel_m``
     metres where its optical axis meets the membrane (module doc); returns (spec, note)."""
-    import dataclasses
-
     from .camera import Camera
     from .contact import surface_point
     from .geometry import membrane_mesh
@@ -246,7 +587,7 @@ def capture_spec(spec, width: int, height: int, pixel_m: float):
 
     if not (isinstance(pixel_m, (int, float)) and math.isfinite(pixel_m) and 0 < pixel_m < 0.01):
         raise ValueError(f"pixel size must be a length in metres, > 0 and under 10 mm, got {pixel_m!r}")
-    scaled = spec.at_resolution(width, height)
+    scaled, how = frames_spec(spec, width, height)
     camera = Camera.from_spec(scaled)
     point, _ = surface_point(membrane_mesh(scaled), camera, (camera.cx, camera.cy))
     z = float(point[2])
@@ -255,14 +596,14 @@ def capture_spec(spec, width: int, height: int, pixel_m: float):
         fov_y = 2 * math.atan(height / 2 * pixel_m / z)
         scaled = spec_from_dict(scaled.replace(camera=dataclasses.replace(scaled.camera, fov_y=fov_y)).to_dict(),
                                 f"sensor {spec.name!r} at {width}x{height}")
-        return scaled, (f"fov_y set to {fov_y:.6g} rad so that a pixel spans {pixel_m * 1e3:.6g} mm where the optical "
+        return scaled, (f"{how}; fov_y set to {fov_y:.6g} rad so that a pixel spans {pixel_m * 1e3:.6g} mm where the optical "
                         f"axis meets the membrane, {z * 1e3:.4g} mm from the camera (the spec's gave "
                         f"{now * 1e3:.6g} mm)")
     if abs(now / pixel_m - 1) > PIXEL_TOLERANCE:
         raise ValueError(f"sensor {spec.name!r}: its {spec.camera.projection} lens with distortion "
                          f"{list(spec.camera.distortion)} sees {now * 1e3:.5g} mm a pixel at {width}x{height}, not "
                          f"{pixel_m * 1e3:.5g} mm; give a spec whose camera matches the set")
-    return scaled, f"the spec's lens kept: {now * 1e3:.6g} mm a pixel where its axis meets the membrane"
+    return scaled, f"{how}; the spec's lens kept: {now * 1e3:.6g} mm a pixel where its axis meets the membrane"
 
 
 def press_tap(index: int, obj: str, spec, mesh, camera, centre_px, depth_m: float):
@@ -295,7 +636,7 @@ def _sha256(path: str) -> str:
     return h.hexdigest()
 
 
-def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel_m: float,
+def import_capture(archive: Archive, out: str | Path, spec, ball_m: float | None, pixel_m: float,
                    depth: str = "profile", fmt: str = TAXIM, layout=None, rim_share: float = 1.0,
                    fit: dict | None = None) -> dict:
     """Write ``archive`` as a capture dataset in ``out`` (module doc); returns a summary.
@@ -303,8 +644,10 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     Parameters
     ----------
     spec : the unit's ``SensorSpec`` (its camera is put at the frames' size and pixel).
-    ball_m : the ball's diameter, metres. pixel_m : a pixel's size on the membrane, metres.
-    depth : "profile", "radius" or "elastic" (module doc). rim_share : the share of the contact's
+    ball_m : the ball's diameter, metres, for every press whose archive records none
+        (``Archive.balls_m``); None where every press records its own.
+    pixel_m : a pixel's size on the membrane, metres.
+    depth : "profile", "radius", "elastic", "fitted" or "given" (module doc). rim_share : the share of the contact's
         radius at which a press's change peaks, in (0, 1] (module doc; profile only).
     layout : the rig's ``RigLayout`` the poses are for (default: the project's rig).
     fit : with depth "fitted", the joint fit's report (module doc).
@@ -329,14 +672,27 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         raise ValueError(f"rim_share applies to the rim fitted to the image (depth 'profile'), not to {depth!r}")
     layout = layout or RigLayout()
     check_archive(archive)
+    n = len(archive.frames)
+    balls = np.full(n, np.nan) if archive.balls_m is None else np.asarray(archive.balls_m, np.float64)
+    if ball_m is not None:
+        balls = np.where(np.isnan(balls), float(ball_m), balls)
+    if np.isnan(balls).any():
+        i = int(np.flatnonzero(np.isnan(balls))[0])
+        raise ValueError(f"archive {archive.path}: press {i} ({archive.names[i]}) has no ball diameter in its "
+                         "table and none was given (--ball-mm, or ball_mm in the set's records)")
+    objects = [ball_name(b) for b in balls]
+    if depth == "given":
+        given = np.full(n, np.nan) if archive.depths_m is None else np.asarray(archive.depths_m, np.float64)
+        if np.isnan(given).any():
+            i = int(np.flatnonzero(np.isnan(given))[0])
+            raise ValueError(f"archive {archive.path}: press {i} ({archive.names[i]}) records no depth; --depth given "
+                             "takes every press's depth from its table")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file, not a folder")
     if out.is_dir() and any(out.iterdir()) and not (out / "dataset.json").exists():
         raise DatasetError(f"{out} holds files but no dataset; import into an empty or new folder (nothing was "
                            "written)")
-    obj = ball_name(ball_m)
-    R = ball_m / 2
     h, w = archive.no_contact.shape[:2]
     unit, camera_note = capture_spec(spec, w, h, pixel_m)
     camera = Camera.from_spec(unit)
@@ -347,6 +703,9 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     if depth == "fitted" and len(set(archive.names)) != len(archive.names):
         raise ValueError(f"archive {archive.path}: its presses' names repeat, so the joint fit's depths cannot be "
                          "matched to them")
+    if depth == "fitted" and len(set(objects)) > 1:
+        raise ValueError(f"archive {archive.path}: its presses use balls of {len(set(objects))} sizes; the joint fit's "
+                         "relation is for one ball")
     own, fitted_names = {}, set()
     if depth == "fitted":
         from .elastic_solid import check_material, depth_at_radius
@@ -365,38 +724,46 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         if relation.ndim != 2 or relation.shape[0] != 2 or relation.shape[1] < 2:
             raise ValueError(f"the joint fit's relation_mm must be [depths, rims], got shape {relation.shape}")
 
-        def elastic_depth(contact_radius_m: float) -> float:
+        def elastic_depth(contact_radius_m: float, R: float) -> float:
             # the fitted model's own rim-to-depth relation times k, as the fit gave its held-out presses
             return min(share * float(depth_at_radius(contact_radius_m, relation[1], relation[0])), limit)
 
-        deepest = limit
+        def deepest(R: float) -> float:
+            return limit
     elif depth == "elastic":
         from .elastic_solid import ball_depth_for_contact
 
         thickness, poisson = unit.membrane.elastomer_thickness, unit.elastic.poisson_ratio
 
-        def elastic_depth(contact_radius_m: float) -> float:
+        def elastic_depth(contact_radius_m: float, R: float) -> float:
             return ball_depth_for_contact(contact_radius_m, R, thickness, poisson, cap=True)
 
-        deepest = elastic_depth(math.inf)
+        def deepest(R: float) -> float:
+            return elastic_depth(math.inf, R)
 
     taps, fitted, capped = [], [], []
     for i, (centre, radius) in enumerate(zip(archive.centres_px, archive.radii_px)):
         name = f"archive {archive.path}: press {i} ({archive.names[i]})"
+        R = balls[i] / 2
         if depth == "radius":
             edge_px = float(radius)
         else:
             try:
                 edge_px = contact_edge_px(archive.frames[i], archive.no_contact, centre, R / pixel_m)
             except ValueError as exc:
-                raise ValueError(f"{name}: {exc}") from None
-        if depth in ("elastic", "fitted"):
+                if depth != "given":
+                    raise ValueError(f"{name}: {exc}") from None
+                edge_px = float(radius)  # a given depth needs no rim; the annotation stands in for it
+        if depth == "given":
+            d = float(given[i])
+            capped.append(False)
+        elif depth in ("elastic", "fitted"):
             try:
-                d = own[archive.names[i]] if archive.names[i] in own else elastic_depth(edge_px * pixel_m)
+                d = own[archive.names[i]] if archive.names[i] in own else elastic_depth(edge_px * pixel_m, R)
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
             # a rim wider than the deepest tabulated press leaves is given that depth, and says so
-            capped.append(d >= deepest)
+            capped.append(d >= deepest(R))
         else:
             try:
                 d, cap = rim_depth(edge_px, pixel_m, R, rim_share)
@@ -407,29 +774,34 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
                                  + ("; --depth profile fits the rim from the image instead" if depth == "radius"
                                     else "")) from None
         try:
-            taps.append(press_tap(i, obj, unit, mesh, camera, centre, d))
+            taps.append(press_tap(i, objects[i], unit, mesh, camera, centre, d))
         except ValueError as exc:
             raise ValueError(f"{name}: {exc}") from None
         fitted.append(edge_px)
-    protocol = Protocol(name=f"import-{fmt}", taps=tuple(taps), seed=None)
+    # one name for every format, so that the same presses give the same protocol.json
+    protocol = Protocol(name="import", taps=tuple(taps), seed=None)
     validate(protocol, unit, mesh)
 
-    digest = _sha256(archive.path)
+    digest = archive.sha256 or _sha256(archive.path)
+    kinds = sorted(set(objects), key=objects.index)
     meta = {
         "source": "real",
         "sensor": unit.to_dict(),
-        "protocol": {"name": protocol.name, "seed": None, "taps": len(taps), "objects": [obj]},
+        "protocol": {"name": protocol.name, "seed": None, "taps": len(taps), "objects": kinds},
         "image_size": [w, h],
         "image": "8-bit RGB PNG from the camera",
         "depth": "none: a real capture has no depth map",
         "renderer": {"renderer": "camera", "camera": {"kind": "archive", "format": fmt, "sha256": digest,
                                                       **archive.notes}},
         "rig": {"layout": layout.to_dict(), "virtual": False, "printer": None, "servos": None},
-        "import": {"format": fmt, "archive": archive.path, "sha256": digest, "ball_mm": ball_m * 1e3,
+        "import": {"format": fmt, "archive": archive.path, "sha256": digest,
+                   "ball_mm": balls[0] * 1e3 if len(kinds) == 1 else [float(b) * 1e3 for b in balls],
                    "pixel_mm": pixel_m * 1e3, "depth": depth, "rim_share": rim_share,
                    **({"elastic_fit": {"thickness_m": thickness, "poisson_ratio": poisson, "depth_share": share,
                                        "fitted_presses": len(fitted_names)}} if depth == "fitted" else {}),
                    "rims_capped": int(sum(capped)), "camera": camera_note,
+                   "turned_deg": int(archive.notes.get("turned_deg", 0)),
+                   "markers": archive.notes.get("markers", "kept"),
                    "poses": "each press's measured_pose is the rig's pose that presses the ball as annotated: on the "
                             "membrane where the camera sees the annotated centre, along its normal, to the depth "
                             "the depth method gives"},
@@ -437,7 +809,7 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
     writer = DatasetWriter(out, meta, protocol.to_dict())
     if not (out / "background.png").exists():
         writer.write_background(archive.no_contact)
-    vertices = np.asarray(indenter(obj).vertices, np.float64)
+    vertices = {k: np.asarray(indenter(k).vertices, np.float64) for k in kinds}
     from .generate import tap_fields
 
     for tap, edge_px, cap, centre, radius, name in zip(taps, fitted, capped, archive.centres_px, archive.radii_px,
@@ -445,17 +817,106 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float, pixel
         sid = sample_id(tap.index, tap.object)
         if sid in writer.done:
             continue
-        pose = tap_pose(tap, vertices, layout)
+        pose = tap_pose(tap, vertices[tap.object], layout)
         record = {**tap_fields(tap), "commanded_pose": pose, "measured_pose": pose, "measured_depth": tap.depth,
                   "contact_center_px": [float(c) for c in centre], "contact_radius_px": float(radius),
                   "contact_edge_px": edge_px, "source_name": name,
                   **({"contact_radius_capped": cap} if rim_share != 1.0 or depth in ("elastic", "fitted") else {}),
-                  **({"depth_source": "fitted" if name in fitted_names else "rule"} if depth == "fitted" else {})}
+                  **({"depth_source": "fitted" if name in fitted_names else "rule"} if depth == "fitted" else
+                     {"depth_source": "given"} if depth == "given" else {})}
         files = write_sample_files(out, sid, archive.frames[tap.index], None)
         writer.append({**record, **files})
     depths = np.array([t.depth for t in taps])
-    return {"out": str(out), "presses": len(read_samples(out)), "object": obj, "depth": depth,
+    return {"out": str(out), "presses": len(read_samples(out)), "object": ", ".join(kinds), "depth": depth,
             "rim_share": rim_share, "rims_capped": int(sum(capped)),
             "depth_mm": {"median": float(np.median(depths) * 1e3), "min": float(depths.min() * 1e3),
                          "max": float(depths.max() * 1e3)},
             "camera": camera_note}
+
+
+def guess_format(archive: str | Path) -> str:
+    """The format of ``archive`` when neither the command nor its records name one: a
+    ``.npz``, or a folder holding one ``dataPack*.npz``, is Taxim's; any other folder is a
+    folder of presses."""
+    archive = Path(archive)
+    if archive.suffix == ".npz" or (archive.is_dir() and len(list(archive.glob("dataPack*.npz"))) == 1):
+        return TAXIM
+    return FOLDER
+
+
+#: The folder format's own options (a Taxim pack has none of them).
+FOLDER_OPTIONS = ("table", "no_contact", "columns", "channels")
+
+
+def open_set(archive: str | Path, fmt: str | None = None, **given) -> tuple:
+    """Read the set of presses at ``archive`` as ``tactile-sim import`` and ``bench real``
+    do: (its Archive, turned as asked; the unit's spec; the ball's diameter, m, or None;
+    a pixel's size, m; what was settled and from where).
+
+    Each setting (``spec``, ``ball_mm``, ``pixel_mm``, ``turn``, ``markers``, and the folder's ``table``,
+    ``no_contact``, ``columns``, ``channels``) comes from ``given`` where it is not None,
+    else from the set's records beside it (:func:`read_set_records`), else from the
+    format's defaults: Taxim's pack is its published GelSight's; a folder's spec is the
+    GelSight's, its pixel size the spec's own at the frames' size (``scenes.spec.spec_file``,
+    :func:`spec_pixel_m`), its ball none (the table's, or refused). ``turn`` "auto" turns
+    the frames a quarter when their orientation is not the spec camera's. ``markers``
+    "inpaint" finds each frame's printed marker dots and fills them (``scenes.markers``);
+    "keep" (the default) leaves the frames as they are.
+    """
+    from .spec import load_spec, spec_file
+
+    records = read_set_records(archive)
+    fmt = fmt or records.get("format") or guess_format(archive)
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {sorted(FORMATS)}, got {fmt!r}")
+    if records.get("format", fmt) != fmt:
+        raise ValueError(f"set records {records['records']} say the archive is {records['format']!r}, not {fmt!r}")
+    settings = {k: v for k, v in records.items() if k not in ("format", "name", "notes")}
+    settings.update({k: v for k, v in given.items() if v is not None})
+    where = {k: ("given" if given.get(k) is not None else f"records {records['records']}")
+             for k in settings if k != "records"}
+    if fmt == TAXIM:
+        extra = sorted(k for k in FOLDER_OPTIONS if k in settings)
+        if extra:
+            raise ValueError(f"{', '.join(extra)}: options of the folder format, not of a Taxim pack")
+        read = read_taxim(archive)
+        defaults = DEFAULTS[TAXIM]
+    else:
+        read = read_folder(archive, settings.get("table"), settings.get("no_contact"), settings.get("columns"),
+                           settings.get("channels", "rgb"))
+        defaults = {"spec": Path(__file__).with_name("sensors") / "gelsight.toml"}
+    source = spec_file(settings["spec"]) if "spec" in settings else defaults["spec"]
+    spec = load_spec(source)
+    turn = settings.get("turn", 0)
+    h, w = read.no_contact.shape[:2]
+    if turn == "auto":
+        turn = orientation_turn(spec, w, h)
+    if isinstance(turn, str):
+        try:
+            turn = int(turn)
+        except ValueError:
+            pass
+    read = turn_archive(read, turn)
+    if turn:
+        read = dataclasses.replace(read, notes={**read.notes, "turned_deg": turn})
+    h, w = read.no_contact.shape[:2]
+    if "pixel_mm" in settings:
+        pixel = float(settings["pixel_mm"]) * 1e-3
+    elif "pixel_m" in defaults:
+        pixel, where["pixel_mm"] = defaults["pixel_m"], f"the {fmt} set's default"
+    else:
+        pixel, where["pixel_mm"] = spec_pixel_m(spec, w, h), f"the spec's camera at {w}x{h}"
+    markers = settings.get("markers", "keep")
+    if markers not in MARKERS:
+        raise ValueError(f"markers must be one of {MARKERS}, got {markers!r}")
+    if markers == "inpaint":
+        from .markers import remove_markers
+
+        f0, frames, report = remove_markers(read.no_contact, read.frames, pixel)
+        read = dataclasses.replace(read, no_contact=f0, frames=frames, notes={**read.notes, "markers": report})
+    ball = float(settings["ball_mm"]) * 1e-3 if "ball_mm" in settings else defaults.get("ball_m")
+    if "ball_mm" not in settings and ball is not None:
+        where["ball_mm"] = f"the {fmt} set's default"
+    where.setdefault("spec", f"the {fmt} format's default")
+    return read, spec, ball, pixel, {"format": fmt, "spec": str(source), "turn_deg": turn, "markers": markers,
+                                     "records": records.get("records"), "from": where}

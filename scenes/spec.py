@@ -764,10 +764,24 @@ def read_sensor_file(path: str | Path) -> dict:
     return out
 
 
+def spec_file(name_or_path: str | Path, base: str | Path | None = None) -> Path:
+    """A sensor spec's TOML: a file's path (relative to ``base`` where given), or a shipped
+    sensor's name (``digit``, ``gelsight_mini``, ``gelsight``, ...: ``scenes/sensors/<name>.toml``)
+    where no such file exists."""
+    text = str(name_or_path)
+    path = Path(text)
+    if base is not None and not path.is_absolute():
+        path = (Path(base) / path).resolve()
+    if path.is_file() or "/" in text or text.endswith(".toml"):
+        return path
+    shipped = SENSORS_DIR / f"{text}.toml"
+    return shipped if shipped.is_file() else path
+
+
 def load_spec(path: str | Path | None = None) -> SensorSpec:
-    """Read a sensor spec TOML file (over its base, :func:`read_sensor_file`); ``None`` gives
-    the default GelTip."""
-    path = Path(path) if path is not None else DEFAULT_SPEC_PATH
+    """Read a sensor spec TOML file (over its base, :func:`read_sensor_file`), by its path or
+    a shipped sensor's name (:func:`spec_file`); ``None`` gives the default GelTip."""
+    path = spec_file(path) if path is not None else DEFAULT_SPEC_PATH
     data = read_sensor_file(path)
     spec = spec_from_dict(data, source=str(path))
     for key in ("mesh_path", "core_mesh_path"):
