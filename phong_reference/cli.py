@@ -159,11 +159,15 @@ def _demo(args, spec, mesh, camera, out: Path) -> dict:
     profile = _profile(args, spec)
     fields, _ = bake_all(mesh, camera, spec.leds, METHODS)
     ref = fields["linear"].depth
+    # The contacts' pixels, as offsets from the centre of a 640x480 frame, scaled to this one's
+    # width and height (a 240x320 DIGIT frame would put a 150 px offset outside it).
+    sx, sy = camera.width / 640, camera.height / 480
     contacts = {
-        "sphere_tip": (trimesh.primitives.Sphere(radius=0.004), (camera.cx + 20, camera.cy - 10), 0.0015),
-        "sphere_side": (trimesh.primitives.Sphere(radius=0.003), (camera.cx - 150, camera.cy + 60), 0.0012),
-        "box_edge": (trimesh.creation.box((0.004, 0.004, 0.004)), (camera.cx + 90, camera.cy + 110), 0.001),
-        "cylinder": (trimesh.creation.cylinder(radius=0.002, height=0.006), (camera.cx + 60, camera.cy - 150), 0.0015),
+        "sphere_tip": (trimesh.primitives.Sphere(radius=0.004), (camera.cx + 20 * sx, camera.cy - 10 * sy), 0.0015),
+        "sphere_side": (trimesh.primitives.Sphere(radius=0.003), (camera.cx - 150 * sx, camera.cy + 60 * sy), 0.0012),
+        "box_edge": (trimesh.creation.box((0.004, 0.004, 0.004)), (camera.cx + 90 * sx, camera.cy + 110 * sy), 0.001),
+        "cylinder": (trimesh.creation.cylinder(radius=0.002, height=0.006), (camera.cx + 60 * sx, camera.cy - 150 * sy),
+                     0.0015),
     }
     depths = {}
     for name, (shape, pixel, depth_m) in tqdm(contacts.items(), desc="pressing contacts", unit="contact"):
