@@ -160,7 +160,7 @@ def cmd_replay(args) -> int:
 def cmd_import(args) -> int:
     """``tactile-sim import FORMAT ARCHIVE --out DIR``: a published capture, or a folder of
     presses, as a capture dataset."""
-    from .imports import import_capture, open_set
+    from .imports import default_depth, import_capture, open_set
 
     columns = None
     if args.columns:
@@ -173,8 +173,7 @@ def cmd_import(args) -> int:
     archive, spec, ball, pixel, how = open_set(
         args.archive, args.format, spec=args.spec, ball_mm=args.ball_mm, pixel_mm=args.pixel_mm, turn=args.turn,
         table=args.table, no_contact=args.no_contact, columns=columns, channels=args.channels, markers=args.markers)
-    depth = args.depth or ("given" if archive.depths_m is not None and not np.isnan(archive.depths_m).any()
-                           else "profile")
+    depth = args.depth or default_depth(archive)
     if (depth == "fitted") != (args.depth_fit is not None):
         raise ValueError("--depth fitted takes --depth-fit FIT.json (the joint fit's report), and only it does")
     fit = None

@@ -834,6 +834,14 @@ def import_capture(archive: Archive, out: str | Path, spec, ball_m: float | None
             "camera": camera_note}
 
 
+def default_depth(archive: Archive) -> str:
+    """How an import gives each press its depth when not told: the archive's own depths
+    ("given") where it records one for every press, else the rim fitted to each image
+    ("profile")."""
+    depths = archive.depths_m
+    return "given" if depths is not None and not np.isnan(depths).any() else "profile"
+
+
 def guess_format(archive: str | Path) -> str:
     """The format of ``archive`` when neither the command nor its records name one: a
     ``.npz``, or a folder holding one ``dataPack*.npz``, is Taxim's; any other folder is a
@@ -872,7 +880,8 @@ def open_set(archive: str | Path, fmt: str | None = None, **given) -> tuple:
     if records.get("format", fmt) != fmt:
         raise ValueError(f"set records {records['records']} say the archive is {records['format']!r}, not {fmt!r}")
     settings = {k: v for k, v in records.items() if k not in ("format", "name", "notes")}
-    settings.update({k: v for k, v in given.items() if v is not None})
+    settings.update({k: ({**settings[k], **v} if k == "columns" and k in settings else v)
+                     for k, v in given.items() if v is not None})
     where = {k: ("given" if given.get(k) is not None else f"records {records['records']}")
              for k in settings if k != "records"}
     if fmt == TAXIM:

@@ -144,8 +144,12 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         reference_diagnosis: bool = False, localisation: bool = True, quiet: bool = True,
         rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
         reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False, runs: int = 1,
-        depth: str = "profile", diagnosis_on: bool = True) -> dict:
-    """The benchmark (module doc); writes and returns the JSON. ``grid``: the reference
+        depth: str | None = None, diagnosis_on: bool = True, fmt: str | None = None, turn: str | None = None,
+        markers: str | None = None) -> dict:
+    """The benchmark (module doc); writes and returns the JSON. ``archive``: any set of
+    presses ``tactile-sim import`` reads (a Taxim pack, or a folder of presses), with its
+    ``fmt``, ``spec``, ``ball_mm``, ``pixel_mm``, ``turn`` and ``markers`` as given, else as its records
+    beside it say, else the format's defaults (``scenes.imports.open_set``). ``grid``: the reference
     calibration's grid (``calibrate --grid``); ``camera_known``: its alignment held at the
     spec's camera (``calibrate --camera-known``: the public set's spec is written from its
     camera's record), else searched; ``reference_presses``: the held-out presses the
@@ -156,7 +160,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     calibration's report) and a coarse grid under the plate, on the no-contact frame and
     the presses, with each LED's gains through its film response (``--spectral-gains``) and
     the camera's response held to a webcam's (``--webcam-response``);
-    ``depth``: how the import gives each press its depth (``tactile-sim import --depth``:
+    ``depth``: how the import gives each press its depth (``tactile-sim import --depth``;
+    default: the set's own where it gives every press one, else ``profile``:
     ``elastic``, from the spec's layer, gives ours and Taxim the same physical depths;
     ``fitted``: the bonded layer and the fitted half's depths fitted together
     (``phong_reference.elastic_fit``, from the spec's layer's depths and the fast path
@@ -182,13 +187,15 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     from scenes.cli import REPORTED
     from scenes.commands import name_values
     from scenes.dataset import atomic_write_json
-    from scenes.imports import DEFAULTS, FORMATS, TAXIM, import_capture
-    from scenes.spec import load_spec
+    from scenes.imports import default_depth, import_capture, open_set
     from scenes.reference_data import require_taxim_archive
     from studies.compare.run import compare
     from studies.gap.report import headline
 
     archive = Path(archive) if archive is not None else require_taxim_archive()
+    pressed, unit_spec, ball_m, pixel_m, settled = open_set(archive, fmt, spec=spec, ball_mm=ball_mm,
+                                                            pixel_mm=pixel_mm, turn=turn, markers=markers)
+    depth = depth or default_depth(pressed)
     keep = work is not None
     work = Path(work) if keep else Path(tempfile.mkdtemp(prefix="bench-real-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -202,13 +209,9 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
 
     try:
         capture = work / "capture"
-        defaults = DEFAULTS[TAXIM]  # tactile-sim import's, where an argument is not given
-
         def import_as(folder, how, fit=None):
-            return import_capture(
-                FORMATS[TAXIM](archive), folder, load_spec(spec or defaults["spec"]),
-                ball_mm * 1e-3 if ball_mm else defaults["ball_m"], pixel_mm * 1e-3 if pixel_mm else defaults["pixel_m"],
-                fmt=TAXIM, rim_share=1.0 if rim_share is None else rim_share, depth=how, fit=fit)
+            return import_capture(pressed, folder, unit_spec, ball_m, pixel_m, fmt=settled["format"],
+                                  rim_share=1.0 if rim_share is None else rim_share, depth=how, fit=fit)
 
         fast_profile = work / "calibrated_fast" / "profile.toml"
         depth_fit, fast_fit = None, phong.calibrate
@@ -311,7 +314,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         taxim_share = _row(raw, "peer", variant="refit_share")
         shipped = _row(raw, "peer", variant="shipped")
         out = {
-            "archive": str(archive), "presses": len(unit.ids), "heldout": len(raw["taps"]),
+            "archive": str(archive), "set": settled, "presses": len(unit.ids), "heldout": len(raw["taps"]),
             "reference_calibration": {"grid": list(grid), "camera_known": camera_known, "fit_layout": fit_layout,
                                       "spectral_gains": fit_layout, "webcam_response": fit_layout,
                                       "layout": _layout_report(ref_profile.parent / "report.json")}
@@ -387,7 +390,7 @@ def cmd_bench_real(args) -> int:
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share, depth=args.depth,
               grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
               reference_presses=args.reference_presses, fit_layout=args.fit_layout, runs=args.runs,
-              diagnosis_on=not args.no_diagnosis)
+              diagnosis_on=not args.no_diagnosis, fmt=args.format, turn=args.turn, markers=args.markers)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -399,17 +402,29 @@ def register(registry) -> None:
 
     p = registry.bench("real", cmd_bench_real, "a real capture of ball presses end to end: import, both calibrations, "
                        "compare with Taxim, the diagnosis and sim-to-real localisation on the held-out presses")
-    p.add_argument("--archive", metavar="A", help="the archive (default: the public GelSight set, "
-                                                  "../shared/data/real_gelsight_taxim)")
-    p.add_argument("--spec", metavar="TOML", help="the unit's sensor spec (default: the set's, gelsight.toml)")
-    p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (default the set's, 4)")
-    p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the gel, mm (default the set's, "
-                                                                "0.1245)")
-    p.add_argument("--depth", choices=("profile", "elastic", "fitted"), default="profile",
+    from scenes.imports import FORMATS, MARKERS, TURNS
+
+    p.add_argument("--archive", metavar="A", help="the set of presses: any archive or folder tactile-sim import "
+                   "reads, its records (set.toml in a folder, X.toml beside X.npz) giving what is not given here "
+                   "(default: the public GelSight set, ../shared/data/real_gelsight_taxim)")
+    p.add_argument("--format", choices=sorted(FORMATS), help="the archive's format (default: its records', else "
+                   "taxim for a .npz or a folder holding one dataPack*.npz, else folder)")
+    p.add_argument("--spec", metavar="TOML", help="the unit's sensor spec, a TOML or a shipped sensor's name (default: "
+                   "the set's records', else the format's: gelsight.toml)")
+    p.add_argument("--ball-mm", type=float, metavar="D", help="the ball's diameter, mm (default: the set's records', "
+                   "else the table's, else taxim's 4)")
+    p.add_argument("--pixel-mm", type=float, metavar="P", help="a pixel's size on the gel, mm (default: the set's "
+                   "records', else taxim's 0.1245, else the spec camera's at the frames' size)")
+    p.add_argument("--turn", choices=[str(t) for t in TURNS] + ["auto"],
+                   help="turn the frames and their centres this many degrees clockwise (tactile-sim import --turn)")
+    p.add_argument("--markers", choices=MARKERS, help="printed marker dots: keep (default) or inpaint (tactile-sim "
+                   "import --markers)")
+    p.add_argument("--depth", choices=("profile", "elastic", "fitted", "given"),
                    help="how the import gives each press its depth (tactile-sim import's --depth; elastic: the rim "
                         "is the edge of the elastic contact the spec's layer makes, the same depths for every model; "
                         "fitted: the bonded layer and the fitted half's depths fitted together (tactile-sim "
-                        "fit-elastic) and the fast path calibrated under that layer)")
+                        "fit-elastic) and the fast path calibrated under that layer; given: the set's own; default: "
+                        "given where the set gives every press's depth, else profile)")
     p.add_argument("--rim-share", type=float, metavar="K", help="the import's share of a contact's radius at which "
                    "its change peaks (default 1: tactile-sim import's --rim-share)")
     p.add_argument("--work", metavar="DIR", help="keep every dataset, profile and report here (default: a temporary "
