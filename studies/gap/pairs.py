@@ -124,14 +124,17 @@ def _read_depth(root: Path, record: dict, shape: tuple[int, int]) -> np.ndarray:
 
 
 def load_pairs(real_dir: str | Path, sim_dir: str | Path, progress=None) -> Pairs:
-    """Read a real dataset and its simulated counterpart, matched by sample id.
+    """Read a real dataset and its simulated counterpart, matched by sample id, in the
+    protocol's order.
 
     progress : optional callable(done, total) for a progress bar.
     """
     real_dir, sim_dir = Path(real_dir), Path(sim_dir)
     real_meta, sim_meta = read_meta(real_dir), read_meta(sim_dir)
     check_compatible(real_meta, sim_meta, real_dir, sim_dir)
-    sim_records = read_samples(sim_dir)
+    # in the protocol's order, not the order the samples finished in (parallel workers finish in any
+    # order), so that a diagnosis of the same datasets is the same every run
+    sim_records = sorted(read_samples(sim_dir), key=lambda r: (r.get("tap_index", 0), str(r["id"])))
     real_records = _match(read_samples(real_dir), sim_records, real_dir, sim_dir)
     width, height = (int(v) for v in sim_meta["image_size"])
     shape = (height, width)
