@@ -158,6 +158,7 @@ def test_a_peer_that_cannot_run_says_why(tiny_capture, tmp_path):
     status = result["peers"]["taxim"]
     assert not status["ran"] and ("imported set" in status["why"] or "pip install" in status["why"]), status
     assert all(r["method"] != "peer" for r in result["rows"])
+    assert f"Peer taxim not scored: {status['why']}" in (tmp_path / "t" / "table.md").read_text()
     with pytest.raises(ValueError, match=r"peers must be some of \('taxim',\), got 'sapien'"):
         compare(tiny_capture, tmp_path / "u", fields=("plane",), backgrounds=("solid",), reference=False,
                 peers=("sapien",), progress=False)

@@ -105,6 +105,8 @@ def markdown(result: dict) -> str:
     if result["on_reference_taps"]:
         text += ["", table.markdown(result["on_reference_taps"],
                                     f"On the reference's {len(result['reference_taps'])} taps only")]
+    text += [f"\nPeer {name} not scored: {status['why']}" for name, status in (result.get("peers") or {}).items()
+             if not status.get("ran")]
     return "\n".join(text)
 
 
@@ -126,6 +128,8 @@ def render_html(result: dict, files: dict[str, str]) -> str:
     if result["on_reference_taps"]:
         subset = (f"<h2>On the reference's {len(result['reference_taps'])} taps</h2>"
                   + _html_table(result["on_reference_taps"]))
+    unscored = "".join(f"<p>Peer {html.escape(name)} not scored: {html.escape(status['why'])}</p>"
+                       for name, status in (result.get("peers") or {}).items() if not status.get("ran"))
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Table 1: simulation against the rig</title>
 <style>body{{font-family:sans-serif;max-width:1250px;margin:auto;padding:1em}}table{{border-collapse:collapse;margin:.5em 0}}
 td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px}}th{{background:#eee}}figure{{margin:1em 0}}</style></head><body>
@@ -136,7 +140,7 @@ Profile: {html.escape(str(result['profile']))}. Alignment {html.escape(result['a
 Best fast-path variant (image circle MAE): <b>{html.escape(result['best_fast'])}</b>.</p>
 <p>Mean over taps [{result['confidence']:.0%} bootstrap interval over taps, {result['bootstrap']} resamples, seed
 {result['seed']}]. Full frame as published, and masked to the lens' image circle.</p>
-<h2>All taps</h2>{_html_table(result['rows'])}{subset}
+<h2>All taps</h2>{_html_table(result['rows'])}{subset}{unscored}
 <h2>Figures</h2>{figs}
 <p>Finished in {result['seconds']:.1f} s.</p></body></html>
 """
