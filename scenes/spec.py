@@ -780,8 +780,20 @@ def spec_file(name_or_path: str | Path, base: str | Path | None = None) -> Path:
 
 def load_spec(path: str | Path | None = None) -> SensorSpec:
     """Read a sensor spec TOML file (over its base, :func:`read_sensor_file`), by its path or
-    a shipped sensor's name (:func:`spec_file`); ``None`` gives the default GelTip."""
+    a shipped sensor's name (:func:`spec_file`); or a dataset's folder, whose
+    ``dataset.json`` records its sensor (an imported capture's: the spec at the frames'
+    size and pixel, the unit's own); ``None`` gives the default GelTip."""
     path = spec_file(path) if path is not None else DEFAULT_SPEC_PATH
+    if path.is_dir():
+        import json
+
+        meta = path / "dataset.json"
+        try:
+            sensor = json.loads(meta.read_text())["sensor"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"spec {path}: a folder must be a dataset whose dataset.json records its sensor "
+                             f"({exc.__class__.__name__}: {exc})") from None
+        return spec_from_dict(sensor, source=str(meta))
     data = read_sensor_file(path)
     spec = spec_from_dict(data, source=str(path))
     for key in ("mesh_path", "core_mesh_path"):

@@ -274,3 +274,16 @@ def test_a_press_without_a_ball_or_depth_is_refused(tmp_path, capsys):
     assert run("taxim", folder, "--out", tmp_path / "cap", "--table", "presses.csv") == 1
     assert "table: options of the folder format, not of a Taxim pack" in capsys.readouterr().err
     assert not (tmp_path / "cap").exists()
+
+
+def test_a_spec_by_name_or_by_its_capture(tmp_path):
+    from scenes.spec import load_spec, spec_file
+
+    assert spec_file("digit").name == "digit.toml" and load_spec("gelsight_mini").name == "gelsight_mini"
+    assert spec_file("no_such_sensor") == Path("no_such_sensor")  # not a shipped one: a path, refused on reading
+    folder = make_folder(tmp_path / "set", shape=(160, 120), centres=[(c[1], c[0]) for c in CENTRES])
+    assert run("folder", folder, "--out", tmp_path / "cap", "--spec", "gelsight", "--ball-mm", 4) == 0
+    unit = load_spec(tmp_path / "cap")  # the unit's own camera, as its capture records it
+    assert (unit.camera.width, unit.camera.height) == (120, 160)
+    with pytest.raises(ValueError, match=r"a folder must be a dataset whose dataset.json records its sensor"):
+        load_spec(folder)
