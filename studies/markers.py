@@ -8,10 +8,13 @@ contact's rim), and runs the fast path's whole chain three ways:
 
 - ``clean``: the presses as published;
 - ``kept``: the dotted presses as they are;
+- ``kept_clean_depths``: the same, each press given the clean import's depth (what the
+  dots do to the calibration and the comparison alone, not to the rims);
 - ``inpainted``: the dotted presses with their dots found and filled
   (``tactile-sim import --markers inpaint``).
 
-Each is imported (its rims and depths from its own frames), the fast path calibrated on
+Each is imported (its rims and depths from its own frames; an import that refuses a
+press is recorded with its reason), the fast path calibrated on
 its fitted half (``calibrate --fast-only``), and the calibrated fast path compared on the
 held-out presses twice: with the frames the calibration saw (what a user of the dotted
 unit reads) and with the clean frames at the clean presses' depths (how good the
@@ -102,9 +105,17 @@ def run(json_path, work=None, archive=None, progress: bool = False) -> dict:
     out = {"archive": str(archive), "markers": marked.notes["markers_drawn"], "found": found, "variants": {}}
     try:
         depths = {}
-        for name, variant in (("clean", clean), ("kept", marked), ("inpainted", inpainted)):
+        for name, variant in (("clean", clean), ("kept", marked), ("kept_clean_depths", marked),
+                              ("inpainted", inpainted)):
             capture = work / name / "capture"
-            import_capture(variant, capture, spec, ball, pixel)
+            if name == "kept_clean_depths":
+                variant = dataclasses.replace(variant, depths_m=depths["clean"])
+            try:
+                import_capture(variant, capture, spec, ball, pixel,
+                               depth="given" if name == "kept_clean_depths" else "profile")
+            except ValueError as exc:
+                out["variants"][name] = {"import_error": str(exc)}
+                continue
             depths[name] = np.array([r["measured_depth"] for r in read_samples(capture)])
             cal = work / name / "calibrated"
             calibrate_capture(capture, cal, phong.calibrate, fast_taps=0, fast_only=True, progress=progress)
@@ -135,9 +146,9 @@ def main(argv=None) -> int:
     p.add_argument("--archive", metavar="A", help="the set of presses (default: the public GelSight set)")
     args = p.parse_args(argv)
     out = run(args.json, args.work, args.archive)
-    print(json.dumps({k: {m: v[m] for m in ("contact_mae_own_frames", "contact_mae_clean_frames",
-                                            "depth_median_abs_diff_mm")} for k, v in out["variants"].items()},
-                     indent=1))
+    print(json.dumps({k: {m: v.get(m) for m in ("contact_mae_own_frames", "contact_mae_clean_frames",
+                                                "depth_median_abs_diff_mm", "import_error")}
+                      for k, v in out["variants"].items()}, indent=1))
     return 0
 
 

@@ -287,3 +287,17 @@ def test_a_spec_by_name_or_by_its_capture(tmp_path):
     assert (unit.camera.width, unit.camera.height) == (120, 160)
     with pytest.raises(ValueError, match=r"a folder must be a dataset whose dataset.json records its sensor"):
         load_spec(folder)
+
+
+def test_a_taxim_pack_reads_its_records_beside_it(tmp_path, capsys):
+    from tests.test_import_capture import write_pack
+
+    pack = write_pack(tmp_path / "dataPack_small.npz")
+    assert imports.guess_format(pack) == "taxim" and imports.guess_format(tmp_path) == "taxim"
+    (tmp_path / "dataPack_small.toml").write_text('spec = "gelsight"\nball_mm = 6.0\n')
+    assert run("taxim", pack, "--out", tmp_path / "cap") == 0
+    out = capsys.readouterr().out
+    assert "ball_6mm" in out and "ball_mm from records" in out and "pixel_mm from the taxim set's default" in out
+    (tmp_path / "dataPack_small.toml").write_text('format = "folder"\n')
+    assert run("taxim", pack, "--out", tmp_path / "bad") == 1
+    assert "say the archive is 'folder', not 'taxim'" in capsys.readouterr().err
