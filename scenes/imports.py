@@ -368,7 +368,8 @@ def write_folder(archive: Archive, folder: str | Path, table: str = "presses.csv
 
 def turn_archive(archive: Archive, degrees: int) -> Archive:
     """``archive`` with its frames turned ``degrees`` (a multiple of 90) clockwise, and each
-    press's annotated centre turned with them (radii, names and depths unchanged). Pixel
+    press's annotated centre turned with them (radii, names and depths unchanged; its
+    notes' ``turned_deg`` says by how much). Pixel
     centres lie on integers: a clockwise quarter turn of a W x H frame takes (u, v) to
     (H - 1 - v, u)."""
     if degrees not in TURNS:
@@ -382,7 +383,7 @@ def turn_archive(archive: Archive, degrees: int) -> Archive:
     return dataclasses.replace(
         archive, no_contact=np.rot90(archive.no_contact, -k, axes=(0, 1)).copy(),
         frames=np.rot90(archive.frames, -k, axes=(1, 2)).copy(), centres_px=np.stack(turned, axis=1),
-        notes={**archive.notes, "turned": f"frames turned {degrees} deg clockwise, their annotated centres with them"})
+        notes={**archive.notes, "turned_deg": degrees})
 
 
 def orientation_turn(spec, width: int, height: int) -> int:
@@ -563,34 +564,34 @@ def frames_spec(spec, width: int, height: int):
         f"focal length {s:.4g} of its, in pixels)")
 
 
-def spec_pixel_m(spec, width: int, height: int) -> float:
-    """A pixel's size on the membrane, metres, where the optical axis of the spec's camera,
-    at ``width`` x ``height`` (:func:`frames_spec`), meets it: the folder format's default
-    pixel size."""
+def _axis_distance(scaled) -> tuple[float, object]:
+    """(how far from the camera, m, its optical axis meets the membrane of ``scaled``, its Camera)."""
     from .camera import Camera
     from .contact import surface_point
     from .geometry import membrane_mesh
 
-    scaled, _ = frames_spec(spec, width, height)
     camera = Camera.from_spec(scaled)
     point, _ = surface_point(membrane_mesh(scaled), camera, (camera.cx, camera.cy))
-    return float(point[2]) / camera.f
+    return float(point[2]), camera
+
+
+def spec_pixel_m(spec, width: int, height: int) -> float:
+    """A pixel's size on the membrane, metres, where the optical axis of the spec's camera,
+    at ``width`` x ``height`` (:func:`frames_spec`), meets it: the folder format's default
+    pixel size."""
+    z, camera = _axis_distance(frames_spec(spec, width, height)[0])
+    return z / camera.f
 
 
 def capture_spec(spec, width: int, height: int, pixel_m: float):
     """The spec's sensor with a camera of the frames' size whose pixel spans ``pixel_m``
     metres where its optical axis meets the membrane (module doc); returns (spec, note)."""
-    from .camera import Camera
-    from .contact import surface_point
-    from .geometry import membrane_mesh
     from .spec import spec_from_dict
 
     if not (isinstance(pixel_m, (int, float)) and math.isfinite(pixel_m) and 0 < pixel_m < 0.01):
         raise ValueError(f"pixel size must be a length in metres, > 0 and under 10 mm, got {pixel_m!r}")
     scaled, how = frames_spec(spec, width, height)
-    camera = Camera.from_spec(scaled)
-    point, _ = surface_point(membrane_mesh(scaled), camera, (camera.cx, camera.cy))
-    z = float(point[2])
+    z, camera = _axis_distance(scaled)
     now = z / camera.f
     if camera.is_pinhole:
         fov_y = 2 * math.atan(height / 2 * pixel_m / z)
@@ -906,8 +907,6 @@ def open_set(archive: str | Path, fmt: str | None = None, **given) -> tuple:
         except ValueError:
             pass
     read = turn_archive(read, turn)
-    if turn:
-        read = dataclasses.replace(read, notes={**read.notes, "turned_deg": turn})
     h, w = read.no_contact.shape[:2]
     if "pixel_mm" in settings:
         pixel = float(settings["pixel_mm"]) * 1e-3

@@ -64,8 +64,8 @@ def remove_markers(no_contact: np.ndarray, frames: np.ndarray, pixel_m: float, d
     filled (module doc); the report gives the dots' share of the no-contact frame and the
     median share of the presses' frames masked."""
     dot_px = dot_m / pixel_m
-    masks = [marker_mask(no_contact, dot_px, contrast)]
-    clean_f0 = inpaint(no_contact, masks[0])
+    f0_mask = marker_mask(no_contact, dot_px, contrast)
+    clean_f0 = inpaint(no_contact, f0_mask)
     clean = np.empty_like(np.asarray(frames, np.float64))
     shares = []
     for i, frame in enumerate(frames):
@@ -74,5 +74,5 @@ def remove_markers(no_contact: np.ndarray, frames: np.ndarray, pixel_m: float, d
         shares.append(float(mask.mean()))
     return clean_f0, clean, {"method": "black top-hat, biharmonic inpainting (scenes.markers)",
                              "dot_mm": dot_m * 1e3, "contrast": contrast,
-                             "no_contact_share": float(masks[0].mean()),
+                             "no_contact_share": float(f0_mask.mean()),
                              "frame_share_median": float(np.median(shares)) if shares else 0.0}
