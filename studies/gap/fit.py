@@ -116,6 +116,7 @@ class Fitter:
         weights = np.broadcast_to(self.mask_w, (len(self.train_index),) + self.mask_w.shape).astype(np.float32)
         if areas is not None:
             weights = weights * areas_at(model, np.asarray(areas, bool))[self.train_index]
+        self._registrations: dict[str, dict] = {}  # effect -> {kind: registration.Registration}
         r, c = np.nonzero(weights.any(axis=0))
         self._box = (slice(r.min(), r.max() + 1), slice(c.min(), c.max() + 1))
         self._box_mask = weights[(slice(None),) + self._box][..., None]
@@ -308,12 +309,39 @@ class Fitter:
         A = fx.fade_ramps(centres * length, length, knots).T.astype(np.float64)
         return optimize.lsq_linear(A * weight[:, None], target * weight, bounds=(0.0, most)).x
 
+    def registrations(self, name: str = "misalignment") -> dict:
+        """The closed-form registrations (``studies.gap.registration``) of the real training
+        frames on the simulated ones, kept per effect: "frame" compares the whole images
+        (the image circle moves with them: ``frame_share`` 1), "membrane" what the fixed
+        background does not explain (image - ``FastModel.fixed``) inside the circle (the
+        membrane moving under a fixed circle: ``frame_share`` 0). Each compares the
+        per-pixel median of the frames, which the contacts, each somewhere else, do not
+        move."""
+        if name in self._registrations:
+            return self._registrations[name]
+        from .registration import register, representative
+
+        camera, factor = self.work.camera, self.work.factor
+        centre = (camera.cy, camera.cx)
+        real, what = representative(self.real_w)
+        sim, _ = representative(self.sim_w)
+        found = {"frame": register(real, sim, None, factor, centre, what)}
+        if "frame_share" in {p.name for p in self.catalogue[name].params}:
+            fixed = self.work.fixed.mean(axis=-1)
+            inside = self.work.circle > 0.999
+            found["membrane"] = register(np.where(inside, real - fixed, 0.0), np.where(inside, sim - fixed, 0.0),
+                                         inside, factor, centre, what)
+        self._registrations[name] = found
+        return found
+
     def _misalignment_starts(self, base: dict, name: str = "misalignment") -> list[dict]:
-        """Rotation from a coarse grid (every 10 degrees, then 1 degree around the best)
-        and shift by phase correlation, both on the mean images of the fitting samples
-        (one image, so the search is cheap), for the membrane moving under a fixed image
-        circle and for the whole frame moving (``frame_share`` 0 and 1); the best are
-        refined on every sample.
+        """The registrations' moves first (``registrations``: in closed form, a reliable
+        one of each kind; an unreliable one starts from zero), then the best four of a
+        search: rotation from a coarse grid (every 10 degrees, then 1 degree around the
+        best) and shift by phase correlation, both on the mean images of the fitting
+        samples (one image, so the search is cheap), for the membrane moving under a fixed
+        image circle and for the whole frame moving (``frame_share`` 0 and 1). ``fit``
+        refines the best of them on every sample.
 
         Registration compares what moves. Under a fixed circle that is what the
         simulated background does not explain (image - ``FastModel.fixed``), so that a
@@ -325,6 +353,12 @@ class Fitter:
         real = self.real_w.mean(axis=0)
         sim = self.sim_w.mean(axis=0)[None]
         limit = next(p.high for p in self.catalogue[name].params if p.name == "du_px") - 1.0  # px, inside the bounds
+        shares = (0.0, 1.0) if "frame_share" in base else (1.0,)
+        closed = []
+        for kind, reg in self.registrations(name).items():
+            move = {k: float(np.clip(v, -limit, limit)) if k != "rotation_rad" else v for k, v in reg.params().items()}
+            share = {"frame": 1.0, "membrane": 0.0}[kind]
+            closed.append({**base, **move, **({"frame_share": share} if "frame_share" in base else {})})
 
         def registered(angle: float, share: float) -> tuple[float, dict]:
             params = {**base, "rotation_rad": float(angle), "du_px": 0.0, "dv_px": 0.0}
@@ -345,11 +379,11 @@ class Fitter:
             return float(np.mean(np.abs(pred - real)[self.mask_w])), params
 
         found = []
-        for share in ((0.0, 1.0) if "frame_share" in base else (1.0,)):
+        for share in shares:
             coarse = [registered(a, share) for a in np.deg2rad(np.arange(-180, 180, 10))]
             best = min(coarse, key=lambda t: t[0])[1]["rotation_rad"]
             found += coarse + [registered(best + a, share) for a in np.deg2rad(np.arange(-4, 5, 1))]
-        return [p for _, p in sorted(found, key=lambda t: t[0])[:4]]
+        return closed + [p for _, p in sorted(found, key=lambda t: t[0])[:4]]
 
     def fit(self, names: tuple[str, ...], start: dict | None = None, free: tuple[str, ...] | None = None,
             max_iterations: int = MAX_ITERATIONS) -> Fit:
@@ -403,6 +437,9 @@ class Fitter:
             train_loss = self.train_loss_before
             status["note"] = "no point found better than leaving the effect out; reported at its identity"
         mse = self._mse(self.predict_train(params))
+        moved = [n for n in free if n in self._registrations]
+        if len(free) == 1 and moved:  # the closed-form registrations the fit started from, beside its result
+            status["registration"] = {kind: reg.to_dict() for kind, reg in self._registrations[moved[0]].items()}
         return Fit(names, params, mse, self.train_mse_before, count[0], time.perf_counter() - t0,
                    train_loss, self.train_loss_before, status)
 

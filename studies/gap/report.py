@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import html
+import math
 import json
 from pathlib import Path
 
@@ -168,6 +169,25 @@ def _params(entry: dict, name: str) -> str:
                      for k, v in entry["params"][name].items())
 
 
+def registration_line(entry: dict) -> str:
+    """What the closed-form registration found before a moving effect's fit started from
+    it (``studies.gap.registration``), beside what the fit found; "" for other effects."""
+    found = entry.get("fit_status", {}).get("registration")
+    if not found:
+        return ""
+    (name, fitted), = entry["params"].items()
+    parts = []
+    for kind, r in found.items():
+        if r["reliable"]:
+            parts.append(f"{kind}: turn {r['rotation_deg']:+.2f} deg, shift ({r['du_px']:+.1f}, {r['dv_px']:+.1f}) px, "
+                         f"correlation {r['correlation']:.3f}")
+        else:
+            parts.append(f"{kind}: {r['reason']}")
+    return (f"Registration before the fit ({next(iter(found.values()))['frames']}): " + "; ".join(parts)
+            + f". The fit: turn {math.degrees(fitted['rotation_rad']):+.2f} deg, shift ({fitted['du_px']:+.1f}, "
+              f"{fitted['dv_px']:+.1f}) px" + (f", scale {fitted['scale']:.4f}" if "scale" in fitted else "") + ".")
+
+
 def _nothing_explains(report: dict) -> str:
     """The Answer's line when no candidate is ranked: none explains the gap, the closest
     ones and what they close, and where the gap lies (the regions, the channels)."""
@@ -234,6 +254,9 @@ def headline(report: dict) -> list[str]:
                      f"{share['share'] * 100:.1f}% [{share['share_low'] * 100:.1f}, {share['share_high'] * 100:.1f}] "
                      "of the held-out gap on its own."
                      + (f" Its counterpart in the fast path's catalogue is {counterpart}." if counterpart else ""))
+        registered = registration_line(report["effects"][top])
+        if registered:
+            lines.append(registered)
         pair = report.get("first_pair")
         if pair:
             share = pair["heldout"]["improvement"]["masked"]["mae"]
@@ -348,6 +371,8 @@ def render_html(report: dict, files: dict[str, str]) -> str:
                  for k, v in {**report["not_applicable"], **report.get("screened", {})}.items())
     img = "".join(f'<p><img src="{html.escape(f)}" style="max-width:100%"></p>' for f in files.values())
     heads = "".join(f"<li>{html.escape(line)}</li>" for line in headline(report))
+    registered = "".join(f"<li><b>{html.escape(n)}</b>: {html.escape(registration_line(e[n]))}</li>" for n in order
+                         if registration_line(e[n]))
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Sim-to-real gap diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1250px;margin:auto;padding:1em}}table{{border-collapse:collapse;margin:.5em 0}}
 td,th{{border:1px solid #ccc;padding:3px 6px;font-size:13px}}th{{background:#eee}}</style></head><body>
@@ -369,6 +394,8 @@ it closes, and the change of SSIM (measured only for those that are ranked: it c
 at least {MIN_RANK_SHARE:.0%} of what is not sensor noise with a 95% interval above zero, are ranked.</p>
 {_table(["rank", "effect", "gap closed (MAE)", "SSIM change", "PSNR change (dB)", "significant", "fitted parameters"], effect_rows)}
 {"<p>Not applicable here, or not judged on the held-out samples:</p><ul>" + na + "</ul>" if na else ""}
+{"<p>Moves registered in closed form before their fits started (turn counter-clockwise as displayed, shift in "
+ "full-resolution pixels, the catalogue's convention):</p><ul>" + registered + "</ul>" if registered else ""}
 <h2>How far it shrinks</h2>
 <p>Greedy forward selection: each step adds the effect that most improves the jointly fitted combination on the
 held-out samples, while that step's improvement is significant.</p>
