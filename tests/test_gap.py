@@ -503,12 +503,14 @@ def test_stratified_benchmark_covers_every_cell_and_scores_it():
     )
     from studies.gap.inject import EFFECTS
 
-    from studies.gap.unlike import MECHANISMS
+    from studies.gap.unlike import BACKGROUNDS, MECHANISMS
 
     cells = stratified_cells()
-    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS) + len(MECHANISMS)
+    written = sum(len(BACKGROUNDS[m]) for m in MECHANISMS)  # a mechanism on each of its backgrounds
+    assert len(cells) == len(set(cells)) == len(EFFECTS) * len(STRATIFIED_BACKGROUNDS) + written
     assert cells[:len(EFFECTS)] == [(e, "none", None) for e in EFFECTS]  # the injector's cells keep their index
-    assert {(c[2], c[0]) for c in cells[-len(MECHANISMS):]} == set(MECHANISMS.items())
+    assert {(c[2], c[0]) for c in cells[-written:]} == set(MECHANISMS.items())
+    assert {c[1] for c in cells if c[2] == "frame_move"} == {"real", "solid"}
     draws = [_draw_stratified(case, case, 100, 10, 0.5) for case in range(len(cells))]
     assert {(d["hidden"][0], d["background"], d["mechanism"]) for d in draws} == set(cells)
     assert all(d["strength"] == 0.5 and len(d["samples"]) == 10 for d in draws)
@@ -540,7 +542,10 @@ def test_stratified_cases_keep_their_index_when_filtered():
     assert len(chosen) == 6 and {cells[c][0] for c in chosen} == {"contact_shadow", "led_spectrum"}
     assert {cells[c][1] for c in chosen} == {"none", "solid", "real"}
     turned = stratified_cases(len(cells), ("misalignment",))
-    assert len(turned) == 4 and cells[turned[-1]] == ("misalignment", "real", "frame_turn")
+    assert len(turned) == 6 and cells[turned[3]] == ("misalignment", "real", "frame_turn")
+    # A mechanism's name picks its cells alone; three runs' worth of cases give three draws each.
+    moved = stratified_cases(3 * len(cells), ("frame_move",))
+    assert len(moved) == 6 and {cells[c % len(cells)][1] for c in moved} == {"real", "solid"}
     with pytest.raises(ValueError, match="hidden must be"):
         stratified_cases(36, ("sparkle",))
 

@@ -422,3 +422,24 @@ def fx_fit(names, params):
     from studies.gap.fit import Fit
 
     return Fit(names, params, 0.0, 0.0, 0, 0.0)
+
+
+# --- nothing hidden ---------------------------------------------------------------------------
+
+
+def test_a_case_that_hides_nothing_names_nothing(spec, injector, contacts):
+    """The benchmark's null case (an effect at strength none): the real frames are the
+    simulated ones with the real GelTip camera's noise. No candidate may be named: not
+    blur (noise is not blur), not a misalignment (registration finds no move), not the
+    camera's response."""
+    from studies.gap.benchmark import with_camera_noise
+
+    sim = np.stack([injector.render(d) for d in contacts])
+    rng = np.random.default_rng(0)
+    real = np.stack([with_camera_noise(x, rng) for x in sim])
+    d = diagnosis(make_pairs(spec, "solid", sim, real, contacts),
+                  ("misalignment", "blur_noise", "camera_response", "vignetting"))
+    singles = d.singles()
+    assert d.rank(singles) == [], {n: (j.share, j.significant) for n, j in singles.items()}
+    registered = singles["misalignment"].fit.status["registration"]["frame"]
+    assert registered["reliable"] and abs(registered["du_px"]) < 0.5 and abs(registered["dv_px"]) < 0.5

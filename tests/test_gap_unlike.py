@@ -81,3 +81,14 @@ def test_draws_stay_in_their_ranges_and_are_seeded(spec, mesh, camera):
 def test_the_mechanisms_import_nothing_from_the_diagnosis(absolute_imports):
     for name in absolute_imports(ROOT / "studies" / "gap" / "unlike.py"):
         assert not (name == "studies.gap" or name.startswith("studies.gap.")), name
+
+
+def test_a_moved_frame_is_drawn_over_the_whole_range_at_any_strength():
+    """frame_move draws its turn and shift at random over the whole range (issue 74: a
+    turn up to 4 degrees, a shift up to 12 px), not one value per strength."""
+    draws = [unlike.sample_params("frame_move", s, np.random.default_rng(k)) for k in range(60) for s in (0.0, 1.0)]
+    turns = np.degrees([d["rotation_rad"] for d in draws])
+    shifts = np.hypot([d["shift_x_px"] for d in draws], [d["shift_y_px"] for d in draws])
+    assert np.abs(turns).max() <= unlike.MOVE_TURN_DEG and shifts.max() <= unlike.MOVE_SHIFT_PX
+    assert turns.min() < -3.0 and turns.max() > 3.0 and shifts.min() < 3.0 and shifts.max() > 10.0
+    assert len({round(t, 6) for t in turns}) == len(turns) // 2  # the strength does not change a seed's draw

@@ -21,6 +21,12 @@ strength, then each mechanism written unlike the catalogue's formulas
 worst cell's share closed (``min_cell_shrink``), leaving out the cells whose gap is mostly
 sensor noise, which no prediction can remove (``noise_cells``).
 
+``null`` cases hide nothing: the "real" frames are the simulated ones with camera noise
+of their own (the real GelTip's measured noise, ``scenes.reference_data.CAMERA_NOISE_RGB``),
+on each background in turn; a correct diagnosis names nothing (``top1`` there: the
+ranking is empty). A mechanism at strength 0 is still a weak but visible effect on each
+of the benchmark's scales; the null case is the effect at none.
+
 ``described=True`` runs the third source instead: each mechanism of
 ``studies.gap.described``, written from a prose description of a physical effect by a hand
 that had not read the catalogue's formulas, on its own background, at strengths spread
@@ -93,15 +99,16 @@ def _draw(case_seed: int, n_available: int, pairs: int) -> dict:
 
 def stratified_cells() -> list[tuple[str, str, str | None]]:
     """(effect, background, mechanism) for every effect of the injector on every
-    background (mechanism None), then every mechanism of ``studies.gap.unlike`` on its
-    own background (effect: the catalogue effect that should come first). New cells go
+    background (mechanism None), then every mechanism of ``studies.gap.unlike`` on each
+    of its own backgrounds (effect: the catalogue effect that should come first). New cells go
     last, so that a case keeps its index, hence its cell and seed."""
     from .inject import EFFECTS
     from .unlike import BACKGROUNDS as UNLIKE_BACKGROUNDS
     from .unlike import MECHANISMS
 
     return ([(effect, background, None) for background in STRATIFIED_BACKGROUNDS for effect in EFFECTS]
-            + [(effect, UNLIKE_BACKGROUNDS[name], name) for name, effect in MECHANISMS.items()])
+            + [(effect, background, name) for name, effect in MECHANISMS.items()
+               for background in UNLIKE_BACKGROUNDS[name]])
 
 
 def cell_name(effect: str, mechanism: str | None) -> str:
@@ -112,13 +119,16 @@ def cell_name(effect: str, mechanism: str | None) -> str:
 
 def stratified_cases(cases: int, hidden: tuple[str, ...] | None = None) -> list[int]:
     """The case indices of a stratified run of ``cases`` cases whose cell hides one of
-    ``hidden`` (None: every case). A case keeps its index, hence its cell and seed."""
+    ``hidden`` (effects of the injector, or mechanisms of ``studies.gap.unlike``; None:
+    every case). A case keeps its index, hence its cell and seed."""
     from .inject import EFFECTS
+    from .unlike import MECHANISMS
 
-    if hidden is not None and (not hidden or any(h not in EFFECTS for h in hidden)):
-        raise ValueError(f"hidden must be a non-empty subset of {EFFECTS}, got {hidden!r}")
+    if hidden is not None and (not hidden or any(h not in EFFECTS and h not in MECHANISMS for h in hidden)):
+        raise ValueError(f"hidden must be a non-empty subset of {EFFECTS} and {tuple(MECHANISMS)}, got {hidden!r}")
     cells = stratified_cells()
-    return [case for case in range(cases) if hidden is None or cells[case % len(cells)][0] in hidden]
+    return [case for case in range(cases)
+            if hidden is None or cells[case % len(cells)][0] in hidden or cells[case % len(cells)][2] in hidden]
 
 
 def _draw_stratified(case: int, case_seed: int, n_available: int, pairs: int, strength: float) -> dict:
@@ -128,6 +138,22 @@ def _draw_stratified(case: int, case_seed: int, n_available: int, pairs: int, st
     chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
     return {"hidden": [effect], "samples": chosen, "background": background, "rng": rng, "strength": strength,
             "mechanism": mechanism}
+
+
+def _draw_null(case: int, case_seed: int, n_available: int, pairs: int) -> dict:
+    rng = np.random.default_rng(case_seed)
+    chosen = np.sort(rng.choice(n_available, size=min(pairs, n_available), replace=False))
+    return {"hidden": [], "samples": chosen, "background": STRATIFIED_BACKGROUNDS[case % len(STRATIFIED_BACKGROUNDS)],
+            "rng": rng, "strength": 0.0, "null": True}
+
+
+def with_camera_noise(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(H, W, 3) float32 image plus Gaussian noise of the real GelTip camera's spread per
+    channel (``CAMERA_NOISE_RGB``), clipped to [0, 1]: a null case's "real" frame."""
+    from scenes.reference_data import CAMERA_NOISE_RGB
+
+    noisy = image + rng.standard_normal(image.shape) * np.asarray(CAMERA_NOISE_RGB)
+    return np.clip(noisy, 0.0, 1.0).astype(np.float32)
 
 
 def described_cases(cases: int) -> list[tuple[str, float]]:
@@ -153,7 +179,7 @@ def _draw_described(case: int, case_seed: int, n_available: int, pairs: int) -> 
 
 
 def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, pairs: int,
-              stratified_strength: float | None = None, described: bool = False) -> dict:
+              stratified_strength: float | None = None, described: bool = False, null: bool = False) -> dict:
     """Write one case's real and simulated datasets; returns what was hidden.
 
     stratified_strength : None, a random case (``_draw``); else the case-th cell of
@@ -161,6 +187,8 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
         the catalogue: the plain fast path, then its mechanism at this strength).
     described : the case-th of ``described_cases`` (the plain fast path, then a mechanism
         of ``studies.gap.described``); ``stratified_strength`` is then ignored.
+    null : a case that hides nothing (module doc), on the case-th background; the others
+        are then ignored.
     """
     from .inject import Injector
     from .unlike import Unlike
@@ -169,7 +197,9 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
     meta = read_meta(base)
     records = read_samples(base)
     case_seed = seed * 100_003 + case
-    if described:
+    if null:
+        draw = _draw_null(case, case_seed, len(records), pairs)
+    elif described:
         draw = _draw_described(case, case_seed, len(records), pairs)
     elif stratified_strength is None:
         draw = _draw(case_seed, len(records), pairs)
@@ -180,7 +210,9 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
     injector = Injector(spec, field="plane", background=background)
     mechanism = draw.get("mechanism")
     written_by = draw.get("described")
-    if written_by is not None:  # the plain fast path, then the mechanism written from prose
+    if draw.get("null"):  # the plain fast path with camera noise: nothing hidden
+        injections = []
+    elif written_by is not None:  # the plain fast path, then the mechanism written from prose
         from .described import Described
         from .described import sample_params as described_params
 
@@ -202,6 +234,9 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
 
         def one(record: dict, source=source, root=root) -> dict:
             depth = np.load(base / record["depth"])
+            if source == "real" and draw.get("null"):
+                image = with_camera_noise(injector.render(depth), np.random.default_rng([seed, case, record["tap_index"]]))
+                return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
             if source == "real" and written_by is not None:
                 image = prose.apply(injector.render(depth), written_by, written, depth=depth, render=injector.render)
                 return {**record, **write_sample_files(root, record["id"], image, None), "depth": None}
@@ -226,6 +261,8 @@ def make_case(folder: Path, base: Path, spec: SensorSpec, case: int, seed: int, 
         out.update(mechanism=mechanism, mechanism_params=written)
     if written_by is not None:
         out.update(described=written_by, strength=draw["strength"], mechanism_params=written)
+    if draw.get("null"):
+        out.update(null=True, strength=0.0)
     return out
 
 
@@ -233,9 +270,9 @@ def score(hidden: list[str], report: dict) -> dict:
     ranking = report["ranking"]
     gap = float(report["gap"]["heldout"]["masked"]["mae"]["mean"]) if "gap" in report else 0.0
     noise = float(report["noise"]["mae_floor"]) if "noise" in report else 0.0
-    return {"top1": bool(ranking) and ranking[0] in hidden,
+    return {"top1": (bool(ranking) and ranking[0] in hidden) if hidden else not ranking,
             "noise_share": noise / gap if gap > 0 else 0.0,
-            "top3": bool(ranking) and all(h in ranking[:3] for h in hidden),
+            "top3": (bool(ranking) and all(h in ranking[:3] for h in hidden)) if hidden else not ranking,
             "shrink": float(report["explained"]["share_closed"]["masked"]),
             "shrink_top1": (float(report["effects"][ranking[0]]["share_closed"]["masked"]) if ranking else 0.0),
             "ranking": ranking, "selected": report["explained"]["effects"]}
@@ -244,7 +281,7 @@ def score(hidden: list[str], report: dict) -> dict:
 def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None, pairs: int = 48,
                   progress: bool = True, spec: SensorSpec | None = None, factor: int = 2,
                   stratified: bool = False, strength: float = STRATIFIED_STRENGTH,
-                  hidden: tuple[str, ...] | None = None, described: bool = False) -> dict:
+                  hidden: tuple[str, ...] | None = None, described: bool = False, null: int = 0) -> dict:
     """Build ``cases`` blind cases, diagnose each, and score them.
 
     stratified : cover every (effect, background) cell of ``stratified_cells`` in turn, each
@@ -254,6 +291,8 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
         (None: all). A case keeps its index, so its data and seed are those of the full run.
     described : the cases are ``described_cases`` (the mechanisms written from prose);
         not with ``stratified``.
+    null : this many cases more that hide nothing (``make_case``'s null), on the
+        backgrounds in turn: the result's ``null`` says how many named nothing.
     """
     from tqdm import tqdm
 
@@ -273,7 +312,10 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
         real_background()
     if hidden is not None and not stratified:
         raise ValueError(f"hidden selects stratified cells and needs stratified=True, got hidden={hidden!r}")
-    todo = stratified_cases(cases, hidden) if stratified else list(range(cases))
+    if null < 0:
+        raise ValueError(f"null must be >= 0 cases, got {null}")
+    todo = [(case, False) for case in (stratified_cases(cases, hidden) if stratified else range(cases))]
+    todo += [(case, True) for case in range(null)]
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tactile-gap-bench-") as tmp:
         root = Path(work) if work is not None else Path(tmp)
@@ -281,9 +323,11 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
         base = contacts(root, spec, progress)
         results = []
         bar = tqdm(todo, desc="benchmark cases", unit="case", disable=not progress)
-        for case in bar:
-            folder = root / (f"described_{seed}_{case:03d}" if described else f"case_{seed}_{case:03d}")
-            truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None, described)
+        for case, nothing in bar:
+            kind = "null" if nothing else "described" if described else "case"
+            folder = root / f"{kind}_{seed}_{case:03d}"
+            truth = make_case(folder, base, spec, case, seed, pairs, strength if stratified else None, described,
+                              null=nothing)
             t_case = time.perf_counter()
             report, _ = diagnose(load_pairs(folder / "real", folder / "sim"), seed=seed, factor=factor, intervals=0)
             write_json(folder / "report.json", report)
@@ -291,8 +335,15 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
                             "stopped_at_start": sorted(report.get("stopped_at_start", {})),
                             "seconds": time.perf_counter() - t_case})
             bar.set_postfix(top1=f"{np.mean([r['top1'] for r in results]):.2f}")
+    nulls = [r for r in results if r.get("null")]
+    results = [r for r in results if not r.get("null")]
     out = summarise(results, seed, pairs, time.perf_counter() - t0)
     out["factor"] = factor
+    if null:
+        out["null"] = {"cases": len(nulls), "named_nothing": float(np.mean([r["top1"] for r in nulls])),
+                       "results": nulls,
+                       "what": "cases that hide nothing (the simulated frames with the real camera's noise): "
+                               "named_nothing is the share whose ranking is empty"}
     if stratified:
         out.update(stratify(results, strength))
     if described:

@@ -12,6 +12,17 @@ from . import effects as fx
 from .physical_benchmark import PAIRINGS
 
 
+def _hidden(text: str) -> tuple[str, ...] | None:
+    """--hidden: 'all', or effects and mechanisms written unlike the catalogue."""
+    from .unlike import MECHANISMS
+
+    if text == "all":
+        return None
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    effects = [n for n in names if n not in MECHANISMS]
+    return (_effects(",".join(effects)) if effects or not names else ()) + tuple(n for n in names if n in MECHANISMS)
+
+
 def _effects(text: str) -> tuple[str, ...] | None:
     if text == "all":
         return None
@@ -90,7 +101,7 @@ def cmd_benchmark(args) -> int:
 
     result = run_benchmark(cases=args.cases, seed=args.seed, work=args.work, pairs=args.pairs,
                            progress=not args.quiet, factor=args.factor, stratified=args.stratified,
-                           hidden=args.hidden, described=args.described)
+                           hidden=args.hidden, described=args.described, null=args.null)
     from pathlib import Path
 
     from .report import write_json
@@ -98,7 +109,10 @@ def cmd_benchmark(args) -> int:
     write_json(Path(args.json), result)
     keys = ("cases", "top1", "top3", "mean_heldout_shrink") + (("per_mechanism",) if args.described else ()) + (
         ("min_cell_shrink", "min_cell", "noise_cells") if args.stratified else ())
-    print(json.dumps({k: result[k] for k in keys}, indent=1))
+    shown = {k: result[k] for k in keys}
+    if "null" in result:
+        shown["null"] = {k: result["null"][k] for k in ("cases", "named_nothing")}
+    print(json.dumps(shown, indent=1))
     if result["failed"]:
         print(f"failed cases: {', '.join(str(c['case']) for c in result['failed'])}")
     return 0
@@ -151,7 +165,11 @@ def register(registry) -> None:
     p.add_argument("--stratified", action="store_true",
                    help="benchmark: every effect alone on every background (none, solid, real) at strength 0.5, "
                         "then each mechanism written unlike the catalogue (studies/gap/unlike.py) on its background, "
-                        "at least one case per cell (--cases below 39 means 39); adds per_cell and min_cell_shrink")
+                        "at least one case per cell (--cases below 41 means 41); adds per_cell and min_cell_shrink")
+    p.add_argument("--null", type=non_negative_int, default=0,
+                   help="benchmark: this many cases more that hide nothing (the simulated frames with the real "
+                        "camera's noise), on the backgrounds none, solid, real in turn; a correct diagnosis names "
+                        "nothing (adds null.named_nothing)")
     p.add_argument("--described", action="store_true",
                    help="benchmark: the mechanisms written from prose descriptions by a hand that had not read the "
                         "catalogue (studies/gap/described.py), each on its background, in turn at strengths 0.5, 0, "
@@ -164,10 +182,10 @@ def register(registry) -> None:
                         "against the fast path's replay with a profile calibrated to a capture without hidden effects "
                         "(what a user with a real sensor and the fast path has; scored on the fast catalogue's "
                         "counterparts, with the share each closes per region)")
-    p.add_argument("--hidden", type=_effects, default=None,
+    p.add_argument("--hidden", type=_hidden, default=None,
                    help="benchmark --stratified: only the cells hiding these effects, or written unlike the "
-                        "catalogue for them (comma-separated; default all); each case keeps its index and seed from "
-                        "the full run")
+                        "catalogue for them, or these mechanisms of studies/gap/unlike.py (frame_move, ...; "
+                        "comma-separated; default all); each case keeps its index and seed from the full run")
     b = registry.bench("diagnose", cmd_bench, "seconds for a full diagnosis of a 144-pair dataset with every effect")
     b.add_argument("--pairs", type=positive_int, default=None,
                    help="pairs (default 144, the base protocol; with --physical 36, its two objects' taps)")

@@ -21,7 +21,12 @@ written here, in other functional forms, each standing for one catalogue effect
   frame's corner (pixel (0, 0), where ``scipy.ndimage.affine_transform`` turns an array
   without an offset; the catalogue turns about the image centre, so this is a turn about
   the centre plus a shift of about 20 px) and shifted by several pixels more, resampled
-  by a cubic spline.
+  by a cubic spline;
+* ``frame_move`` (misalignment): the whole frame turned about its own centre and shifted,
+  each drawn at random over the whole range a new user meets (a turn uniform within
+  ``MOVE_TURN_DEG`` either way, a shift of uniform length up to ``MOVE_SHIFT_PX`` in a
+  uniform direction), whatever the strength, resampled by the same cubic spline; on the
+  real background and on a solid one.
 
 Each mechanism acts on a finished image of the plain fast path (the simulated image the
 diagnosis also gets), so ``apply`` is arrays in, arrays out. This module imports nothing
@@ -42,9 +47,11 @@ from scenes.spec import SensorSpec
 
 #: Each mechanism, the catalogue effect that should come first for it.
 MECHANISMS = {"colour_matrix_curve": "camera_response", "fade_all_light": "path_attenuation",
-              "frame_turn": "misalignment"}
-#: The background each mechanism is benchmarked on (as the cases of issue 23.6 were).
-BACKGROUNDS = {"colour_matrix_curve": "solid", "fade_all_light": "solid", "frame_turn": "real"}
+              "frame_turn": "misalignment", "frame_move": "misalignment"}
+#: The backgrounds each mechanism is benchmarked on (as the cases of issue 23.6 were; a
+#: moved frame on the real no-contact capture and on a solid one, issue 74).
+BACKGROUNDS = {"colour_matrix_curve": ("solid",), "fade_all_light": ("solid",), "frame_turn": ("real",),
+               "frame_move": ("real", "solid")}
 
 # Strength maps linearly from the first value (strength 0, weak but clearly visible) to
 # the second (strength 1, strong) of each pair below.
@@ -64,6 +71,11 @@ FADE_LENGTH_M = (0.075, 0.035)
 TURN_ROTATION_DEG = (1.5, 4.5)
 #: frame_turn: shift of the frame, px (direction drawn).
 TURN_SHIFT_PX = (3.0, 9.0)
+#: frame_move: the largest turn about the frame's centre, degrees, either way (drawn
+#: uniformly within it at every strength).
+MOVE_TURN_DEG = 4.0
+#: frame_move: the longest shift, px (its length drawn uniformly up to it, at every strength).
+MOVE_SHIFT_PX = 12.0
 
 
 def _lerp(pair: tuple[float, float], strength: float) -> float:
@@ -86,6 +98,9 @@ def sample_params(mechanism: str, strength: float, rng: np.random.Generator) -> 
     * fade_all_light: ``length_m``, m.
     * frame_turn: ``rotation_rad`` (counter-clockwise as displayed) about the pivot
       (``pivot_x_px``, ``pivot_y_px``) = (0, 0), then ``shift_x_px``, ``shift_y_px``.
+    * frame_move: ``rotation_rad`` about the frame's centre, then ``shift_x_px``,
+      ``shift_y_px``: random draws over the whole range (``MOVE_TURN_DEG``,
+      ``MOVE_SHIFT_PX``), which ``strength`` does not narrow.
     """
     mechanism, s = _check(mechanism, strength)
     if mechanism == "colour_matrix_curve":
@@ -101,6 +116,10 @@ def sample_params(mechanism: str, strength: float, rng: np.random.Generator) -> 
     if mechanism == "fade_all_light":
         return {"length_m": _lerp(FADE_LENGTH_M, s)}
     direction = float(rng.uniform(0.0, 2.0 * math.pi))
+    if mechanism == "frame_move":
+        shift = float(rng.uniform(0.0, MOVE_SHIFT_PX))
+        return {"rotation_rad": math.radians(float(rng.uniform(-MOVE_TURN_DEG, MOVE_TURN_DEG))),
+                "shift_x_px": shift * math.cos(direction), "shift_y_px": shift * math.sin(direction)}
     shift = _lerp(TURN_SHIFT_PX, s)
     return {"rotation_rad": (1.0 if rng.random() < 0.5 else -1.0) * math.radians(_lerp(TURN_ROTATION_DEG, s)),
             "shift_x_px": shift * math.cos(direction), "shift_y_px": shift * math.sin(direction),
@@ -189,5 +208,9 @@ class Unlike:
             return matrix_curve(image, matrix, [params[f"bend_{c}"] for c in "rgb"])
         if mechanism == "fade_all_light":
             return axial_fade(image, self.height, params["length_m"])
-        return turn_frame(image, params["rotation_rad"], params["shift_x_px"], params["shift_y_px"],
-                          (params["pivot_x_px"], params["pivot_y_px"]))
+        if mechanism == "frame_move":
+            h, w = image.shape[:2]
+            pivot = ((w - 1) / 2.0, (h - 1) / 2.0)
+        else:
+            pivot = (params["pivot_x_px"], params["pivot_y_px"])
+        return turn_frame(image, params["rotation_rad"], params["shift_x_px"], params["shift_y_px"], pivot)
