@@ -15,6 +15,7 @@ from scenes.camera import Camera
 from scenes.spec import SensorSpec
 
 from .effects import Effects
+from .reweight import Perturbation, valid
 
 #: Effects the basis is rendered with besides the grid's: the leak sources exist (their
 #: power is fitted) and the coating albedo is tied (it scales every source like a power).
@@ -35,7 +36,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
                   photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
                   use_cache: bool = True, depth: np.ndarray | None = None,
                   ref_depth: np.ndarray | None = None, solids=None, no_contact_runs: int = 0,
-                  inscatter: str = "fluence") -> dict:
+                  inscatter: str = "fluence", perturb=None) -> dict:
     """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
     sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,), ``response``
     (S, 3) the film's response to each source at the effects' powers. Without ``depth``
@@ -48,7 +49,17 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     sensor's cached no-contact map (this many runs per pass) plus the contact's change, as
     a dataset renders it (``pbr_tactile.render.reference``); 0 traces every photon each time.
     ``inscatter``: how the camera finds the light the elastomer scatters towards it
-    (``reference``'s; the fluence lookup by default, as every reference render)."""
+    (``reference``'s; the fluence lookup by default, as every reference render).
+
+    ``perturb``: a ``pbr_tactile.reweight.Perturbation`` or its (K, 3) array of variants
+    (absorption_per_m, scattering_per_m, coating_albedo), each re-weighted from the same
+    photons (``pbr_tactile.reweight``; a matte paint only). The dict then also holds
+    ``perturb`` (K, 3), ``variant_mean`` and ``variant_variance`` (K, h, w, S), each
+    variant's basis as ``mean`` and ``variance`` are the traced one's, ``ess_ratio`` (K, S)
+    the variants' Kish effective-sample-size ratios and ``valid`` (K,) bool, those at
+    ``pbr_tactile.reweight.MIN_ESS_RATIO`` or above for every source (the others: render
+    them with their own effects instead). The identity part is cached under the key
+    without variants too, so a later call without them reads it."""
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
@@ -66,16 +77,36 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     key = make_key("basis", 2, CACHE_VERSION, CAMERA_PASS_VERSION, variant, inscatter, dataclasses.asdict(spec),
                    np.asarray(mesh.vertices), effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
                    *([no_contact_runs] if no_contact_runs else []), *([] if own else [dataclasses.asdict(camera)]))
+    perturbation = None if perturb is None else Perturbation.of(perturb)
+    sources = led_sources(spec, effects)
 
-    def build():
-        est = reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
-                        seed=seed, variant=variant, passes=passes, photons=photons, per_source=True, solids=solids,
-                        no_contact_runs=no_contact_runs, inscatter=inscatter)
-        sources = led_sources(spec, effects)
+    def identity(est) -> dict:
         return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
                 "response": source_response(sources, effects)}
 
-    return cached("pbr-calibration-basis", key, build, use_cache=use_cache)
+    def render(perturb_=None):
+        return reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
+                         seed=seed, variant=variant, passes=passes, photons=photons, per_source=True, solids=solids,
+                         no_contact_runs=no_contact_runs, inscatter=inscatter, perturb=perturb_)
+
+    if perturbation is None:
+        return cached("pbr-calibration-basis", key, lambda: identity(render()), use_cache=use_cache)
+
+    def build_variants():
+        est = render(perturbation)
+        out = identity(est.traced)
+        out.update({"perturb": perturbation.values.copy(),
+                    "variant_mean": np.stack([e.mean for e in est.variants]),
+                    "variant_variance": np.stack([e.variance for e in est.variants]),
+                    "ess_ratio": est.ess_ratio})
+        return out
+
+    arrays = cached("pbr-calibration-basis", make_key(key, "perturb", perturbation.key()), build_variants,
+                    use_cache=use_cache)
+    # The identity as a render without variants would have cached it (the same walks).
+    cached("pbr-calibration-basis", key, lambda: {k: arrays[k] for k in ("mean", "variance", "names", "response")},
+           use_cache=use_cache)
+    return {**arrays, "valid": valid(arrays["ess_ratio"])}
 
 
 def led_of_source(names) -> np.ndarray:

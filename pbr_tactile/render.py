@@ -31,6 +31,7 @@ from .estimate import MAX_PASSES, Control, Estimate, check_passes, contact_regio
 from .fluence import INSCATTER
 from .membrane import ElastomerBuilder, _kept, shared_builder
 from .paint import Paint
+from .reweight import Perturbation, VariantEstimates, kish_ratio, variant_media
 from .scene import geltip_scene, led_sources, write_meshes
 from .variant import choose_variant
 
@@ -124,7 +125,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                    pilot_scene: dict | None = None, no_contact_runs: int = 0, use_cache: bool = True,
                    target_rse: float | None = None, region: np.ndarray | None = None, max_passes: int = MAX_PASSES,
                    no_contact_memo: dict | None = None, control: Control | None = None,
-                   control_spp: int = 0, per_source: bool = False, fluence_grids: tuple | None = None) -> Estimate:
+                   control_spp: int = 0, per_source: bool = False, fluence_grids: tuple | None = None,
+                   perturb=None):
     """The two-pass photon estimator (pbr_tactile.photons, module doc), in independent passes.
 
     spp : camera samples per pixel of one pass.
@@ -167,6 +169,16 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         light its scattering events receive from the photons' fluence (``pbr_tactile.
         fluence``) instead of splitting its paths there. Each pass's fluence is formed as
         its map is (with the no-contact cache: phi_G + phi_c - phi_0). None: split.
+    perturb : a ``pbr_tactile.reweight.Perturbation`` or its (K, 3) array of variants
+        (absorption_per_m, scattering_per_m, coating_albedo): each pass's photons are also
+        re-weighted to each variant (``pbr_tactile.reweight``), whose maps and fluence are
+        formed as the traced ones are (the no-contact runs carry the variants too, under
+        their own cache key), and whose image is a camera pass with the variant's own
+        sigma_t, albedo and paint (the pass's seed). Returns a
+        ``pbr_tactile.reweight.VariantEstimates`` then: the traced Estimate (what this
+        returns without it, for the same seed), one Estimate per variant from the same
+        passes, and the variants' Kish ESS ratios over every deposit used. Not with a
+        control variate (``control``, ``control_spp``) or a glossy paint.
 
     The pilot's seed follows the last pass's (``passes``, or ``max_passes`` with a
     target), so a pass never shares its random numbers with the pilot, and every render
@@ -189,6 +201,16 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
     if control_spp < 0:
         raise ValueError(f"control_spp must be >= 0, got {control_spp}")
+    perturbation = None
+    if perturb is not None:
+        perturbation = Perturbation.of(perturb)
+        if control is not None or control_spp:
+            raise ValueError("perturb cannot be combined with a control variate (control, control_spp): the "
+                             "control is the traced effects' no-contact frame, not the variants'")
+        if effects.coating_gloss > 0:
+            raise ValueError(f"perturb needs a matte paint, got coating_gloss {effects.coating_gloss}: the flake "
+                             "lobe's factor is not re-weighted; trace each glossy variant again")
+        perturbation.coefficients(effects.sigma_t, effects.albedo, effects.coating_albedo)  # refused before tracing
     grid_lit = grid_pilot = None
     if fluence_grids is not None:
         grid_lit, grid_pilot = fluence_grids
@@ -246,21 +268,33 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
 
         # The views to 3 decimals: the last bits of their atomic sums vary from run to run.
         viewed = [] if view_0 is None else [np.round(view_0.toward, 3), np.round(view_0.normal, 3)]
+        # The variants' runs are their own entries (the traced parts too: one run holds both).
+        varied = [] if perturbation is None else ["perturb", perturbation.key()]
         no_contact = NoContact(mi, pilot_lit, [[s.key() for s in srcs],
-                                               sigma_t, albedo, *paint.key(), photons, *viewed],
+                                               sigma_t, albedo, *paint.key(), photons, *viewed, *varied],
                                no_contact_runs, use_cache, no_contact_memo, grid_pilot)
     pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
     parts = ("flux",) + (() if grid_lit is None else ("track",)) + (() if view is None else ("lobe",))
+    if perturbation is not None:  # the variants' flux (K, S, V), tracks (K, S, N), deposit moments
+        parts += ("variant_flux",) + (() if grid_lit is None else ("variant_track",)) + ("moments",)
 
-    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None, seen=None):
-        """The deposits' parts: flux, the tracks with a grid, the lobe's flux with a view."""
+    def trace(in_scene, count: int, run_seed: int, window_=None, grid=None, seen=None, reweigh=True):
+        """The deposits' parts: flux, the tracks with a grid, the lobe's flux with a view;
+        with variants (``reweigh``), theirs."""
         lobe = None if seen is None else GlossyView(seen.toward, seen.normal)
-        out = deposits(mi, in_scene, srcs, sigma_t, albedo, paint, count, run_seed, window_, grid, glossy=lobe)
+        varied = perturbation if reweigh else None
+        out = deposits(mi, in_scene, srcs, sigma_t, albedo, paint, count, run_seed, window_, grid, glossy=lobe,
+                       perturb=varied)
+        if varied is not None:
+            out, reweighted = out
         out = (out,) if grid is None else tuple(out)
-        return out + (() if lobe is None else (lobe.flux,))
+        out += () if lobe is None else (lobe.flux,)
+        if varied is not None:
+            out += (reweighted.flux,) + (() if grid is None else (reweighted.track,)) + (reweighted.moments,)
+        return out
 
     def trace_pilot():
-        return trace(pilot_lit, max(1, photons // 8), pilot_seed)[0]
+        return trace(pilot_lit, max(1, photons // 8), pilot_seed, reweigh=False)[0]
 
     # With the no-contact cache, the pilot is cached too: it is a no-contact run.
     pilot_flux = trace_pilot() if no_contact is None else no_contact.flux(["pilot", pilot_seed], trace_pilot)["flux"]
@@ -276,6 +310,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     def one_pass(k: int) -> np.ndarray:
         pass_seed = seed * 7919 + k
         phi = lobe_map = None
+        # Per variant: its maps and fluence, formed as the traced ones are.
+        variant_maps, variant_phi = [None] * len(media), [None] * len(media)
         if traced:
             got = dict(zip(parts, trace(lit, photons, pass_seed, window, grid_lit, view)))
             maps = irradiance(got["flux"], area, kernel)
@@ -283,19 +319,40 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                 phi = grid_lit.fluence(got["track"])
             if view is not None:
                 lobe_map = irradiance(got["lobe"], area, kernel)
+            for v in range(len(media)):
+                variant_maps[v] = irradiance(got["variant_flux"][v], area, kernel)
+                if grid_lit is not None:
+                    variant_phi[v] = grid_lit.fluence(got["variant_track"][v])
+            if media:
+                moments.append(got["moments"])
         if no_contact is not None:
             same, runs = no_contact.pass_flux(pass_seed, pilot_seed, no_contact_run, parts)
-            no_contact_map = irradiance(runs["flux"], pilot_area, pilot_kernel)
+
+            def map_of(deposited):
+                return irradiance(deposited, pilot_area, pilot_kernel)
+
             # G plus the contact's change, with the same random numbers.
-            maps = no_contact_map + (maps - irradiance(same["flux"], pilot_area, pilot_kernel) if traced else 0.0)
+            maps = map_of(runs["flux"]) + (maps - map_of(same["flux"]) if traced else 0.0)
             if grid_pilot is not None:
                 phi = grid_pilot.fluence(runs["track"]) + (phi - grid_pilot.fluence(same["track"]) if traced else 0.0)
             if view is not None:
-                lobe_map = irradiance(runs["lobe"], pilot_area, pilot_kernel) + (
-                    lobe_map - irradiance(same["lobe"], pilot_area, pilot_kernel) if traced else 0.0)
+                lobe_map = map_of(runs["lobe"]) + (lobe_map - map_of(same["lobe"]) if traced else 0.0)
+            for v in range(len(media)):
+                variant_maps[v] = map_of(runs["variant_flux"][v]) + (
+                    variant_maps[v] - map_of(same["variant_flux"][v]) if traced else 0.0)
+                if grid_pilot is not None:
+                    variant_phi[v] = grid_pilot.fluence(runs["variant_track"][v]) + (
+                        variant_phi[v] - grid_pilot.fluence(same["variant_track"][v]) if traced else 0.0)
+            if media:
+                moments.append(runs["moments"])
         fluence = None if phi is None else (grid_lit, phi)
         image = camera_pass(mi, loaded, srcs, maps, sigma_t, albedo, paint, spp, pass_seed,
                             fluence=fluence, glossy_maps=lobe_map) @ response
+        # Each variant's camera pass: its own medium and paint, the pass's seed.
+        for v, (sigma_t_v, albedo_v, rho_v) in enumerate(media):
+            variant_images[v].append(camera_pass(
+                mi, loaded, srcs, variant_maps[v], sigma_t_v, albedo_v, replace(paint, albedo=rho_v), spp, pass_seed,
+                fluence=None if variant_phi[v] is None else (grid_lit, variant_phi[v])) @ response)
         if not control_spp:
             return image
         as_traced.append(image)
@@ -304,11 +361,17 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         return (spp * image + control_spp * more) / (spp + control_spp)
 
     as_traced: list[np.ndarray] = []
+    media = [] if perturbation is None else variant_media(perturbation)  # (sigma_t, albedo, rho) per variant
+    variant_images: list[list[np.ndarray]] = [[] for _ in media]
+    moments: list[np.ndarray] = []  # the deposits' moments of every trace the passes used
     est = run_passes(one_pass, spp, passes, target_rse, region, max_passes, progress, control)
     if control_spp:
         est = replace(est, spp=est.spp + control_spp * est.passes,
                       control=Control(np.stack(as_traced).astype(np.float32), est.mean, est.variance))
-    return est
+    if perturbation is None:
+        return est
+    return VariantEstimates(est, tuple(Estimate.from_passes(images, spp * len(images)) for images in variant_images),
+                            perturbation, kish_ratio(np.sum(np.asarray(moments, np.float64), axis=0)))
 
 
 def reference(
@@ -338,7 +401,8 @@ def reference(
     per_source: bool = False,
     led_power=1.0,
     inscatter: str = "fluence",
-) -> Estimate:
+    perturb=None,
+):
     """Render what the sensor's camera sees for a contact depth map (None: no contact).
 
     spp : samples per pixel in ``passes`` passes (spp // passes per pass).
@@ -369,6 +433,9 @@ def reference(
         fluence on the solid's voxel grid, ``pbr_tactile.fluence``; less noise, and the
         camera pass costs a fifth) or "split" (trace SCATTER_SPLIT paths on from the
         first event, with next-event estimates of the LEDs: the estimator before it).
+    perturb : variants of (absorption_per_m, scattering_per_m, coating_albedo) re-weighted
+        from the same photons (``render_photons``; photons only): returns a
+        ``pbr_tactile.reweight.VariantEstimates``, each estimate through the sensor effects.
     """
     if estimator not in ("photons", "volpath"):
         raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
@@ -385,6 +452,8 @@ def reference(
         raise ValueError("a control variate (control, control_spp) needs the photon estimator")
     if per_source and estimator != "photons":
         raise ValueError("per_source images need the photon estimator")
+    if perturb is not None and estimator != "photons":
+        raise ValueError("perturb (re-weighted variants) needs the photon estimator")
     if inscatter not in INSCATTER:
         raise ValueError(f"inscatter must be one of {', '.join(map(repr, INSCATTER))}, got {inscatter!r}")
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
@@ -417,9 +486,12 @@ def reference(
                                  progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
                                  pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,
                                  no_contact_memo=no_contact_memo, control=control, control_spp=control_spp,
-                                 per_source=per_source, fluence_grids=grids, **targets)
+                                 per_source=per_source, fluence_grids=grids, perturb=perturb, **targets)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
+    if isinstance(est, VariantEstimates):
+        return replace(est, traced=sensor_effects(est.traced, camera, effects, seed),
+                       variants=tuple(sensor_effects(e, camera, effects, seed) for e in est.variants))
     return sensor_effects(est, camera, effects, seed)
 
 
