@@ -48,11 +48,22 @@ PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240)
 
 
 def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, seed=0, use_cache=True, depth=None,
-               ref_depth=None, solids=None, no_contact_runs=0, inscatter="fluence"):
+               ref_depth=None, solids=None, no_contact_runs=0, inscatter="fluence", perturb=None):
     """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
     distance in metres over the image from the LED's place), its leak a ring at 0.4 of
     the image radius on the LED's side (nearer the centre, the tip, the narrower its cone up
-    the tube), a contact adding its indentation's shading."""
+    the tube), a contact adding its indentation's shading. With ``perturb`` ((K, 3) rows of
+    absorption, scattering, paint albedo), each row's images too, as the re-weighting
+    returns them (``ESS``: each row's effective-sample-size ratio, 1 by default)."""
+    if perturb is not None:
+        from pbr_tactile.reweight import PARAMETERS, valid
+
+        out = fake_basis(spec, mesh, camera, effects, film, depth=depth, ref_depth=ref_depth)
+        rows = [fake_basis(spec, mesh, camera, dataclasses.replace(effects, **dict(zip(PARAMETERS, map(float, row)))),
+                           film, depth=depth, ref_depth=ref_depth) for row in np.asarray(perturb)]
+        ess = np.array([[ESS.get(tuple(float(v) for v in row), 1.0)] * out["mean"].shape[-1] for row in perturb])
+        return {**out, "perturb": np.asarray(perturb), "variant_mean": np.stack([r["mean"] for r in rows]),
+                "variant_variance": np.stack([r["variance"] for r in rows]), "ess_ratio": ess, "valid": valid(ess)}
     w, h = film
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     x, y = (u - w / 2) / (h / 2), (v - h / 2) / (h / 2)
@@ -79,6 +90,8 @@ def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, se
 
 #: The stand-in basis' relative standard error per pixel (``fake_basis``'s variance).
 NOISE = 0.01
+#: The stand-in re-weighting's ESS ratio of a row (absorption, scattering, albedo), 1 where not listed.
+ESS: dict = {}
 
 
 @pytest.fixture
@@ -202,7 +215,8 @@ def test_a_re_rendered_effect_is_interpolated_between_grid_points(spec, scene, s
     film = camera.scaled(*FILM)
     truth[..., leak] = smoothing.axially_smoothed(truth[..., leak], (film.cx, film.cy), smoothing.LEAK_SMOOTH_PX)
     assert np.allclose(got, truth, rtol=1e-4, atol=1e-4)
-    assert model.basis.cost["absorption_per_m"]["renders"] == 1  # one grid point (120) beside the identity
+    # The grid points (50, 120) are re-weighted from the identity's render: none of their own.
+    assert "absorption_per_m" not in model.basis.cost and model.basis.cost["identity"]["renders"] == 1
 
 
 def test_a_re_rendered_change_is_smoothed_as_a_ratio():
@@ -511,6 +525,7 @@ def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec,
     from studies.gap.report import headline
 
     monkeypatch.setattr(reference_model, "JUDGED_RENDERS", 1)
+    monkeypatch.setattr(source_basis, "REWEIGHTED", ())  # every grid point traced, as a glossy paint's are
     pairs = pairs_of(spec, scene, rendered(spec, scene, {"absorption_per_m": {"value": 60.0}}), rendered(spec, scene, {}))
     train, heldout = split(pairs, 0.5, seed=0)
     d = Diagnosis(pairs, train, heldout, factor=8,
@@ -749,3 +764,47 @@ def test_an_alignment_closes_the_simulations_noise_only_where_it_is_compared_uns
     fitted = found.fit.params["alignment"]
     assert (fitted["du_px"], fitted["dv_px"]) == pytest.approx((6.0, -4.0), abs=1.5)
     assert fitted["rotation_rad"] == pytest.approx(0.03, abs=0.01)
+
+
+def test_medium_and_paint_grid_points_are_reweighted_from_one_render_per_tap(spec, scene, stub, monkeypatch):
+    """Absorption, scattering and the paint's albedo change how much light survives a
+    path, not the path: each tap's identity render re-weights its photons to every grid
+    point of them (issue 74), so a fit over those grids renders each tap once. A point
+    whose re-weighting is not valid (ESS ratio below the bound) is traced again, and the
+    basis says which."""
+    import pbr_tactile.basis
+
+    camera, ref, depth = scene
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("perturb") is not None)
+        return fake_basis(*args, **kwargs)
+
+    monkeypatch.setattr(pbr_tactile.basis, "emitter_basis", counted)
+    monkeypatch.setitem(ESS, (20.0, 250.0, 0.85), 0.01)  # scattering 250 re-weights too noisily
+    basis = SourceBasis(spec, renderer(), depth, film=FILM)
+    assert basis.reweighting["on"] and "scattering_per_m=250" in basis.reweighting["variants"]
+    grids = physical_catalogue(spec, basis.effects)[2]
+    for key in (0, 1):
+        for name in source_basis.REWEIGHTED:
+            for value in grids[name]["values"]:
+                if value == getattr(basis.effects, name):
+                    continue  # the identity's own image (``ReferenceModel.interpolated`` reads it so)
+                got = basis.images(key, name, value)
+                _, effects, _ = basis.variant(name, value)
+                expected = fake_basis(spec, basis.mesh, basis.camera, effects, FILM, depth=depth[key], ref_depth=ref)
+                assert np.allclose(got, expected["mean"], rtol=1e-6), (name, value)
+    # Per tap: one render with the variants, one more for the point that was not valid.
+    assert calls == [True, False, True, False]
+    assert basis.reweighting["retraced"] == {"scattering_per_m=250": {"tap": 0, "ess_ratio": 0.01}}
+    assert set(basis.cost) == {"identity", "scattering_per_m"}
+    model = ReferenceModel(spec, renderer(), 1, basis)
+    assert not model.costly("absorption_per_m") and not model.costly("coating_albedo")
+    assert model.costly("scattering_per_m") and model.costly("membrane_compliance")  # one point traced; a dent moves
+
+
+def test_a_glossy_paint_is_traced_at_every_grid_point(spec, scene, stub):
+    camera, ref, depth = scene
+    basis = SourceBasis(spec, renderer(coating_gloss=0.3), depth, film=FILM)
+    assert not basis.reweighting["on"] and "glossy" in basis.reweighting["why"] and basis.variants == []

@@ -171,7 +171,8 @@ def diagnose(pairs: Pairs, heldout_fraction: float = 0.5, seed: int = 0, factor:
                              "no_contact_runs": basis.no_contact_runs,
                              "passes": basis.passes, "seed": basis.seed, "count": basis.renders,
                              "seconds": round(basis.seconds, 1),
-                             "identity": basis.cost.get("identity", {"renders": 0, "seconds": 0.0})}
+                             "identity": basis.cost.get("identity", {"renders": 0, "seconds": 0.0}),
+                             "reweighting": basis.reweighting}
         own = diagnosis.work.basis_noise(basis.rendered_keys())
         if own is not None:
             own.update({"min_gain": diagnosis.min_gain, "under_min_gain": own["mae_floor"] < diagnosis.min_gain,

@@ -196,8 +196,19 @@ class ReferenceModel:
         return out
 
     def rerendered(self, name: str) -> bool:
-        """Whether candidate ``name`` is rendered anew on every tap it is judged on."""
+        """Whether candidate ``name`` is evaluated from basis renders at its grid points."""
         return self.kinds[name] in ("render", "bool-render")
+
+    def costly(self, name: str) -> bool:
+        """Whether judging candidate ``name`` renders every held-out tap anew: a re-rendered
+        candidate, unless each tap's identity render re-weights its photons to all of its
+        grid points (``SourceBasis``: none of them traced again so far)."""
+        if not self.rerendered(name):
+            return False
+        basis = self.basis
+        reweighted = {n for n, _ in basis.variants}
+        retraced = {key.split("=")[0] for key in basis.reweighting.get("retraced", {})}
+        return name not in reweighted or name in retraced
 
     def starts(self, name: str) -> list[dict]:
         """Starting points of one candidate's fit: every grid point of a re-rendered one,

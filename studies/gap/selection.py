@@ -47,7 +47,8 @@ MAX_COMBINATION = 4
 def singles(effects: tuple[str, ...], fit_effects, judge, unjudged, model, progress=None) -> dict[str, Judged]:
     """Each effect fitted alone and judged on the held-out samples, except the
     re-rendered candidates of a reference model beyond its ``judged_renders`` lowest
-    training losses (``screened``): judging one renders every held-out tap.
+    training losses (``screened``): judging one renders every held-out tap (one
+    re-weighted from the identity's photons renders nothing of its own: ``costly``).
 
     unjudged : ``Judge.unjudged``, the judgement of a fit left unjudged; model : the
     working model; progress : called with (done, total, what) after each step."""
@@ -70,7 +71,7 @@ def screened(fits: dict[str, Fit], model) -> dict[str, str]:
     keep = getattr(model, "judged_renders", None)
     if keep is None:
         return {}
-    costly = [n for n in fits if model.rerendered(n)]
+    costly = [n for n in fits if model.costly(n)]
     if len(costly) <= keep:
         return {}
     order = sorted(costly, key=lambda n: fits[n].train_loss)

@@ -1,7 +1,17 @@
 """Per-tap, per-source images of the physically based reference at a low film
 (``pbr_tactile.basis.emitter_basis``: each LED, and its leak into the glass core, per unit
 flux), rendered on demand for the identity or a re-rendered candidate at a grid point,
-and kept."""
+and kept.
+
+The candidates that change only how much light survives a path, not the path (the
+elastomer's absorption and scattering, the paint's albedo: ``REWEIGHTED``), are not
+traced again at their grid points: each tap's identity render re-weights its own photons
+to every grid point of them in the same call (perturbation Monte Carlo,
+``pbr_tactile.reweight``). A grid point whose re-weighting is not valid (its Kish
+effective-sample-size ratio below ``pbr_tactile.reweight.MIN_ESS_RATIO``: far from the
+traced value its variance grows too large) is traced again, and ``reweighting`` says
+which and why. Only a candidate that moves the geometry or the light's places (the
+membrane's mechanics, the leak's cone) is always traced again."""
 
 from __future__ import annotations
 
@@ -34,6 +44,8 @@ LEAK_BASIS = 0.5
 NO_CONTACT = -1
 #: Candidates that change only a contact.
 MECHANICS = ("membrane_compliance", "layer_spread")
+#: Candidates re-weighted from the identity's photons (``pbr_tactile.reweight.PARAMETERS``).
+REWEIGHTED = ("absorption_per_m", "scattering_per_m", "coating_albedo")
 
 
 class SourceBasis:
@@ -46,7 +58,7 @@ class SourceBasis:
 
     def __init__(self, spec: SensorSpec, renderer: dict, depth: np.ndarray, film=BASIS_FILM,
                  photons: int | None = None, spp: int = BASIS_SPP, passes: int = BASIS_PASSES, seed: int = 1,
-                 use_cache: bool = True, no_contact_runs: int | None = None):
+                 use_cache: bool = True, no_contact_runs: int | None = None, reweight: bool = True):
         from pbr_tactile.effects import Effects
 
         self.spec = spec
@@ -76,6 +88,40 @@ class SourceBasis:
         self.renders = 0  # basis renders made here (not read from memory)
         self.seconds = 0.0
         self.cost: dict[str, dict] = {}  # per candidate: renders and seconds
+        # The grid points re-weighted from each identity render ((name, value) rows), or
+        # why none are (a glossy paint's flake lobe is not re-weighted).
+        self.variants: list[tuple[str, float]] = []
+        self.reweighting: dict = {"on": False, "why": "switched off"}
+        if reweight:
+            self._plan_variants()
+
+    def _plan_variants(self) -> None:
+        """The grid points of ``REWEIGHTED`` (``studies.gap.physical``'s grids) other than
+        the identity, each with the other parameters at the simulation's values."""
+        from .physical import physical_catalogue
+
+        if self.effects.coating_gloss > 0:
+            self.reweighting = {"on": False, "why": f"the paint is glossy (coating_gloss {self.effects.coating_gloss:g}): "
+                                                    "its flake lobe is not re-weighted, so every grid point is traced"}
+            return
+        grids = physical_catalogue(self.spec, self.effects)[2]
+        self.variants = [(name, float(v)) for name in REWEIGHTED if name in grids
+                         for v in grids[name]["values"] if float(v) != float(getattr(self.effects, name))]
+        self.reweighting = {"on": True, "variants": [f"{n}={v:g}" for n, v in self.variants],
+                            "retraced": {}, "seconds": 0.0, "renders": 0,
+                            "what": "grid points of the absorption, scattering and paint albedo re-weighted from each "
+                                    "tap's identity photons (perturbation Monte Carlo); retraced: the points whose "
+                                    "Kish ESS ratio (lowest source, first tap it fell short on) was below the "
+                                    "validity bound, traced again"}
+
+    def _rows(self) -> np.ndarray:
+        from pbr_tactile.reweight import PARAMETERS
+
+        base = np.array([getattr(self.effects, p) for p in PARAMETERS], np.float64)
+        rows = np.repeat(base[None], len(self.variants), axis=0)
+        for k, (name, value) in enumerate(self.variants):
+            rows[k, PARAMETERS.index(name)] = value
+        return rows
 
     def variant(self, name: str | None, value: float | None):
         """(spec, effects, depth scale) of the identity (name None) or of candidate
@@ -101,8 +147,20 @@ class SourceBasis:
         tag = (int(key), name, None if value is None else float(value))
         if tag in self._images:
             return self._images[tag]
+        reweighted = (name is None or (name, None if value is None else float(value)) in self.variants)
+        if self.variants and reweighted and (int(key), None, None) not in self._images:
+            self._render(key, None, None, perturb=True)  # the identity and its re-weighted grid points
+            if tag in self._images:
+                return self._images[tag]
+        return self._render(key, name, value)
+
+    def _render(self, key: int, name: str | None, value: float | None, perturb: bool = False) -> np.ndarray:
+        """Render tap ``key``'s basis for the identity or ``name`` at ``value`` and keep it;
+        with ``perturb``, the identity's, re-weighted to ``self.variants`` too (those valid
+        are kept under their own tags)."""
         from pbr_tactile.basis import emitter_basis
 
+        tag = (int(key), name, None if value is None else float(value))
         spec, effects, scale = self.variant(name, value)
         depth = self.ref if key == NO_CONTACT else np.asarray(self.depth[key], np.float32)
         touched = np.abs(depth - self.ref) > CONTACT_EPS_M
@@ -113,15 +171,26 @@ class SourceBasis:
                 depth = (self.ref - scale * (self.ref - depth)).astype(np.float32)
             contact = {"depth": depth, "ref_depth": self.ref}
         t0 = time.perf_counter()
+        rows = self._rows() if perturb else None
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
                               passes=self.passes, seed=self.seed, use_cache=self.use_cache,
-                              no_contact_runs=self.no_contact_runs, inscatter=self.inscatter, **contact)
+                              no_contact_runs=self.no_contact_runs, inscatter=self.inscatter, perturb=rows, **contact)
         seconds = time.perf_counter() - t0
         self.renders += 1
         self.seconds += seconds
         cost = self.cost.setdefault(name or "identity", {"renders": 0, "seconds": 0.0})
         cost["renders"] += 1
         cost["seconds"] += seconds
+        if perturb:
+            self.reweighting["renders"] += 1
+            self.reweighting["seconds"] += seconds
+            ess = np.asarray(basis["ess_ratio"]).min(axis=1)
+            for k, (n, v) in enumerate(self.variants):
+                if basis["valid"][k]:
+                    self._images[(int(key), n, v)] = np.asarray(basis["variant_mean"][k], np.float32)
+                    self._variances[(int(key), n, v)] = np.asarray(basis["variant_variance"][k], np.float32)
+                else:
+                    self.reweighting["retraced"].setdefault(f"{n}={v:g}", {"tap": int(key), "ess_ratio": float(ess[k])})
         names = [str(n) for n in basis["names"]]
         if self.names is None:
             self.names = names
