@@ -9,7 +9,7 @@ import pytest
 from skimage.transform import EuclideanTransform, warp
 
 from studies.gap import effects as fx
-from studies.gap.registration import MIN_CORRELATION, register, representative
+from studies.gap.registration import MIN_CORRELATION, register, register_contacts, representative
 
 SHAPE = (120, 160)
 CENTRE = (59.5, 79.5)  # (row, col): the catalogue turns about the principal point
@@ -98,3 +98,24 @@ def test_bad_input_is_refused_by_name():
         register(np.zeros(SHAPE), np.zeros((10, 10)))
     with pytest.raises(ValueError, match="NaN"):
         register(np.full(SHAPE, np.nan), np.zeros(SHAPE))
+
+
+def test_a_round_solid_frame_is_turned_by_its_contacts():
+    """A solid membrane in a round circle turns without a trace but in its contacts: the
+    median frames' registration cannot see the turn, the contacts' correspondences can;
+    a pair whose real contact differs from its simulated one is left out by RANSAC."""
+    rng = np.random.default_rng(5)
+    v, u = np.mgrid[0:SHAPE[0], 0:SHAPE[1]].astype(np.float64)
+    solid = np.where(np.hypot(u - CENTRE[1], v - CENTRE[0]) < 56, 0.45, 0.0)
+    sim = with_contacts(solid, rng, 16)
+    turn, shift = math.radians(-3.5), (2.0, -1.5)
+    real = moved(sim, turn, shift)
+    real[3] = moved(with_contacts(solid, rng, 1), turn, shift)[0]  # a real contact somewhere else
+    got = register_contacts(real, sim, factor=2, centre=CENTRE)
+    assert got.reliable and "15 of 16 contacts agree" in got.frames, got
+    back = -turn
+    R = np.array([[math.cos(back), -math.sin(back)], [math.sin(back), math.cos(back)]])
+    assert got.rotation_rad == pytest.approx(back, abs=math.radians(0.4))
+    assert [got.du_px, got.dv_px] == pytest.approx((-R @ np.asarray(shift) * 2).tolist(), abs=0.8)
+    few = register_contacts(real[:2], sim[:2])
+    assert not few.reliable and "fewer than" in few.reason

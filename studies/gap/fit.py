@@ -44,6 +44,10 @@ PROBE_STEP = 0.05
 FLAT_SHARE = 1e-5
 #: At most this many probe-and-restart rounds.
 PROBE_ROUNDS = 3
+#: A move's polish (``Fitter._polish``): its parameters and the first simplex's steps in
+#: their units (px, rad), and at most this many loss evaluations.
+POLISH_STEPS = {"du_px": 0.25, "dv_px": 0.25, "rotation_rad": 0.001}
+POLISH_EVALUATIONS = 150
 #: Gammas at which a closed-form colour matrix starts camera_response fits.
 START_GAMMAS = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.15, 1.3, 1.5, 1.75, 2.0, 2.5)
 #: path_attenuation: closed-form starts at these shares of the axial distance, and a
@@ -314,18 +318,21 @@ class Fitter:
         frames on the simulated ones, kept per effect: "frame" compares the whole images
         (the image circle moves with them: ``frame_share`` 1), "membrane" what the fixed
         background does not explain (image - ``FastModel.fixed``) inside the circle (the
-        membrane moving under a fixed circle: ``frame_share`` 0). Each compares the
+        membrane moving under a fixed circle: ``frame_share`` 0); each compares the
         per-pixel median of the frames, which the contacts, each somewhere else, do not
-        move."""
+        move. "contacts" fits the move to where each pair's contact lies in the real and
+        the simulated frame: where only the contacts turn with the frame (a solid
+        background in a round circle), they show its turn."""
         if name in self._registrations:
             return self._registrations[name]
-        from .registration import register, representative
+        from .registration import grey, register, register_contacts, representative
 
         camera, factor = self.work.camera, self.work.factor
         centre = (camera.cy, camera.cx)
         real, what = representative(self.real_w)
         sim, _ = representative(self.sim_w)
         found = {"frame": register(real, sim, None, factor, centre, what)}
+        found["contacts"] = register_contacts(grey(self.real_w), grey(self.sim_w), factor, centre)
         if "frame_share" in {p.name for p in self.catalogue[name].params}:
             fixed = self.work.fixed.mean(axis=-1)
             inside = self.work.circle > 0.999
@@ -357,7 +364,7 @@ class Fitter:
         closed = []
         for kind, reg in self.registrations(name).items():
             move = {k: float(np.clip(v, -limit, limit)) if k != "rotation_rad" else v for k, v in reg.params().items()}
-            share = {"frame": 1.0, "membrane": 0.0}[kind]
+            share = 0.0 if kind == "membrane" else 1.0
             closed.append({**base, **move, **({"frame_share": share} if "frame_share" in base else {})})
 
         def registered(angle: float, share: float) -> tuple[float, dict]:
@@ -428,6 +435,8 @@ class Fitter:
             status["start_value"] = value
             x, value, status = self._unstick(loss, x, value, bounds, max_iterations, status)
             status.pop("start_value")
+        if len(free) == 1 and any(p.name in POLISH_STEPS for _, p in plist):
+            x, value = self._polish(loss, x, value, plist, status)
         if value > scored[0][0]:  # never worse than its best start (closed-form ones included)
             x, value = z0, scored[0][0]
             status["note"] = "the search ended above its best start, which is reported instead"
@@ -522,6 +531,33 @@ class Fitter:
     def _sample_counts(self) -> np.ndarray:
         """(N,) the values each training sample's loss sums (3 per pixel of its circle)."""
         return 3.0 * self._box_mask.sum(axis=(1, 2, 3), dtype=np.float64)
+
+    def _polish(self, loss, x: np.ndarray, value: float, plist: list, status: dict) -> tuple[np.ndarray, float]:
+        """A move's shift and turn polished by Nelder-Mead (scipy) from where L-BFGS-B
+        stopped, the other parameters held: L-BFGS-B's finite differences step a turn by
+        0.36 degrees (``eps`` of a range of 2 pi), more than the last tenths of a pixel at
+        the rim that a registered frame still differs by, and it stops there. Its simplex
+        starts ``POLISH_STEPS`` away (physical units); kept only where it lowers the loss."""
+        moving = [i for i, (_, p) in enumerate(plist) if p.name in POLISH_STEPS]
+        span = np.array([plist[i][1].high - plist[i][1].low for i in moving])
+        steps = np.array([POLISH_STEPS[plist[i][1].name] for i in moving]) / span
+
+        def sub(y: np.ndarray) -> float:
+            z = x.copy()
+            z[moving] = np.clip(y, 0.0, 1.0)
+            return loss(z)
+
+        simplex = np.vstack([x[moving]] + [x[moving] + np.eye(len(moving))[k] * steps[k] for k in range(len(moving))])
+        res = optimize.minimize(sub, x[moving], method="Nelder-Mead",
+                                options={"initial_simplex": simplex, "maxfev": POLISH_EVALUATIONS,
+                                         "xatol": 0.05 * float(steps.min()), "fatol": FTOL * value})
+        if float(res.fun) >= value:
+            return x, value
+        out = x.copy()
+        out[moving] = np.clip(res.x, 0.0, 1.0)
+        status["polished"] = {"method": "Nelder-Mead", "evaluations": int(res.nfev),
+                              "loss_share": float(res.fun) / max(value, 1e-30)}
+        return out, float(res.fun)
 
     def _unstick(self, loss, x: np.ndarray, value: float, bounds, max_iterations: int, status: dict):
         """A fit stopped at its start leaving most of the gap: probe ``PROBE_STEP`` either

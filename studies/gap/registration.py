@@ -54,6 +54,14 @@ ECC_ITERATIONS = 100
 ECC_EPS = 1e-5
 #: ECC's Gaussian pre-smoothing, px (odd; OpenCV's gaussFiltSize).
 ECC_SMOOTHING_PX = 5
+#: ``register_contacts``: a pair's contact is its change from the median frame where that
+#: reaches this (linear RGB, grey) ...
+CONTACT_CHANGE = 0.02
+#: ... at least this many contacts must agree on one move ...
+MIN_CONTACTS = 4
+#: ... within this many pixels (at the working resolution), found by this many RANSAC trials.
+CONTACT_RESIDUAL_PX = 1.0
+RANSAC_TRIALS = 200
 #: Turns (degrees) tried as starts besides the Fourier-Mellin estimate: a smooth, nearly
 #: round image's spectrum can hide its turn.
 TURN_STARTS_DEG = (-6.0, 0.0, 6.0)
@@ -211,6 +219,61 @@ def register(real: np.ndarray, sim: np.ndarray, area: np.ndarray | None = None, 
                             f"{MIN_CORRELATION}): no reliable match", frames=frames)
     return Registration(rotation_rad=turn, du_px=float(d[0]) * factor, dv_px=float(d[1]) * factor,
                         correlation=float(rho), reliable=True, frames=frames)
+
+
+def register_contacts(real: np.ndarray, sim: np.ndarray, factor: int = 1,
+                      centre: tuple[float, float] | None = None) -> Registration:
+    """The move of the frame from its contacts: each pair's contact, found in its change
+    from the frames' median (``representative``), is located in the simulated frame (the
+    centroid of its change) and in the real one (that plus the phase correlation of the
+    two changes), and a turn and shift is fitted to those correspondences by RANSAC
+    (``skimage.measure.ransac`` over ``EuclideanTransform``), so that a pair whose real
+    contact differs from the simulated one is left out. Where only the contacts turn with
+    the frame (a solid background inside a round image circle) they alone show its turn.
+    real, sim : (N, H, W). Unreliable with fewer than ``MIN_CONTACTS`` usable contacts
+    or inliers."""
+    from skimage.measure import ransac
+    from skimage.registration import phase_cross_correlation
+    from skimage.transform import EuclideanTransform
+
+    real = np.asarray(real, np.float32)
+    sim = np.asarray(sim, np.float32)
+    if real.shape != sim.shape or real.ndim != 3:
+        raise ValueError(f"register_contacts needs two (N, H, W) stacks of one shape, got {real.shape} and {sim.shape}")
+    frames = f"the contacts of {len(real)} pairs"
+    change_r = real - np.median(real, axis=0)
+    change_s = sim - np.median(sim, axis=0)
+    src, dst = [], []
+    for r, s in zip(change_r, change_s):
+        weight = np.abs(s)
+        peak = float(weight.max())
+        if peak < CONTACT_CHANGE:
+            continue
+        weight = np.where(weight > 0.25 * peak, weight, 0.0)
+        v, u = np.nonzero(weight)
+        w = weight[v, u]
+        at = np.array([(u * w).sum() / w.sum(), (v * w).sum() / w.sum()])
+        shift, error, _ = phase_cross_correlation(r, s, upsample_factor=10, normalization=None)
+        src.append(at)
+        dst.append(at + shift[::-1])  # (x, y): real shows the simulated contact moved by the shift
+    if len(src) < MIN_CONTACTS:
+        return Registration(reason=f"{len(src)} pairs have a contact to register (fewer than {MIN_CONTACTS})",
+                            frames=frames)
+    src, dst = np.array(src), np.array(dst)
+    # The catalogue samples the simulated frame at c + R (x - c) + d for a real pixel x: the
+    # map real -> simulated, so estimate dst -> src.
+    model, inliers = ransac((dst, src), EuclideanTransform, min_samples=2, residual_threshold=CONTACT_RESIDUAL_PX,
+                            max_trials=RANSAC_TRIALS, rng=0)
+    if model is None or inliers is None or inliers.sum() < MIN_CONTACTS:
+        kept = 0 if inliers is None else int(inliers.sum())
+        return Registration(reason=f"{kept} of {len(src)} contacts agree on one move (fewer than {MIN_CONTACTS})",
+                            frames=frames)
+    h, w = real.shape[1:]
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0]) if centre is None else np.array([centre[1], centre[0]], float)
+    A, b = model.params[:2, :2], model.params[:2, 2]
+    d = b + A @ c - c
+    return Registration(rotation_rad=float(model.rotation), du_px=float(d[0]) * factor, dv_px=float(d[1]) * factor,
+                        reliable=True, frames=f"{frames} ({int(inliers.sum())} of {len(src)} contacts agree)")
 
 
 def _texture(image: np.ndarray, area: np.ndarray) -> float:
