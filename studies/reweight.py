@@ -39,17 +39,22 @@ from pathlib import Path
 
 import numpy as np
 
+# The basis' film and settings, as the diagnosis renders it (one home: ``source_basis``),
+# and the candidates it re-weights.
+from studies.gap.source_basis import BASIS_FILM as FILM
+from studies.gap.source_basis import BASIS_NO_CONTACT_RUNS as NO_CONTACT_RUNS
+from studies.gap.source_basis import BASIS_PASSES as PASSES
+from studies.gap.source_basis import BASIS_SPP as SPP
+from studies.gap.source_basis import LEAK_BASIS
+from studies.gap.source_basis import REWEIGHTED as CANDIDATES
+
 #: Pixels (u, v) of the camera where the two contacts are pressed (a 4 mm sphere, 1.5 mm).
 CONTACTS = ((350, 220), (250, 200))
 SPHERE_RADIUS_M = 4e-3
 PRESS_M = 1.5e-3
-#: The basis' film and settings, as ``studies.gap.source_basis`` renders it.
-FILM = (80, 60)
+#: Photons per source per pass of the measured renders (a quarter of the basis' own
+#: ``BASIS_PHOTONS``, as the diagnosis' earlier measurements used).
 PHOTONS = 1 << 16
-SPP = 16
-PASSES = 2
-NO_CONTACT_RUNS = 4
-LEAK_BASIS = 0.5
 #: Variants traced on their own and timed (the rest extrapolated from their mean).
 RETRACED_SAMPLE = 2
 #: Passes of the agreement's renders (the variance of a mean of 2 passes is read too
@@ -57,8 +62,6 @@ RETRACED_SAMPLE = 2
 AGREEMENT_PASSES = 4
 #: Each variance map is smoothed over this many pixels a side before z is formed.
 SMOOTH_PX = 5
-#: The re-weighted candidates of the diagnosis (``studies.gap.physical.GRIDS``).
-CANDIDATES = ("absorption_per_m", "scattering_per_m", "coating_albedo")
 
 
 def grid_variants(spec, effects) -> tuple[np.ndarray, list[str]]:
