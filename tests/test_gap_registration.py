@@ -119,3 +119,21 @@ def test_a_round_solid_frame_is_turned_by_its_contacts():
     assert [got.du_px, got.dv_px] == pytest.approx((-R @ np.asarray(shift) * 2).tolist(), abs=0.8)
     few = register_contacts(real[:2], sim[:2])
     assert not few.reliable and "fewer than" in few.reason
+
+
+def test_the_report_gives_each_registration_beside_the_fit():
+    """The Answer's line: every registration (the contacts' has no correlation), or why
+    it is unreliable, then the fit."""
+    from studies.gap.registration import Registration
+    from studies.gap.report import registration_line
+
+    found = {"frame": Registration(0.01, -9.8, 4.6, 0.999, True, "", "median of 10 frames").to_dict(),
+             "contacts": Registration(0.02, -9.5, 4.4, None, True, "", "the contacts of 10 pairs").to_dict(),
+             "membrane": Registration(reason="the frames are flat", frames="median of 10 frames").to_dict()}
+    entry = {"params": {"misalignment": {"du_px": -9.7, "dv_px": 4.5, "rotation_rad": 0.015, "scale": 1.0}},
+             "fit_status": {"registration": found}}
+    line = registration_line(entry)
+    assert "frame (median of 10 frames): turn +0.57 deg, shift (-9.8, +4.6) px, correlation 0.999" in line
+    assert "contacts (the contacts of 10 pairs): turn +1.15 deg" in line and "membrane (median of 10 frames): the frames are flat" in line
+    assert line.endswith("The fit: turn +0.86 deg, shift (-9.7, +4.5) px, scale 1.0000.")
+    assert registration_line({"params": {"blur_noise": {"sigma_px": 1.0}}, "fit_status": {}}) == ""

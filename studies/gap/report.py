@@ -179,11 +179,12 @@ def registration_line(entry: dict) -> str:
     parts = []
     for kind, r in found.items():
         if r["reliable"]:
-            parts.append(f"{kind}: turn {r['rotation_deg']:+.2f} deg, shift ({r['du_px']:+.1f}, {r['dv_px']:+.1f}) px, "
-                         f"correlation {r['correlation']:.3f}")
+            how = f", correlation {r['correlation']:.3f}" if r.get("correlation") is not None else ""
+            parts.append(f"{kind} ({r['frames']}): turn {r['rotation_deg']:+.2f} deg, shift ({r['du_px']:+.1f}, "
+                         f"{r['dv_px']:+.1f}) px{how}")
         else:
-            parts.append(f"{kind}: {r['reason']}")
-    return (f"Registration before the fit ({next(iter(found.values()))['frames']}): " + "; ".join(parts)
+            parts.append(f"{kind} ({r['frames']}): {r['reason']}")
+    return ("Registration before the fit: " + "; ".join(parts)
             + f". The fit: turn {math.degrees(fitted['rotation_rad']):+.2f} deg, shift ({fitted['du_px']:+.1f}, "
               f"{fitted['dv_px']:+.1f}) px" + (f", scale {fitted['scale']:.4f}" if "scale" in fitted else "") + ".")
 
