@@ -175,7 +175,7 @@ def registration_line(entry: dict) -> str:
     found = entry.get("fit_status", {}).get("registration")
     if not found:
         return ""
-    (name, fitted), = entry["params"].items()
+    (_, fitted), = entry["params"].items()
     parts = []
     for kind, r in found.items():
         if r["reliable"]:
