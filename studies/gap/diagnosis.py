@@ -11,7 +11,7 @@ from scenes.camera import Camera
 from scenes.spec import SensorSpec
 
 from . import selection
-from .fit import MAX_ITERATIONS, PARAM_RESAMPLES, Fit, Fitter
+from .fit import MAX_ITERATIONS, PARAM_RESAMPLES, POLISH_FACTOR, Fit, Fitter
 from .judge import Judge, Judged
 from .model import FastModel, auto_exposed
 from .pairs import Pairs
@@ -50,6 +50,16 @@ def make_models(pairs: Pairs, renderer: dict, factor: int):
     return work, (FastModel(pairs.spec, renderer, 1, exposure) if factor != 1 else work)
 
 
+def polish_model(pairs: Pairs, renderer: dict, work):
+    """A callable giving the fast model at ``fit.POLISH_FACTOR`` when ``work`` fits coarser
+    (``Fitter``'s ``fine``), else None. The reference model is fitted at its basis film
+    already, and predicts nothing finer."""
+    if not isinstance(work, FastModel) or work.factor <= POLISH_FACTOR:
+        return None
+    exposure = auto_exposed(pairs.real_meta)
+    return lambda: FastModel(pairs.spec, renderer, POLISH_FACTOR, exposure)
+
+
 class Diagnosis:
     """Fitting, judging and selecting effects on one pair of datasets: a facade over
     ``fit.Fitter`` (``fitter``), ``judge.Judge`` (``judging``) and ``selection``.
@@ -79,7 +89,7 @@ class Diagnosis:
             raise ValueError(f"unknown effect(s) {unknown}; the {self.work.kind} model's catalogue has "
                              f"{list(self.names)}")
         self.effects = tuple(e for e in wanted if e not in self.not_applicable)
-        self.fitter = Fitter(self.work, pairs, train, seed)
+        self.fitter = Fitter(self.work, pairs, train, seed, fine=polish_model(pairs, renderer, self.work))
         self.judging = Judge(self.full, pairs, heldout, regions, seed)
         self.train_index = self.fitter.train_index
         self.heldout_index = self.judging.heldout_index
