@@ -159,16 +159,22 @@ def write_outputs(calibration, out: Path, what: str) -> dict[str, Path]:
 
 def layout_seed_places(path: str | Path) -> list:
     """The fast path's fitted LED places (L, 3), m, camera frame, from its calibration's
-    report.json (``fast_path.taps.places.places_m``); ValueError naming the file otherwise."""
+    report.json: its chosen field's (``fast_path.taps.places.places_m``), else those of
+    the field that fitted them (``fast_path.taps.by_field.<field>.places``: a field
+    chosen for its constants, the geodesic one, keeps the unit's places); ValueError
+    naming the file otherwise."""
     path = Path(path)
     try:
-        report = json.loads(path.read_text())
-        places = report["fast_path"]["taps"]["places"]["places_m"]
+        taps = json.loads(path.read_text())["fast_path"]["taps"]
+        fitted = [taps] + [v for _, v in sorted((taps.get("by_field") or {}).items()) if "places" in v]
+        places = next((t["places"]["places_m"] for t in fitted if "places" in t), None)
+        if places is None:
+            raise KeyError("places")
     except FileNotFoundError:
         raise FileNotFoundError(f"--layout-seed {path}: no such file (a fast-path calibration's report.json)") from None
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+    except (json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"--layout-seed {path}: not a fast-path calibration's report.json with fitted LED places "
-                         f"(fast_path.taps.places.places_m): {exc!r}") from None
+                         f"(fast_path.taps.places.places_m, or a field's in fast_path.taps.by_field): {exc!r}") from None
     return places
 
 

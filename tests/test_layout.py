@@ -544,6 +544,13 @@ def test_the_layout_s_inputs_are_refused_by_name(tmp_path, gelsight):
         layout_seed_places(bad)
     bad.write_text(json.dumps({"fast_path": {"taps": {"places": {"places_m": [[0.02, 0.0, 0.02]] * 3}}}}))
     assert layout_seed_places(bad) == [[0.02, 0.0, 0.02]] * 3
+    # a field chosen for its constants that did not move the LEDs: the field that did gives its places
+    bad.write_text(json.dumps({"fast_path": {"taps": {"field": "geodesic", "by_field": {
+        "geodesic": {"leds": []}, "linear": {"places": {"places_m": [[0.01, 0.0, 0.02]] * 3}}}}}}))
+    assert layout_seed_places(bad) == [[0.01, 0.0, 0.02]] * 3
+    bad.write_text(json.dumps({"fast_path": {"taps": {"by_field": {"geodesic": {"leds": []}}}}}))
+    with pytest.raises(ValueError, match=r"not a fast-path calibration's report.json with fitted LED places"):
+        layout_seed_places(bad)
     with pytest.raises(ValueError, match="--layout-seed seeds the layout's fit: give --fit-layout too"):
         calibrate_capture(None, tmp_path / "out", lambda *a: None, background_only=tmp_path / "none.png",
                           layout_seed=bad)
