@@ -15,7 +15,7 @@ from scenes.camera import Camera
 from scenes.spec import SensorSpec
 
 from .effects import Effects
-from .reweight import Perturbation, valid
+from .reweight import PARAMETERS, Perturbation, valid
 
 #: Effects the basis is rendered with besides the grid's: the leak sources exist (their
 #: power is fitted) and the coating albedo is tied (it scales every source like a power).
@@ -107,6 +107,46 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     cached("pbr-calibration-basis", key, lambda: {k: arrays[k] for k in ("mean", "variance", "names", "response")},
            use_cache=use_cache)
     return {**arrays, "valid": valid(arrays["ess_ratio"])}
+
+
+def grid_bases(points: list[dict], base: Effects, basis_at) -> tuple[list[dict], dict | None]:
+    """Each grid point's basis, ``basis_at(effects, perturb=None)`` (``emitter_basis`` with
+    the rest bound), from as few traces as it can: where every point differs from ``base``
+    only in the medium and the paint's albedo (``reweight.PARAMETERS``) and the paint is
+    matte, one basis is traced at the grid's middle point (each parameter's median value,
+    else the point nearest it) and re-weighted to every other point (perturbation Monte
+    Carlo); a point whose re-weighting is not valid (``reweight.MIN_ESS_RATIO``) is traced
+    again with its own effects. Returns (bases in the points' order, a report of what was
+    traced and re-weighted, or None where each point was traced)."""
+    if len(points) < 2 or base.coating_gloss or any(k not in PARAMETERS for p in points for k in p):
+        return [basis_at(dataclasses.replace(base, **p)) for p in points], None
+    values = np.array([[float(p.get(k, getattr(base, k))) for k in PARAMETERS] for p in points])
+    # a walk represents the others only where it scatters and its paint reflects, if any of theirs do
+    able = np.all((values[:, [1, 2]] > 0) | ~np.any(values[:, [1, 2]] > 0, axis=0), axis=1)
+    if not able.any():
+        return [basis_at(dataclasses.replace(base, **p)) for p in points], None
+    middle = np.median(values, axis=0)
+    spread = np.ptp(values, axis=0)
+    spread[spread == 0] = 1.0
+    traced = int(np.argmin(np.where(able, np.abs((values - middle) / spread).sum(axis=1), np.inf)))
+    basis = basis_at(dataclasses.replace(base, **points[traced]), perturb=values)
+    keys = ("mean", "variance", "names", "response")
+    out, retraced, reweighted = [], {}, []
+    for k, point in enumerate(points):
+        label = ", ".join(f"{name}={v:g}" for name, v in point.items())
+        if k == traced:
+            out.append({key: basis[key] for key in keys})
+        elif basis["valid"][k]:
+            out.append({"mean": basis["variant_mean"][k], "variance": basis["variant_variance"][k],
+                        "names": basis["names"], "response": basis["response"]})
+            reweighted.append(label)
+        else:
+            out.append(basis_at(dataclasses.replace(base, **point)))
+            retraced[label] = float(np.min(basis["ess_ratio"][k]))
+    return out, {"traced": points[traced], "reweighted": reweighted, "retraced": retraced,
+                 "what": "the grid's bases: one traced at the middle point and re-weighted to the others "
+                         "(pbr_tactile.reweight); retraced: the points whose Kish ESS ratio (the least over "
+                         "sources, given) fell below reweight.MIN_ESS_RATIO, traced again"}
 
 
 def led_of_source(names) -> np.ndarray:

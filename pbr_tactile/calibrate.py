@@ -27,7 +27,7 @@ from scenes.profile import Alignment, CameraProfile, Profile
 from scenes.spec import SensorSpec
 
 from . import calibrate_taps as ct
-from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis
+from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis, grid_bases
 from .effects import Effects
 from .fast_background import fit_fast_background
 from .image_model import (
@@ -137,10 +137,12 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
     wide = basis_camera(camera) if taps is None else camera
     points = _grid_points(grid)
     base = Effects().with_settings([f"{k}={v}" for k, v in BASIS_EFFECTS.items()])
+    default = {name: getattr(Effects(), name) for name in grid}
+    every = points + ([] if default in points else [default])  # the uncalibrated image's too
+    bases, reweighting = grid_bases(every, base, lambda effects, perturb=None: emitter_basis(
+        rendered, mesh, wide, effects, film, photons, spp, passes, seed, use_cache, perturb=perturb))
     fits = []
-    for i, point in enumerate(points):
-        effects = dataclasses.replace(base, **point)
-        basis = emitter_basis(rendered, mesh, wide, effects, film, photons, spp, passes, seed, use_cache)
+    for i, (point, basis) in enumerate(zip(points, bases)):
         model = ImageModel(basis["mean"], basis["names"], camera, circle, arcs, spans, rendered=wide,
                            lens=not camera_known, known_alignment=camera_known,
                            response=basis["response"] if spectral_gains else None, webcam=webcam)
@@ -166,10 +168,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
                                                   known)
         tap_report["grid"] = [{k: v for k, v in rank.items() if k != "known"} for rank in ranking]
     after = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
-    default = {name: getattr(Effects(), name) for name in grid}
-    same = [b for _, p, b, _ in fits if p == default]
-    default_basis = same[0] if same else emitter_basis(
-        rendered, mesh, wide, dataclasses.replace(base, **default), film, photons, spp, passes, seed, use_cache)
+    default_basis = bases[every.index(default)]
     before = _uncalibrated(rendered, ImageModel(default_basis["mean"], default_basis["names"], camera, circle, arcs,
                                                 spans, rendered=wide), r, train)
     judged = {ch: test & ~clipped[..., c] for c, ch in enumerate("rgb")}
@@ -212,6 +211,7 @@ def calibrate_background(real: np.ndarray, spec: SensorSpec, mesh, camera: Camer
         "image_circle": circle, "film": [width, height], "sectors": SECTORS,
         "split": "even angular sectors of the image circle fit, odd ones judge",
         "grid": [{"effects": p, "loss": f.loss, "noise": f.noise, "converged": f.converged} for f, p, _, _ in fits],
+        "reweighting": reweighting,
         "best_effects": point, "parameters": _parameters(fit, tie=tie, spec=spec), "intervals": intervals,
         "gains": "each LED's power times its film response times each channel's white balance" if spectral_gains
         else "a free gain per LED and channel",

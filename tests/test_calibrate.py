@@ -24,6 +24,7 @@ from scenes.profile import (
     write_profile,
 )
 from scenes.spec import default_spec
+from tests.fake_basis import each_variant_traced
 
 
 def _profile(spec, **camera):
@@ -249,7 +250,6 @@ def test_fit_recovers_a_lens_that_sees_wider_than_the_basis(camera):
     """The real lens a barrel (k1 < 0) of a shorter focal length than the spec's: fitted
     from a basis rendered wider (``basis_camera``), its k1 and scale come back."""
     from pbr_tactile.basis import basis_camera
-
     wide = basis_camera(camera)
     A, names = _synthetic_basis(45, 60, camera=camera)
     model = im.ImageModel(A, names, camera, (321.0, 241.0, 236.0), rendered=wide, lens=True)
@@ -301,7 +301,8 @@ def test_grid_points_are_compared_without_their_own_monte_carlo_noise(camera, sp
     bases = {10.0: {"mean": noisy, "variance": np.full_like(A, sigma**2), "names": names,
                     "response": np.ones((len(names), 3))},
              50.0: {"mean": wrong, "variance": np.zeros_like(A), "names": names, "response": np.ones((len(names), 3))}}
-    monkeypatch.setattr(cal, "emitter_basis", lambda spec_, mesh, camera_, effects, *a, **k: bases[effects.scattering_per_m])
+    monkeypatch.setattr(cal, "emitter_basis", each_variant_traced(
+        lambda spec_, mesh, camera_, effects, *a, **k: bases[effects.scattering_per_m]))
     # the calibration renders its no-contact basis wider than the camera (basis_camera)
     from pbr_tactile.basis import basis_camera
 

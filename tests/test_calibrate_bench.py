@@ -15,6 +15,7 @@ from pbr_tactile.basis import BASIS_EFFECTS, basis_layout
 from pbr_tactile.effects import Effects
 from scenes.camera import Camera
 from scenes.spec import default_spec, load_spec
+from tests.fake_basis import each_variant_traced
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"
 GRID = {"absorption_per_m": (5.0, 80.0), "scattering_per_m": (10.0, 250.0)}
@@ -154,7 +155,7 @@ def test_a_group_sensor_drawn_led_by_led_is_recovered_through_the_whole_benchmar
     from pbr_tactile import calibrate as cal
 
     monkeypatch.setattr(cb, "emitter_basis", _formula_basis)
-    monkeypatch.setattr(cal, "emitter_basis", _formula_basis)
+    monkeypatch.setattr(cal, "emitter_basis", each_variant_traced(_formula_basis))
     spec = load_spec(SPEC_2023)
     camera = Camera.from_spec(spec)
     grid = {"absorption_per_m": (5.0,), "scattering_per_m": (250.0,)}

@@ -16,6 +16,7 @@ from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
 from scenes import captures
 from scenes.dataset import DatasetError
+from tests.fake_basis import each_variant_traced
 
 
 def _synthetic(camera, h=60, w=80):
@@ -123,7 +124,7 @@ def test_taps_choose_the_grid_point_one_image_cannot(camera, spec, monkeypatch):
     pytest.importorskip("mitsuba")
     A, names, change = _synthetic(camera)
     basis = {"mean": A, "variance": np.zeros_like(A), "names": names, "response": np.ones((len(names), 3))}
-    monkeypatch.setattr(cal, "emitter_basis", lambda *args, **kwargs: basis)
+    monkeypatch.setattr(cal, "emitter_basis", each_variant_traced(lambda *args, **kwargs: basis))
     places = [(0.3, 0.2), (0.6, 1.4), (0.45, 2.9), (0.7, -1.9)]
 
     def changes(spec_, mesh, camera_, effects, film, taps, *args, **kwargs):

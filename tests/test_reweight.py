@@ -389,3 +389,59 @@ def test_a_bases_variants_agree_with_bases_rendered_at_each_variant(mesh, spec, 
     assert np.all(over_3 < 0.05) and np.all(mean_z2 < 2.5)
     # The scattering coefficient barely changes the image; the others are seen.
     assert off_z2[0] > 4.0 and off_z2[2] > 4.0
+
+
+def test_the_calibrations_grid_traces_one_basis_and_retraces_what_is_not_valid():
+    """``basis.grid_bases``: a grid of the medium's values is traced once, at its middle
+    point, and re-weighted to the others; a point short of the ESS bound is traced
+    again; a grid of anything else, a glossy paint, or a grid whose middle point cannot
+    represent the others (no scattering) traces each point, as before."""
+    import dataclasses
+
+    from pbr_tactile.basis import grid_bases
+
+    calls = []
+
+    def basis_at(effects, perturb=None):
+        calls.append((effects.absorption_per_m, effects.scattering_per_m, None if perturb is None else len(perturb)))
+        mean = np.full((2, 2, 1), effects.absorption_per_m)
+        out = {"mean": mean, "variance": mean / 10, "names": np.array(["led0"]), "response": np.ones((1, 3))}
+        if perturb is not None:
+            values = np.asarray(perturb)
+            out.update(variant_mean=np.stack([np.full((2, 2, 1), v[0] + 1000) for v in values]),
+                       variant_variance=np.stack([np.full((2, 2, 1), 1.0) for _ in values]),
+                       ess_ratio=np.where(values[:, 1:2] > 100, 0.05, 0.9), valid=values[:, 1] <= 100)
+        return out
+
+    base = Effects()
+    points = [{"absorption_per_m": a, "scattering_per_m": s} for a in (5.0, 20.0, 80.0) for s in (10.0, 50.0, 250.0)]
+    bases, report = grid_bases(points, base, basis_at)
+    assert calls[0] == (20.0, 50.0, 9)  # the middle point, with every point's variant
+    assert sorted(calls[1:]) == [(5.0, 250.0, None), (20.0, 250.0, None), (80.0, 250.0, None)]  # not valid
+    assert report["traced"] == {"absorption_per_m": 20.0, "scattering_per_m": 50.0}
+    assert set(report["retraced"]) == {f"absorption_per_m={a:g}, scattering_per_m=250" for a in (5, 20, 80)}
+    assert all(v == pytest.approx(0.05) for v in report["retraced"].values())
+    assert len(report["reweighted"]) == 5
+    for point, basis in zip(points, bases):
+        if point["scattering_per_m"] == 250.0:  # traced again: its own effects
+            assert basis["mean"].flat[0] == point["absorption_per_m"]
+        elif point == report["traced"]:
+            assert basis["mean"].flat[0] == 20.0
+        else:  # re-weighted: the variant's
+            assert basis["mean"].flat[0] == point["absorption_per_m"] + 1000
+    # anything but the medium and the paint's albedo, or a glossy paint: each point traced
+    for grid, paint in (([{"absorption_per_m": 5.0, "core_light_leak": 0.1}, {"absorption_per_m": 20.0,
+                                                                              "core_light_leak": 0.1}], base),
+                        (points[:2], dataclasses.replace(base, coating_gloss=0.3))):
+        calls.clear()
+        bases, report = grid_bases(grid, paint, basis_at)
+        assert report is None and len(calls) == len(grid) and all(c[2] is None for c in calls)
+    # nothing scatters anywhere: absorption alone is re-weighted
+    calls.clear()
+    bases, report = grid_bases([{"scattering_per_m": 0.0}, {"scattering_per_m": 0.0, "absorption_per_m": 9.0}], base,
+                               basis_at)
+    assert report is not None and calls[0][2] == 2 and len(calls) == 1
+    # a walk without scattering cannot stand for one with it: the scattering point is traced
+    calls.clear()
+    bases, report = grid_bases([{"scattering_per_m": 0.0}, {"scattering_per_m": 22.0}], base, basis_at)
+    assert calls[0] == (base.absorption_per_m, 22.0, 2)

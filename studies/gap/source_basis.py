@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from pbr_tactile.reweight import PARAMETERS
 from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
 from scenes.geometry import membrane_mesh
 from scenes.spec import SensorSpec
@@ -44,8 +45,8 @@ LEAK_BASIS = 0.5
 NO_CONTACT = -1
 #: Candidates that change only a contact.
 MECHANICS = ("membrane_compliance", "layer_spread")
-#: Candidates re-weighted from the identity's photons (``pbr_tactile.reweight.PARAMETERS``).
-REWEIGHTED = ("absorption_per_m", "scattering_per_m", "coating_albedo")
+#: Candidates re-weighted from the identity's photons.
+REWEIGHTED = PARAMETERS
 
 
 class SourceBasis:
