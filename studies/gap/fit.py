@@ -456,20 +456,17 @@ class Fitter:
         if fine is not None:  # the finer loss chooses between the fit, its best start and the registrations
             x, fine_value = self._polish_fine(fine, free[0], fixed, plist, to_params, to_z, x, z0, status)
             params = {**fixed, **to_params(x)}
-            train_loss = self.train_loss(params)
-            if fine_value > 1.0:  # never worse than leaving the effect out, there
-                params = {n: dict(self.catalogue[n].identity) for n in names}
-                train_loss = self.train_loss_before
-                status["note"] = "no point found better than leaving the effect out; reported at its identity"
+            train_loss, worse = self.train_loss(params), fine_value > 1.0
         else:
             if value > scored[0][0]:  # never worse than its best start (closed-form ones included)
                 x, value = z0, scored[0][0]
                 status["note"] = "the search ended above its best start, which is reported instead"
             params, train_loss = {**fixed, **to_params(x)}, value * scale
-            if train_loss > self.train_loss_before:  # never worse than leaving the effects out
-                params = {n: dict(self.catalogue[n].identity) for n in names}
-                train_loss = self.train_loss_before
-                status["note"] = "no point found better than leaving the effect out; reported at its identity"
+            worse = train_loss > self.train_loss_before
+        if worse:  # never worse than leaving the effects out (on the finer loss, where it polished)
+            params = {n: dict(self.catalogue[n].identity) for n in names}
+            train_loss = self.train_loss_before
+            status["note"] = "no point found better than leaving the effect out; reported at its identity"
         mse = self._mse(self.predict_train(params))
         moved = [n for n in free if n in self._registrations]
         if len(free) == 1 and moved:  # the closed-form registrations the fit started from, beside its result
