@@ -520,7 +520,9 @@ def test_the_physical_bench_times_the_diagnosis_alone_on_its_capture_and_replay(
 def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec, scene, stub, monkeypatch):
     """Judging a re-rendered candidate renders every held-out tap: only the best
     ``JUDGED_RENDERS`` of them on the training taps are; the rest are screened out, say
-    why, close nothing and are never ranked, and none of their held-out taps is rendered."""
+    why, close nothing and are never ranked, and none of their held-out taps is rendered.
+    Each is first fitted on ``SCREEN_TAPS`` of the fit's taps: the ones screened out
+    trace their grid on those alone."""
     from studies.gap.diagnose import diagnose
     from studies.gap.report import headline
 
@@ -534,11 +536,21 @@ def test_re_rendered_candidates_beyond_the_best_on_training_are_not_judged(spec,
     screened = {n for n, j in singles.items() if "screened" in j.fit.status}
     assert screened == {"scattering_per_m", "coating_albedo"}
     assert singles["absorption_per_m"].significant
+    # More were to be traced again than are judged: each was screened on SCREEN_TAPS of the
+    # fit's taps first, and only the best there was fitted on all of them.
+    screen_taps = set(d._screen.train_index.tolist())
+    assert len(screen_taps) == reference_model.SCREEN_TAPS < len(d.train_index)
+    assert screen_taps <= set(d.train_index.tolist())
     for name in screened:
         assert not singles[name].significant and singles[name].gain == 0.0
         assert "absorption_per_m" in singles[name].fit.status["screened"]
+        assert singles[name].fit.status["screen"]["taps"] == reference_model.SCREEN_TAPS
         rendered_keys = {tag[0] for tag in d.work.basis._images if tag[1] == name}
-        assert rendered_keys and not rendered_keys & set(d.heldout_index.tolist())
+        assert rendered_keys and rendered_keys <= screen_taps | {source_basis.NO_CONTACT}
+    fitted = {tag[0] for tag in d.work.basis._images if tag[1] == "absorption_per_m"}
+    assert set(d.train_index.tolist()) <= fitted
+    assert singles["absorption_per_m"].fit.status["screen"]["train_loss"] < \
+        singles["absorption_per_m"].fit.status["screen"]["train_loss_before"]
     assert d.rank(singles)[0] == "absorption_per_m"
     report, _ = diagnose(pairs, effects=d.effects, factor=8, intervals=0)
     assert set(report["screened"]) == screened and not set(report["ranking"]) & screened

@@ -97,6 +97,7 @@ class Diagnosis:
         self.noise_floor = self.judging.noise_floor
         self.min_gain = self.judging.min_gain
         self.first_pair: Judged | None = None  # the pair ranked first, if one was (``rank``)
+        self._screen: Fitter | None = None  # the fit's taps cut to the screen's (``screen``)
 
     def fit(self, names: tuple[str, ...], start: dict | None = None, free: tuple[str, ...] | None = None,
             max_iterations: int = MAX_ITERATIONS) -> Fit:
@@ -117,7 +118,17 @@ class Diagnosis:
 
     def singles(self) -> dict[str, Judged]:
         """``selection.singles`` of the effects considered."""
-        return selection.singles(self.effects, self.fit, self.judge, self.judging.unjudged, self.work, self.progress)
+        return selection.singles(self.effects, self.fit, self.judge, self.judging.unjudged, self.work, self.progress,
+                                 self.screen if getattr(self.work, "screen_taps", None) else None)
+
+    def screen(self, names: tuple[str, ...]) -> Fit:
+        """``names`` fitted on the working model's ``screen_taps`` of the fit's taps (a
+        reference model's screen of its re-rendered candidates: ``selection.singles``)."""
+        if self._screen is None:
+            taps = np.zeros(len(self.pairs), bool)
+            taps[self.train_index] = True
+            self._screen = Fitter(self.work, self.pairs, taps, self.seed, samples=self.work.screen_taps)
+        return self._screen.fit(names)
 
     def rank(self, singles: dict[str, Judged]) -> list[str]:
         """``selection.rank``; the pair it ranks first, if any, is kept as ``first_pair``."""

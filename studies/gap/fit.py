@@ -106,17 +106,20 @@ class Fitter:
     them, or the model's own ``max_fit_samples``, an even spread over objects); seed : the
     spread's and the parameter intervals' bootstrap's; fine : None, or a callable giving
     the same kind of model at ``POLISH_FACTOR``, finer than ``model``, on which a move's
-    shift and turn are polished last (``_polish_fine``; built when first needed).
+    shift and turn are polished last (``_polish_fine``; built when first needed);
+    samples : at most this many of ``train`` instead (the screen of a reference model's
+    re-rendered candidates: ``selection.singles``).
     """
 
-    def __init__(self, model, pairs: Pairs, train: np.ndarray, seed: int = 0, fine=None):
+    def __init__(self, model, pairs: Pairs, train: np.ndarray, seed: int = 0, fine=None, samples: int | None = None):
         self.work = model
         self._fine_model, self._fine = fine, None
         self._pairs, self._train = pairs, train
         self.catalogue = model.catalogue
         self.names = model.names
         self.seed = seed
-        self.train_index = fit_subset(pairs, np.flatnonzero(train), model.max_fit_samples or MAX_FIT_SAMPLES, seed)
+        count = samples or model.max_fit_samples or MAX_FIT_SAMPLES
+        self.train_index = fit_subset(pairs, np.flatnonzero(train), count, seed)
         self.real_w = model.working_images(pairs.real[self.train_index])
         self.sim_w = model.working_images(pairs.sim[self.train_index])
         self.depth_w = None if pairs.depth is None else model.working_depth(pairs.depth[self.train_index])

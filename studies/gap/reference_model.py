@@ -76,6 +76,13 @@ FIT_TAPS = 8
 #: rest are reported as screened out (``selection.singles``). On a 36-pair capture, each
 #: one judged costs 18 renders (about 6 minutes on 2 cores).
 JUDGED_RENDERS = 2
+#: Where more re-rendered candidates must trace their grid than ``JUDGED_RENDERS``, each
+#: is fitted first on this many of the fit's taps (a screen: its grid traced on those
+#: taps and the no-contact frame only), and only the ``JUDGED_RENDERS`` best there, by
+#: the share of their training loss they remove, are fitted on all ``FIT_TAPS`` and
+#: judged (``selection.singles``). On the 36-pair physical bench a grid value traced
+#: again on 8 taps and the no-contact frame took 7 to 8 minutes, about 33 s a tap.
+SCREEN_TAPS = 2
 #: The capture's exposures every fit of a physical candidate is started from (the rule's,
 #: and a third less or more): with the range above, a hidden LED peak shift of 18 nm
 #: (with an absorption of 76 per m) started at the rule's alone was fitted at (3, -30, 6)
@@ -137,6 +144,7 @@ class ReferenceModel:
         self.aliases = dict(FAST_MODELS)
         self.max_fit_samples = FIT_TAPS
         self.judged_renders = JUDGED_RENDERS
+        self.screen_taps = SCREEN_TAPS
         self._responses: dict = {}
         self._unshifted: dict = {}  # the film's response to the spec's own LEDs, by switch (``responses``)
         self._plain: dict = {}  # M(identity) by sample

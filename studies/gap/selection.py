@@ -44,25 +44,70 @@ MAX_TRIALS = 3
 MAX_COMBINATION = 4
 
 
-def singles(effects: tuple[str, ...], fit_effects, judge, unjudged, model, progress=None) -> dict[str, Judged]:
+def singles(effects: tuple[str, ...], fit_effects, judge, unjudged, model, progress=None,
+            screen=None) -> dict[str, Judged]:
     """Each effect fitted alone and judged on the held-out samples, except the
     re-rendered candidates of a reference model beyond its ``judged_renders`` lowest
     training losses (``screened``): judging one renders every held-out tap (one
     re-weighted from the identity's photons renders nothing of its own: ``costly``).
 
+    With ``screen`` (``fit_effects`` on the model's ``screen_taps`` of the fit's taps),
+    where more costly candidates are left than ``judged_renders``, each is first fitted
+    on those few taps, and only the best there (the lowest share of the training loss
+    left) are fitted on every fit tap and judged; the rest keep their screen's fit,
+    unjudged. The others are fitted first: their identity renders say which re-rendered
+    candidates are costly (a grid point re-weighted or traced again).
+
     unjudged : ``Judge.unjudged``, the judgement of a fit left unjudged; model : the
     working model; progress : called with (done, total, what) after each step."""
-    fits, out, steps = {}, {}, 2 * len(effects)
-    for i, name in enumerate(effects):
+    fits, out, steps, done = {}, {}, 2 * len(effects), [0]
+
+    def step(what: str) -> None:
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], steps, what)
+
+    keep = getattr(model, "judged_renders", None)
+    rerendered = getattr(model, "rerendered", lambda name: False)
+    deferred = []
+    for name in [n for n in effects if not rerendered(n)] + [n for n in effects if rerendered(n)]:
+        if screen is not None and keep is not None and rerendered(name) and model.costly(name):
+            deferred.append(name)
+            continue
         fits[name] = fit_effects((name,))
-        if progress is not None:
-            progress(i + 1, steps, name)
-    left_out = screened(fits, model)
-    for i, (name, fit) in enumerate(fits.items()):
+        step(name)
+    left_out = {}
+    if deferred and len(deferred) > keep:
+        screens = {}
+        for name in deferred:
+            screens[name] = screen((name,))
+            screens[name].status["screen"] = {"taps": int(model.screen_taps), "train_loss": screens[name].train_loss,
+                                              "train_loss_before": screens[name].train_loss_before}
+            if progress is not None:
+                progress(done[0], steps, f"{name}, screened on {model.screen_taps} taps")
+        left = {n: f.train_loss / max(f.train_loss_before, 1e-30) for n, f in screens.items()}
+        order = sorted(deferred, key=left.get)
+        for name in deferred:
+            if name in order[:keep]:
+                fits[name] = fit_effects((name,))
+                fits[name].status["screen"] = screens[name].status["screen"]
+            else:
+                fits[name] = screens[name]
+                left_out[name] = (f"not judged on the held-out samples: fitted on {model.screen_taps} of the fit's "
+                                  f"taps only, it left {left[name]:.1%} of their training loss, not among the "
+                                  f"{keep} lowest of the re-rendered candidates traced again "
+                                  f"({', '.join(order[:keep])}), which alone were fitted on every fit tap; judging "
+                                  f"one renders every held-out tap")
+            step(name)
+    else:
+        for name in deferred:
+            fits[name] = fit_effects((name,))
+            step(name)
+    left_out = left_out or screened(fits, model)
+    for name in effects:
         # SSIM (most of a judgement's time) only for those that explain part of the gap
-        out[name] = judge(fit, complete=None) if name not in left_out else unjudged(fit, left_out[name])
-        if progress is not None:
-            progress(len(fits) + i + 1, steps, f"{name}, judged on the held-out samples")
+        out[name] = judge(fits[name], complete=None) if name not in left_out else unjudged(fits[name], left_out[name])
+        step(f"{name}, judged on the held-out samples")
     return out
 
 
