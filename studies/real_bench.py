@@ -145,7 +145,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         rim_share: float | None = None, grid: tuple[str, ...] = REFERENCE_GRID, camera_known: bool = True,
         reference_presses: int = REFERENCE_PRESSES, fit_layout: bool = False, runs: int = 1,
         depth: str | None = None, diagnosis_on: bool = True, fmt: str | None = None, turn: str | None = None,
-        markers: str | None = None) -> dict:
+        markers: str | None = None, diagnosis_presses: int | None = None) -> dict:
     """The benchmark (module doc); writes and returns the JSON. ``archive``: any set of
     presses ``tactile-sim import`` reads (a Taxim pack, or a folder of presses), with its
     ``fmt``, ``spec``, ``ball_mm``, ``pixel_mm``, ``turn`` and ``markers`` as given, else as its records
@@ -169,13 +169,19 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
     calibrated under that layer; Taxim's ``refit_share`` row chooses its own depth
     setting, a rim share, on the fitted half);
     ``diagnosis_on``: diagnose the capture against the calibrated fast path's replay (the
-    localisation study needs it);
+    localisation study needs it); ``diagnosis_presses``: the calibrated reference's replay
+    and its diagnosis (``reference_diagnosis``) take this many presses, spread evenly over
+    the capture (all when None or at least their count: each is a reference render at the
+    capture's size, about a minute and a half here);
     ``runs``: the reference's calibration and its calibrated comparison run this many times,
     each from an empty cache (every render anew, the same seeds), and the JSON's
     ``reference_runs`` holds each run's figures and their spread (``_spread``)."""
     if isinstance(reference_presses, bool) or not isinstance(reference_presses, (int, np.integer)) \
             or reference_presses < 1:
         raise ValueError(f"reference_presses must be a whole number >= 1, got {reference_presses!r}")
+    if diagnosis_presses is not None and (isinstance(diagnosis_presses, bool) or not isinstance(
+            diagnosis_presses, (int, np.integer)) or diagnosis_presses < 4):
+        raise ValueError(f"diagnosis_presses must be a whole number >= 4 (half are held out), got {diagnosis_presses!r}")
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValueError(f"runs must be a whole number >= 1, got {runs!r}")
     if localisation and not diagnosis_on:
@@ -295,8 +301,11 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
             from pbr_tactile import plugin as pbr
 
             replayed_ref = work / "replay_calibrated_reference"
+            from studies.compare.run import spread
+
             stage("replay_calibrated_reference", lambda: replay(unit, replayed_ref, pbr,
-                                                                {"profile": str(ref_profile)}, workers=1,
+                                                                {"profile": str(ref_profile)},
+                                                                ids=spread(unit.ids, diagnosis_presses), workers=1,
                                                                 progress=not quiet))
             diagnosis_ref = stage("diagnose_reference", lambda: diagnose(
                 capture, replayed_ref, work / "diagnosis_reference", progress=not quiet, split_by="alternate"))
@@ -361,7 +370,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                                                                   "explained": diagnosis["explained"]},
                 "diagnosis_reference": None if diagnosis_ref is None else {
                     "answer": headline(diagnosis_ref),
-                    "explained": diagnosis_ref["explained"]},
+                    "explained": diagnosis_ref["explained"], "pairs": diagnosis_ref["pairs"],
+                    "ranking": diagnosis_ref["ranking"]},
                 "localisation": None if loc is None else {
                     **{k: {"real": v.get("real", {}).get("localisation_mm_median_ci"),
                            "real_mean": v.get("real", {}).get("localisation_mm_mean"),
@@ -390,7 +400,8 @@ def cmd_bench_real(args) -> int:
               localisation=not args.no_localisation, quiet=args.quiet, rim_share=args.rim_share, depth=args.depth,
               grid=tuple(args.grid) if args.grid else REFERENCE_GRID, camera_known=not args.search_alignment,
               reference_presses=args.reference_presses, fit_layout=args.fit_layout, runs=args.runs,
-              diagnosis_on=not args.no_diagnosis, fmt=args.format, turn=args.turn, markers=args.markers)
+              diagnosis_on=not args.no_diagnosis, fmt=args.format, turn=args.turn, markers=args.markers,
+              diagnosis_presses=args.diagnosis_presses)
     print(json.dumps({k: out[k] for k in ("contact_strength", "contact_mae", "localisation_mm",
                                           "localisation_mm_no_offset", "seconds")}, indent=1))
     print(f"wrote {args.json}")
@@ -449,6 +460,10 @@ def register(registry) -> None:
                         "cache, and write their figures and spread (reference_runs)")
     p.add_argument("--reference-diagnosis", action="store_true",
                    help="also diagnose the capture against the calibrated reference's replay (about an hour here)")
+    p.add_argument("--diagnosis-presses", type=positive_int, metavar="N",
+                   help="with --reference-diagnosis: replay and diagnose N of the presses, spread evenly over the "
+                        "capture (default all; each is a reference render at the capture's size, about a minute and "
+                        "a half here)")
     p.add_argument("--no-localisation", action="store_true", help="leave the localisation study out")
     p.add_argument("--no-diagnosis", action="store_true",
                    help="leave the diagnosis of the fast path's replay out (with --no-localisation, which uses it)")

@@ -178,6 +178,10 @@ def test_bench_real_takes_the_reference_presses_and_refuses_a_bad_count_before_a
         run(tmp_path / "real.json", work=tmp_path / "work", runs=3, reference=False)
     with pytest.raises(ValueError, match="--no-diagnosis needs --no-localisation"):
         run(tmp_path / "real.json", work=tmp_path / "work", diagnosis_on=False)
+    assert parser.parse_args(["bench", "real", "--json", "J"]).diagnosis_presses is None
+    assert parser.parse_args(["bench", "real", "--json", "J", "--diagnosis-presses", "16"]).diagnosis_presses == 16
+    with pytest.raises(ValueError, match="diagnosis_presses must be a whole number >= 4 .half are held out., got 3"):
+        run(tmp_path / "real.json", work=tmp_path / "work", reference_diagnosis=True, diagnosis_presses=3)
     assert not (tmp_path / "work").exists() and not (tmp_path / "real.json").exists()
     args = parser.parse_args(["bench", "real", "--json", "J", "--depth", "fitted", "--no-diagnosis",
                               "--no-localisation"])
