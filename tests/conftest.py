@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,31 @@ def photon_mi():
 
     mi.set_variant(variant)
     return mi
+
+
+@contextlib.contextmanager
+def switched_variant(name: str):
+    """Mitsuba on variant ``name`` inside the block; the variant set before it is set again
+    after it. Mitsuba's variant is global: a test that left it switched would run every
+    later test of ``photon_mi`` on that variant (the photon pass refuses a scalar one)."""
+    import mitsuba as mi
+
+    from pbr_tactile.variant import choose_variant
+
+    before = mi.variant()  # None when none was set yet: Mitsuba has no unset, and every user sets its own
+    try:
+        yield choose_variant(name)
+    finally:
+        if before is not None:
+            mi.set_variant(before)
+
+
+@pytest.fixture
+def scalar_mi():
+    """Mitsuba on ``scalar_spectral`` for one test (``switched_variant``), or skip."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+    with switched_variant("scalar_spectral") as mi:
+        yield mi
 
 
 @pytest.fixture(scope="session")

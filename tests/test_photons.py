@@ -104,17 +104,15 @@ def test_film_response_follows_specfilm_convention_analytically():
     assert red[0] > 10 * red[1] > 0 and red[2] < 1e-3 * red[0]
 
 
-def test_film_response_matches_mitsuba_films():
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
+def test_film_response_matches_mitsuba_films(scalar_mi):
     from pbr_tactile.effects import Effects
     from pbr_tactile.render import to_mitsuba
     from pbr_tactile.scene import _film
     from pbr_tactile.spectra import mitsuba_spectrum
-    from pbr_tactile.variant import choose_variant
     from scenes.camera import Camera
     from scenes.spec import load_spec
 
-    mi = choose_variant("scalar_spectral")
+    mi = scalar_mi
     camera = Camera.from_spec(load_spec())
     led = 2.0 * gaussian(530.0, 30.0)
     for response in (True, False):
@@ -151,3 +149,14 @@ def test_no_contact_cache_needs_at_least_one_run():
 
     with pytest.raises(ValueError, match="no-contact runs must be >= 1, got 0"):
         NoContact(None, None, [], runs=0)
+
+
+def test_a_test_on_the_scalar_variant_switches_it_back_after_it(photon_mi):
+    """``scalar_mi``'s switch restores the variant it found: the photon pass' tests that
+    follow run on their vectorised variant whatever order the tests run in."""
+    from conftest import switched_variant
+
+    before = photon_mi.variant()
+    with switched_variant("scalar_spectral") as mi:
+        assert mi.variant() == "scalar_spectral"
+    assert photon_mi.variant() == before != "scalar_spectral"
