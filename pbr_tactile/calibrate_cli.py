@@ -131,7 +131,7 @@ def elastic_entry(path) -> dict:
 
 
 def _grid(items: list[str]) -> dict:
-    from scenes.commands import name_values
+    from scenes.settings import name_values
 
     return name_values(items, "--grid", "NAME=V1,V2,... (an effect and its values)")
 

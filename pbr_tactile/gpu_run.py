@@ -493,7 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from scenes.cli import REPORTED
+    from scenes.errors import REPORTED
 
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -34,10 +34,11 @@ def _layout(path: str | None):
 def _protocol(args, spec):
     from dataclasses import replace
 
-    from scenes.commands import _objects, make_protocol
+    from scenes.commands import object_names
+    from scenes.protocol import make_protocol
     from scenes.body import checked_membrane
 
-    protocol = make_protocol(args.protocol, spec, checked_membrane(spec), _objects(args.objects), seed=args.seed)
+    protocol = make_protocol(args.protocol, spec, checked_membrane(spec), object_names(args.objects), seed=args.seed)
     if args.limit:
         protocol = replace(protocol, taps=protocol.taps[: args.limit])
     return protocol
@@ -135,7 +136,7 @@ def cmd_run(args, parser=None) -> int:
 def _unit(settings: list[str]) -> dict:
     """``--unit NAME=VALUE[,VALUE...]`` settings as {name: float or tuple}; checked by
     ``rig.virtual.unit_spec``."""
-    from scenes.commands import name_values
+    from scenes.settings import name_values
 
     parsed = name_values(settings, "--unit", "NAME=VALUE or NAME=VALUE,VALUE,... with numbers")
     return {name: values[0] if len(values) == 1 else values for name, values in parsed.items()}

@@ -11,7 +11,7 @@ import argparse
 import sys
 from importlib.metadata import entry_points
 
-from .errors import TactileSimError
+from .errors import REPORTED
 
 ENTRY_POINT_GROUP = "tactile_sim.commands"
 
@@ -49,10 +49,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: Errors that a command reports in one line (``tactile-sim COMMAND: error: ...``, exit
-#: status 1) instead of a traceback: the project's own, bad input, and a file or device
-#: that does not open (``OSError``, ``serial.SerialException`` among them).
-REPORTED = (TactileSimError, ValueError, OSError)
 
 
 def command_name(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:

@@ -15,10 +15,15 @@ from pathlib import Path
 import numpy as np
 
 from .elastic import MODELS
+from .protocol import make_protocol
+from .renderers import RENDERER_OPTIONS
+from .settings import name_values
 from .spec import load_spec
 
 
-def _objects(value: str) -> tuple[str, ...]:
+def object_names(value: str) -> tuple[str, ...]:
+    """``--objects``: ``all`` (every indenter) or a comma-separated list of indenter names or
+    STL paths, as a tuple."""
     from .indenters import INDENTERS
 
     if value == "all":
@@ -27,16 +32,6 @@ def _objects(value: str) -> tuple[str, ...]:
     if not names:
         raise ValueError("--objects must be 'all' or a comma-separated list of indenter names or STL paths")
     return names
-
-
-def make_protocol(name: str, spec, mesh, objects, seed: int = 0):
-    from .protocol import base_protocol, extended_protocol
-
-    if name == "base":
-        return base_protocol(spec, mesh, objects)
-    if name == "extended":
-        return extended_protocol(spec, mesh, objects, seed=seed)
-    raise ValueError(f"protocol must be 'base' or 'extended', got {name!r}")
 
 
 def _rig(args, tap_index: int | None = 0):
@@ -61,7 +56,7 @@ def cmd_scene(args) -> int:
         from .rig import rig_scene
 
         spec = load_spec(args.spec)
-        objects = _objects(args.object)
+        objects = object_names(args.object)
         scene = rig_scene(spec, {name: indenter(name) for name in objects}, membrane=checked_membrane(spec))
         path = scene.export(args.output)
         print(f"wrote {path}; open it with: python -m mujoco.viewer --mjcf {path}")
@@ -84,16 +79,6 @@ def cmd_scene(args) -> int:
         mujoco.viewer.launch(rig.model, rig.data)
         return 0
     raise ValueError(f"unknown scene action {args.action!r}")
-
-
-#: Renderer options of the dataset command, by option key: the argument holding each.
-#: phong takes field, background, rectify and elastic; pbr the others (see its plugin).
-RENDERER_OPTIONS = {
-    "field": "field", "background": "background", "rectify": "rectify", "elastic": "elastic",
-    "target_rse": "target_rse", "max_passes": "max_passes", "effects": "effect", "estimator": "estimator", "inscatter": "inscatter",
-    "photons": "photons", "camera_spp": "camera_spp", "kernel_radius_mm": "kernel_radius_mm",
-    "no_contact_runs": "no_contact_runs", "film": "film", "profile": "profile", "seed": "render_seed",
-}
 
 
 def _film_size(value: str) -> list[int]:
@@ -126,7 +111,7 @@ def cmd_dataset(args) -> int:
     if args.replay is not None:
         return cmd_replay(args)
     spec = load_spec(args.spec)
-    protocol = make_protocol(args.protocol or "base", spec, checked_membrane(spec), _objects(args.objects or "all"),
+    protocol = make_protocol(args.protocol or "base", spec, checked_membrane(spec), object_names(args.objects or "all"),
                              seed=args.seed or 0)
     if args.limit:
         from dataclasses import replace
@@ -225,22 +210,6 @@ def non_negative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
     return value
-
-
-def name_values(items: list[str], flag: str, expected: str) -> dict[str, tuple[float, ...]]:
-    """``NAME=V1,V2,...`` command-line settings as {name: values}; a ValueError naming
-    ``flag``, the setting and what was ``expected`` for anything else."""
-    out = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        try:
-            values = tuple(float(x) for x in text.split(","))
-        except ValueError:
-            values = ()
-        if not sep or not name.strip() or not values:
-            raise ValueError(f"{flag} {item!r}: expected {expected}")
-        out[name.strip()] = values
-    return out
 
 
 def add_limit_argument(p) -> None:

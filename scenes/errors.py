@@ -20,3 +20,10 @@ class TactileSimError(Exception):
     example ``class PrinterError(TactileSimError, RuntimeError)`` for a device fault, or
     ``class DatasetError(TactileSimError, ValueError)`` for bad input.
     """
+
+
+#: Errors that a command reports in one line (``tactile-sim COMMAND: error: ...``, exit
+#: status 1) instead of a traceback: the project's own, bad input, and a file or device
+#: that does not open (``OSError``, ``serial.SerialException`` among them). Library code
+#: that goes on past such a failure (``studies.real_bench``) catches the same.
+REPORTED = (TactileSimError, ValueError, OSError)

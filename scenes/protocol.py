@@ -360,3 +360,13 @@ def _capped(taps: list[Tap], spec: SensorSpec, mesh: trimesh.Trimesh) -> tuple[t
     that cannot press at all is left for :func:`validate` to refuse."""
     safe = core_safe_depth_m(spec, mesh, taps)
     return tuple(replace(t, depth=float(d)) if 0.0 < d < t.depth else t for t, d in zip(taps, safe)), safe
+
+
+def make_protocol(name: str, spec, mesh, objects, seed: int = 0) -> Protocol:
+    """The protocol called ``name``: ``base`` (``base_protocol``) or ``extended``
+    (``extended_protocol``, drawn with ``seed``), of ``objects`` on ``spec``'s ``mesh``."""
+    if name == "base":
+        return base_protocol(spec, mesh, objects)
+    if name == "extended":
+        return extended_protocol(spec, mesh, objects, seed=seed)
+    raise ValueError(f"protocol must be 'base' or 'extended', got {name!r}")

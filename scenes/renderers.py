@@ -167,3 +167,13 @@ def build_renderer(make_renderer: Callable[..., DatasetRenderer], spec, mesh, ca
     none, and one that is computes its own when given None."""
     args = (spec, mesh, camera, ref_depth, options)
     return make_renderer(*args) if shared is None else make_renderer(*args, shared=shared)
+
+
+#: Renderer options of the dataset command, by option key: the argument holding each.
+#: phong takes field, background, rectify and elastic; pbr the others (see its plugin).
+RENDERER_OPTIONS = {
+    "field": "field", "background": "background", "rectify": "rectify", "elastic": "elastic",
+    "target_rse": "target_rse", "max_passes": "max_passes", "effects": "effect", "estimator": "estimator", "inscatter": "inscatter",
+    "photons": "photons", "camera_spp": "camera_spp", "kernel_radius_mm": "kernel_radius_mm",
+    "no_contact_runs": "no_contact_runs", "film": "film", "profile": "profile", "seed": "render_seed",
+}

@@ -262,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--structures calibrates every mechanism on; it takes no --variants")
     grid = None
     if args.grid:
-        from scenes.commands import name_values
+        from scenes.settings import name_values
 
         try:
             grid = name_values(args.grid, "--grid", "NAME=V1,V2,... (an effect and its values)")

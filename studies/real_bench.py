@@ -190,8 +190,8 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
         raise ValueError("runs repeats the reference's calibration: it needs the reference (no --no-reference)")
     from pbr_tactile.calibrate_capture import calibrate_capture
     from phong_reference import plugin as phong
-    from scenes.cli import REPORTED
-    from scenes.commands import name_values
+    from scenes.errors import REPORTED
+    from scenes.settings import name_values
     from scenes.dataset import atomic_write_json
     from scenes.imports import default_depth, import_capture, open_set
     from scenes.reference_data import require_taxim_archive

@@ -158,3 +158,82 @@ def test_the_executors_run_the_tasks_they_are_given():
     imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
     imported |= {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
     assert not imported & {"generate", "scenes.generate"}
+
+
+# --- No library module imports the command-line layer --------------------------------------
+
+#: Modules of the command-line layer besides those that register commands (pyproject.toml's
+#: ``tactile_sim.commands``): the program itself and the generator of its help pages.
+CLI_PROGRAM = {"scenes.cli", "scenes.docs_help"}
+
+
+def _module_name(rel: str) -> str:
+    """``scenes/shapes/__init__.py`` -> ``scenes.shapes``; ``rig/cli.py`` -> ``rig.cli``."""
+    parts = rel[:-3].split("/")
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def cli_modules() -> set[str]:
+    """The command-line layer, by module: every module that registers commands, the
+    program, its help pages, and each package's ``__main__``."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    registering = {value.split(":")[0] for value in project["project"]["entry-points"]["tactile_sim.commands"].values()}
+    mains = {_module_name(str(p.relative_to(ROOT))) for package in PACKAGES for p in (ROOT / package).rglob("__main__.py")}
+    return registering | CLI_PROGRAM | mains
+
+
+def imported_modules(node: ast.AST, module: str, is_package: bool) -> set[str]:
+    """The modules an import statement under ``node`` names, relative ones resolved
+    against ``module``; ``from a import b`` names both ``a`` and ``a.b`` (b may be a
+    submodule)."""
+    names = set()
+    package = module if is_package else module.rpartition(".")[0]
+    for sub in ast.walk(node):
+        if isinstance(sub, ast.Import):
+            names |= {alias.name for alias in sub.names}
+        elif isinstance(sub, ast.ImportFrom):
+            base = package.split(".")[:len(package.split(".")) - (sub.level - 1)] if sub.level else []
+            source = ".".join(base + ([sub.module] if sub.module else []))
+            names.add(source)
+            names |= {f"{source}.{alias.name}" for alias in sub.names}
+    return names
+
+
+def library_imports_of_the_command_line() -> dict[str, list[str]]:
+    """Library module -> the command-line modules it imports (outside its own ``register``
+    and ``cmd_*`` functions, which the command line calls)."""
+    cli = cli_modules()
+    found: dict[str, list[str]] = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            rel = str(path.relative_to(ROOT))
+            module = _module_name(rel)
+            if module in cli:
+                continue
+            for top in ast.parse(path.read_text(), rel).body:
+                if _is_cli_function(getattr(top, "name", "")):
+                    continue
+                bad = imported_modules(top, module, path.name == "__init__.py") & cli
+                if bad:
+                    found.setdefault(rel, []).extend(sorted(bad))
+    return found
+
+
+def test_no_library_module_imports_the_command_line_layer():
+    found = library_imports_of_the_command_line()
+    assert not found, (f"library modules import the command-line layer: {found}; move what they need into a "
+                       "library module (e.g. scenes.protocol.make_protocol, scenes.settings.name_values, "
+                       "scenes.errors.REPORTED) that the command line imports too")
+
+
+def test_the_command_line_scan_resolves_each_way_of_importing():
+    tree = ast.parse("from . import cli\nfrom .cli import register\nfrom ..commands import x\n"
+                     "import scenes.cli\nfrom scenes import commands\n")
+    names = imported_modules(tree, "scenes.sub.mod", False)
+    assert {"scenes.sub.cli", "scenes.commands", "scenes.cli"} <= names
+    assert imported_modules(ast.parse("from .cli import run"), "studies.tiles", True) >= {"studies.tiles.cli"}
+    cli = cli_modules()
+    assert {"scenes.commands", "scenes.cli", "studies.real_bench", "rig.cli", "studies.tiles.cli"} <= cli
+    assert "studies.sim2real.__main__" in cli and "scenes.protocol" not in cli

@@ -143,7 +143,7 @@ def sim_pair(tmp_path_factory, spec, mujoco_gl):
 
     from phong_reference import plugin as phong
     from scenes.body import checked_membrane
-    from scenes.commands import make_protocol
+    from scenes.protocol import make_protocol
     from scenes.generate import generate
     from studies.sim2real import plugin
 
@@ -570,7 +570,7 @@ def test_virtual_capture_writes_what_rig_run_writes(tmp_path, spec, mujoco_gl):
     from phong_reference import plugin as phong
     from scenes.body import checked_membrane
     from scenes.cli import main
-    from scenes.commands import make_protocol
+    from scenes.protocol import make_protocol
     from studies.sim2real.capture import virtual_capture
 
     assert main(["rig", "run", "--printer", "twin", "--servos", "twin", "--camera", "twin", "--renderer", "phong",

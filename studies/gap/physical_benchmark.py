@@ -188,8 +188,8 @@ def capture_settings(hidden: dict) -> tuple[list[str], dict]:
 
 def render_options(**more) -> dict:
     """The reference's options for RENDER and ``more`` (renderer option keys), in the
-    command line's order (``scenes.commands.RENDERER_OPTIONS``)."""
-    from scenes.commands import RENDERER_OPTIONS
+    command line's order (``scenes.renderers.RENDERER_OPTIONS``)."""
+    from scenes.renderers import RENDERER_OPTIONS
 
     width, height = (int(x) for x in RENDER["film"].split("x"))
     options = {"film": [width, height], "target_rse": float(RENDER["target_rse"]),
@@ -213,7 +213,7 @@ def capture(folder: Path, hidden: dict, progress: bool = False, taps: int = TAPS
     from phong_reference import plugin as phong
     from rig.capture import alignment_hook, capture as run_rig
     from scenes.body import checked_membrane
-    from scenes.commands import make_protocol
+    from scenes.protocol import make_protocol
     from scenes.spec import load_spec
 
     spec = load_spec(None)

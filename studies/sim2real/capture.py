@@ -19,7 +19,7 @@ from pathlib import Path
 from phong_reference import plugin as phong
 from rig.capture import alignment_hook, capture
 from scenes.body import checked_membrane
-from scenes.commands import make_protocol
+from scenes.protocol import make_protocol
 from scenes.dataset import atomic_write_json, read_samples
 from scenes.indenters import INDENTERS
 from scenes.renderers import RendererPlugin

@@ -21,7 +21,7 @@ import numpy as np
 
 from phong_reference import plugin as phong
 from scenes.body import checked_membrane
-from scenes.commands import make_protocol
+from scenes.protocol import make_protocol
 from scenes.dataset import read_meta, read_samples
 from scenes.generate import generate
 from scenes.replay import read_capture, replay

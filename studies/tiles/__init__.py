@@ -98,13 +98,13 @@ Run ``tactile-sim bench tiles --json PATH`` (``register``), or :func:`run`.
 Modules: the tiles on disk (``disk``); tiles and frames (``frames``); the published
 model (``paper``); recovery (``recovery``); against the real tile (``scoring``); both
 renderers on a contact (``rendering``); located on the real tile (``locate``); the
-benchmark (``bench``); the command (``cli``). The names below are re-exported for
-``tests/test_tiles.py`` and callers of ``studies.tiles.X``.
+benchmark (``bench``); the command (``cli``, which no module here imports). The names
+below are re-exported for ``tests/test_tiles.py`` and callers of ``studies.tiles.X``.
 """
 
 from .bench import PHOTONS, run
-from .cli import cmd_bench_tiles, parse_objects, register
-from .disk import BACKGROUNDS, CAPTION, FIELDS, MATCH_FIELD, Column, TileError, discover, object_of, read_tile
+from .disk import (BACKGROUNDS, CAPTION, FIELDS, MATCH_FIELD, Column, TileError, discover, object_of, parse_objects,
+                   read_tile)
 from .frames import (CHANGE_LEVEL, Alignment, align, centred, change, changed_region, inner, largest_patch,
                      sample, tile_inside, to_tile)
 from .locate import locate
@@ -116,8 +116,8 @@ from .scoring import (CHANGE_VIEW_GAIN, change_figure, exposure, pearson, real_a
 
 __all__ = ["Alignment", "BACKGROUNDS", "CAPTION", "CHANGE_LEVEL", "CHANGE_VIEW_GAIN", "COARSE_DEPTHS_MM", "Column",
            "Contact", "FIELDS", "MATCH_FIELD", "PHOTONS", "PaperModel", "Recovery", "TileError", "align", "centred",
-           "change", "change_figure", "changed_region", "cmd_bench_tiles", "contact_centroid", "discover",
+           "change", "change_figure", "changed_region", "contact_centroid", "discover",
            "exposure", "image_noise", "inner", "largest_patch", "locate", "match_report", "noise_floor",
            "object_of", "paper_spec", "parse_objects", "pearson", "published", "read_tile", "real_alignment",
-           "real_no_contact", "recover", "register", "roll_period", "run", "sample", "score", "signed_change",
+           "real_no_contact", "recover", "roll_period", "run", "sample", "score", "signed_change",
            "simulated", "tile_inside", "to_tile"]

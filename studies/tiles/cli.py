@@ -4,19 +4,8 @@ from __future__ import annotations
 
 import json
 
-from .disk import CAPTION, TileError
+from .disk import CAPTION, parse_objects
 from .bench import PHOTONS, run
-
-
-def parse_objects(items) -> dict[int, str]:
-    """``--object K=NAME`` items as {K: NAME}; TileError naming a bad one."""
-    out = {}
-    for item in items or ():
-        k, sep, name = str(item).partition("=")
-        if not sep or not k.strip().isdigit() or not name.strip():
-            raise TileError(f"--object must be K=NAME (a column number and an indenter), got {item!r}")
-        out[int(k)] = name.strip()
-    return out
 
 
 def cmd_bench_tiles(args) -> int:

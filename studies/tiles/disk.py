@@ -107,3 +107,14 @@ def object_of(column: int, objects: dict[int, str] | None = None) -> str:
         return CAPTION[column]
     raise TileError(f"column {column} has no object in the caption (columns 0-{len(CAPTION) - 1}: "
                     f"{', '.join(CAPTION)}); name it with --object {column}=NAME")
+
+
+def parse_objects(items) -> dict[int, str]:
+    """``--object K=NAME`` items as {K: NAME}; TileError naming a bad one."""
+    out = {}
+    for item in items or ():
+        k, sep, name = str(item).partition("=")
+        if not sep or not k.strip().isdigit() or not name.strip():
+            raise TileError(f"--object must be K=NAME (a column number and an indenter), got {item!r}")
+        out[int(k)] = name.strip()
+    return out
