@@ -362,7 +362,7 @@ def check_output(path, what: str) -> Path:
 
 def _write_json(path: Path, data: dict) -> None:
     """Written whole or not at all, keys in the run's order."""
-    from scenes.dataset import atomic_write_bytes
+    from scenes.files import atomic_write_bytes
 
     atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())
 

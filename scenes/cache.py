@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 import warnings
 import zipfile
 from pathlib import Path
@@ -14,6 +13,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import TactileSimError
+from .files import atomic_file
 
 #: Environment variable that moves the cache (default ~/.cache/tactile-sim).
 CACHE_ENV = "TACTILE_SIM_CACHE"
@@ -71,18 +71,10 @@ def read_entry(path: Path, key: str) -> dict[str, np.ndarray]:
 
 
 def write_entry(path: Path, key: str, arrays: dict[str, np.ndarray]) -> None:
-    """Write atomically: a temporary file in the same folder, then rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write atomically (``scenes.files.atomic_file``), streamed: entries reach 100 MB."""
     meta = json.dumps({"key": key, "checksum": _checksum(arrays)}).encode()
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, __meta__=np.frombuffer(meta, dtype=np.uint8), **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(path) as fh:
+        np.savez(fh, __meta__=np.frombuffer(meta, dtype=np.uint8), **arrays)
 
 
 def cached(

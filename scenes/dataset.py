@@ -13,12 +13,12 @@ import io
 import json
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import TactileSimError
+from .files import atomic_write_bytes
 from .images import png_bytes, read_rgb, write_rgb
 
 FORMAT = "tactile-sim-dataset"
@@ -29,19 +29,6 @@ IDENTITY_KEYS = ("format", "version", "source", "sensor", "protocol", "renderer"
 #: Names an extra array may not take: they are record keys or folders of the format already.
 RESERVED_ARRAY_NAMES = ("id", "image", "depth", "images")
 ARRAY_NAME = re.compile(r"[a-z][a-z0-9_]*")
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def atomic_write_json(path: Path, obj) -> None:

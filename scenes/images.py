@@ -9,12 +9,12 @@ Physically based renders (linear radiance) are sRGB-encoded for viewing (``srgb`
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+from .files import atomic_write_bytes
 
 
 def read_rgb(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -62,18 +62,8 @@ def png_bytes(rgb: np.ndarray, compress_level: int = 6) -> bytes:
 
 def write_rgb(path: str | Path, rgb: np.ndarray, compress_level: int = 6) -> Path:
     """Write (H, W, 3) float RGB in [0, 1] as an 8-bit PNG (:func:`png_bytes`), atomically."""
-    data = png_bytes(rgb, compress_level)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png.tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_bytes(path, png_bytes(rgb, compress_level))
     return path
 
 

@@ -340,7 +340,7 @@ def write_folder(archive: Archive, folder: str | Path, table: str = "presses.csv
     import csv
     import io
 
-    from .dataset import atomic_write_bytes
+    from .files import atomic_write_bytes
     from .images import png_bytes
 
     folder = Path(folder)

@@ -248,7 +248,7 @@ def write_profile(profile: Profile, path: str | Path) -> Path:
     """Write ``profile`` as TOML, atomically (a temporary file, then a rename)."""
     import tomli_w
 
-    from .dataset import atomic_write_bytes
+    from .files import atomic_write_bytes
 
     path = Path(path)
     atomic_write_bytes(path, tomli_w.dumps(profile.to_dict()).encode())

@@ -365,7 +365,8 @@ def main(argv=None) -> int:
     if args.spec is not None and len(names) != 1:
         p.error("--spec replaces the spec of one sensor: give --sensors with one name")
     specs = {s: args.spec if args.spec is not None else SENSORS[s] for s in names}
-    from scenes.dataset import atomic_write_bytes, atomic_write_json
+    from scenes.dataset import atomic_write_json
+    from scenes.files import atomic_write_bytes
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

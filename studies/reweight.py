@@ -208,7 +208,8 @@ def main(argv=None) -> int:
     from pbr_tactile.reweight import MIN_ESS_RATIO
     from scenes.camera import Camera, reference_depth
     from scenes.contact import press
-    from scenes.dataset import atomic_write_bytes, atomic_write_json
+    from scenes.dataset import atomic_write_json
+    from scenes.files import atomic_write_bytes
     from scenes.geometry import membrane_mesh
     from scenes.spec import default_spec
 

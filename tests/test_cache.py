@@ -49,3 +49,15 @@ def test_keys_change_with_every_part():
     assert make_key("a", np.zeros(3)) != make_key("a", np.zeros(4))
     assert make_key("a", {"x": 1}) != make_key("a", {"x": 2})
     assert make_key("a", {"x": 1, "y": 2}) == make_key("a", {"y": 2, "x": 1})
+
+
+def test_a_file_written_whole_or_not_at_all_keeps_the_old_one_on_an_error(tmp_path):
+    from scenes.files import atomic_file, atomic_write_bytes
+
+    path = tmp_path / "sub" / "a.bin"
+    atomic_write_bytes(path, b"old")
+    with pytest.raises(RuntimeError, match="killed"):
+        with atomic_file(path) as fh:
+            fh.write(b"half of the new")
+            raise RuntimeError("killed mid-write")
+    assert path.read_bytes() == b"old" and sorted(p.name for p in path.parent.iterdir()) == ["a.bin"]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes.dataset import atomic_write_bytes
+from scenes.files import atomic_write_bytes
 from studies.gap.report import write_json
 
 from . import table

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes.dataset import atomic_write_bytes
+from scenes.files import atomic_write_bytes
 
 from .judge import MIN_RANK_SHARE
 from .regions import CHANNELS, REGIONS

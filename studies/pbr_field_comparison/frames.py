@@ -24,7 +24,8 @@ from phong_reference.bake import METHODS, bake_all
 from phong_reference.render import Renderer, light_vectors
 from scenes.cache import make_key
 from scenes.camera import Camera
-from scenes.dataset import atomic_write_bytes, npy_bytes
+from scenes.dataset import npy_bytes
+from scenes.files import atomic_write_bytes
 from scenes.elastic import MembraneLayer
 from scenes.spec import SensorSpec
 

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from scenes.camera import Camera, project
-from scenes.dataset import DatasetError, atomic_write_bytes, load_sample, read_meta, read_samples, sha256_json
+from scenes.dataset import DatasetError, load_sample, read_meta, read_samples, sha256_json
+from scenes.files import atomic_write_bytes
 from scenes.images import block_mean, read_rgb
 from scenes.indenters import INDENTERS
 from scenes.spec import SensorSpec, spec_from_dict

@@ -92,7 +92,8 @@ def run(capture_dir, out, profile=None, field: str = "linear", diagnosis=None, c
         False: none).
     """
     from scenes.captures import split
-    from scenes.dataset import atomic_write_bytes, atomic_write_json
+    from scenes.dataset import atomic_write_json
+    from scenes.files import atomic_write_bytes
     from scenes.replay import read_capture
 
     t0 = time.perf_counter()

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes.dataset import atomic_write_bytes, atomic_write_json, npy_bytes, read_meta
+from scenes.dataset import atomic_write_json, npy_bytes, read_meta
+from scenes.files import atomic_write_bytes
 
 from . import augment, data
 from .features import DIFFERENCE_SCALE, DIFFERENCE_ZERO, difference, inputs, targets
