@@ -7,9 +7,12 @@ A reader never sees half a file, and a run killed mid-write leaves only a hidden
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from pathlib import Path
+
+import numpy as np
 
 
 @contextlib.contextmanager
@@ -34,3 +37,19 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` whole or not at all (``atomic_file``)."""
     with atomic_file(path) as fh:
         fh.write(data)
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def write_json(path: str | Path, data: dict) -> None:
+    """A study's JSON (a report, a benchmark's result), indented, numpy scalars and arrays
+    as numbers and lists and NaN kept, written whole (``atomic_write_bytes``)."""
+    atomic_write_bytes(path, (json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n").encode())

@@ -94,3 +94,15 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig, path: str | Path, dpi: int = 80) -> Path:
+    """Lay ``fig`` out (``tight_layout``), write it to ``path`` as a PNG whole
+    (``scenes.files.atomic_write_bytes``) and close it."""
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    pyplot().close(fig)
+    path = Path(path)
+    atomic_write_bytes(path, buf.getvalue())
+    return path

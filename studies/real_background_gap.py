@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from scenes.camera import Camera
+from scenes.files import write_json
 from scenes.images import read_rgb
 from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.spec import SensorSpec, default_spec
@@ -30,7 +31,7 @@ from .gap.effects import EFFECTS
 from .gap.fit import PARAM_RESAMPLES
 from .gap.model import FastModel
 from .gap.pairs import Pairs
-from .gap.report import write_json, write_report
+from .gap.report import write_report
 
 #: Angular sectors of the image circle; even ones fit, odd ones judge.
 SECTORS = 12

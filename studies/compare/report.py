@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes.files import atomic_write_bytes
-from studies.gap.report import write_json
+from scenes.files import atomic_write_bytes, write_json
+from scenes.images import pyplot, save_figure
 
 from . import table
 
@@ -20,18 +20,9 @@ from . import table
 DIFF_GAIN = 4.0
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def figures(out: Path, result: dict, examples: dict, mask: np.ndarray) -> dict[str, str]:
     """Write the figures; returns {name: file name}."""
-    plt = _plt()
+    plt = pyplot()
     files = {}
     rows = result["rows"]
 
@@ -46,10 +37,7 @@ def figures(out: Path, result: dict, examples: dict, mask: np.ndarray) -> dict[s
         ax.barh(y, mean, xerr=err, color=[colour.get(r["method"], "#5b7fbd") for r in rows], capsize=3)
         ax.set_yticks(y, [r["label"] for r in rows], fontsize=8)
         ax.set_xlabel(f"MAE, {table.SCOPE_NAMES[scope]} (mean, 95% CI over taps)", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "metrics.png", dpi=80)
-    plt.close(fig)
-    files["metrics"] = "metrics.png"
+    files["metrics"] = save_figure(fig, out / "metrics.png", dpi=80).name
 
     maps = examples["mean_abs"]
     cols = min(4, len(maps))
@@ -63,10 +51,7 @@ def figures(out: Path, result: dict, examples: dict, mask: np.ndarray) -> dict[s
     for ax in axes.ravel():
         ax.axis("off")
     fig.suptitle("mean |real - simulated| over taps, all channels", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out / "error_maps.png", dpi=80)
-    plt.close(fig)
-    files["error_maps"] = "error_maps.png"
+    files["error_maps"] = save_figure(fig, out / "error_maps.png", dpi=80).name
 
     shown = examples["ids"]
     if shown:
@@ -86,10 +71,7 @@ def figures(out: Path, result: dict, examples: dict, mask: np.ndarray) -> dict[s
                 axes[r, c].imshow(np.clip(images[r] * gain, 0, 1))
                 axes[r, c].set_title(f"{sid}: {title}" if c == 0 else title, fontsize=7)
                 axes[r, c].axis("off")
-        fig.tight_layout()
-        fig.savefig(out / "examples.png", dpi=80)
-        plt.close(fig)
-        files["examples"] = "examples.png"
+        files["examples"] = save_figure(fig, out / "examples.png", dpi=80).name
     return files
 
 

@@ -298,7 +298,7 @@ def run_benchmark(cases: int = 20, seed: int = 0, work: str | Path | None = None
 
     from .diagnose import diagnose
     from .pairs import load_pairs
-    from .report import write_json
+    from scenes.files import write_json
 
     spec = default_spec() if spec is None else spec
     if described and stratified:

@@ -87,7 +87,7 @@ def cmd_benchmark(args) -> int:
         from pathlib import Path
 
         from .physical_benchmark import run_physical_benchmark
-        from .report import write_json
+        from scenes.files import write_json
 
         result = run_physical_benchmark(cases=args.cases, seed=args.seed, work=args.work, progress=not args.quiet,
                                         factor=args.factor, pairing=args.pairing)
@@ -104,7 +104,7 @@ def cmd_benchmark(args) -> int:
                            hidden=args.hidden, described=args.described, null=args.null)
     from pathlib import Path
 
-    from .report import write_json
+    from scenes.files import write_json
 
     write_json(Path(args.json), result)
     keys = ("cases", "top1", "top3", "mean_heldout_shrink") + (("per_mechanism",) if args.described else ()) + (
@@ -121,7 +121,7 @@ def cmd_benchmark(args) -> int:
 def cmd_bench(args) -> int:
     from pathlib import Path
 
-    from .report import write_json
+    from scenes.files import write_json
 
     if args.physical:
         from .physical_benchmark import bench_physical

@@ -325,7 +325,7 @@ def run_physical_benchmark(cases: int = 12, seed: int = 0, work: str | Path | No
     from .benchmark import summarise
     from .diagnose import diagnose
     from .pairs import load_pairs
-    from .report import write_json
+    from scenes.files import write_json
 
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="tactile-gap-physical-") as tmp:
@@ -474,7 +474,7 @@ def _per_region(results: list[dict]) -> dict:
 
 
 def main_json(path: str | Path, **kwargs) -> dict:
-    from .report import write_json
+    from scenes.files import write_json
 
     result = run_physical_benchmark(**kwargs)
     write_json(Path(path), result)

@@ -4,38 +4,15 @@ from __future__ import annotations
 
 import html
 import math
-import json
 from pathlib import Path
 
 import numpy as np
 
-from scenes.files import atomic_write_bytes
+from scenes.files import atomic_write_bytes, write_json
+from scenes.images import pyplot, save_figure
 
 from .judge import MIN_RANK_SHARE
 from .regions import CHANNELS, REGIONS
-
-
-def _json_default(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
-def write_json(path: Path, data: dict) -> None:
-    atomic_write_bytes(path, (json.dumps(data, indent=2, default=_json_default, allow_nan=True) + "\n").encode())
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _bars(ax, items: dict, title: str, key: str = "mae") -> None:
@@ -51,7 +28,7 @@ def _bars(ax, items: dict, title: str, key: str = "mae") -> None:
 
 def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
     """Write the report's figures; returns {name: file name}."""
-    plt = _plt()
+    plt = pyplot()
     out.mkdir(parents=True, exist_ok=True)
     files = {}
     maps, mask = artefacts["maps"], artefacts["mask"]
@@ -72,10 +49,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
     fig.colorbar(im, ax=axes[4], fraction=0.04)
     for ax in axes:
         ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(out / "gap_maps.png", dpi=80)
-    plt.close(fig)
-    files["maps"] = "gap_maps.png"
+    files["maps"] = save_figure(fig, out / "gap_maps.png", dpi=80).name
 
     w = report["where"]
     parts = [(w["regions"], "by region (tip: white, body: cyan, near LEDs: yellow)"),
@@ -85,10 +59,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
     fig, axes = plt.subplots(1, len(parts), figsize=(4.2 * len(parts), 3.4), squeeze=False)
     for ax, (items, title) in zip(axes[0], parts):
         _bars(ax, items, title)
-    fig.tight_layout()
-    fig.savefig(out / "gap_split.png", dpi=80)
-    plt.close(fig)
-    files["split"] = "gap_split.png"
+    files["split"] = save_figure(fig, out / "gap_split.png", dpi=80).name
 
     fig, axes = plt.subplots(1, 2, figsize=(14, 3.6))
     for ax, key, title in ((axes[0], "per_object", "masked MAE per object"),
@@ -98,10 +69,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
         ax.bar(range(len(names)), [groups[n]["mean"] for n in names], color="#5b7fbd")
         ax.set_xticks(range(len(names)), names, rotation=60, ha="right", fontsize=7)
         ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(out / "gap_groups.png", dpi=80)
-    plt.close(fig)
-    files["groups"] = "gap_groups.png"
+    files["groups"] = save_figure(fig, out / "gap_groups.png", dpi=80).name
 
     eff = report["effects"]
     if eff:
@@ -116,10 +84,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
         ax.set_yticks(y, names, fontsize=8)
         ax.axvline(0, color="k", lw=0.6)
         ax.set_xlabel("share of the held-out masked MAE gap closed, % (95% CI); grey: not significant", fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / "effects.png", dpi=80)
-        plt.close(fig)
-        files["effects"] = "effects.png"
+        files["effects"] = save_figure(fig, out / "effects.png", dpi=80).name
 
     sel = report["selection"]
     if sel:
@@ -133,10 +98,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
         ax.set_xticks(range(len(points)), labels, fontsize=8, rotation=20, ha="right")
         ax.set_ylabel("held-out masked MAE", fontsize=8)
         ax.set_ylim(bottom=0)
-        fig.tight_layout()
-        fig.savefig(out / "selection.png", dpi=80)
-        plt.close(fig)
-        files["selection"] = "selection.png"
+        files["selection"] = save_figure(fig, out / "selection.png", dpi=80).name
 
     ex = artefacts.get("examples")
     if ex is not None and len(ex["ids"]):
@@ -151,10 +113,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
                 axes[r, c].set_title(f"{ex['ids'][r]}: {title}" if c == 0 else title + (" (x4)" if c >= 3 else ""),
                                      fontsize=8)
                 axes[r, c].axis("off")
-        fig.tight_layout()
-        fig.savefig(out / "examples.png", dpi=70)
-        plt.close(fig)
-        files["examples"] = "examples.png"
+        files["examples"] = save_figure(fig, out / "examples.png", dpi=70).name
     return files
 
 
