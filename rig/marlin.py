@@ -207,17 +207,15 @@ class MarlinPrinter:
             self._link.write(line)
 
     def _wait_for_banner(self, timeout_s: float) -> None:
-        self._write("")
-        deadline = time.monotonic() + timeout_s
-        while (raw := self._link.read_line(deadline)) is not None:
+        # Runs in __init__, before another thread can write (emergency_stop): no write lock.
+        def is_start(raw: bytes) -> bool:
             reply = gcode.parse_reply(raw)
             log.debug("%s (banner) <- %s", self.port_name, reply.text)
-            if reply.kind is Kind.START:
-                # drain the boot messages that follow, until the line goes quiet
-                while self._link.read_line(min(deadline, time.monotonic() + BANNER_QUIET_S)) is not None:
-                    pass
-                return
-        log.info("%s: no 'start' banner within %.1f s; assuming the firmware is running", self.port_name, timeout_s)
+            return reply.kind is Kind.START
+
+        # the boot messages that follow 'start' are drained until the line goes quiet
+        if not self._link.wait_for_banner(is_start, timeout_s, BANNER_QUIET_S):
+            log.info("%s: no 'start' banner within %.1f s; assuming the firmware is running", self.port_name, timeout_s)
 
     def _await_ok(self, n: int, command: str, timeout_s: float) -> list[str]:
         """Read replies until the ``ok`` that completes line ``n``, following resends."""

@@ -103,6 +103,20 @@ class SerialLines:
         except PORT_ERRORS as exc:
             raise self.error(f"cannot read from {self.name}: {exc}") from exc
 
+    def wait_for_banner(self, is_banner, timeout_s: float, quiet_s: float = 0.0) -> bool:
+        """Wake the device (an empty line) and read until ``is_banner(raw line)`` says a line
+        is its start-up banner, for at most ``timeout_s``; then, with ``quiet_s``, drain the
+        boot lines that follow until the link stays quiet that long (within the same
+        deadline). Whether the banner came."""
+        self.write("")
+        deadline = time.monotonic() + timeout_s
+        while (raw := self.read_line(deadline)) is not None:
+            if is_banner(raw):
+                while quiet_s > 0 and self.read_line(min(deadline, time.monotonic() + quiet_s)) is not None:
+                    pass
+                return True
+        return False
+
     def close(self) -> None:
         """Close the port if this link opened it. Safe to call twice."""
         if self._owns and self.serial is not None and self.serial.is_open:

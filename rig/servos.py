@@ -144,14 +144,13 @@ class ServoBoard:
     # ------------------------------------------------------------------ protocol
 
     def _wait_for_banner(self, timeout_s: float) -> None:
-        self._link.write("")
-        deadline = time.monotonic() + timeout_s
-        while (raw := self._link.read_line(deadline)) is not None:
+        def is_ready(raw: bytes) -> bool:
             reply = sp.parse_reply(raw)
             log.debug("%s (banner) <- %s", self.port_name, reply.text)
-            if reply.kind is sp.Kind.READY:
-                return
-        log.info("%s: no %s banner within %.1f s; asking the board", self.port_name, sp.BANNER_WORD, timeout_s)
+            return reply.kind is sp.Kind.READY
+
+        if not self._link.wait_for_banner(is_ready, timeout_s):
+            log.info("%s: no %s banner within %.1f s; asking the board", self.port_name, sp.BANNER_WORD, timeout_s)
 
     def _command(self, body: str) -> sp.Reply:
         """Write one command and return the ``OK`` that answers it, following the rules above."""
