@@ -18,8 +18,7 @@ import trimesh
 
 from scenes.camera import SurfaceSamples
 
-from .sources import Sources, check_sources
-from .tangent import tangent_unit
+from .sources import Sources, bake_per_source
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
@@ -127,15 +126,11 @@ class GeodesicBaker:
             the source is unreachable, and on cut loci where the sample's own face
             straddles paths that arrive from different sides.
         """
-        check_sources(sources, len(self.mesh.vertices))
-        L, K = len(sources), len(samples.points)
-        fields = np.zeros((L, K, 3))
-        valid = np.zeros((L, K), dtype=bool)
         F = np.asarray(self.mesh.faces)
         min_norm = math.cos(MAX_AMBIGUITY_ANGLE)
-        N = samples.normals  # (K, 3) unit normals at the samples
-        for m, vertex in enumerate(sources.vertices):
-            d = self.distance(int(vertex))  # (N,) metres, geodesic distance from LED m
+
+        def one(m: int) -> tuple[np.ndarray, np.ndarray]:
+            d = self.distance(int(sources.vertices[m]))  # (N,) metres, geodesic distance from LED m
             reached = np.isfinite(d)
             grad_f = (self._G @ np.where(reached, d, 0.0)).reshape(-1, 3)  # (F, 3) unitless
             grad_f[~reached[F].all(axis=1)] = np.nan
@@ -154,12 +149,9 @@ class GeodesicBaker:
             g = np.where(own_face[:, None], g_face, g)
             d_sample = samples.interpolate(self.mesh, np.where(reached, d, 0.0))  # (K,) metres
             near = d_sample < SOURCE_EXCLUSION_EDGES * self._mean_edge
-            ok = (smooth | own_face) & ~near & reached[F[samples.faces]].all(axis=1)
-            t, tangent = tangent_unit(g, N)
-            ok &= tangent
-            fields[m, ok] = t[ok]
-            valid[m] = ok
-        return fields, valid
+            return g, (smooth | own_face) & ~near & reached[F[samples.faces]].all(axis=1)
+
+        return bake_per_source(sources, len(self.mesh.vertices), samples.normals, one)
 
 
 def bake_geodesic(mesh: trimesh.Trimesh, samples: SurfaceSamples, sources: Sources):

@@ -75,3 +75,24 @@ def check_sources(sources: Sources, n_vertices: int) -> None:
             f"sources.vertices[{m}] = {int(vertices[m])} is out of range for a mesh of "
             f"{n_vertices} vertices; expected 0 <= index < {n_vertices}"
         )
+
+
+def bake_per_source(sources: Sources, n_vertices: int, normals: np.ndarray, field_of) -> tuple[np.ndarray, np.ndarray]:
+    """A light field baked one source at a time (a baker's ``bake``): ``field_of(m)`` gives
+    source m's raw directions at the K samples (K, 3) and where they hold (K,) bool; each
+    is projected onto the tangent plane of the samples' unit ``normals`` (K, 3) and made
+    unit (``tangent_unit``). Returns fields (L, K, 3), zero where invalid, and valid
+    (L, K) bool. The sources are checked against the mesh's ``n_vertices`` first."""
+    from .tangent import tangent_unit
+
+    check_sources(sources, n_vertices)
+    L, K = len(sources), len(normals)
+    fields = np.zeros((L, K, 3))
+    valid = np.zeros((L, K), dtype=bool)
+    for m in range(L):
+        raw, ok = field_of(m)
+        t, tangent = tangent_unit(raw, normals)
+        ok = ok & tangent
+        fields[m, ok] = t[ok]
+        valid[m] = ok
+    return fields, valid

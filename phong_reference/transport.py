@@ -14,8 +14,7 @@ import trimesh
 
 from scenes.camera import SurfaceSamples
 
-from .sources import Sources, check_sources
-from .tangent import tangent_unit
+from .sources import Sources, bake_per_source
 
 #: Bump when the method changes, so cached fields are rebuilt.
 VERSION = 1
@@ -84,20 +83,12 @@ class TransportBaker:
         valid : (L, K) bool, False where the transported vectors of the sample's face
             cancel (norm below ``MIN_INTERPOLATED_NORM``).
         """
-        check_sources(sources, len(self.mesh.vertices))
-        L, K = len(sources), len(samples.points)
-        fields = np.zeros((L, K, 3))
-        valid = np.zeros((L, K), dtype=bool)
-        N = samples.normals  # (K, 3) unit normals at the samples
-        for m, (vertex, omega) in enumerate(zip(sources.vertices, sources.directions)):
-            X = self.transport(int(vertex), omega)  # (N, 3) transported ω_m per vertex
+        def one(m: int) -> tuple[np.ndarray, np.ndarray]:
+            X = self.transport(int(sources.vertices[m]), sources.directions[m])  # (N, 3) transported ω_m per vertex
             x = samples.interpolate(self.mesh, X)  # (K, 3)
-            ok = np.isfinite(x).all(axis=1) & (np.linalg.norm(x, axis=1) >= MIN_INTERPOLATED_NORM)
-            t, tangent = tangent_unit(x, N)
-            ok &= tangent
-            fields[m, ok] = t[ok]
-            valid[m] = ok
-        return fields, valid
+            return x, np.isfinite(x).all(axis=1) & (np.linalg.norm(x, axis=1) >= MIN_INTERPOLATED_NORM)
+
+        return bake_per_source(sources, len(self.mesh.vertices), samples.normals, one)
 
 
 def bake_transport(mesh: trimesh.Trimesh, samples: SurfaceSamples, sources: Sources):
