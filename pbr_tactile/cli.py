@@ -268,8 +268,28 @@ def register(registry) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the sample")
     p.add_argument("--edge-mm", type=float, default=0.25, help="refined edge of the membrane, mm (the reference's)")
 
-    from .gpu_run import add_run_arguments, cmd_run
+    from .gpu_run import add_run_arguments, cmd_merge, cmd_run, cmd_wheels
 
-    p = registry.bench("gpu", cmd_run, "the reference's benches on the GPU (cuda_ad_spectral), each budgeted, in one "
-                       "JSON (pbr_tactile/gpu_run.py); without a CUDA device it says so and exits 0")
+    what = ("the reference's benches on the GPU (cuda_ad_spectral), each budgeted, in one JSON "
+            "(pbr_tactile/gpu_run.py); without a CUDA device it says so and exits 0")
+    p = registry.bench("gpu", cmd_run, what)
     add_run_arguments(p)
+    p = registry.command("gpu", lambda args: p.print_help() or 2,
+                         "the reference's benches on a GPU machine: the wheels it needs, the run, the merge "
+                         "with a CPU run (docs/gpu.md)")
+    steps = p.add_subparsers(dest="step", metavar="STEP")
+    step = steps.add_parser("wheels", help="here: the wheel set the GPU machine needs, into --dir")
+    step.add_argument("--dir", default=".whl", help="the wheel folder (default .whl; git must ignore it)")
+    step.add_argument("--repo", default=".", help="the repository to build the project's wheel from (default .)")
+    step.add_argument("--no-gl", action="store_true", help="leave out the GL loaders' Debian packages")
+    step.add_argument("--jobs", type=int, default=2, help="processes rewriting wheels (default 2)")
+    step.set_defaults(func=cmd_wheels)
+    step = steps.add_parser("run", help="on the GPU machine: " + what)
+    step.add_argument("--json", required=True, metavar="PATH", help="where to write the run's JSON")
+    add_run_arguments(step)
+    step.set_defaults(func=cmd_run)
+    step = steps.add_parser("merge", help="two runs' JSONs (GPU, CPU) side by side in one")
+    step.add_argument("gpu", metavar="GPU.json")
+    step.add_argument("cpu", metavar="CPU.json")
+    step.add_argument("--json", required=True, metavar="PATH")
+    step.set_defaults(func=cmd_merge)

@@ -1,7 +1,7 @@
 """The reference's benches on a GPU: one budgeted run, one JSON, the CPU's figures beside it.
 
-Three steps, ``python3 -m pbr_tactile.gpu_run STEP`` (``run`` is also ``tactile-sim bench
-gpu``):
+Three steps, ``tactile-sim gpu STEP`` (``python3 -m scenes.cli gpu STEP`` where no
+``tactile-sim`` script is installed; ``run`` is also ``tactile-sim bench gpu``):
 
 ``wheels`` (here, where PyPI answers): ``pbr_tactile.gpu_wheels`` fills ``.whl/`` (git
 ignores it) with what the GPU machine lacks for Python 3.12: the project as a wheel (its
@@ -317,7 +317,7 @@ def load_run(path, what: str) -> dict:
         raise ValueError(f"{what} {path} is already a merged JSON; give the runs' own JSONs")
     if not isinstance(data, dict) or not isinstance(data.get("benches"), dict) or "variant" not in data:
         raise ValueError(f"{what} {path} is not a run's JSON (expected an object with 'variant' and 'benches', "
-                         f"as 'python3 -m pbr_tactile.gpu_run run' writes)")
+                         f"as 'tactile-sim gpu run' writes)")
     return data
 
 
@@ -469,40 +469,3 @@ def add_run_arguments(p: argparse.ArgumentParser) -> None:
                    "temporary folder)")
     p.add_argument("--wheels", default=".whl", metavar="DIR", help="the wheel folder, whose manifest names the "
                    "commit where git cannot (default .whl)")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python3 -m pbr_tactile.gpu_run", description=__doc__.split("\n\n")[0])
-    steps = parser.add_subparsers(dest="step", metavar="STEP", required=True)
-    p = steps.add_parser("wheels", help="here: the wheel set the GPU machine needs, into --dir")
-    p.add_argument("--dir", default=".whl", help="the wheel folder (default .whl; git must ignore it)")
-    p.add_argument("--repo", default=".", help="the repository to build the project's wheel from (default .)")
-    p.add_argument("--no-gl", action="store_true", help="leave out the GL loaders' Debian packages")
-    p.add_argument("--jobs", type=int, default=2, help="processes rewriting wheels (default 2)")
-    p.set_defaults(func=cmd_wheels)
-    p = steps.add_parser("run", help="on the GPU machine: the benches, budgeted, into one JSON")
-    p.add_argument("--json", required=True, metavar="PATH", help="where to write the run's JSON")
-    add_run_arguments(p)
-    p.set_defaults(func=cmd_run)
-    p = steps.add_parser("merge", help="two runs' JSONs (GPU, CPU) side by side in one")
-    p.add_argument("gpu", metavar="GPU.json")
-    p.add_argument("cpu", metavar="CPU.json")
-    p.add_argument("--json", required=True, metavar="PATH")
-    p.set_defaults(func=cmd_merge)
-    return parser
-
-
-def main(argv: list[str] | None = None) -> int:
-    from scenes.errors import REPORTED
-
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except REPORTED as exc:
-        print(f"{parser.prog} {args.step}: error: {exc}", file=sys.stderr)
-        return 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -13,6 +13,7 @@ import pytest
 
 from pbr_tactile import gpu_run, gpu_wheels
 from pbr_tactile.gpu_run import Bench, Outcome, figures_of, merge, plan, run_benches
+from scenes.cli import main
 
 NO_CUDA_MESSAGE = "Mitsuba variant 'cuda_ad_spectral' cannot run here: no CUDA device"
 
@@ -53,7 +54,7 @@ def test_no_gpu_exits_zero_and_runs_nothing(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(gpu_run, "run_command", _forbidden_runner)
     monkeypatch.setattr(gpu_run, "device_name", _forbidden_runner)
     out = tmp_path / "gpu.json"
-    assert gpu_run.main(["run", "--json", str(out)]) == 0
+    assert main(["gpu", "run", "--json", str(out)]) == 0
     printed = capsys.readouterr().out.strip().splitlines()
     assert len(printed) == 1 and "no CUDA device" in printed[0] and "nothing was run" in printed[0]
     assert not out.exists()
@@ -67,14 +68,14 @@ def test_no_gpu_here_for_real(tmp_path, monkeypatch, capsys):
     if gpu_run.NO_CUDA not in problem:
         pytest.skip(f"the variant cannot be checked here: {problem}")
     monkeypatch.setattr(gpu_run, "run_command", _forbidden_runner)
-    assert gpu_run.main(["run", "--json", str(tmp_path / "gpu.json")]) == 0
+    assert main(["gpu", "run", "--json", str(tmp_path / "gpu.json")]) == 0
     assert "no CUDA device" in capsys.readouterr().out
 
 
 def test_other_variant_problem_is_an_error(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(gpu_run, "variant_problem", lambda variant: "Mitsuba 3 is not installed")
     monkeypatch.setattr(gpu_run, "run_command", _forbidden_runner)
-    assert gpu_run.main(["run", "--json", str(tmp_path / "gpu.json")]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path / "gpu.json")]) == 1
     assert "Mitsuba 3 is not installed" in capsys.readouterr().err
 
 
@@ -90,7 +91,7 @@ def test_run_writes_one_json_with_every_bench(tmp_path, monkeypatch):
     monkeypatch.setattr(gpu_run, "device_name", lambda variant: "Fake GPU")
     monkeypatch.setattr(gpu_run, "run_benches", lambda *a, **k: run_benches(*a, **k, runner=runner, clock=clock))
     out = tmp_path / "gpu.json"
-    assert gpu_run.main(["run", "--json", str(out), "--rse", "0.05"]) == 0
+    assert main(["gpu", "run", "--json", str(out), "--rse", "0.05"]) == 0
     data = json.loads(out.read_text())
     assert data["variant"] == "cuda_ad_spectral" and data["device"] == "Fake GPU"
     assert "commit" in data
@@ -181,7 +182,7 @@ def test_merge_puts_cpu_beside_gpu(tmp_path):
     # the merge step, from files
     (tmp_path / "g.json").write_text(json.dumps(gpu))
     (tmp_path / "c.json").write_text(json.dumps({**cpu, "commit": "def"}))
-    assert gpu_run.main(["merge", str(tmp_path / "g.json"), str(tmp_path / "c.json"), "--json",
+    assert main(["gpu", "merge", str(tmp_path / "g.json"), str(tmp_path / "c.json"), "--json",
                          str(tmp_path / "m.json")]) == 0
     assert json.loads((tmp_path / "m.json").read_text())["same_commit"] is False
 
@@ -195,23 +196,23 @@ def test_bad_input_is_refused_before_anything_runs(tmp_path, monkeypatch, capsys
     monkeypatch.setattr(gpu_run, "variant_problem", _forbidden_runner)
     monkeypatch.setattr(gpu_run, "run_command", _forbidden_runner)
     missing = tmp_path / "nowhere" / "gpu.json"
-    assert gpu_run.main(["run", "--json", str(missing)]) == 1
+    assert main(["gpu", "run", "--json", str(missing)]) == 1
     assert f"--json {missing}: its folder {missing.parent} does not exist" in capsys.readouterr().err
-    assert gpu_run.main(["run", "--json", str(tmp_path)]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path)]) == 1
     assert "is a folder" in capsys.readouterr().err
-    assert gpu_run.main(["run", "--json", str(tmp_path / "g.json"), "--cpu-json", str(tmp_path / "no.json")]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path / "g.json"), "--cpu-json", str(tmp_path / "no.json")]) == 1
     assert "--cpu-json" in capsys.readouterr().err
     (tmp_path / "bad.json").write_text('{"frames": 1}')
-    assert gpu_run.main(["run", "--json", str(tmp_path / "g.json"), "--cpu-json", str(tmp_path / "bad.json")]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path / "g.json"), "--cpu-json", str(tmp_path / "bad.json")]) == 1
     assert "not a run's JSON" in capsys.readouterr().err
     (tmp_path / "merged.json").write_text(json.dumps({"benches": {}, "gpu": {}, "cpu": {}}))
-    assert gpu_run.main(["run", "--json", str(tmp_path / "g.json"), "--cpu-json", str(tmp_path / "merged.json")]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path / "g.json"), "--cpu-json", str(tmp_path / "merged.json")]) == 1
     assert "already a merged JSON" in capsys.readouterr().err
-    assert gpu_run.main(["run", "--json", str(tmp_path / "g.json"), "--only", "nonsense"]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path / "g.json"), "--only", "nonsense"]) == 1
     assert "--only nonsense: not a bench" in capsys.readouterr().err
-    assert gpu_run.main(["run", "--json", str(tmp_path / "g.json"), "--rse", "1.5"]) == 1
+    assert main(["gpu", "run", "--json", str(tmp_path / "g.json"), "--rse", "1.5"]) == 1
     assert "--rse must be noise targets in (0, 1), got 1.5" in capsys.readouterr().err
-    assert gpu_run.main(["merge", str(tmp_path / "no.json"), str(tmp_path / "bad.json"), "--json",
+    assert main(["gpu", "merge", str(tmp_path / "no.json"), str(tmp_path / "bad.json"), "--json",
                          str(missing)]) == 1
     assert "does not exist" in capsys.readouterr().err
 
@@ -221,7 +222,7 @@ def test_wheel_folder_that_is_a_file_is_refused(tmp_path, capsys):
     not_a_folder.write_text("")
     with pytest.raises(ValueError, match=r"--dir .*wheels exists and is not a folder"):
         gpu_wheels.check_wheel_dir(not_a_folder)
-    assert gpu_run.main(["wheels", "--dir", str(not_a_folder)]) == 1
+    assert main(["gpu", "wheels", "--dir", str(not_a_folder)]) == 1
     assert "is not a folder" in capsys.readouterr().err
 
 
