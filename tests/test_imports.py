@@ -237,3 +237,42 @@ def test_the_command_line_scan_resolves_each_way_of_importing():
     cli = cli_modules()
     assert {"scenes.commands", "scenes.cli", "studies.real_bench", "rig.cli", "studies.tiles.cli"} <= cli
     assert "studies.sim2real.__main__" in cli and "scenes.protocol" not in cli
+
+
+# --- Each package says what it offers --------------------------------------------------------
+
+def _public_modules(package: str) -> set[str]:
+    """The modules and sub-packages of ``package`` outside the command-line layer and not
+    private (a leading underscore)."""
+    cli = cli_modules()
+    out = set()
+    for path in (ROOT / package).iterdir():
+        name = path.stem if path.suffix == ".py" else path.name
+        if name.startswith("_") or (path.suffix != ".py" and not any(path.glob("*.py"))):
+            continue
+        if f"{package}.{name}" in cli or name == "cli" or name.endswith("_cli") or name == "docs_help":
+            continue
+        out.add(name)
+    return out
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_each_package_lists_its_public_modules_and_imports_none(package):
+    """Each top-level package's ``__init__`` states its concept and lists its public
+    modules in ``__all__`` (a new module joins the list), and imports nothing, so that
+    importing one module loads no other."""
+    import importlib.util
+
+    path = ROOT / package / "__init__.py"
+    tree = ast.parse(path.read_text(), str(path))
+    assert ast.get_docstring(tree), f"{package}/__init__.py has no docstring naming what the package holds"
+    assert not [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))], \
+        f"{package}/__init__.py imports; list the modules in __all__ instead"
+    listed = next(ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
+                  and any(getattr(t, "id", None) == "__all__" for t in n.targets))
+    assert sorted(listed) == sorted(set(listed)), f"{package}.__all__ repeats a name"
+    assert set(listed) == _public_modules(package), (
+        f"{package}.__all__ differs from its public modules: missing {sorted(_public_modules(package) - set(listed))}, "
+        f"extra {sorted(set(listed) - _public_modules(package))}")
+    for name in listed:
+        assert importlib.util.find_spec(f"{package}.{name}") is not None, f"{package}.{name} is listed but not found"
