@@ -12,7 +12,8 @@ Modules, one concept each:
   ``effects`` (the catalogue of candidate effects); for a reference-rendered dataset,
   ``physical`` (its catalogue of physical candidates), ``source_basis`` (its per-source
   renders), ``smoothing`` (the dent's smoothed change) and ``reference_model``;
-- the diagnosis: ``fit`` (the fitter: a candidate's parameters on the training samples),
+- the diagnosis: ``fit`` (the fitter: a candidate's parameters on the training samples,
+  from ``starts``, its starting points),
   ``judge`` (a fit on held-out samples, with intervals and significance), ``selection``
   (ranking, the tie and pair rules, forward selection), ``diagnosis`` (the three
   composed), ``diagnose`` (the run and its report's numbers), ``report`` (report.json and
