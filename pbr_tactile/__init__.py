@@ -9,7 +9,7 @@ x`` or ``pbr_tactile.x``). Nothing is imported here, so importing one module loa
 __all__ = [
     "basis", "bench", "calibrate", "calibrate_bench", "calibrate_capture", "calibrate_taps",
     "camera_pass", "contact", "density", "effects", "estimate", "fast_background", "fluence",
-    "gpu_run", "gpu_wheels", "image_model", "layout_fit", "membrane", "nocontact", "paint", "photons",
+    "gpu_run", "gpu_wheels", "image_fit", "image_model", "layout_fit", "membrane", "nocontact", "paint", "photons",
     "plugin", "profiled", "protocol_check", "real_image", "render", "reweight", "scene", "sensor",
     "solid", "spectra", "streams", "transport", "variant",
 ]

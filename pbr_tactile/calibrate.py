@@ -30,17 +30,8 @@ from . import calibrate_taps as ct
 from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis, grid_bases
 from .effects import Effects
 from .fast_background import fit_fast_background
-from .image_model import (
-    GAMMA_BOUNDS,
-    WEBCAM_BLACK,
-    WEBCAM_GAMMA,
-    ImageFit,
-    ImageFitter,
-    ImageModel,
-    TapView,
-    debiased,
-    tied_errors,
-)
+from .image_fit import ImageFit, ImageFitter, TapView, debiased, tied_errors
+from .image_model import GAMMA_BOUNDS, WEBCAM_BLACK, WEBCAM_GAMMA, ImageModel
 from .real_image import (
     CIRCLE_THRESHOLD,
     CLIP_LEVEL,

@@ -55,7 +55,8 @@ from scenes.images import block_mean
 
 from .basis import basis_layout, emitter_basis, led_of_source
 from .effects import Effects
-from .image_model import ImageFit, ImageFitter, ImageModel, Nonlinear, TapView, debiased
+from .image_fit import ImageFit, ImageFitter, TapView, debiased
+from .image_model import ImageModel, Nonlinear
 from .real_image import film_factor
 
 #: Each tap is rendered with every LED at azimuths -this, 0 and +this (radians) for its

@@ -16,7 +16,7 @@ no-contact image and its presses') can be swapped between renders of different l
    also render the presses and are fitted with them, the presses weighing PRESS_SHARE of
    the loss;
 2. LED by LED, each takes whichever of those starts' images lowers the fitted loss (less
-   the basis' own Monte Carlo noise, ``image_model.debiased``) by more than MIN_GAIN;
+   the basis' own Monte Carlo noise, ``image_fit.debiased``) by more than MIN_GAIN;
 3. a pattern search then moves one parameter at a time (``scenes.layout.FREE``), every
    LED's by +step in one render and by -step in another; each LED in turn takes the move
    that lowers the loss, and a parameter that moves no LED has its step halved, down to
@@ -50,7 +50,8 @@ from scenes.spec import SensorSpec
 from .basis import emitter_basis
 from .calibrate_taps import film_views
 from .effects import Effects
-from .image_model import ImageFitter, ImageModel, debiased
+from .image_fit import ImageFitter, debiased
+from .image_model import ImageModel
 from .real_image import check_real, film_factor, film_sectors, image_circle
 
 #: The search's film (px) and photons per LED: a render in about 3 s on 2 cores.
@@ -248,7 +249,7 @@ class _Scorer:
             if views:
                 fit = ImageFitter(model, self.r, train, leak=self.leak, taps=views, common_turn=True).fit(fit.nl)
         # the basis' own noise in the loss, weighted as the loss weighs the frame and the
-        # presses (``image_model.debiased`` of each, the no-contact basis' standing for a tap's)
+        # presses (``image_fit.debiased`` of each, the no-contact basis' standing for a tap's)
         noise = debiased(fit, model, basis, [train]).noise
         if views:
             pressed = float(np.mean([debiased(fit, model, basis, [v.pixels]).noise for v in views]))

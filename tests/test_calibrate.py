@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from pbr_tactile import calibrate as cal
+from pbr_tactile import image_fit as imf
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
 from pbr_tactile.calibrate_capture import real_background
@@ -161,7 +162,7 @@ def test_fit_recovers_hidden_parameters_of_a_synthetic_sensor(camera):
     real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, ri.CLIP_LEVEL))
     sector = ri.sector_index(real.shape[:2], (40, 30))
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
-    fit = im.ImageFitter(model, real, train).search(rotations=6)
+    fit = imf.ImageFitter(model, real, train).search(rotations=6)
     assert fit.converged
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
     for c in range(2):
@@ -200,7 +201,7 @@ def test_a_known_alignment_is_held_and_keeps_each_leds_name(camera):
     real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, 1.0))
     sector = ri.sector_index(real.shape[:2], (40, 30))
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
-    fit = im.ImageFitter(model, real, train).search()
+    fit = imf.ImageFitter(model, real, train).search()
     assert fit.converged
     assert fit.nl.rotation_rad == 0.0 and fit.nl.scale == 1.0 and fit.nl.shift_px == (0.0, 0.0)
     np.testing.assert_allclose(fit.nl.led_azimuth_rad, truth.led_azimuth_rad, atol=0.02)
@@ -212,8 +213,8 @@ def test_a_known_alignment_is_held_and_keeps_each_leds_name(camera):
     # asserts), and leaves a gap a free search closes
     turned = model.render(dataclasses.replace(truth, rotation_rad=1.0, led_azimuth_rad=(0.0, 0.0, 0.0)), gains,
                           (0.01, 0.02, 0.0), (1.0, 1.0, 1.0))
-    held = im.ImageFitter(model, turned, train).search()
-    free = im.ImageFitter(im.ImageModel(A, names, camera, circle), turned, train).search(rotations=6)
+    held = imf.ImageFitter(model, turned, train).search()
+    free = imf.ImageFitter(im.ImageModel(A, names, camera, circle), turned, train).search(rotations=6)
     assert held.loss > 10 * free.loss
     with pytest.raises(ValueError, match="known alignment"):
         im.ImageModel(A, names, camera, circle, lens=True, known_alignment=True)
@@ -259,7 +260,7 @@ def test_fit_recovers_a_lens_that_sees_wider_than_the_basis(camera):
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.5
     real = model.render(truth, gains, (0.01, 0.02, 0.0), (1.0, 1.0, 1.0))
     train = model.inside
-    fit = im.ImageFitter(model, real, train).fit(model.start(0.4, 0.3))
+    fit = imf.ImageFitter(model, real, train).fit(model.start(0.4, 0.3))
     assert fit.converged
     assert abs(fit.nl.k1 - truth.k1) < 0.005 and abs(fit.nl.scale - truth.scale) < 0.005
     held = im.ImageModel(A, names, camera, (321.0, 241.0, 236.0), rendered=wide)
@@ -325,7 +326,7 @@ def test_a_fit_that_cannot_move_and_leaves_a_gap_is_not_converged(camera):
     model = im.ImageModel(A, names, camera, None)
     rng = np.random.default_rng(1)
     real = rng.uniform(0.2, 0.8, (A.shape[0], A.shape[1], 3))  # no structure the model can follow
-    fitter = im.ImageFitter(model, real, model.inside)
+    fitter = imf.ImageFitter(model, real, model.inside)
     fit = fitter.fit(im.Nonlinear.start(3), max_evaluations=3)
     assert not fit.converged
 

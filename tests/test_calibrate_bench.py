@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pbr_tactile import calibrate_bench as cb
+from pbr_tactile import image_fit as imf
 from pbr_tactile import image_model as im
 from pbr_tactile.basis import BASIS_EFFECTS, basis_layout
 from pbr_tactile.effects import Effects
@@ -182,7 +183,7 @@ def test_the_search_descends_from_every_start_before_it_keeps_the_best():
     gains = np.array([[0.65, 0.41, 0.39], [0.91, 0.38, 0.3], [0.43, 0.67, 0.64]])
     gains = gains / np.percentile(model.design(truth)[model.inside].sum(axis=1), 95)
     real = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
-    fitter = im.ImageFitter(model, real, model.inside)
+    fitter = imf.ImageFitter(model, real, model.inside)
     kept_by_start = fitter.search(screen=0)
     fit = fitter.search()
     assert kept_by_start.loss > 1e-7
@@ -203,9 +204,9 @@ def test_the_fits_covariance_predicts_how_refits_scatter_under_noise():
     clean = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     sigma = 0.01
     variance = np.full(clean.shape, sigma**2)
-    predicted = im.tied_errors(truth, im.ImageFitter(model, clean, model.inside).covariance(truth, variance))
+    predicted = imf.tied_errors(truth, imf.ImageFitter(model, clean, model.inside).covariance(truth, variance))
     rng = np.random.default_rng(1)
-    fits = [im.ImageFitter(model, clean + rng.normal(0.0, sigma, clean.shape), model.inside).fit(truth, 300).nl
+    fits = [imf.ImageFitter(model, clean + rng.normal(0.0, sigma, clean.shape), model.inside).fit(truth, 300).nl
             for _ in range(12)]
     for name, values in (("shift_u", [f.shift_px[0] for f in fits]),
                          ("rotation_rad", [f.tied().rotation_rad for f in fits])):
@@ -218,7 +219,7 @@ def test_the_fits_covariance_predicts_how_refits_scatter_under_noise():
 def test_the_covariance_refuses_a_fit_with_taps():
     model = _formula_model()
     image = np.zeros((model.h, model.w, 3))
-    view = im.TapView(np.zeros((model.h, model.w, model.S)), image, model.inside)
-    fitter = im.ImageFitter(model, image, model.inside, taps=[view])
+    view = imf.TapView(np.zeros((model.h, model.w, model.S)), image, model.inside)
+    fitter = imf.ImageFitter(model, image, model.inside, taps=[view])
     with pytest.raises(ValueError, match="with taps is not covered"):
         fitter.covariance(im.Nonlinear.start(3), np.ones(image.shape))

@@ -12,6 +12,7 @@ import pytest
 
 from pbr_tactile import calibrate as cal
 from pbr_tactile import calibrate_taps as ct
+from pbr_tactile import image_fit as imf
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
 from scenes import captures
@@ -63,7 +64,7 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
     real = model.render(truth, gains, offset, sat)
     sector = ri.sector_index(real.shape[:2], (40, 30))
     train = (sector % 2 == 0) & model.inside
-    alone = im.ImageFitter(model, real, train).search(rotations=6)
+    alone = imf.ImageFitter(model, real, train).search(rotations=6)
     assert alone.converged
     # without taps the membrane's turn is off by the azimuths' mean (0.11 rad)
     assert abs(math.remainder(alone.nl.tied().rotation_rad - 0.7, 2 * math.pi / 3)) > 0.08
@@ -75,7 +76,7 @@ def test_taps_recover_the_membranes_turn_that_one_image_cannot(camera):
         tap = model.render(truth, gains, offset, sat, change=change(*p, truth.led_azimuth_rad))
         # the model: the change at -d, 0, +d as tap_changes renders it
         minus, zero, plus = (change(*p, (a, a, a)) for a in (-d, 0.0, d))
-        views.append(im.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
+        views.append(imf.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
                                  slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
     assert all(v.pixels.sum() >= captures.MIN_REGION for v in views)
     fitted = captures.split(len(views))
@@ -104,12 +105,12 @@ def test_the_common_turn_ties_the_leds_and_recovers_the_rings_turn(camera):
     gains = np.array([[0.5, 0.2, 0.6], [0.1, 0.4, 0.5], [0.3, 0.1, 0.9]]) * 0.6
     real = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
     train = (ri.sector_index(real.shape[:2], (40, 30)) % 2 == 0) & model.inside
-    alone = im.ImageFitter(model, real, train).search(rotations=6)
+    alone = imf.ImageFitter(model, real, train).search(rotations=6)
     d, views = ct.AZIMUTH_STEP_RAD, []
     for p in [(0.3, 0.2), (0.45, 2.9), (0.25, -0.6)]:
         tap = model.render(truth, gains, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), change=change(*p, truth.led_azimuth_rad))
         minus, zero, plus = (change(*p, (a, a, a)) for a in (-d, 0.0, d))
-        views.append(im.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
+        views.append(imf.TapView(zero, tap, captures.contact_region(tap, real, model.inside),
                                  slope=(plus - minus) / (2 * d), curve=(plus - 2 * zero + minus) / (2 * d * d)))
     fit = ct.fit_with_taps(model, real, train, views, alone)
     assert fit.converged and len(set(fit.nl.led_azimuth_rad)) == 1

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pbr_tactile import basis as bs
+from pbr_tactile import image_fit as imf
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
 from scenes.image_stats import r2
@@ -137,7 +138,7 @@ def test_a_fit_finds_each_groups_centre_and_span(camera):
     model = im.ImageModel(A, names, camera, circle, [offsets] * 3, (spec_span,) * 3)
     sector = ri.sector_index((h, w), (cx, cy))
     train, test = (sector % 2 == 0) & model.inside, (sector % 2 == 1) & model.inside
-    fitter = im.ImageFitter(model, real, train, leak=False)
+    fitter = imf.ImageFitter(model, real, train, leak=False)
     fit = fitter.fit(model.start(), max_evaluations=600)
     pred = model.render(fit.nl, fit.gains, fit.offset, (1.0, 1.0, 1.0))
     assert min(r2(pred[..., c], real[..., c], test) for c in range(3)) > 0.99
@@ -147,7 +148,7 @@ def test_a_fit_finds_each_groups_centre_and_span(camera):
     # each arc held at the spec's span (its LEDs summed once, each group only turned):
     # the same image is not reached
     rigid = im.ImageModel(model.warped(model.start()), names, camera, circle)
-    held = im.ImageFitter(rigid, real, train, leak=False).fit(rigid.start(), max_evaluations=600)
+    held = imf.ImageFitter(rigid, real, train, leak=False).fit(rigid.start(), max_evaluations=600)
     assert held.loss > 5 * fit.loss
 
 
