@@ -57,6 +57,7 @@ import numpy as np
 
 from scenes.camera import Camera, project
 from scenes.profile import turn_leds
+from scenes.spec_read import with_led_groups
 
 from .basis import BASIS_EFFECTS, basis_camera, basis_layout, emitter_basis
 from .calibrate import GRID, calibrate_background
@@ -118,7 +119,7 @@ def virtual_build(spec, nl: Nonlinear) -> tuple:
     _, _, spans, unit, _ = basis_layout(spec)
     first = len(spans) - len(spec.led_groups)
     if spec.led_groups:
-        spec = spec.with_led_groups([
+        spec = with_led_groups(spec, [
             dataclasses.replace(g, arc_centre_rad=g.arc_centre_rad + nl.led_azimuth_rad[first + i],
                                 arc_span_rad=nl.span_rad[first + i]) for i, g in enumerate(spec.led_groups)])
         unit = basis_layout(spec)[3]

@@ -52,7 +52,7 @@ def capture_spec(real: str):
     """The sensor a capture dataset records (its dataset.json), which a calibration of it
     takes when no --spec is given: an imported capture's camera is the set's own."""
     from scenes.dataset import read_meta
-    from scenes.spec import spec_from_dict
+    from scenes.spec_read import spec_from_dict
 
     meta = read_meta(real)
     try:
@@ -241,7 +241,7 @@ def calibrate_capture(real: str | Path | None, out: str | Path, fast_path_fit: C
     from scenes.dataset import read_samples
     from scenes.geometry import membrane_mesh
     from scenes.images import read_rgb
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .calibrate import GRID, calibrate_background, calibrate_fast
 

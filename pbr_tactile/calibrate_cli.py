@@ -53,7 +53,7 @@ def cmd_benchmark(args) -> int:
     from scenes.camera import Camera
     from scenes.dataset import atomic_write_json
     from scenes.geometry import membrane_mesh
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .calibrate import GRID
     from .calibrate_bench import benchmark
@@ -83,7 +83,7 @@ def cmd_bench_calibrate(args) -> int:
     from scenes.camera import Camera
     from scenes.dataset import atomic_write_json
     from scenes.geometry import membrane_mesh
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .calibrate_bench import benchmark
 

@@ -52,6 +52,7 @@ from scenes import captures
 from scenes.camera import Camera
 from scenes.captures import RealTaps
 from scenes.images import block_mean
+from scenes.spec_read import with_led_groups
 
 from .basis import basis_layout, emitter_basis, led_of_source
 from .effects import Effects
@@ -79,7 +80,7 @@ def tap_spec(spec, spans: tuple = ()) -> tuple:
         return spec, 1.0, unit
     if spans:
         first = len(rendered.leds) - len(spec.led_groups)
-        spec = spec.with_led_groups([dataclasses.replace(g, arc_span_rad=float(spans[first + i]))
+        spec = with_led_groups(spec, [dataclasses.replace(g, arc_span_rad=float(spans[first + i]))
                                      for i, g in enumerate(spec.led_groups)])
     return spec, len(rendered.leds) / len(spec.leds), unit
 

@@ -71,7 +71,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     from scenes.camera import Camera, check_depth, reference_depth
     from scenes.body import checked_membrane
     from scenes.images import srgb, write_rgb
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .effects import Effects
     from .render import reference
@@ -159,7 +159,7 @@ def cmd_bench_pbr(args) -> int:
     import json
 
     from scenes.dataset import atomic_write_json
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .bench import bench_pbr
 
@@ -178,7 +178,7 @@ def cmd_bench_solids(args) -> int:
     from scenes.body import checked_membrane
     from scenes.indenters import INDENTERS
     from scenes.protocol import base_protocol, extended_protocol
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .protocol_check import check_protocol
 

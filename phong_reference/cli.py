@@ -15,7 +15,7 @@ from scenes.images import write_rgb
 from scenes.reference_data import reference_dir
 from scenes.shapes import family
 from scenes.shapes.mesh import load_mesh
-from scenes.spec import load_spec
+from scenes.spec_read import load_spec
 
 from .bake import METHODS, bake_all
 

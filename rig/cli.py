@@ -23,7 +23,7 @@ TWIN = "twin"
 def _layout(path: str | None):
     from scenes.kinematics import RigLayout
 
-    from scenes.spec import read_toml
+    from scenes.spec_read import read_toml
 
     if path is None:
         return RigLayout()
@@ -63,7 +63,7 @@ def cmd_run(args, parser=None) -> int:
     """``tactile-sim rig run``. ``parser`` (the subcommand's) reports missing devices as
     argparse reports a missing argument; without it they are a ValueError."""
     from scenes.commands import renderer_options
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from .session import Devices, prepare
 

@@ -14,5 +14,5 @@ __all__ = [
     "dataset", "elastic", "elastic_solid", "errors", "executors", "files", "generate", "geometry",
     "gl", "image_stats", "images", "imports", "indenters", "kinematics", "layout", "markers",
     "meridian", "profile", "protocol", "protocol_checks", "proximity", "reference_data",
-    "renderers", "replay", "rig", "settings", "shapes", "spec", "taps",
+    "renderers", "replay", "rig", "settings", "shapes", "spec", "spec_read", "taps",
 ]

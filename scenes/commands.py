@@ -18,7 +18,7 @@ from .elastic import MODELS
 from .protocol import make_protocol
 from .renderers import RENDERER_OPTIONS
 from .settings import name_values
-from .spec import load_spec
+from .spec_read import load_spec
 
 
 def object_names(value: str) -> tuple[str, ...]:

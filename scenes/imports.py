@@ -438,7 +438,7 @@ def read_set_records(archive: str | Path) -> dict:
                                   and all(isinstance(v, str) for v in data["columns"].values())):
         raise ValueError(f"set records {path}: columns must be a table of ROLE = \"column name\"")
     if "spec" in data:
-        from .spec import spec_file
+        from .spec_read import spec_file
 
         data["spec"] = str(spec_file(data["spec"], path.parent))
     return {**data, "records": str(path)}
@@ -586,7 +586,7 @@ def spec_pixel_m(spec, width: int, height: int) -> float:
 def capture_spec(spec, width: int, height: int, pixel_m: float):
     """The spec's sensor with a camera of the frames' size whose pixel spans ``pixel_m``
     metres where its optical axis meets the membrane (module doc); returns (spec, note)."""
-    from .spec import spec_from_dict
+    from .spec_read import spec_from_dict
 
     if not (isinstance(pixel_m, (int, float)) and math.isfinite(pixel_m) and 0 < pixel_m < 0.01):
         raise ValueError(f"pixel size must be a length in metres, > 0 and under 10 mm, got {pixel_m!r}")
@@ -866,13 +866,13 @@ def open_set(archive: str | Path, fmt: str | None = None, **given) -> tuple:
     ``no_contact``, ``columns``, ``channels``) comes from ``given`` where it is not None,
     else from the set's records beside it (:func:`read_set_records`), else from the
     format's defaults: Taxim's pack is its published GelSight's; a folder's spec is the
-    GelSight's, its pixel size the spec's own at the frames' size (``scenes.spec.spec_file``,
+    GelSight's, its pixel size the spec's own at the frames' size (``scenes.spec_read.spec_file``,
     :func:`spec_pixel_m`), its ball none (the table's, or refused). ``turn`` "auto" turns
     the frames a quarter when their orientation is not the spec camera's. ``markers``
     "inpaint" finds each frame's printed marker dots and fills them (``scenes.markers``);
     "keep" (the default) leaves the frames as they are.
     """
-    from .spec import load_spec, spec_file
+    from .spec_read import load_spec, spec_file
 
     records = read_set_records(archive)
     fmt = fmt or records.get("format") or guess_format(archive)

@@ -40,7 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from .camera import Camera, project
-from .spec import DISTORTION_BOUND, SensorSpec, read_toml
+from .spec import DISTORTION_BOUND, SensorSpec
+from .spec_read import read_toml
 
 #: Bump when the meaning of a table changes; older profiles are refused.
 PROFILE_VERSION = 2

@@ -25,7 +25,8 @@ from .generate import PosedTap, run_tasks
 from .taps import Protocol
 from .kinematics import JOINTS
 from .renderers import RendererPlugin, check_plugin
-from .spec import SensorSpec, spec_from_dict
+from .spec import SensorSpec
+from .spec_read import spec_from_dict
 
 #: The pose key of a capture's sample record that a replay sets the rig to.
 POSE_KEY = "measured_pose"

@@ -25,7 +25,8 @@ from phong_reference.tangent import angle_deg, tangent_unit
 from scenes.camera import Camera
 from scenes.geometry import membrane_mesh
 from scenes.reference_data import REFERENCE_ENV, require_reference_dir
-from scenes.spec import SensorSpec, default_spec
+from scenes.spec import SensorSpec
+from scenes.spec_read import default_spec
 
 from .reproduce_published import BAKED_SHAPE, load_published_fields
 

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from scenes.layout import LEDLayout, layout_from_dicts, layout_of
-from scenes.spec import SensorSpec, load_spec
+from scenes.spec import SensorSpec
+from scenes.spec_read import load_spec
 
 
 def read_fitted(path: str | Path, spec: SensorSpec) -> tuple[LEDLayout, ...]:

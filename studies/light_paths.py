@@ -78,7 +78,9 @@ def structure(spec, name: str):
     }
     if name not in change:
         raise ValueError(f"unknown structure {name!r}; one of {', '.join(STRUCTURES)}")
-    return spec.with_led_groups([dataclasses.replace(g, **change[name]) for g in spec.led_groups])
+    from scenes.spec_read import with_led_groups
+
+    return with_led_groups(spec, [dataclasses.replace(g, **change[name]) for g in spec.led_groups])
 
 
 STRUCTURES = ("spec", "simulation_camera", "leds_in_elastomer", "leds_under_wall", "lambertian_leds", "point_leds")
@@ -182,7 +184,7 @@ def run(out: str | Path, width: int = 160, photons: int = 1 << 18, spp: int = 32
     from scenes.images import read_rgb
     from scenes.reference_data import require_reference_dir
     from scenes.shapes import family
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     folder = require_reference_dir(reference)
     base = load_spec(spec_path)

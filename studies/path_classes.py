@@ -190,7 +190,7 @@ def measure(spec_path=None, photons: int = PHOTONS, seeds: int = SEEDS, places=N
     from scenes.camera import Camera, back_project, reference_depth
     from scenes.contact import press
     from scenes.geometry import membrane_mesh
-    from scenes.spec import default_spec, load_spec
+    from scenes.spec_read import default_spec, load_spec
 
     if photons < 1 or seeds < 1:
         raise ValueError(f"photons and seeds must be >= 1, got {photons} and {seeds}")

@@ -24,7 +24,8 @@ from scenes.camera import Camera
 from scenes.files import write_json
 from scenes.images import read_rgb
 from scenes.reference_data import REFERENCE_ENV, require_reference_dir
-from scenes.spec import SensorSpec, default_spec
+from scenes.spec import SensorSpec
+from scenes.spec_read import default_spec
 
 from .gap.diagnose import diagnose
 from .gap.effects import EFFECTS

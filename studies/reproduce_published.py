@@ -54,7 +54,8 @@ from scenes.camera import Camera, back_project
 from scenes.geometry import membrane_mesh
 from scenes.images import read_rgb, write_rgb
 from scenes.reference_data import REFERENCE_ENV, require_reference_dir
-from scenes.spec import Material, SensorSpec, default_spec
+from scenes.spec import Material, SensorSpec
+from scenes.spec_read import default_spec
 
 #: Resolution (H, W) of the authors' baked fields, px.
 BAKED_SHAPE = (120, 160)

@@ -211,7 +211,7 @@ def main(argv=None) -> int:
     from scenes.dataset import atomic_write_json
     from scenes.files import atomic_write_bytes
     from scenes.geometry import membrane_mesh
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

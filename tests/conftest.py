@@ -12,7 +12,7 @@ from scenes.camera import Camera
 from scenes.geometry import membrane_mesh
 from scenes.gl import GLPlatformError, choose_gl
 from scenes.reference_data import require_reference_dir
-from scenes.spec import default_spec
+from scenes.spec_read import default_spec
 
 # MuJoCo reads MUJOCO_GL once, when first imported: choose a headless platform first.
 try:

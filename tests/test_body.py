@@ -16,7 +16,8 @@ from scenes.geometry import membrane_mesh
 from scenes.proximity import surface_distance
 from scenes.shapes.mesh import check_membrane
 from scenes.shapes.revolve import revolve
-from scenes.spec import DEFAULT_SPEC_PATH, SensorSpec, default_spec, spec_from_dict
+from scenes.spec import DEFAULT_SPEC_PATH, SensorSpec
+from scenes.spec_read import default_spec, spec_from_dict
 
 THICKNESS_M = 0.0025
 

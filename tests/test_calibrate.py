@@ -24,7 +24,7 @@ from scenes.profile import (
     load_profile,
     write_profile,
 )
-from scenes.spec import default_spec
+from scenes.spec_read import default_spec
 from tests.fake_basis import each_variant_traced
 
 

@@ -15,7 +15,7 @@ from pbr_tactile import image_model as im
 from pbr_tactile.basis import BASIS_EFFECTS, basis_layout
 from pbr_tactile.effects import Effects
 from scenes.camera import Camera
-from scenes.spec import default_spec, load_spec
+from scenes.spec_read import default_spec, load_spec
 from tests.fake_basis import each_variant_traced
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"

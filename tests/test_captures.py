@@ -84,7 +84,7 @@ def test_the_public_presses_are_found_where_the_environment_says(tmp_path, monke
 def test_the_references_default_film_fits_a_small_camera():
     from pbr_tactile.plugin import default_film
     from scenes.camera import Camera
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     camera = Camera.from_spec(default_spec())
     assert default_film(camera) == [320, 240]

@@ -130,7 +130,7 @@ def paw():
     from pathlib import Path
 
     from scenes.geometry import membrane_mesh
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     spec = load_spec(Path(__file__).resolve().parents[1] / "scenes" / "sensors" / "paw.toml")
     return spec, membrane_mesh(spec)

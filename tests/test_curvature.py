@@ -9,7 +9,7 @@ import trimesh
 
 from scenes import curvature
 from scenes.geometry import membrane_mesh
-from scenes.spec import load_spec
+from scenes.spec_read import load_spec
 
 R = 0.01  # m
 

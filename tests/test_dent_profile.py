@@ -84,7 +84,7 @@ def test_a_capture_and_a_set_of_its_presses_are_measured_alike(tmp_path, mujoco_
     measured beside itself as a rendered set gives the same figures; a set with none of
     its presses is refused, naming both."""
     from scenes import imports
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
     from studies.dent_profile import measure
     from test_import_capture import GELSIGHT, run_import, write_pack
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from scenes.reference_data import CAMERA_NOISE_RGB
-from scenes.spec import load_spec
+from scenes.spec_read import load_spec
 from studies.design import score, sweep
 
 SENSORS = Path(__file__).parents[1] / "scenes" / "sensors"

@@ -231,7 +231,8 @@ def ndimage_grow(mask: np.ndarray, pixels: int) -> np.ndarray:
 def test_the_poisson_ratio_is_validated():
     import tomllib
 
-    from scenes.spec import DEFAULT_SPEC_PATH, spec_from_dict
+    from scenes.spec import DEFAULT_SPEC_PATH
+    from scenes.spec_read import spec_from_dict
 
     data = tomllib.loads(DEFAULT_SPEC_PATH.read_text())
     assert spec_from_dict(data, "test").elastic.poisson_ratio == 0.5

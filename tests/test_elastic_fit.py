@@ -99,7 +99,7 @@ def test_a_profile_s_elastic_entry_is_the_dent_it_renders_with(tmp_path):
     from phong_reference.plugin import elastic_layer, make_layer, options_from
     from scenes.camera import Camera
     from scenes.elastic_solid import BondedLayer
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from test_import_capture import GELSIGHT
 
@@ -187,7 +187,7 @@ def test_the_joint_fit_recovers_the_layer_and_depths_presses_were_rendered_with(
     from scenes.elastic_solid import BondedLayer
     from scenes.geometry import membrane_mesh
     from scenes.rig import tap_depths
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
     from test_import_capture import GELSIGHT
 
     h_true, nu_true = 3.5e-3, 0.49

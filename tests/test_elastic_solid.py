@@ -78,7 +78,8 @@ def _press(spec, where=(80.0, 60.0), depth_m=1.0e-3):
 
 
 def _gelsight_press():
-    from scenes.spec import SENSORS_DIR, load_spec
+    from scenes.spec import SENSORS_DIR
+    from scenes.spec_read import load_spec
 
     return _press(load_spec(SENSORS_DIR / "gelsight.toml"))
 
@@ -138,7 +139,7 @@ def test_a_press_on_the_geltip_s_curved_membrane():
     under the same ball (the tangent plane's approximation of a contact small beside the
     tube)."""
     from scenes.elastic_solid import ball_contact_radius
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     where = (130.0, 60.0)  # on the tube's side, seen obliquely
     spec, camera, mesh, ref, depth = _press(default_spec(), where, 0.6e-3)

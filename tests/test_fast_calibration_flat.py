@@ -25,7 +25,7 @@ def test_gram_nnls_is_nnls_from_inner_products():
 
 def test_moved_leds_keep_their_azimuth():
     from phong_reference.calibrate import moved_leds
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     spec = load_spec(GELSIGHT)
     moved = moved_leds(spec.leds, -0.004, 1.5)
@@ -44,7 +44,7 @@ def flat(session_env):
     from scenes.camera import Camera, reference_depth
     from scenes.contact import press
     from scenes.geometry import membrane_mesh
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     spec = load_spec(GELSIGHT).at_resolution(80, 60)
     mesh = membrane_mesh(spec)
@@ -154,7 +154,7 @@ def test_the_correlation_filter_finds_press_centres_it_never_saw():
 
 
 def test_moved_centres_follow_a_misalignment_and_a_lens():
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
     from scenes.camera import Camera
     from studies.sim2real.press_data import moved_centres
 

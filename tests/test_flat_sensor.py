@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from scenes.shapes import pad
-from scenes.spec import load_spec
+from scenes.spec_read import load_spec
 
 GELSIGHT = "scenes/sensors/gelsight.toml"
 #: Distances below this are rounding, metres (the profile is sampled at 257 points).

@@ -37,7 +37,7 @@ def _gain() -> float:
     """An exposure that puts the stand-in's brightest LED light near 0.5."""
     from pbr_tactile.render import source_response
     from pbr_tactile.scene import led_sources
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     effects = Effects(core_light_leak=0.0)
     return 0.5 / (50.0 * float(source_response(led_sources(default_spec(), effects), effects).max()))

@@ -70,7 +70,7 @@ def write_pack(path: Path, frames=None, f0=None, centres=None, radii=None, **ext
 
 
 def run_import(tmp_path, pack, out="capture", **kwargs):
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     defaults = imports.DEFAULTS["taxim"]
     return imports.import_capture(imports.read_taxim(pack), tmp_path / out, load_spec(GELSIGHT), defaults["ball_m"],

@@ -190,7 +190,7 @@ def test_a_sets_records_name_the_whole_set(tmp_path, capsys):
 def test_the_two_formats_give_the_same_capture(tmp_path):
     """A Taxim pack, and the same presses written as a folder, import to the same capture:
     every file byte for byte, dataset.json but for where each came from."""
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     from tests.test_import_capture import write_pack
 
@@ -277,7 +277,7 @@ def test_a_press_without_a_ball_or_depth_is_refused(tmp_path, capsys):
 
 
 def test_a_spec_by_name_or_by_its_capture(tmp_path):
-    from scenes.spec import load_spec, spec_file
+    from scenes.spec_read import load_spec, spec_file
 
     assert spec_file("digit").name == "digit.toml" and load_spec("gelsight_mini").name == "gelsight_mini"
     assert spec_file("no_such_sensor") == Path("no_such_sensor")  # not a shipped one: a path, refused on reading

@@ -28,7 +28,8 @@ from scenes.layout import (
     layout_to_dicts,
     with_layout,
 )
-from scenes.spec import SENSORS_DIR, Housing, load_spec, read_sensor_file, spec_from_dict
+from scenes.spec import SENSORS_DIR, Housing
+from scenes.spec_read import load_spec, read_sensor_file, spec_from_dict
 
 
 @pytest.fixture(scope="module")

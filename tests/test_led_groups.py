@@ -14,7 +14,8 @@ from pbr_tactile import image_fit as imf
 from pbr_tactile import image_model as im
 from pbr_tactile import real_image as ri
 from scenes.image_stats import r2
-from scenes.spec import GLASS_IOR, GLASS_WALL_M, default_spec, load_spec, spec_from_dict
+from scenes.spec import GLASS_IOR, GLASS_WALL_M
+from scenes.spec_read import default_spec, load_spec, spec_from_dict
 
 SPEC_2023 = "scenes/sensors/geltip_2023.toml"
 

@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 from scenes.camera import (Camera, lens_angle, lens_radius, lens_resample, pinhole_view, project,
                            reference_depth)
-from scenes.spec import DEFAULT_SPEC_PATH, spec_from_dict
+from scenes.spec import DEFAULT_SPEC_PATH
+from scenes.spec_read import spec_from_dict
 
 #: MuJoCo's lens capture against the ray-cast D_ref, metres RMS (tests/test_rig.py's bound).
 NO_CONTACT_RMS_BOUND_M = 0.1e-3

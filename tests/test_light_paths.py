@@ -11,7 +11,7 @@ import pytest
 
 from pbr_tactile import scene
 from scenes.camera import Camera
-from scenes.spec import default_spec, load_spec
+from scenes.spec_read import default_spec, load_spec
 from studies import light_paths as lp
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenes.spec import load_spec
+from scenes.spec_read import load_spec
 
 SENSORS = Path(__file__).resolve().parents[1] / "scenes" / "sensors"
 #: name -> (width, height px, fov_y rad, mm a pixel where the axis meets the gel, LEDs)

@@ -225,7 +225,8 @@ def test_the_glass_wall_and_its_index_are_the_specs(spec):
 def test_a_glass_that_cannot_be_is_refused(edit, message):
     import tomllib
 
-    from scenes.spec import DEFAULT_SPEC_PATH, spec_from_dict
+    from scenes.spec import DEFAULT_SPEC_PATH
+    from scenes.spec_read import spec_from_dict
 
     data = tomllib.loads(DEFAULT_SPEC_PATH.read_text())
     data["membrane"].update(edit)

@@ -187,7 +187,7 @@ def test_validators_refuse_bad_input(tmp_path, camera):
 def test_the_study_runs_on_any_shape_but_the_published_maps_are_the_geltips(tmp_path):
     from pathlib import Path
 
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     thumb = load_spec(Path(__file__).parents[1] / "scenes" / "sensors" / "thumb.toml")
     with pytest.raises(ValueError, match="published depth maps are the GelTip's"):
@@ -241,7 +241,7 @@ def test_surface_taps_spread_over_each_class_of_the_paw():
 
     from scenes.curvature import classify, principal_curvatures
     from scenes.geometry import membrane_mesh
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     paw = load_spec(Path(__file__).parents[1] / "scenes" / "sensors" / "paw.toml")
     mesh = membrane_mesh(paw)

@@ -110,7 +110,7 @@ def test_film_response_matches_mitsuba_films(scalar_mi):
     from pbr_tactile.scene import _film
     from pbr_tactile.spectra import mitsuba_spectrum
     from scenes.camera import Camera
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     mi = scalar_mi
     camera = Camera.from_spec(load_spec())

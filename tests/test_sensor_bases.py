@@ -1,4 +1,4 @@
-"""Sensor files that name a base file (scenes.spec.read_sensor_file): tables override the
+"""Sensor files that name a base file (scenes.spec_read.read_sensor_file): tables override the
 base's key by key, named LEDs merge by name, another shape leaves the base's behind, and
 a missing base or a cycle is refused naming the files."""
 
@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from scenes.spec import DEFAULT_SPEC_PATH, load_spec, read_sensor_file, spec_from_dict
+from scenes.spec import DEFAULT_SPEC_PATH
+from scenes.spec_read import load_spec, read_sensor_file, spec_from_dict
 
 SENSORS = Path(__file__).resolve().parents[1] / "scenes" / "sensors"
 

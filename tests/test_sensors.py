@@ -19,7 +19,7 @@ from scenes.protocol import (AIM_SLACK_RAD, BASE_CONTACTS_PER_ROW, BASE_ROLLS_RA
                              base_protocol, extended_protocol)
 from scenes.protocol_checks import validate
 from scenes.proximity import closest_faces
-from scenes.spec import default_spec, load_spec
+from scenes.spec_read import default_spec, load_spec
 from scenes.taps import Protocol
 
 SENSORS = Path(__file__).resolve().parents[1] / "scenes" / "sensors"
@@ -136,7 +136,8 @@ def test_a_capsule_described_as_a_mesh_renders_as_the_parametric_one(tmp_path):
     from scenes.camera import reference_depth
     from scenes.contact import press
     from scenes.shapes.capsule import mesh as capsule_mesh
-    from scenes.spec import DEFAULT_SPEC_PATH, spec_from_dict
+    from scenes.spec import DEFAULT_SPEC_PATH
+    from scenes.spec_read import spec_from_dict
 
     width = 160
     data = tomllib.loads(DEFAULT_SPEC_PATH.read_text())
@@ -174,7 +175,7 @@ def test_every_shipped_sensor_is_written_out_and_read_back_the_same():
     leaves out the capsule's keys, which its spec refuses."""
     import json
 
-    from scenes.spec import spec_from_dict
+    from scenes.spec_read import spec_from_dict
 
     for path in sorted(SENSORS.glob("*.toml")):
         spec = load_spec(path)

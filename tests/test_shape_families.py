@@ -12,7 +12,8 @@ from scenes import shapes
 from scenes.geometry import membrane_mesh
 from scenes.shapes import Tube, capsule, family
 from scenes.shapes.interface import MEMBERS
-from scenes.spec import MAX_SENSOR_SIZE_M, default_spec, load_spec, spec_from_dict
+from scenes.spec import MAX_SENSOR_SIZE_M
+from scenes.spec_read import default_spec, load_spec, spec_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 SENSORS = ROOT / "scenes" / "sensors"

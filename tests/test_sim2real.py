@@ -327,7 +327,7 @@ def _spec_file(folder, size) -> list[str]:
         return []
     import tomli_w
 
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     def given(x):  # TOML has no null: a key left unset is left out
         if isinstance(x, dict):

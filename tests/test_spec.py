@@ -6,7 +6,8 @@ import tomllib
 
 import pytest
 
-from scenes.spec import DEFAULT_SPEC_PATH, load_spec, spec_from_dict
+from scenes.spec import DEFAULT_SPEC_PATH
+from scenes.spec_read import load_spec, spec_from_dict
 
 
 def test_default_geltip_matches_the_published_sensor(spec):

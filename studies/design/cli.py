@@ -21,7 +21,7 @@ def _sweep(text: str):
 
 
 def cmd_design(args) -> int:
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
     from studies.pbr_field_comparison.frames import Settings
 
     from . import report

@@ -14,7 +14,7 @@ ray from the axis to where that ray meets the membrane. A shape that grows or sh
 thus keeps its LEDs at its edge. A sensor whose LEDs are laid out in groups inside the
 tube (``[[led_groups]]``) cannot be swept: the fast path lights LEDs on the membrane.
 
-Each design's spec goes through ``scenes.spec.spec_from_dict`` and its body through
+Each design's spec goes through ``scenes.spec_read.spec_from_dict`` and its body through
 ``scenes.body.sensor_body``, so a design outside a family's bounds, one the camera
 cannot see whole, or one whose elastomer is too thin is refused with that check's own
 words (``Design.refused``) and the sweep goes on.
@@ -31,7 +31,8 @@ import numpy as np
 import trimesh
 
 from scenes.shapes import DEFAULTS
-from scenes.spec import SensorSpec, spec_from_dict
+from scenes.spec import SensorSpec
+from scenes.spec_read import spec_from_dict
 
 #: Design parameters every sensor has, besides its family's shape parameters.
 COMMON = ("thickness", "led_height")

@@ -46,7 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from scenes.dataset import DatasetWriter, read_meta, read_samples, write_sample_files
-from scenes.spec import SensorSpec, default_spec
+from scenes.spec import SensorSpec
+from scenes.spec_read import default_spec
 
 #: Chance that a case hides two effects rather than one.
 TWO_EFFECTS = 0.4

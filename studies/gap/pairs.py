@@ -17,7 +17,8 @@ import numpy as np
 
 from scenes.dataset import DatasetError, read_meta, read_samples
 from scenes.images import read_rgb
-from scenes.spec import SensorSpec, spec_from_dict
+from scenes.spec import SensorSpec
+from scenes.spec_read import spec_from_dict
 
 
 @dataclass

@@ -162,7 +162,7 @@ def draw(case: int, seed: int, cases: int | None = None) -> dict[str, object]:
 
 def _count(name: str) -> int:
     """How many values a per-channel or per-LED hidden effect has."""
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     return len(default_spec().leds) if name == "led_power" else 3
 
@@ -214,7 +214,7 @@ def capture(folder: Path, hidden: dict, progress: bool = False, taps: int = TAPS
     from rig.capture import alignment_hook, capture as run_rig
     from scenes.body import checked_membrane
     from scenes.protocol import make_protocol
-    from scenes.spec import load_spec
+    from scenes.spec_read import load_spec
 
     spec = load_spec(None)
     protocol = make_protocol("base", spec, checked_membrane(spec), tuple(OBJECTS.split(",")), seed=0)

@@ -157,7 +157,8 @@ from scenes.dataset import atomic_write_json
 from scenes.geometry import membrane_mesh
 from scenes.reference_data import REFERENCE_ENV, require_reference_dir
 from scenes.shapes import family
-from scenes.spec import SensorSpec, load_spec
+from scenes.spec import SensorSpec
+from scenes.spec_read import load_spec
 
 from .calibration import fit_affine, leave_one_out_calibration
 from .contacts import (ANALYTIC, BASE, NO_CONTACT, PUBLISHED, QUICK_CONTACTS, SURFACE_PER_CLASS, analytic_contacts,

@@ -23,7 +23,7 @@ from scenes.protocol import make_protocol
 from scenes.dataset import atomic_write_json, read_samples
 from scenes.indenters import INDENTERS
 from scenes.renderers import RendererPlugin
-from scenes.spec import load_spec
+from scenes.spec_read import load_spec
 
 from .datasets import complete
 

@@ -26,7 +26,8 @@ from scenes.dataset import DatasetError, load_sample, read_meta, read_samples, s
 from scenes.files import atomic_write_bytes
 from scenes.images import block_mean, read_rgb
 from scenes.indenters import INDENTERS
-from scenes.spec import SensorSpec, spec_from_dict
+from scenes.spec import SensorSpec
+from scenes.spec_read import spec_from_dict
 
 #: Bump when what ``load`` stores changes, so old cache files are not read.
 CACHE_VERSION = 1

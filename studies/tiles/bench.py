@@ -75,7 +75,7 @@ def run(json_path, tiles_dir=None, reference_dir=None, objects: dict[int, str] |
     from scenes.images import read_rgb, write_rgb
     from scenes.indenters import indenter, is_indenter
     from scenes.reference_data import require_real_contacts_dir, require_reference_dir
-    from scenes.spec import default_spec
+    from scenes.spec_read import default_spec
 
     from pbr_tactile import plugin as pbr
     from pbr_tactile.effects import Effects

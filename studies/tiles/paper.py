@@ -61,7 +61,7 @@ class PaperModel:
     def load(cls, reference_dir: Path) -> "PaperModel":
         from scenes.camera import Camera
         from scenes.shapes.mesh import load_mesh
-        from scenes.spec import default_spec
+        from scenes.spec_read import default_spec
         from studies.reproduce_published import sobel_normals
 
         spec = default_spec()
