@@ -13,6 +13,6 @@ __all__ = [
     "background_model", "body", "cache", "camera", "captures", "clearance", "contact", "curvature",
     "dataset", "elastic", "elastic_solid", "errors", "executors", "files", "generate", "geometry",
     "gl", "image_stats", "images", "imports", "indenters", "kinematics", "layout", "markers",
-    "meridian", "profile", "protocol", "protocol_checks", "proximity", "reference_data",
+    "meridian", "press_sets", "profile", "protocol", "protocol_checks", "proximity", "reference_data",
     "renderers", "replay", "rig", "settings", "shapes", "spec", "spec_read", "taps",
 ]

@@ -471,8 +471,8 @@ def register(registry) -> None:
                    help="ray: the head of a running Ray cluster (default: start one here with --workers CPUs)")
     p.add_argument("--out", required=True, metavar="DIR")
 
-    from .imports import (CHANNELS, COLUMNS, DEFAULTS, DEPTH_METHODS, FORMATS, MARKERS, NO_CONTACT_NAMES, SET_RECORDS,
-                          TURNS)
+    from .imports import DEPTH_METHODS
+    from .press_sets import CHANNELS, COLUMNS, DEFAULTS, FORMATS, MARKERS, NO_CONTACT_NAMES, SET_RECORDS, TURNS
 
     p = registry.command("import", cmd_import, "import a set of real presses with known geometry (a published "
                          "archive, or a folder of images and a table) as a capture dataset that replay, compare, "

@@ -48,7 +48,7 @@ SHIFT_MM = 0.15
 
 def draw_markers(archive, pixel_m: float, spacing_mm: float = SPACING_MM, dot_mm: float = DOT_MM,
                  dark: float = DARK, shift_mm: float = SHIFT_MM):
-    """``archive`` (``scenes.imports.Archive``) with dots drawn on every frame (module
+    """``archive`` (``scenes.press_sets.Archive``) with dots drawn on every frame (module
     doc): on the no-contact frame at the grid, on a press's frame each dot carried outward
     from the annotated centre by shift(r) = SHIFT (r / a) exp((1 - (r / a)^2) / 2), a its
     annotated radius (the most, SHIFT, at the rim). Dots are antialiased discs."""

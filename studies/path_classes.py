@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes.imports import DEFAULTS as IMPORT_DEFAULTS, TAXIM
+from scenes.press_sets import DEFAULTS as IMPORT_DEFAULTS, TAXIM
 
 #: The indenter: a sphere of this radius (m), pressed this deep (m) along the normal.
 SPHERE_RADIUS_M = 2e-3

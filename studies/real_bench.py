@@ -413,7 +413,7 @@ def register(registry) -> None:
 
     p = registry.bench("real", cmd_bench_real, "a real capture of ball presses end to end: import, both calibrations, "
                        "compare with Taxim, the diagnosis and sim-to-real localisation on the held-out presses")
-    from scenes.imports import FORMATS, MARKERS, TURNS
+    from scenes.press_sets import FORMATS, MARKERS, TURNS
 
     p.add_argument("--archive", metavar="A", help="the set of presses: any archive or folder tactile-sim import "
                    "reads, its records (set.toml in a folder, X.toml beside X.npz) giving what is not given here "

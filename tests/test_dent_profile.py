@@ -83,7 +83,7 @@ def test_a_capture_and_a_set_of_its_presses_are_measured_alike(tmp_path, mujoco_
     """End to end on a synthetic Taxim pack (rings peaking 13.5 px out): the capture
     measured beside itself as a rendered set gives the same figures; a set with none of
     its presses is refused, naming both."""
-    from scenes import imports
+    from scenes import imports, press_sets
     from scenes.spec_read import load_spec
     from studies.dent_profile import measure
     from test_import_capture import GELSIGHT, run_import, write_pack
@@ -95,8 +95,8 @@ def test_a_capture_and_a_set_of_its_presses_are_measured_alike(tmp_path, mujoco_
     assert out["presses"] == 3 and real["summary"]["measured"] == 3
     assert json.dumps(real) == json.dumps(same)  # (NaN rings near the centre compare as text)
     assert real["summary"]["rim_mm"]["median"] == pytest.approx(13.5 * 0.1245, rel=0.05)
-    defaults = imports.DEFAULTS["taxim"]
-    imports.import_capture(imports.read_taxim(pack), tmp_path / "other", load_spec(GELSIGHT), 5e-3,
+    defaults = press_sets.DEFAULTS["taxim"]
+    imports.import_capture(press_sets.read_taxim(pack), tmp_path / "other", load_spec(GELSIGHT), 5e-3,
                            defaults["pixel_m"])  # another ball: other sample ids
     with pytest.raises(ValueError, match="no sample ids in common"):
         measure(tmp_path / "cap", {"other": tmp_path / "other"})

@@ -61,12 +61,12 @@ def _fit_report(k=0.9, h=5e-3, nu=0.49, depths=None):
 
 def test_an_import_at_fitted_depths_keeps_the_fitted_and_gives_the_rest_the_rule(tmp_path):
     pytest.importorskip("ContactMechanics", reason="the elastic solid model needs the contact extra")
-    from scenes import imports
+    from scenes import imports, press_sets
     from scenes.dataset import read_meta, read_samples
     from test_import_capture import run_import, write_pack
 
     pack = write_pack(tmp_path / "dataPack.npz")
-    pixel = imports.DEFAULTS["taxim"]["pixel_m"]
+    pixel = press_sets.DEFAULTS["taxim"]["pixel_m"]
     summary = run_import(tmp_path, pack, out="fitted", depth="fitted", fit=_fit_report())
     assert summary["depth"] == "fitted"
     assert read_meta(tmp_path / "fitted")["import"]["elastic_fit"] == {
@@ -182,7 +182,7 @@ def test_the_joint_fit_recovers_the_layer_and_depths_presses_were_rendered_with(
     from phong_reference import plugin as phong
     from phong_reference.bake import bake
     from phong_reference.render import Renderer, light_vectors
-    from scenes import imports
+    from scenes import imports, press_sets
     from scenes.camera import Camera
     from scenes.elastic_solid import BondedLayer
     from scenes.geometry import membrane_mesh
@@ -191,7 +191,7 @@ def test_the_joint_fit_recovers_the_layer_and_depths_presses_were_rendered_with(
     from test_import_capture import GELSIGHT
 
     h_true, nu_true = 3.5e-3, 0.49
-    defaults = imports.DEFAULTS["taxim"]
+    defaults = press_sets.DEFAULTS["taxim"]
     spec = load_spec(GELSIGHT)
     unit, _ = imports.capture_spec(spec, 160, 120, defaults["pixel_m"])
     camera, mesh = Camera.from_spec(unit), membrane_mesh(unit)
@@ -214,7 +214,7 @@ def test_the_joint_fit_recovers_the_layer_and_depths_presses_were_rendered_with(
     np.savez(tmp_path / "dataPack.npz", f0=bgr8(renderer.render(ref)),
              imgs=np.stack([bgr8(renderer.render(m)) for m in maps]), touch_center=centres,
              touch_radius=np.full(12, 12.0), names=np.array(names))
-    imports.import_capture(imports.read_taxim(tmp_path / "dataPack.npz"), tmp_path / "capture", spec,
+    imports.import_capture(press_sets.read_taxim(tmp_path / "dataPack.npz"), tmp_path / "capture", spec,
                            defaults["ball_m"], defaults["pixel_m"], depth="elastic")
     calibrate_capture(tmp_path / "capture", tmp_path / "calibrated",
                       lambda *a: phong.calibrate(*a, fields=("linear",)), fast_taps=0, fast_only=True, progress=False)

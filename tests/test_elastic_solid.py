@@ -184,13 +184,13 @@ def test_a_ball_s_depth_from_its_elastic_contact():
 
 
 def test_an_import_takes_the_rim_as_the_elastic_contact_s_edge(tmp_path):
-    from scenes import imports
+    from scenes import press_sets
     from scenes.dataset import read_meta, read_samples
     from scenes.elastic_solid import ball_depth_for_contact
     from test_import_capture import run_import, write_pack
 
     pack = write_pack(tmp_path / "dataPack.npz")  # rings peaking 13.5 px from their centres
-    R, pixel = imports.DEFAULTS["taxim"]["ball_m"] / 2, imports.DEFAULTS["taxim"]["pixel_m"]
+    R, pixel = press_sets.DEFAULTS["taxim"]["ball_m"] / 2, press_sets.DEFAULTS["taxim"]["pixel_m"]
     run_import(tmp_path, pack, out="chord")
     chord = {r["id"]: r for r in read_samples(tmp_path / "chord")}
     summary = run_import(tmp_path, pack, out="elastic", depth="elastic")

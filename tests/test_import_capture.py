@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenes import imports
+from scenes import imports, press_sets
 
 GELSIGHT = Path(__file__).resolve().parents[1] / "scenes" / "sensors" / "gelsight.toml"
 TAXIM_SET = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_gelsight_taxim"
@@ -72,8 +72,8 @@ def write_pack(path: Path, frames=None, f0=None, centres=None, radii=None, **ext
 def run_import(tmp_path, pack, out="capture", **kwargs):
     from scenes.spec_read import load_spec
 
-    defaults = imports.DEFAULTS["taxim"]
-    return imports.import_capture(imports.read_taxim(pack), tmp_path / out, load_spec(GELSIGHT), defaults["ball_m"],
+    defaults = press_sets.DEFAULTS["taxim"]
+    return imports.import_capture(press_sets.read_taxim(pack), tmp_path / out, load_spec(GELSIGHT), defaults["ball_m"],
                                   defaults["pixel_m"], **kwargs)
 
 
@@ -157,19 +157,19 @@ def test_bad_archives_are_refused_by_name(tmp_path):
     no_f0.parent.mkdir()
     np.savez(no_f0, imgs=np.zeros((1, 4, 4, 3), np.uint8), touch_center=np.zeros((1, 2)), touch_radius=np.ones(1))
     with pytest.raises(ValueError, match=r"has no no-contact frame \(key 'f0'\); a capture needs one"):
-        imports.read_taxim(no_f0.parent)  # a folder holding one pack
+        press_sets.read_taxim(no_f0.parent)  # a folder holding one pack
     ragged = tmp_path / "ragged.npz"
     frames = np.empty(2, object)
     frames[0], frames[1] = np.zeros((120, 160, 3), np.uint8), np.zeros((60, 80, 3), np.uint8)
     np.savez(ragged, f0=f0, imgs=frames, touch_center=np.zeros((2, 2)), touch_radius=np.ones(2))
     with pytest.raises(ValueError, match=r"imgs is not one regular array .*frames of unequal size or Python objects"):
-        imports.read_taxim(ragged)
+        press_sets.read_taxim(ragged)
     (tmp_path / "two").mkdir()
     for name in ("dataPack_1.npz", "dataPack_2.npz"):
         write_pack(tmp_path / "two" / name)
     with pytest.raises(ValueError, match=r"a folder must hold exactly one dataPack\*\.npz, found \['dataPack_1\.npz', "
                                          r"'dataPack_2\.npz'\]"):
-        imports.read_taxim(tmp_path / "two")
+        press_sets.read_taxim(tmp_path / "two")
     with pytest.raises(ValueError, match=r"its annotated radius, 17\.00 px at 0\.1245 mm a pixel: a contact circle "
                                          r"2\.12 mm in radius is larger than a ball 2 mm in radius allows"):
         run_import(tmp_path, write_pack(tmp_path / "dataPack_r.npz"), out="radius", depth="radius")
@@ -179,8 +179,8 @@ def test_a_rim_share_puts_the_contact_rim_outside_the_peak_and_caps_it_at_the_ba
     from scenes.dataset import read_meta, read_samples
 
     pack = write_pack(tmp_path / "dataPack.npz")  # rings peaking 13.5 px from their centres
-    R = imports.DEFAULTS["taxim"]["ball_m"] / 2
-    pixel = imports.DEFAULTS["taxim"]["pixel_m"]
+    R = press_sets.DEFAULTS["taxim"]["ball_m"] / 2
+    pixel = press_sets.DEFAULTS["taxim"]["pixel_m"]
     run_import(tmp_path, pack, out="plain")
     plain = {r["id"]: r for r in read_samples(tmp_path / "plain")}
     share = 0.9

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from scenes import imports
+from scenes import imports, press_sets
 
 GELSIGHT = Path(__file__).resolve().parents[1] / "scenes" / "sensors" / "gelsight.toml"
 CENTRES = ((60.0, 50.0), (90.0, 70.0), (110.0, 40.0))
@@ -73,18 +73,18 @@ def test_turning_the_frames_moves_the_annotations_with_them(degrees):
     centres = np.array([[7.0, 4.0], [41.0, 22.0]])
     for k, (u, v) in enumerate(centres.astype(int)):
         frames[k, v, u] = 1.0
-    archive = imports.Archive(no_contact=np.zeros((h, w, 3)), frames=frames, centres_px=centres,
+    archive = press_sets.Archive(no_contact=np.zeros((h, w, 3)), frames=frames, centres_px=centres,
                               radii_px=np.array([3.0, 3.0]), names=("a", "b"), path="made here")
-    turned = imports.turn_archive(archive, degrees)
+    turned = press_sets.turn_archive(archive, degrees)
     assert turned.frames.shape[1:3] == ((w, h) if degrees != 180 else (h, w))
     for k in range(2):
         v, u = np.unravel_index(np.argmax(turned.frames[k, ..., 0]), turned.frames.shape[1:3])
         assert (u, v) == tuple(turned.centres_px[k])  # the annotated pixel is still the marked one
-    back = imports.turn_archive(turned, 360 - degrees)
+    back = press_sets.turn_archive(turned, 360 - degrees)
     np.testing.assert_array_equal(back.frames, archive.frames)
     np.testing.assert_array_equal(back.centres_px, archive.centres_px)
     with pytest.raises(ValueError, match=r"a turn must be one of \(0, 90, 180, 270\) degrees clockwise, got 45"):
-        imports.turn_archive(archive, 45)
+        press_sets.turn_archive(archive, 45)
 
 
 # --- small sets, end to end --------------------------------------------------------------------
@@ -194,8 +194,8 @@ def test_the_two_formats_give_the_same_capture(tmp_path):
 
     from tests.test_import_capture import write_pack
 
-    pack = imports.read_taxim(write_pack(tmp_path / "dataPack_small.npz"))
-    folder = imports.read_folder(imports.write_folder(pack, tmp_path / "set"))
+    pack = press_sets.read_taxim(write_pack(tmp_path / "dataPack_small.npz"))
+    folder = press_sets.read_folder(press_sets.write_folder(pack, tmp_path / "set"))
     assert folder.names == pack.names
     np.testing.assert_array_equal(folder.frames, pack.frames)
     for archive, out, fmt in ((pack, "a", "taxim"), (folder, "b", "folder")):
@@ -293,7 +293,7 @@ def test_a_taxim_pack_reads_its_records_beside_it(tmp_path, capsys):
     from tests.test_import_capture import write_pack
 
     pack = write_pack(tmp_path / "dataPack_small.npz")
-    assert imports.guess_format(pack) == "taxim" and imports.guess_format(tmp_path) == "taxim"
+    assert press_sets.guess_format(pack) == "taxim" and press_sets.guess_format(tmp_path) == "taxim"
     (tmp_path / "dataPack_small.toml").write_text('spec = "gelsight"\nball_mm = 6.0\n')
     assert run("taxim", pack, "--out", tmp_path / "cap") == 0
     out = capsys.readouterr().out

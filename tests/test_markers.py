@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scenes import imports, markers
+from scenes import imports, markers, press_sets
 from studies.markers import draw_markers
 
 PIXEL_M = 0.1245e-3
@@ -21,7 +21,7 @@ def smooth_press(shape=(120, 160), centre=(80.0, 60.0), rim_px=13.5):
 
 
 def archive_of(f0, frame, centre=(80.0, 60.0)):
-    return imports.Archive(no_contact=f0, frames=frame[None], centres_px=np.array([centre]),
+    return press_sets.Archive(no_contact=f0, frames=frame[None], centres_px=np.array([centre]),
                            radii_px=np.array([17.0]), names=("p",), path="made here")
 
 
