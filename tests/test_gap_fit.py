@@ -19,7 +19,8 @@ from scenes.images import to_uint8
 from studies.gap import effects as fx
 from studies.gap.diagnosis import Diagnosis
 from studies.gap.fit import LOSS_EPS
-from studies.gap.inject import Injector, misalign, respond
+from studies.gap.inject import Injector
+from studies.gap.inject_image import misalign, respond
 from studies.gap.model import FastModel
 from studies.gap.pairs import Pairs, split
 

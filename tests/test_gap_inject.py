@@ -14,7 +14,7 @@ from phong_reference.plugin import PhongDatasetRenderer
 from scenes.contact import press
 from scenes.elastic import deform
 from scenes.spec import LED, Elastic
-from studies.gap import inject
+from studies.gap import inject, inject_image, inject_light
 from studies.gap.inject import EFFECTS, Injection, Injector
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,14 +162,14 @@ def test_optics_then_sensor_in_physical_order(injector, contacts):
     shift, vig, resp = (injector.sample(e, rng, 0.7) for e in ("misalignment", "vignetting", "camera_response"))
     cam = injector.camera
     p, q, r = shift.params, vig.params, resp.params
-    expected = inject.misalign(injector.render(depth), p["shift_x_px"], p["shift_y_px"], p["rotation"],
+    expected = inject_image.misalign(injector.render(depth), p["shift_x_px"], p["shift_y_px"], p["rotation"],
                                (cam.cx, cam.cy))
-    expected = inject.vignette(expected, (cam.cx + q["centre_dx_px"], cam.cy + q["centre_dy_px"]), q["focal_px"],
+    expected = inject_image.vignette(expected, (cam.cx + q["centre_dx_px"], cam.cy + q["centre_dy_px"]), q["focal_px"],
                                q["exponent"])
     C = np.array([[0.0, r["crosstalk_rg"], r["crosstalk_rb"]], [r["crosstalk_gr"], 0.0, r["crosstalk_gb"]],
                   [r["crosstalk_br"], r["crosstalk_bg"], 0.0]])
     C += np.diag(1.0 - C.sum(axis=1))
-    expected = inject.respond(expected, r["gamma_enc"], [r["gain_r"], r["gain_g"], r["gain_b"]], C)
+    expected = inject_image.respond(expected, r["gamma_enc"], [r["gain_r"], r["gain_g"], r["gain_b"]], C)
     got = injector.render(depth, [resp, vig, shift])
     assert np.allclose(got, np.clip(expected, 0, 1), atol=1e-6)
 
@@ -191,7 +191,7 @@ def test_sampling_and_noise_are_deterministic_with_a_seed(injector, contacts):
 
 def test_noise_statistics_follow_the_variance_model(rng):
     image = np.full((200, 200, 3), 0.25, np.float32)
-    noisy = inject.add_noise(image, a=0.002, b=0.005**2, rng=rng)
+    noisy = inject_image.add_noise(image, a=0.002, b=0.005**2, rng=rng)
     assert np.var(noisy - image) == pytest.approx(0.002 * 0.25 + 0.005**2, rel=0.03)
 
 
@@ -236,8 +236,10 @@ def test_bad_input_is_refused(injector, contacts):
 
 
 def test_injector_imports_nothing_else_from_its_package(absolute_imports):
-    for name in absolute_imports(ROOT / "studies" / "gap" / "inject.py"):
-        assert not (name == "studies.gap" or name.startswith("studies.gap.")) or name == "studies.gap.inject", name
+    own = {"studies.gap.inject", "studies.gap.inject_image", "studies.gap.inject_light"}
+    for module in own:
+        for name in absolute_imports(ROOT / "studies" / "gap" / f"{module.rsplit('.', 1)[1]}.py"):
+            assert not (name == "studies.gap" or name.startswith("studies.gap.")) or name in own, (module, name)
 
 
 # --- analytic limits ---------------------------------------------------------------------
@@ -266,15 +268,15 @@ def test_compliance_scales_the_imprint():
 def test_optics_identities(injector, contacts):
     image = injector.render(contacts["off_axis"])
     cam = injector.camera
-    assert np.array_equal(inject.misalign(image, 0.0, 0.0, 0.0, (cam.cx, cam.cy)), image)
-    assert np.array_equal(inject.vignette(image, (cam.cx, cam.cy), cam.f, 0.0), image)
-    assert np.allclose(inject.distort(image, cam, 0.0, 0.0), image, atol=1e-6)
-    assert np.allclose(inject.respond(image, 1.0, np.ones(3), np.eye(3)), image, atol=1e-7)
+    assert np.array_equal(inject_image.misalign(image, 0.0, 0.0, 0.0, (cam.cx, cam.cy)), image)
+    assert np.array_equal(inject_image.vignette(image, (cam.cx, cam.cy), cam.f, 0.0), image)
+    assert np.allclose(inject_image.distort(image, cam, 0.0, 0.0), image, atol=1e-6)
+    assert np.allclose(inject_image.respond(image, 1.0, np.ones(3), np.eye(3)), image, atol=1e-7)
 
 
 def test_vignetting_is_cos_n_of_the_field_angle():
     image = np.ones((5, 401, 3), np.float32)
-    out = inject.vignette(image, (200.0, 2.0), 100.0, 4.0)
+    out = inject_image.vignette(image, (200.0, 2.0), 100.0, 4.0)
     assert out[2, 200, 0] == pytest.approx(1.0)
     assert out[2, 300, 0] == pytest.approx(math.cos(math.pi / 4) ** 4, rel=1e-6)  # r = f: 45 degrees
 
@@ -282,7 +284,7 @@ def test_vignetting_is_cos_n_of_the_field_angle():
 def test_misalignment_shifts_by_whole_pixels():
     image = np.zeros((20, 30, 3), np.float32)
     image[5, 7] = 1.0
-    out = inject.misalign(image, 3.0, -2.0, 0.0, (14.5, 9.5))
+    out = inject_image.misalign(image, 3.0, -2.0, 0.0, (14.5, 9.5))
     assert out[3, 10, 0] == pytest.approx(1.0) and out.sum() == pytest.approx(3.0)
 
 
@@ -291,28 +293,28 @@ def test_lens_distortion_moves_points_as_brown_conrady(injector):
     equal to its own radius."""
     cam = injector.camera
     k1, k2 = 0.2, -0.04
-    map_x, map_y = inject.distortion_maps(cam, k1, k2)
+    map_x, map_y = inject_image.distortion_maps(cam, k1, k2)
     row, col = 239, 500  # distorted radius (500 - 319.5) / f, just off the row of the centre
     r = math.hypot(map_x[row, col] - cam.cx, map_y[row, col] - cam.cy) / cam.f
     assert r * (1 + k1 * r**2 + k2 * r**4) == pytest.approx(math.hypot(col - cam.cx, row - cam.cy) / cam.f, rel=1e-5)
     # Barrel distortion past its fold: the corners see nothing.
-    map_x, _ = inject.distortion_maps(cam, -0.25, 0.0)
+    map_x, _ = inject_image.distortion_maps(cam, -0.25, 0.0)
     assert map_x[0, 0] == -1 and map_x[240, 320] == pytest.approx(320.0, abs=1e-3)
 
 
 def test_camera_response_keeps_grey_grey():
     grey = np.full((2, 2, 3), 0.5, np.float32)
     C = np.array([[0.9, 0.05, 0.05], [0.1, 0.8, 0.1], [0.02, 0.08, 0.9]])
-    assert np.allclose(inject.respond(grey, 1.25, np.ones(3), C), 0.5 ** (1 / 1.25), atol=1e-6)
+    assert np.allclose(inject_image.respond(grey, 1.25, np.ones(3), C), 0.5 ** (1 / 1.25), atol=1e-6)
 
 
 def test_core_leak_is_an_inverse_square_point_source():
     led = LED("l", (0.0, 0.0, 0.0), (0, 0, 1), (1.0, 0.5, 0.25), k_d=0.9, k_s=0.1)
     P = np.array([0.0, 0.0, 0.02]).reshape(3, 1, 1)  # 20 mm ahead of the LED
     facing = np.array([0.0, 0.0, -1.0]).reshape(3, 1, 1)  # normal towards the LED
-    E = inject.core_leak(P, facing, (led,), 0.2, 0.01)[:, 0, 0]
+    E = inject_light.core_leak(P, facing, (led,), 0.2, 0.01)[:, 0, 0]
     assert E == pytest.approx(0.2 * np.array([1.0, 0.5, 0.25]) * (0.01 / 0.02) ** 2)
-    assert not inject.core_leak(P, -facing, (led,), 0.2, 0.01).any()  # lit from behind: nothing
+    assert not inject_light.core_leak(P, -facing, (led,), 0.2, 0.01).any()  # lit from behind: nothing
 
 
 def test_geodesic_distance_along_the_cylinder_is_the_height(injector):
@@ -328,7 +330,7 @@ def test_geodesic_distance_along_the_cylinder_is_the_height(injector):
         v = injector.camera.f * point[1] / z + injector.camera.cy
         d = maps[0, round(v), round(u)]
         assert d == pytest.approx(np.linalg.norm(point - vertex), abs=3e-4)
-    assert inject.transmittance(np.array([0.0, 0.02]), 50.0) == pytest.approx([1.0, math.exp(-1.0)])
+    assert inject_light.transmittance(np.array([0.0, 0.02]), 50.0) == pytest.approx([1.0, math.exp(-1.0)])
 
 
 def test_shadow_of_a_box_on_a_flat_membrane():
@@ -343,26 +345,26 @@ def test_shadow_of_a_box_on_a_flat_membrane():
     light = np.tile([1.0, 0.0, 0.0], (1, len(x), 1))
     up = np.tile([0.0, 0.0, 1.0], (len(x), 1))
     beta = math.radians(10)
-    vis = inject.shadow_visibility(points, light, up, box, floor, beta)[0]
-    expected = np.mean([(0.0015 - x) * math.tan(beta * f) > 0.001 for f in inject.SHADOW_SOFT_ELEVATIONS], axis=0)
+    vis = inject_light.shadow_visibility(points, light, up, box, floor, beta)[0]
+    expected = np.mean([(0.0015 - x) * math.tan(beta * f) > 0.001 for f in inject_light.SHADOW_SOFT_ELEVATIONS], axis=0)
     near_edge = np.any([np.abs((0.0015 - x) * math.tan(beta * f) - 0.001) < 2e-5
-                        for f in inject.SHADOW_SOFT_ELEVATIONS], axis=0)
+                        for f in inject_light.SHADOW_SOFT_ELEVATIONS], axis=0)
     assert np.array_equal(vis[~near_edge], expected[~near_edge])
     assert vis.min() == 0.0 and vis.max() == 1.0
     # With the undeformed membrane in the way first, the light came off it: no shadow.
     wall = trimesh.creation.box(extents=(1e-4, 0.1, 0.1))
     wall.apply_translation((0.0008, 0.0, 0.0))
     before = x < 0.0005
-    assert np.all(inject.shadow_visibility(points[before], light[:, before], up[before], box, wall, beta) == 1.0)
+    assert np.all(inject_light.shadow_visibility(points[before], light[:, before], up[before], box, wall, beta) == 1.0)
 
 
 def test_gloss_and_spectrum_change_the_spec_as_documented(spec):
-    leds, material = inject.gloss(spec.leds, spec.material, 0.3, 12.0)
+    leds, material = inject_light.gloss(spec.leds, spec.material, 0.3, 12.0)
     assert [led.k_s for led in leds] == pytest.approx([led.k_s + 0.3 for led in spec.leds])
     assert material == dataclasses.replace(spec.material, shininess=12.0)
-    assert inject.spectral_ratio(465.0, 25.0, 0.0) == pytest.approx(np.ones(3))
-    shifted = inject.shift_spectra(spec.leds, [10.0, 0.0, 0.0], [1.0, 1.1, 1.0])
+    assert inject_light.spectral_ratio(465.0, 25.0, 0.0) == pytest.approx(np.ones(3))
+    shifted = inject_light.shift_spectra(spec.leds, [10.0, 0.0, 0.0], [1.0, 1.1, 1.0])
     assert shifted[1].colour == pytest.approx(tuple(1.1 * c for c in spec.leds[1].colour))
-    blue_to_green = inject.spectral_ratio(465.0, 25.0, 10.0)  # a blue LED moved towards green
+    blue_to_green = inject_light.spectral_ratio(465.0, 25.0, 10.0)  # a blue LED moved towards green
     assert blue_to_green[1] > 1.0 > blue_to_green[2]
     assert inject.spread_elastic(Elastic(), 10.0) == Elastic(sigma_px=10.0, radius_px=54)

@@ -9,7 +9,7 @@ import pytest
 
 from scenes.camera import reference_depth
 from studies.gap import unlike
-from studies.gap.inject import misalign
+from studies.gap.inject_image import misalign
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -24,7 +24,7 @@ HEAVY = {
     "serial": {"rig/serial_lines.py"},
     # the benchmark's injectors resample and filter images as the catalogue does, each its own way;
     # the diagnosis registers frames with OpenCV's ECC
-    "cv2": {"rig/camera.py", "studies/gap/effects.py", "studies/gap/inject.py", "studies/gap/described.py",
+    "cv2": {"rig/camera.py", "studies/gap/effects.py", "studies/gap/inject_image.py", "studies/gap/described.py",
             "studies/gap/registration.py"},
     "taxim": {"studies/compare/taxim.py"},
     "jax": {"studies/compare/taxim.py"},

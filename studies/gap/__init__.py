@@ -19,7 +19,8 @@ Modules, one concept each:
   composed), ``diagnose`` (the run and its report's numbers), ``report`` (report.json and
   report.html);
 - its blind validation: ``inject`` (the benchmark's own, independent injection of
-  effects), ``unlike`` and ``described`` (mechanisms written unlike the catalogue, and
+  effects; its light in ``inject_light``, its image stages in ``inject_image``),
+  ``unlike`` and ``described`` (mechanisms written unlike the catalogue, and
   from prose), ``benchmark`` and ``physical_benchmark`` (effects hidden in the reference);
   ``cli`` (the command).
 """

@@ -41,27 +41,25 @@ tangent light fields and no background, only the contact itself is lit, so:
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
-import trimesh
 
-from pbr_tactile.spectra import film_response, gaussian
 from phong_reference.background import check_background, make_background
 from phong_reference.bake import METHODS, bake
 from phong_reference.normals import normals
-from phong_reference.phong import shade
 from phong_reference.render import Renderer, finish, light_vectors
 from phong_reference.sources import snap_leds
 from scenes.camera import CONTACT_EPS_M, Camera, back_project, cast_rays, check_depth
 from scenes.elastic import deform
 from scenes.geometry import membrane_mesh
-from scenes.spec import LED, Elastic, Material, SensorSpec
+from scenes.spec import Elastic, SensorSpec
+from studies.gap.inject_image import add_noise, blur, distort, misalign, respond, vignette
+from studies.gap.inject_light import (SHADOW_SOFT_ELEVATIONS, core_leak, deformed_grid, gloss, led_layers,
+                                     shadow_visibility, shift_spectra, transmittance)
 
 EFFECTS: tuple[str, ...] = (
     "core_light_leak", "path_attenuation", "membrane_compliance", "elastic_spread",
@@ -94,10 +92,6 @@ GLOSS_SHININESS = (20.0, 8.0)
 SPECTRUM_SHIFT_NM = (5.0, 25.0)
 #: led_spectrum: bound of |intensity factor - 1| per LED, - (factor drawn uniformly).
 SPECTRUM_INTENSITY_SPREAD = (0.05, 0.2)
-#: Out-of-band transmission of a Bayer colour filter, as a share of the LED's strongest
-#: channel: without it the ratio R_c(peak + delta) / R_c(peak) of a channel deep in the
-#: Gaussian tail (the blue response to a red LED) reaches 50.
-FILTER_FLOOR = 0.02
 #: path_attenuation: absorption coefficient mu of the elastomer, 1/m.
 ATTENUATION_PER_M = (15.0, 70.0)
 #: core_light_leak: gain a of the point-source irradiance at the reference distance, -
@@ -110,8 +104,6 @@ LEAK_REFERENCE_DISTANCE_M = 0.010
 SHADOW_ELEVATION_DEG = (10.0, 3.0)
 #: contact_shadow: share of the shadowed light that is lost, -.
 SHADOW_DARKNESS = (0.6, 1.0)
-#: contact_shadow: the light is an extended source: elevations beta times these, averaged.
-SHADOW_SOFT_ELEVATIONS = (0.7, 0.9, 1.1, 1.3)
 #: contact_shadow: farthest a shadow is looked for from the deformed region, m. A bump of
 #: height h shadows at most h / tan(beta) of a flat membrane (the GelTip's cylinder along
 #: its axis); the concave tip ends shadows within a chord 2 R sin(beta). This only caps
@@ -119,10 +111,6 @@ SHADOW_SOFT_ELEVATIONS = (0.7, 0.9, 1.1, 1.3)
 SHADOW_MAX_REACH_M = 0.06
 #: contact_shadow: a layer dimmer than one 8-bit level (linear RGB) is not traced: too little light to lose.
 SHADOW_MIN_LIGHT = 1.0 / 255
-#: contact_shadow: shadow rays start this far along their direction, m (Embree is float32).
-SHADOW_RAY_OFFSET_M = 1e-5
-#: contact_shadow: an occluder must come this much closer than the undeformed membrane, m.
-SHADOW_TOLERANCE_M = 5e-5
 #: misalignment: shift of the real frame against the simulated one, px (direction drawn).
 MISALIGN_SHIFT_PX = (1.0, 6.0)
 #: misalignment: rotation about the image centre, degrees (sign drawn).
@@ -131,8 +119,6 @@ MISALIGN_ROTATION_DEG = (0.2, 2.0)
 DISTORTION_K1 = (0.05, 0.25)
 #: lens_distortion: k2 = k1 * U(-this, this).
 DISTORTION_K2_RATIO = 0.3
-#: lens_distortion: largest undistorted radius tabulated, in focal lengths.
-DISTORTION_MAX_RADIUS = 3.0
 #: vignetting: focal length of the cos^n law, in camera focal lengths.
 VIGNETTE_FOCAL_SCALE = (1.6, 0.9)
 #: vignetting: exponent n, drawn uniformly (4 for the natural cos^4 law).
@@ -310,300 +296,7 @@ def spread_elastic(elastic: Elastic, sigma_px: float, radius_px: int | None = No
     return Elastic(sigma_px=float(sigma_px), radius_px=radius)
 
 
-# --- shading -----------------------------------------------------------------------------
-
-
-def gloss(leds: tuple[LED, ...], material: Material, delta_k_s: float,
-          shininess: float) -> tuple[tuple[LED, ...], Material]:
-    """A glossier coating: every LED's k_s raised by ``delta_k_s``, Phong alpha set to ``shininess``."""
-    if not shininess > 0:
-        raise ValueError(f"shininess must be > 0, got {shininess}")
-    leds = tuple(dataclasses.replace(led, k_s=led.k_s + float(delta_k_s)) for led in leds)
-    return leds, dataclasses.replace(material, shininess=float(shininess))
-
-
-def spectral_ratio(peak_nm: float, fwhm_nm: float, shift_nm: float) -> np.ndarray:
-    """(3,) camera RGB response to an LED whose peak moved by ``shift_nm``, over the original.
-
-    R_c = film_response(gaussian(peak, fwhm)) through the camera's bands, plus an
-    out-of-band floor of ``FILTER_FLOOR`` times the original's strongest channel.
-    """
-    before = film_response(gaussian(peak_nm, fwhm_nm))
-    after = film_response(gaussian(peak_nm + shift_nm, fwhm_nm))
-    floor = FILTER_FLOOR * before.max()
-    return (after + floor) / (before + floor)
-
-
-def shift_spectra(leds: tuple[LED, ...], shifts_nm, intensities) -> tuple[LED, ...]:
-    """LEDs whose emission peaks moved: colour_m * R(peak + delta_m) / R(peak) * intensity_m.
-
-    shifts_nm, intensities : (M,) per LED, nm and -.  An LED without ``peak_nm`` and
-    ``fwhm_nm`` in the spec keeps its colour (only the intensity factor applies).
-    """
-    out = []
-    for led, shift, gain in zip(leds, shifts_nm, intensities, strict=True):
-        ratio = np.ones(3)
-        if led.peak_nm is not None and led.fwhm_nm is not None:
-            ratio = spectral_ratio(led.peak_nm, led.fwhm_nm, float(shift))
-        colour = tuple(float(c) for c in np.asarray(led.colour) * ratio * float(gain))
-        peak = None if led.peak_nm is None else led.peak_nm + float(shift)
-        out.append(dataclasses.replace(led, colour=colour, peak_nm=peak))
-    return tuple(out)
-
-
-def led_layers(P: np.ndarray, N: np.ndarray, L: np.ndarray, leds: tuple[LED, ...], material: Material) -> np.ndarray:
-    """Each LED's own Phong term I_m, without the ambient background.
-
-    P, N : (3, H, W) points (metres) and camera-facing unit normals; L : (M, 3, H, W) unit
-    light vectors.  Returns (M, 3, H, W), P's dtype, linear RGB, not clipped.
-    """
-    dark = dataclasses.replace(material, ambient=0.0)
-    zeros = np.zeros_like(P)
-    return np.stack([shade(P, N, L[m : m + 1], [led], dark, zeros) for m, led in enumerate(leds)])
-
-
-def transmittance(distance: np.ndarray, mu: float) -> np.ndarray:
-    """Beer-Lambert: exp(-mu d), distance d in metres, mu in 1/m; same shape."""
-    if not mu >= 0:
-        raise ValueError(f"mu must be >= 0 1/m, got {mu}")
-    return np.exp(-mu * distance)
-
-
-def core_leak(P: np.ndarray, N: np.ndarray, leds: tuple[LED, ...], gain: float,
-              reference_distance: float) -> np.ndarray:
-    """Irradiance of LED light that crosses the glass core and meets the membrane from inside.
-
-    Each LED is a point source at its position p_m:
-    E = a colour_m max(N . w_m, 0) (r0 / |p_m - P|)^2, with w_m = (p_m - P) / |p_m - P|.
-
-    P : (3, H, W) float, metres, surface points; N : (3, H, W) unit normals facing the
-    camera, which sits inside the membrane, so they are the inward normals.
-    Returns (3, H, W), P's dtype, linear RGB.
-    """
-    out = np.zeros_like(P)
-    for led in leds:
-        to_led = np.asarray(led.position, dtype=P.dtype)[:, None, None] - P  # (3, H, W), metres
-        dist2 = (to_led * to_led).sum(axis=0)
-        cos = np.maximum((N * to_led).sum(axis=0) / np.sqrt(dist2), 0)
-        E = gain * cos * (reference_distance * reference_distance / dist2)
-        out += np.asarray(led.colour, dtype=P.dtype)[:, None, None] * E
-    return out
-
-
-def _grid_faces(h: int, w: int) -> np.ndarray:
-    """(2 (h - 1)(w - 1), 3) int triangles of an h x w vertex grid, row-major."""
-    a = (np.arange(h - 1)[:, None] * w + np.arange(w - 1)[None, :]).ravel()
-    return trimesh.geometry.triangulate_quads(np.stack([a, a + 1, a + w + 1, a + w], axis=1))
-
-
-def deformed_grid(points: np.ndarray, moved: np.ndarray) -> trimesh.Trimesh | None:
-    """The deformed part of the surface as a triangle grid: the pixel points P (3, H, W),
-    metres, over the bounding box of ``moved`` (H, W) bool grown by one pixel; None if
-    nothing moved."""
-    box = _box(moved, 1)
-    if box is None:
-        return None
-    grid = np.asarray(points[(slice(None),) + box], dtype=np.float64)
-    h, w = grid.shape[1:]
-    if h < 2 or w < 2:
-        return None
-    return trimesh.Trimesh(grid.reshape(3, -1).T, _grid_faces(h, w), process=False)
-
-
-def shadow_visibility(
-    points: np.ndarray,
-    light: np.ndarray,
-    inward: np.ndarray,
-    occluder: trimesh.Trimesh,
-    membrane: trimesh.Trimesh,
-    elevation: float,
-    where: np.ndarray | None = None,
-) -> np.ndarray:
-    """Share of each LED's guided light that the deformed membrane lets through.
-
-    Light arrives along the tangent L_m (towards the LED) tilted by the elevation beta
-    towards the camera side: w = cos(beta) t_m + sin(beta) n, with t_m the part of L_m
-    in the undeformed tangent plane (unit) and n the undeformed inward normal. A point is
-    shadowed when the ray from it along w meets the deformed surface (``occluder``)
-    before it would meet the undeformed ``membrane``: on the GelTip's concave inside,
-    light at elevation beta has come off the membrane a chord 2 R sin(beta) away, so only
-    nearer occluders count. The source is extended: beta times each of
-    ``SHADOW_SOFT_ELEVATIONS``, averaged.
-
-    points : (K, 3) float, metres, the receiving (deformed) surface points.
-    light : (M, K, 3) float, light vectors L_m there; zero where the LED's light does not reach.
-    inward : (K, 3) float, unit inward normals of the undeformed membrane there.
-    occluder : the deformed part of the membrane, metres (``deformed_grid``).
-    membrane : the undeformed membrane mesh, metres.
-    elevation : beta, rad, in (0, pi / 2).
-    where : (M, K) bool, the points whose light matters (the others are not traced and
-        count as lit); default all.
-
-    Returns (M, K) float64 in [0, 1], 1 fully lit.
-    """
-    if not 0 < elevation < math.pi / 2:
-        raise ValueError(f"elevation must be in (0, pi/2) rad, got {elevation}")
-    points = np.asarray(points, dtype=np.float64)
-    n = np.asarray(inward, dtype=np.float64)
-    centre = occluder.bounds.mean(axis=0)  # bounding sphere of the occluder, for culling
-    radius = 0.5 * float(np.linalg.norm(np.ptp(occluder.bounds, axis=0))) + SHADOW_RAY_OFFSET_M
-    visible = np.ones(light.shape[:2])
-    for m in range(len(light)):
-        idx = np.arange(len(points)) if where is None else np.flatnonzero(where[m])
-        L_m = np.asarray(light[m, idx], dtype=np.float64)
-        t = L_m - (L_m * n[idx]).sum(axis=1, keepdims=True) * n[idx]
-        norm = np.linalg.norm(t, axis=1)
-        # No tangent light, or an occluder behind the point (away from the light): lit.
-        keep = (norm > 1e-6) & (((centre - points[idx]) * t).sum(axis=1) > -radius * norm)
-        idx, t = idx[keep], t[keep] / norm[keep, None]
-        # Every ray of the point lies in the plane through it spanned by t and n: an
-        # occluder off that plane is missed at any elevation.
-        side = np.cross(t, n[idx])
-        keep = np.abs(((centre - points[idx]) * side).sum(axis=1)) < radius
-        idx, t = idx[keep], t[keep]
-        if idx.size == 0:
-            continue
-        share = np.zeros(idx.size)
-        for factor in SHADOW_SOFT_ELEVATIONS:
-            beta = min(elevation * factor, math.pi / 2 - 1e-3)
-            dirs = math.cos(beta) * t + math.sin(beta) * n[idx]
-            origins = points[idx] + SHADOW_RAY_OFFSET_M * dirs
-            # Only rays whose line passes the occluder's bounding sphere, ahead, can hit it.
-            to_c = centre - origins
-            along = (to_c * dirs).sum(axis=1)
-            near = (along > -radius) & ((to_c * to_c).sum(axis=1) - along**2 < radius**2)
-            hit = np.zeros(idx.size, dtype=bool)
-            if near.any():
-                hit[near] = _occluded(occluder, membrane, origins[near], dirs[near])
-            share += ~hit
-        visible[m, idx] = share / len(SHADOW_SOFT_ELEVATIONS)
-    return visible
-
-
-def _first_hit(mesh: trimesh.Trimesh, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """(K,) distance to each ray's first hit, metres; inf where it misses."""
-    _, ray, loc = mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-    t = np.full(len(origins), np.inf)
-    t[ray] = np.einsum("ij,ij->i", np.asarray(loc) - origins[ray], dirs[ray])
-    return t
-
-
-def _occluded(surface: trimesh.Trimesh, membrane: trimesh.Trimesh, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    hit = _first_hit(surface, origins, dirs)
-    occluded = np.isfinite(hit)
-    if occluded.any():
-        idx = np.flatnonzero(occluded)
-        occluded[idx] = hit[idx] < _first_hit(membrane, origins[idx], dirs[idx]) - SHADOW_TOLERANCE_M
-    return occluded
-
-
-# --- optics ------------------------------------------------------------------------------
-
-
-def misalign(image: np.ndarray, shift_x_px: float, shift_y_px: float, rotation: float,
-             centre: tuple[float, float]) -> np.ndarray:
-    """The frame rotated by ``rotation`` rad (counter-clockwise as displayed) about ``centre``
-    (u, v) px, then shifted by (shift_x_px, shift_y_px) px; black where nothing maps.
-
-    image : (H, W, 3) float32.  Returns the same shape and dtype.
-    """
-    A = cv2.getRotationMatrix2D((float(centre[0]), float(centre[1])), math.degrees(rotation), 1.0)
-    A[:, 2] += (shift_x_px, shift_y_px)
-    h, w = image.shape[:2]
-    return cv2.warpAffine(image, A, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-
-
-def distortion_maps(camera: Camera, k1: float, k2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Where each pixel of the distorted image looks in the ideal (pinhole) one.
-
-    A Brown-Conrady lens moves the ideal point at normalised radius r (about the
-    principal point, in focal lengths) to r (1 + k1 r^2 + k2 r^4). cv2.projectPoints
-    tabulates that along the monotone branch, and the table is inverted per pixel;
-    pixels whose radius no ideal point reaches get -1 (black through cv2.remap).
-
-    Returns map_x, map_y : (H, W) float32, px.
-    """
-    r = np.linspace(0.0, DISTORTION_MAX_RADIUS, 4096)
-    K = np.array([[camera.f, 0, camera.cx], [0, camera.f, camera.cy], [0, 0, 1.0]])
-    table, _ = cv2.projectPoints(np.stack([r, np.zeros_like(r), np.ones_like(r)], 1), np.zeros(3), np.zeros(3), K,
-                                 np.array([k1, k2, 0.0, 0.0]))
-    r_d = (table[:, 0, 0] - camera.cx) / camera.f
-    rising = np.diff(r_d) > 0
-    end = len(r) if rising.all() else int(np.argmin(rising)) + 1  # the fold, if any
-    r, r_d = r[:end], r_d[:end]
-    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
-    du, dv = (u - camera.cx) / camera.f, (v - camera.cy) / camera.f
-    rho = np.hypot(du, dv)  # distorted radius of each pixel, focal lengths
-    ideal = np.interp(rho, r_d, r, right=np.nan)
-    scale = np.divide(ideal, rho, out=np.ones_like(rho), where=rho > 0)
-    map_x = np.where(np.isfinite(ideal), camera.cx + camera.f * du * scale, -1.0).astype(np.float32)
-    map_y = np.where(np.isfinite(ideal), camera.cy + camera.f * dv * scale, -1.0).astype(np.float32)
-    return map_x, map_y
-
-
-def distort(image: np.ndarray, camera: Camera, k1: float, k2: float) -> np.ndarray:
-    """The image through a Brown-Conrady lens (k1, k2 radial); (H, W, 3) float32 in and out."""
-    map_x, map_y = distortion_maps(camera, k1, k2)
-    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-
-
-def vignette(image: np.ndarray, centre: tuple[float, float], focal_px: float, exponent: float) -> np.ndarray:
-    """Off-axis falloff V = cos(theta)^n, tan(theta) = r / f_v, r the distance to ``centre``.
-
-    image : (H, W, 3) float; centre : (u, v) px, the optical centre; focal_px : f_v, px;
-    exponent : n (4 for the natural cos^4 law, 0 for none).  Returns image * V, same dtype.
-    """
-    if not focal_px > 0:
-        raise ValueError(f"focal_px must be > 0, got {focal_px}")
-    h, w = image.shape[:2]
-    v, u = np.mgrid[0:h, 0:w]
-    theta = np.arctan(np.hypot(u - centre[0], v - centre[1]) / focal_px)
-    return image * (np.cos(theta) ** exponent).astype(image.dtype)[..., None]
-
-
-def blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
-    """The optics' point spread as a Gaussian of ``sigma_px`` px; same shape and dtype."""
-    if not sigma_px > 0:
-        raise ValueError(f"sigma_px must be > 0, got {sigma_px}")
-    return cv2.GaussianBlur(image, (0, 0), sigma_px)
-
-
-# --- sensor ------------------------------------------------------------------------------
-
-
-def respond(image: np.ndarray, gamma_enc: float, gains, crosstalk: np.ndarray) -> np.ndarray:
-    """The camera's own response: out = clip(gains * (C @ in), 0, 1) ** (1 / gamma_enc).
-
-    image : (H, W, 3) float in [0, 1]; gains : (3,) white balance; crosstalk : C (3, 3),
-    rows summing to 1 (C[i, j] is how much of channel j leaks into channel i).
-    Returns the same shape, image's dtype.
-    """
-    if not gamma_enc > 0:
-        raise ValueError(f"gamma_enc must be > 0, got {gamma_enc}")
-    mixed = image @ np.asarray(crosstalk, dtype=image.dtype).T * np.asarray(gains, dtype=image.dtype)
-    return np.clip(mixed, 0, 1) ** image.dtype.type(1.0 / gamma_enc)
-
-
-def add_noise(image: np.ndarray, a: float, b: float, rng: np.random.Generator) -> np.ndarray:
-    """Signal-dependent Gaussian sensor noise of variance a I + b; same shape and dtype."""
-    if not (a >= 0 and b >= 0):
-        raise ValueError(f"noise a and b must be >= 0, got a={a}, b={b}")
-    std = np.sqrt(a * np.maximum(image, 0) + b)
-    return image + std * rng.standard_normal(image.shape, dtype=np.float32).astype(image.dtype, copy=False)
-
-
 # --- the facade --------------------------------------------------------------------------
-
-
-def _box(changed: np.ndarray, margin: int) -> tuple[slice, slice] | None:
-    """Slices of the bounding box of ``changed`` (H, W) bool grown by ``margin`` px; None if empty."""
-    rows = np.flatnonzero(changed.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(changed.any(axis=0))
-    h, w = changed.shape
-    return (slice(max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, h)),
-            slice(max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, w)))
 
 
 class Injector:
