@@ -276,3 +276,13 @@ def test_each_package_lists_its_public_modules_and_imports_none(package):
         f"extra {sorted(set(listed) - _public_modules(package))}")
     for name in listed:
         assert importlib.util.find_spec(f"{package}.{name}") is not None, f"{package}.{name} is listed but not found"
+
+
+#: A module holds one concept; past this many lines it holds more (issue 75's bound).
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_is_over_the_bound():
+    long = {str(p.relative_to(ROOT)): n for package in PACKAGES for p in (ROOT / package).rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"modules over {MAX_MODULE_LINES} lines (split each by concept): {long}"

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from studies.compare import taxim as tx
+from studies.compare import taxim_table as tt
 
 PIXEL_M = 0.1e-3
 BALL_M = 1.6e-3  # 16 px
@@ -31,18 +32,18 @@ def _known_table(bins: int, shape, rng: np.random.Generator) -> np.ndarray:
 def _synthetic_presses(coeffs, no_contact, n, rng, radius_px=15.0):
     """Presses made with the table: background + lookup inside each (clipped) circle."""
     h, w = no_contact.shape[:2]
-    bg = tx.background(no_contact)
+    bg = tt.background(no_contact)
     centres = np.stack([rng.integers(18, w - 18, n), rng.integers(18, h - 18, n)], axis=1).astype(float)
     frames = np.repeat(no_contact[None], n, axis=0)
     for i, c in enumerate(centres):
-        theta, phi, inside = tx.press_angles(c, radius_px, BALL_M / PIXEL_M, (h, w))
-        frames[i][inside] = (bg + tx.lookup(coeffs, theta, phi))[inside]
+        theta, phi, inside = tt.press_angles(c, radius_px, BALL_M / PIXEL_M, (h, w))
+        frames[i][inside] = (bg + tt.lookup(coeffs, theta, phi))[inside]
     return frames, centres, np.full(n, radius_px)
 
 
 def test_background_of_a_uniform_frame_is_the_frame():
     f0 = np.full(SHAPE + (3,), 0.4)
-    np.testing.assert_allclose(tx.background(f0), f0, atol=1e-12)
+    np.testing.assert_allclose(tt.background(f0), f0, atol=1e-12)
 
 
 def test_fit_recovers_a_known_table():
@@ -52,11 +53,11 @@ def test_fit_recovers_a_known_table():
     no_contact = np.full(SHAPE + (3,), 0.5)
     frames, centres, radii = _synthetic_presses(coeffs, no_contact, 20, rng)
     assert frames.min() >= 0 and frames.max() <= 1
-    table = tx.fit_polytable(no_contact, frames, centres, radii, PIXEL_M, BALL_M, bins=bins)
+    table = tt.fit_polytable(no_contact, frames, centres, radii, PIXEL_M, BALL_M, bins=bins)
 
     fitted = table["fitted"]
     assert fitted.sum() > bins * bins // 2
-    assert np.all(table["presses"][fitted] >= tx.MIN_PRESSES)
+    assert np.all(table["presses"][fitted] >= tt.MIN_PRESSES)
     # Compare what each fitted bin predicts over the whole frame (weights of x² and 1 differ in scale).
     rows, cols = np.mgrid[:SHAPE[0], :SHAPE[1]].astype(float)
     features = np.stack([cols ** 2, rows ** 2, cols * rows, cols, rows, np.ones_like(cols)], -1)
@@ -65,8 +66,8 @@ def test_fit_recovers_a_known_table():
     assert np.abs(got - want).max() < EXACT
     # And it reproduces the presses it was fitted on.
     for frame, c in zip(frames[:3], centres[:3]):
-        theta, phi, inside = tx.press_angles(c, radii[0], BALL_M / PIXEL_M, SHAPE)
-        remade = table["background"] + tx.lookup(table["coeffs"], theta, phi)
+        theta, phi, inside = tt.press_angles(c, radii[0], BALL_M / PIXEL_M, SHAPE)
+        remade = table["background"] + tt.lookup(table["coeffs"], theta, phi)
         assert np.abs(remade - frame)[inside].max() < EXACT
 
 
@@ -75,7 +76,7 @@ def test_unfitted_bins_take_their_nearest_fitted_bin():
     bins = 8
     no_contact = np.full(SHAPE + (3,), 0.5)
     frames, centres, radii = _synthetic_presses(_known_table(bins, SHAPE, rng), no_contact, 12, rng)
-    table = tx.fit_polytable(no_contact, frames, centres, radii, PIXEL_M, BALL_M, bins=bins)
+    table = tt.fit_polytable(no_contact, frames, centres, radii, PIXEL_M, BALL_M, bins=bins)
     fitted = table["fitted"]
     assert not fitted.all()
     done = np.argwhere(fitted)
@@ -86,7 +87,7 @@ def test_unfitted_bins_take_their_nearest_fitted_bin():
 
 
 def test_press_angles_are_the_sphere_normals():
-    theta, phi, inside = tx.press_angles((40.0, 30.0), 20.0, 16.0, SHAPE)
+    theta, phi, inside = tt.press_angles((40.0, 30.0), 20.0, 16.0, SHAPE)
     assert theta[30, 40] == 0 and inside[30, 40]
     # 8 px right of the centre on a 16 px ball: arcsin(1/2); the normal leans toward -x.
     assert theta[30, 48] == pytest.approx(np.pi / 6)
@@ -97,7 +98,7 @@ def test_press_angles_are_the_sphere_normals():
 
 
 def test_bin_indices_span_the_table():
-    i_theta, i_phi = tx.bin_indices(np.array([0.0, np.pi / 2]), np.array([-np.pi, np.pi]), 80)
+    i_theta, i_phi = tt.bin_indices(np.array([0.0, np.pi / 2]), np.array([-np.pi, np.pi]), 80)
     assert list(i_theta) == [0, 79] and list(i_phi) == [0, 79]
 
 
@@ -156,14 +157,14 @@ def test_fit_refuses_bad_input(key, value, says):
     args = _good()
     args[key] = value
     with pytest.raises(ValueError, match=says):
-        tx.fit_polytable(**args)
+        tt.fit_polytable(**args)
 
 
 def test_fit_refuses_too_few_presses_and_bad_bins():
     with pytest.raises(ValueError, match="no bin was seen by"):
-        tx.fit_polytable(**_good())
+        tt.fit_polytable(**_good())
     with pytest.raises(ValueError, match="bins must be"):
-        tx.fit_polytable(**_good(), bins=1)
+        tt.fit_polytable(**_good(), bins=1)
 
 
 @pytest.mark.parametrize("args, says", [
@@ -238,8 +239,8 @@ def test_port_renders_a_press_with_the_fits_normals(port, tmp_path):
     depth_m = 0.8e-3
     image = peer.render_presses([[40.0, 30.0]], [depth_m], BALL_M, PIXEL_M, SHAPE)[0]
     contact_px = np.sqrt(BALL_M ** 2 - (BALL_M - depth_m) ** 2) / PIXEL_M
-    t, p, core = tx.press_angles((40.0, 30.0), 0.6 * contact_px, BALL_M / PIXEL_M, SHAPE)
-    predicted = np.clip(tx.background(no_contact) + tx.lookup(coeffs, t, p), 0, 1)
+    t, p, core = tt.press_angles((40.0, 30.0), 0.6 * contact_px, BALL_M / PIXEL_M, SHAPE)
+    predicted = np.clip(tt.background(no_contact) + tt.lookup(coeffs, t, p), 0, 1)
     # The port reads the frame as 8 bits (0.5 -> 128/255); a pixel may land one 8° bin
     # over after the port's half-pixel blur. A mirrored direction (φ -> -φ) scores 0.044.
     assert np.abs(image - predicted)[core].mean() < 0.01

@@ -5,5 +5,7 @@ measured poses, against the real images.
 Modules, one concept each: ``table`` (per-tap MAE, SSIM and PSNR, full frame and in the
 image circle, with bootstrap intervals over taps; table.json and table.md), ``run`` (the
 renders: replays of the capture, the capture's alignment, the backgrounds),
-``report`` (figures and report.html) and ``cli`` (``tactile-sim compare``).
+``report`` (figures and report.html), ``taxim`` (Taxim, the peer simulator, through its
+pip port) and ``taxim_table`` (its table refitted on the capture's presses), and ``cli``
+(``tactile-sim compare``).
 """
