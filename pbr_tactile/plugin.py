@@ -217,11 +217,12 @@ def _led_power(spec: SensorSpec, opts: dict):
     return 1.0 if opts["led_power"] is None else led_powers(spec, opts["led_power"])
 
 
-def unit_of(spec: SensorSpec, opts: dict):
+def unit_of(spec: SensorSpec, camera: Camera, opts: dict):
     """(the spec rendered, its camera, the effects, the Profile or None) of validated
-    options: with a profile, the unit's (module doc)."""
+    options: without a profile the spec and camera handed in, as they are
+    (``scenes.renderers``' contract); with one, the unit's (module doc)."""
     if opts["profile"] is None:
-        return spec, Camera.from_spec(spec), opts["effects"], None
+        return spec, camera, opts["effects"], None
     from scenes.profile import load_profile
 
     from .profiled import profile_effects, reference_spec
@@ -246,14 +247,16 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
     if opts["estimator"] == "photons" and not variant.startswith(("llvm_", "cuda_")):
         raise ValueError(f"option estimator: photons needs a vectorised (llvm_ or cuda_) Mitsuba variant, got "
                          f"{variant}; apt-get install libllvm19, or use estimator volpath")
-    spec, camera, effects, profile = unit_of(spec, opts)
+    spec, camera, effects, profile = unit_of(spec, camera, opts)
     power = _led_power(spec, opts)  # checked before any work
     frame_opts = {k: v for k, v in opts.items() if k not in ("target_rse", "effect_settings", "profile")
                   and not (k == "led_power" and v is None)}  # the LEDs' own powers: the keys frames had before
     frame_opts["effects"] = effects.to_dict()  # the frame has every pass; the unit's spec is in the key
     frame_opts["per_source"] = profile is not None
+    own = camera == Camera.from_spec(spec)  # the spec's camera is in the spec: keys as before
     key = make_key(FRAME_VERSION, CACHE_VERSION, CAMERA_PASS_VERSION, variant, dataclasses.asdict(spec),
-                   np.asarray(mesh.vertices), np.asarray(mesh.faces), frame_opts)
+                   np.asarray(mesh.vertices), np.asarray(mesh.faces), frame_opts,
+                   *([] if own else [dataclasses.asdict(camera)]))
     width, height = opts["film"]
 
     def build():
@@ -306,7 +309,7 @@ def prepare(spec: SensorSpec, mesh, camera: Camera, options: dict) -> dict:
     inputs = _shared(spec, mesh, camera, opts)
     width, height = opts["film"]
     photons = opts["estimator"] == "photons"  # only it takes the frame as a control
-    unit, _, effects, profile = unit_of(spec, opts)
+    unit, _, effects, profile = unit_of(spec, camera, opts)
     if profile is not None:
         from .scene import led_sources
 
@@ -360,7 +363,7 @@ class PbrDatasetRenderer:
 
     def __init__(self, spec: SensorSpec, mesh, camera: Camera, ref_depth: np.ndarray, opts: dict, inputs: dict):
         self.ref_depth = check_depth(np.asarray(ref_depth), camera, "ref_depth")
-        spec, camera, self.effects, self.profile = unit_of(spec, opts)  # with a profile, the unit's
+        spec, camera, self.effects, self.profile = unit_of(spec, camera, opts)  # with a profile, the unit's
         self.spec, self.mesh, self.camera, self.opts = spec, mesh, camera, opts
         self.led_power = _led_power(spec, opts)
         if self.profile is not None:

@@ -16,6 +16,14 @@ A plugin is usually a module (``phong_reference.plugin``, ``pbr_tactile.plugin``
 - ``make_renderer(spec, mesh, camera, ref_depth, options)``, run once per worker process:
   a ``DatasetRenderer``.
 
+**The contract.** A plugin renders with the spec, the mesh and the camera it is handed,
+as they are: it never swaps in a camera of its own (``Camera.from_spec``), nor re-derives
+the spec. A unit's profile (option ``profile``) is applied once per process, where the
+plugin reads its options, and the unit's spec and camera are then the ones its renders
+use (``phong_reference.plugin.unit_spec``, ``pbr_tactile.plugin.unit_of``). Tested:
+``tests/test_renderers.py`` and ``tests/test_pbr_dataset.py`` hand each renderer a camera
+whose image circle is not the spec's, and each draws that circle.
+
 Optional parts are protocols of their own, so that ``isinstance`` says whether a plugin
 offers one (a runtime-checkable protocol checks that the members are there, and not None):
 

@@ -247,6 +247,24 @@ def test_a_contact_reaches_a_loose_target_from_shared_deposits(monkeypatch, tmp_
     assert np.array_equal(renderer.render(ref), background)
 
 
+def test_the_reference_renders_with_the_camera_it_is_handed(prepared, spec, mesh, camera, ref):
+    """No profile: the renderer keeps the camera it is handed (``scenes.renderers``'
+    contract), here one whose image circle is not the spec's; before, it put the spec's
+    own camera in its place and drew the spec's circle."""
+    import dataclasses
+
+    from pbr_tactile import plugin
+
+    _, shared, _ = prepared
+    narrow = dataclasses.replace(camera, mask_radius_px=camera.mask_radius_px * 0.7)
+    ring = camera.mask & ~narrow.mask
+    handed = plugin.make_renderer(spec, mesh, narrow, ref, OPTIONS, shared=shared)
+    own = plugin.make_renderer(spec, mesh, camera, ref, OPTIONS, shared=shared)
+    assert handed.camera is narrow and handed.spec is spec
+    assert own.no_contact[ring].any() and not handed.no_contact[ring].any()
+    assert np.array_equal(handed.no_contact[narrow.mask], own.no_contact[narrow.mask])
+
+
 def test_resuming_with_other_settings_is_refused(monkeypatch, tmp_path, prepared, spec, mesh, camera):
     from pbr_tactile import plugin
     from scenes.dataset import DatasetError, DatasetWriter

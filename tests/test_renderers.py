@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from scenes.renderers import (
@@ -111,3 +112,28 @@ def test_a_job_takes_the_plugins_make_renderer_not_the_plugin(spec):
                                          "<module 'phong_reference.plugin'"):
         Job(spec, phong_reference.plugin, {}, ("sphere",))
 
+
+
+# --- the contract: a renderer uses the spec and camera it is handed --------------------------
+
+def _narrower(camera):
+    """The camera with its image circle at 0.7 of its radius: not the spec's own."""
+    import dataclasses
+
+    return dataclasses.replace(camera, mask_radius_px=camera.mask_radius_px * 0.7)
+
+
+def test_the_fast_path_renders_with_the_camera_it_is_handed(spec, mesh, camera, ref):
+    """No profile: the image is the handed camera's, its circle included (the spec's own
+    camera would light the ring between the two circles)."""
+    from phong_reference import plugin
+
+    narrow = _narrower(camera)
+    ring = camera.mask & ~narrow.mask
+    images = {}
+    for handed in (camera, narrow):
+        plugin.prepare(spec, mesh, handed, {})
+        images[handed is narrow] = plugin.make_renderer(spec, mesh, handed, ref, {}).no_contact
+    assert images[True].shape == narrow.shape + (3,)
+    assert images[False][ring].any() and not images[True][ring].any()
+    assert np.array_equal(images[True][narrow.mask], images[False][narrow.mask])
