@@ -18,9 +18,11 @@ A plugin is usually a module (``phong_reference.plugin``, ``pbr_tactile.plugin``
 
 **The contract.** A plugin renders with the spec, the mesh and the camera it is handed,
 as they are: it never swaps in a camera of its own (``Camera.from_spec``), nor re-derives
-the spec. A unit's profile (option ``profile``) is applied once per process, where the
-plugin reads its options, and the unit's spec and camera are then the ones its renders
-use (``phong_reference.plugin.unit_spec``, ``pbr_tactile.plugin.unit_of``). Tested:
+the spec. A unit's profile (option ``profile``) is still applied by each plugin from its
+options (``phong_reference.plugin.unit_spec``, ``pbr_tactile.plugin.unit_of``), in each
+of ``prepare``, ``shared`` and ``make_renderer``, and then the unit's spec and camera are
+the ones its renders use; applying it once, where the spec is resolved, and handing the
+plugins the result is the contract's next step (issue 75). Tested:
 ``tests/test_renderers.py`` and ``tests/test_pbr_dataset.py`` hand each renderer a camera
 whose image circle is not the spec's, and each draws that circle.
 
