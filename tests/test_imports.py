@@ -4,6 +4,7 @@ imports: only the command-line layer looks a renderer up by name, and the fast p
 bakers are imported by code, not from strings."""
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -31,7 +32,10 @@ HEAVY = {
 }
 
 
-def _imports(path: Path) -> set[str]:
+@functools.lru_cache(maxsize=None)
+def _imports(path: Path) -> frozenset[str]:
+    """The top-level names of the modules ``path`` imports (parsed once: the checks below
+    ask again for every library)."""
     tree = ast.parse(path.read_text(), str(path))
     names = set()
     for node in ast.walk(tree):
@@ -39,7 +43,7 @@ def _imports(path: Path) -> set[str]:
             names |= {a.name.split(".")[0] for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             names.add(node.module.split(".")[0])
-    return names
+    return frozenset(names)
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
