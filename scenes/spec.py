@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import PROJECTIONS
 from .shapes import TABLE_KEYS, family
 
 #: The shipped sensors' folder, and the default: the published simulation's GelTip.

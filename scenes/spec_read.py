@@ -8,7 +8,6 @@ camera's lens through ``scenes.camera``; both sit below this module.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tomllib
 from pathlib import Path
@@ -40,28 +39,17 @@ def _take(table: dict, key: str, kind, where: str, default=dataclasses.MISSING):
     return value
 
 
-def _vec3(table: dict, key: str, where: str) -> tuple[float, float, float]:
+def _vector(table: dict, key: str, where: str, n: int) -> tuple[float, ...]:
+    """``table[key]`` as a tuple of ``n`` finite numbers; ValueError naming it otherwise."""
     value = table.get(key)
     if (
         not isinstance(value, list)
-        or len(value) != 3
+        or len(value) != n
         or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
         or not all(math.isfinite(v) for v in value)
     ):
-        raise ValueError(f"{where}.{key} must be a list of 3 finite numbers, got {value!r}")
+        raise ValueError(f"{where}.{key} must be a list of {n} finite numbers, got {value!r}")
     return tuple(float(v) for v in value)
-
-
-def _vec2(table: dict, key: str, where: str) -> tuple[float, float]:
-    value = table.get(key)
-    if (
-        not isinstance(value, list)
-        or len(value) != 2
-        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
-        or not all(math.isfinite(v) for v in value)
-    ):
-        raise ValueError(f"{where}.{key} must be a list of 2 finite numbers, got {value!r}")
-    return (float(value[0]), float(value[1]))
 
 
 def _positive(value: float, name: str) -> float:
@@ -97,11 +85,11 @@ def spec_from_dict(data: dict, source: str = "<dict>") -> SensorSpec:
             if t["group"] not in group_names:
                 raise ValueError(f"{where}.group {t['group']!r} names no [[led_groups]] table")
             continue
-        direction = np.asarray(_vec3(t, "direction", where))
+        direction = np.asarray(_vector(t, "direction", where, 3))
         norm = float(np.linalg.norm(direction))
         if norm < 1e-9:
             raise ValueError(f"{where}.direction must be non-zero")
-        leds.append(LED(name=_take(t, "name", str, where, f"led{i}"), position=_vec3(t, "position", where),
+        leds.append(LED(name=_take(t, "name", str, where, f"led{i}"), position=_vector(t, "position", where, 3),
                         direction=tuple(float(v) for v in direction / norm), **_optics(t, where)))
         if max(abs(v) for v in leds[-1].position) > MAX_SENSOR_SIZE_M:
             raise ValueError(f"{where}.position {leds[-1].position} looks like millimetres; use metres")
@@ -186,7 +174,8 @@ def _membrane(m: dict, where: str) -> MembraneSpec:
                          f"{shape.NAME!r} membrane, which takes its size from {shape.SIZE_FROM} and its core from "
                          f"{shape.CORE_FROM}")
     lo_hi = m.get("thickness_bounds", list(THICKNESS_BOUNDS_M))
-    bounds = _vec2({"thickness_bounds": list(lo_hi) if isinstance(lo_hi, tuple) else lo_hi}, "thickness_bounds", where)
+    table = {"thickness_bounds": list(lo_hi) if isinstance(lo_hi, tuple) else lo_hi}
+    bounds = _vector(table, "thickness_bounds", where, 2)
     if not 0 < bounds[0] < bounds[1] <= MAX_SENSOR_SIZE_M:
         raise ValueError(f"{where}.thickness_bounds must be [min, max] metres with 0 < min < max, got {list(bounds)}")
     transform = m.get("mesh_transform")
@@ -271,13 +260,13 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
         height=_take(c, "height", int, where, 480),
         fov_y=_take(c, "fov_y", float, where, math.pi / 2),
         mask_radius_px=_take(c, "mask_radius_px", float, where, 240.0),
-        mask_center_px=_vec2(c, "mask_center_px", where) if c.get("mask_center_px") is not None else None,
-        principal_point_px=(_vec2(c, "principal_point_px", where) if c.get("principal_point_px") is not None
+        mask_center_px=_vector(c, "mask_center_px", where, 2) if c.get("mask_center_px") is not None else None,
+        principal_point_px=(_vector(c, "principal_point_px", where, 2) if c.get("principal_point_px") is not None
                             else None),
-        distortion=_vec2(c, "distortion", where) if c.get("distortion") is not None else (0.0, 0.0),
+        distortion=_vector(c, "distortion", where, 2) if c.get("distortion") is not None else (0.0, 0.0),
         projection=_take(c, "projection", str, where, "pinhole"),
-        offset_m=_vec2(c, "offset_m", where) if c.get("offset_m") is not None else (0.0, 0.0),
-        tilt_rad=_vec2(c, "tilt_rad", where) if c.get("tilt_rad") is not None else (0.0, 0.0),
+        offset_m=_vector(c, "offset_m", where, 2) if c.get("offset_m") is not None else (0.0, 0.0),
+        tilt_rad=_vector(c, "tilt_rad", where, 2) if c.get("tilt_rad") is not None else (0.0, 0.0),
     )
     if camera.width < 2 or camera.height < 2:
         raise ValueError(f"{where} must be at least 2x2 px, got {camera.width}x{camera.height}")
@@ -326,7 +315,7 @@ def _camera(c: dict, where: str, membrane: MembraneSpec) -> CameraSpec:
 
 def _optics(t: dict, where: str) -> dict:
     """An LED's (or an LED group's) colour, Phong constants and emission spectrum."""
-    colour = _vec3(t, "colour", where)
+    colour = _vector(t, "colour", where, 3)
     if not all(0.0 <= v <= 1.0 for v in colour):
         raise ValueError(f"{where}.colour must be linear RGB in [0, 1], got {colour}")
     out = {"colour": colour, "k_d": _take(t, "k_d", float, where), "k_s": _take(t, "k_s", float, where),
