@@ -17,7 +17,6 @@ import numpy as np
 from .elastic import MODELS
 from .protocol import make_protocol
 from .renderers import RENDERER_OPTIONS
-from .settings import name_values
 from .spec_read import load_spec
 
 

@@ -8,10 +8,10 @@ effect trade many small errors for a few large ones and win the fit while losing
 judgement). Fits start from the best of a few starting points (``studies.gap.starts``):
 closed-form ones where the effect is linear in its parameters for a fixed exponent (the
 colour matrix per gamma, vignetting coefficients), registration for shifts and rotations,
-small grids where the loss has several basins. A fit that leaves most of the training gap without
-having moved from its start (a kink or flat spot where finite-difference gradients
-mislead L-BFGS-B) probes a step either side of it along each parameter and restarts
-from the best probe, and its status says so. A fit's parameters get bootstrap intervals
+small grids where the loss has several basins. A fit that leaves most of the training
+gap without having moved from its start (a kink or flat spot where finite-difference
+gradients mislead L-BFGS-B) probes a step either side of it along each parameter and
+restarts from the best probe, and its status says so. A fit's parameters get bootstrap intervals
 over the training samples (``Fitter.intervals``).
 """
 
@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
-from . import effects as fx
 from .pairs import Pairs
 from .samples import areas_at, fit_subset
 
