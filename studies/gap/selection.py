@@ -76,9 +76,8 @@ def singles(effects: tuple[str, ...], fit_effects, judge, unjudged, model, progr
             continue
         fits[name] = fit_effects((name,))
         step(name)
-    left_out = {}
-    if deferred and len(deferred) > keep:
-        screens = {}
+    screens, left = {}, {}
+    if deferred and len(deferred) > keep:  # screened first; only the best there are fitted fully
         for name in deferred:
             screens[name] = screen((name,))
             screens[name].status["screen"] = {"taps": int(model.screen_taps), "train_loss": screens[name].train_loss,
@@ -86,23 +85,21 @@ def singles(effects: tuple[str, ...], fit_effects, judge, unjudged, model, progr
             if progress is not None:
                 progress(done[0], steps, f"{name}, screened on {model.screen_taps} taps")
         left = {n: f.train_loss / max(f.train_loss_before, 1e-30) for n, f in screens.items()}
-        order = sorted(deferred, key=left.get)
-        for name in deferred:
-            if name in order[:keep]:
-                fits[name] = fit_effects((name,))
-                fits[name].status["screen"] = screens[name].status["screen"]
-            else:
-                fits[name] = screens[name]
-                left_out[name] = (f"not judged on the held-out samples: fitted on {model.screen_taps} of the fit's "
-                                  f"taps only, it left {left[name]:.1%} of their training loss, not among the "
-                                  f"{keep} lowest of the re-rendered candidates traced again "
-                                  f"({', '.join(order[:keep])}), which alone were fitted on every fit tap; judging "
-                                  f"one renders every held-out tap")
-            step(name)
-    else:
-        for name in deferred:
+    survivors = sorted(deferred, key=left.get)[:keep] if screens else deferred
+    left_out = {}
+    for name in deferred:
+        if name in survivors:
             fits[name] = fit_effects((name,))
-            step(name)
+            if name in screens:
+                fits[name].status["screen"] = screens[name].status["screen"]
+        else:
+            fits[name] = screens[name]
+            left_out[name] = (f"not judged on the held-out samples: fitted on {model.screen_taps} of the fit's "
+                              f"taps only, it left {left[name]:.1%} of their training loss, not among the "
+                              f"{keep} lowest of the re-rendered candidates traced again "
+                              f"({', '.join(survivors)}), which alone were fitted on every fit tap; judging "
+                              f"one renders every held-out tap")
+        step(name)
     left_out = left_out or screened(fits, model)
     for name in effects:
         # SSIM (most of a judgement's time) only for those that explain part of the gap
