@@ -164,6 +164,7 @@ def test_a_press_on_the_geltip_s_curved_membrane():
     assert near > further and near > 20e-6
 
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_a_ball_s_depth_from_its_elastic_contact():
     from scenes.elastic_solid import DEPTH_SHARES, ball_contact_radius, ball_depth_for_contact
 

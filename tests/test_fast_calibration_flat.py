@@ -68,6 +68,7 @@ def _profile(spec, phong=None):
                    phong={"ambient": 1.0, "background": table, **(phong or {})})
 
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_the_calibration_finds_hidden_led_places_spread_and_constants(flat):
     """Taps rendered by the fast path (linear field) with the LEDs 8 and 4 mm lower and
     farther out, the dent's spread halved and constants of its own: the calibration,

@@ -221,6 +221,7 @@ def test_the_layer_holds_the_pads_rim_so_a_press_near_it_builds_a_closed_solid(g
     assert np.all(result.displacement[rim] == 0.0)
 
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_the_demo_renders_the_flat_sensor(tmp_path, session_env, capsys):
     from scenes.cli import main
 

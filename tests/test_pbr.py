@@ -149,6 +149,7 @@ def test_spectra_and_effects():
         Effects(absorption_per_m=-1.0)
 
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_each_led_can_have_its_own_power_and_the_image_is_linear_in_it(monkeypatch, mesh, spec, camera):
     """A unit's LEDs of another bin: each LED's power scales its light and its leak's, and
     nothing else (the light pass is per unit flux); the reference passes it to the

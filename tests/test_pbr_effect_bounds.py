@@ -77,6 +77,7 @@ def test_each_effect_at_its_bounds_renders_or_is_refused_by_name(tiny_render, na
     assert np.isfinite(est.mean).all() and (est.variance >= 0).all()
 
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_all_led_power_into_the_core_renders_with_photons(mesh, spec, camera):
     """core_light_leak = 1: only the leak emitters in the glass (the LEDs in the
     elastomer have no power left and are left out), with the default estimator."""

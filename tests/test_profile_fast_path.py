@@ -246,6 +246,7 @@ def test_alignment_moved_is_what_sampling_inverts(camera):
 
 # -- the fast path's LED constants from taps ---------------------------------------------------
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_fast_path_led_constants_are_recovered_from_its_own_taps(spec, camera, contact):
     import trimesh
 

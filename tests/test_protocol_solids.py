@@ -24,6 +24,7 @@ def base(spec, mesh, mujoco_gl):
     return base_protocol(spec, mesh, INDENTERS)
 
 
+@pytest.mark.slow  # 15 to 22 s alone on 2 cores
 def test_base_protocol_taps_build_sound_solids(spec, base):
     from pbr_tactile.protocol_check import check_protocol
 
