@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +38,26 @@ def mujoco_gl():
     except GLPlatformError as exc:
         pytest.skip(str(exc))
     return pytest.importorskip("mujoco", reason="MuJoCo is not installed (pip install '.[mujoco]')")
+
+
+@pytest.fixture(autouse=True)
+def _variant_kept():
+    """Every test leaves Mitsuba's variant as it found it. The variant is global, and a render
+    asked for on another one (``reference(variant="scalar_spectral")``) leaves that one set:
+    the session's ``photon_mi`` tests after it would run on a scalar variant, which the
+    photon pass refuses."""
+    before = _mitsuba_variant()
+    yield
+    if before is not None and _mitsuba_variant() != before:
+        import mitsuba as mi
+
+        mi.set_variant(before)
+
+
+def _mitsuba_variant():
+    """Mitsuba's variant where Mitsuba is imported already, else None (imports nothing)."""
+    mi = sys.modules.get("mitsuba")
+    return mi.variant() if mi is not None else None
 
 
 @pytest.fixture(scope="session")
