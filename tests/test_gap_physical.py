@@ -264,7 +264,8 @@ def pairs_of(spec, scene, real: np.ndarray, sim: np.ndarray, **effects) -> Pairs
                  records, real.astype(np.float32), sim.astype(np.float32), depth, spec)
 
 
-@pytest.mark.parametrize("hidden, value, name", [({"core_light_leak": {"fraction": 0.3}}, 0.3, "core_light_leak"),
+@pytest.mark.parametrize("hidden, value, name", [pytest.param({"core_light_leak": {"fraction": 0.3}}, 0.3,
+                                                              "core_light_leak", marks=pytest.mark.slow),
                                                  ({"absorption_per_m": {"value": 60.0}}, 60.0, "absorption_per_m"),
                                                  ({"core_light_leak": {"fraction": 0.3, "exposure": 1.06}}, 0.3,
                                                   "core_light_leak")])
@@ -290,7 +291,8 @@ def test_the_diagnosis_names_the_hidden_physical_effect(spec, scene, stub, hidde
 
 @pytest.mark.parametrize("hidden, first", [({"core_leak_cone_rad": {"value": 0.3, "fraction": 0.3}},
                                              "core_leak_cone_rad"),
-                                            ({"core_light_leak": {"fraction": 0.3}}, "core_light_leak")])
+                                            pytest.param({"core_light_leak": {"fraction": 0.3}}, "core_light_leak",
+                                                         marks=pytest.mark.slow)])
 def test_a_leak_aimed_up_the_tube_is_a_candidate_though_the_simulation_has_no_leak(spec, scene, stub, hidden, first):
     """Without a leak in the simulation the leak's cone has nothing to shape, so it is
     fitted with a fraction of its own: it finds a hidden cone, and a plain leak (its cone
