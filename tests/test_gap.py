@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenes.camera import reference_depth
+from scenes.camera import Camera, reference_depth
 from scenes.cli import main
 from scenes.contact import press
 from scenes.dataset import DatasetError, DatasetWriter, write_sample_files
@@ -20,7 +20,7 @@ from studies.gap import metrics
 from studies.gap.benchmark import score
 from studies.gap.model import FastModel
 from studies.gap.pairs import load_pairs, split
-from studies.gap.regions import REGIONS
+from studies.gap.regions import region_names
 from studies.gap.report import headline
 
 PROTOCOL = {"name": "test", "taps": 16}
@@ -413,6 +413,25 @@ def test_pairs_refuse_bad_datasets(tmp_path, spec, sim_dir, sim_images):
         load_pairs(tmp_path / "nowhere", sim_dir)
 
 
+@pytest.mark.parametrize("sensor, names", [("geltip", ("tip", "body", "near_leds")),
+                                           ("gelsight", ("centre", "rim", "near_leds"))])
+def test_the_gap_is_split_into_the_sensors_own_regions(sensor, names):
+    """The GelTip's gap by tip, body and near the LEDs; the flat GelSight's by its pad's
+    centre and rim, never a tip. The area near the LEDs is the third of the family's last
+    region nearest an LED; the regions split the image circle."""
+    from scenes.spec_read import load_spec
+    from studies.gap.regions import region_labels
+
+    spec = load_spec(Path(__file__).resolve().parents[1] / "scenes" / "sensors" / f"{sensor}.toml")
+    spec = spec.at_resolution(160, 120)
+    labels = region_labels(spec)
+    assert tuple(labels) == region_names(spec) == names
+    masks = np.array(list(labels.values()))
+    assert np.array_equal(masks.sum(axis=0), Camera.from_spec(spec).mask.astype(int))
+    last = labels[names[1]] | labels["near_leds"]
+    assert labels["near_leds"].sum() == pytest.approx(last.sum() / 3, abs=0.02 * last.sum())
+
+
 def test_split_is_stratified_and_refuses_an_empty_side(tmp_path, spec, sim_images, contacts):
     one = write_dataset(tmp_path / "one", "sim", spec, sim_images[:1], contacts[:1])
     pairs = load_pairs(one, one)
@@ -448,8 +467,10 @@ def test_diagnosis_names_a_hidden_effect(tmp_path, spec, injector, contacts, sim
     assert report["explained"]["share_closed"]["masked"] > 0.5
     # held-out samples are judged per region too: a contact effect closes where contacts are
     closed = report["explained"]["share_closed"]
-    assert set(REGIONS) <= set(closed) and max(closed[r] for r in REGIONS) > 0.5
-    assert set(REGIONS) <= set(report["gap"]["heldout"])
+    names = region_names(spec)  # the GelTip's: its tip, its body, near the LEDs
+    assert names == ("tip", "body", "near_leds")
+    assert set(names) <= set(closed) and max(closed[r] for r in names) > 0.5
+    assert set(names) <= set(report["gap"]["heldout"])
     assert set(report["effects"]) == set(fx.EFFECTS)
     html = (tmp_path / "report" / "report.html").read_text()
     assert hidden in html and "Which effect causes it" in html and "gap closed per region" in html

@@ -29,12 +29,44 @@ def test_every_family_is_registered_once_by_its_name():
         module = family(name)
         assert module.NAME == name and module.__name__ == f"scenes.shapes.{name}"
         missing = [m for m in MEMBERS if not hasattr(module, m)]
-        assert len(MEMBERS) == 11 and "mesh" in MEMBERS and "PUBLISHED" in MEMBERS
+        assert len(MEMBERS) == 13 and "mesh" in MEMBERS and "regions" in MEMBERS and "PUBLISHED" in MEMBERS
         assert not missing, f"family {name!r} lacks {missing}"
     assert set(shapes.ANALYTIC) <= set(shapes.FAMILIES)
     # Each [membrane] key that one family alone takes belongs to exactly one.
     assert shapes.TABLE_KEYS == {"radius": "capsule", "cylinder_length": "capsule", "core_radius": "capsule",
                                  "mesh_path": "mesh", "core_mesh_path": "mesh", "mesh_transform": "mesh"}
+
+
+@pytest.mark.parametrize("sensor, names", [("geltip", ("tip", "body")), ("thumb", ("tip", "body")),
+                                           ("paw", ("tip", "body")), ("gelsight", ("centre", "rim"))])
+def test_each_family_splits_the_image_circle_into_its_own_regions(sensor, names):
+    """A finger's tip and body, a flat pad's centre and rim: disjoint, filling the image
+    circle. The capsule's tip is what lies beyond its junction; a derived finger's is its
+    farthest fifth along the axis; the pad's centre is the half nearest the camera's axis,
+    and it has no tip."""
+    from scenes.camera import Camera, reference_depth
+    from scenes.shapes.interface import CENTRE_SHARE, TIP_SHARE
+
+    spec = load_spec(SENSORS / f"{sensor}.toml").at_resolution(160, 120)
+    camera = Camera.from_spec(spec)
+    points = reference_depth(membrane_mesh(spec), camera)[0][..., None] * camera.rays
+    inside = camera.mask
+    f = family(spec.membrane.shape)
+    regions = f.regions(spec.membrane, points, inside)
+    assert f.REGIONS == names and tuple(regions) == names
+    first, rest = (regions[n] for n in names)
+    assert not (first & rest).any() and np.array_equal(first | rest, inside) and first.any() and rest.any()
+    z, off_axis = points[..., 2], np.hypot(points[..., 0], points[..., 1])
+    tube = f.tube(spec.membrane)
+    if names[0] == "tip" and tube is not None:
+        assert np.array_equal(first, inside & (z >= tube.junction_z))
+    elif names[0] == "tip":
+        assert first.sum() / inside.sum() == pytest.approx(TIP_SHARE, abs=0.02)
+        assert z[first].min() >= z[rest].max()
+    else:
+        assert first.sum() / inside.sum() == pytest.approx(CENTRE_SHARE, abs=0.02)
+        assert off_axis[first].max() <= off_axis[rest].min()
+    assert set(shapes.REGIONS) == {"tip", "body", "centre", "rim"}
 
 
 @pytest.mark.parametrize("name", ["bone", "", None, 3, "Capsule"])

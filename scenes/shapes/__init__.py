@@ -32,6 +32,8 @@ from .form import GRID, Diagnosis, check_form, diagnose_form, form_curvatures
 #: Every family by its name (``membrane.shape``), in the order messages list them.
 _REGISTRY = {f.NAME: f for f in (capsule, thumb, paw, pad, mesh)}
 FAMILIES = tuple(_REGISTRY)
+#: Every family's image regions (``Family.REGIONS``), each once, in the order messages list them.
+REGIONS = tuple(dict.fromkeys(name for f in _REGISTRY.values() for name in f.REGIONS))
 #: The [membrane] table's keys that one family alone takes -> that family's name.
 TABLE_KEYS = {key: f.NAME for f in _REGISTRY.values() for key in f.TABLE_KEYS}
 #: The families generated from an analytic form (``scenes.shapes.form``), and their

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 import numpy as np
 import trimesh
 
-from .interface import Tube, no_params
+from .interface import Tube, no_params, tip_and_body
 from .form import ARC_POINTS, GRID, Form, check_form, mesh_arguments
 from .params import Parameters
 from .revolve import revolve
@@ -29,6 +29,7 @@ CORE_FROM = "core_radius"
 SEATED = True
 FILLS_VIEW = False
 PUBLISHED = True
+REGIONS = ("tip", "body")
 
 DEFAULTS: dict[str, float] = {
     #: m, radius of the cylinder and of its hemispherical tip
@@ -105,3 +106,8 @@ def mesh(membrane) -> trimesh.Trimesh:
     """The membrane's outer surface in the tube frame, metres (cylinder + hemispherical tip),
     triangles of edge about ``membrane.mesh_edge``."""
     return revolve(profile(membrane.radius, membrane.cylinder_length, membrane.base_z), membrane.mesh_edge)
+
+
+def regions(membrane, points: np.ndarray, inside: np.ndarray) -> dict[str, np.ndarray]:
+    """The tip, beyond the cylinder's junction with the hemisphere, and the body below it."""
+    return tip_and_body(points, inside, tube(membrane).junction_z)

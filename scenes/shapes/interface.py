@@ -15,6 +15,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
+import numpy as np
 import trimesh
 
 
@@ -67,6 +68,16 @@ class Family(Protocol):
     #: contacts and its published depth maps and images apply to it.
     PUBLISHED: bool
 
+    #: The parts of the image the gap study reports the gap in, this family's own (the area
+    #: near the LEDs, every family's, is carved out of the last): a finger's tip and body, a
+    #: flat pad's centre and rim.
+    REGIONS: tuple[str, ...]
+
+    def regions(self, membrane, points: np.ndarray, inside: np.ndarray) -> dict[str, np.ndarray]:
+        """Boolean (H, W) masks named ``REGIONS`` that split ``inside`` (the image circle)
+        between them, from ``points`` (H, W, 3): the undeformed membrane's point seen at
+        each pixel, camera frame, metres."""
+
     def membrane_params(self, params: Mapping[str, float], where: str) -> dict[str, float]:
         """The spec's ``[membrane.params]``, filled with defaults and checked; ValueError naming
         ``where`` for a family that takes none and is given some."""
@@ -86,6 +97,31 @@ class Family(Protocol):
 
 #: Every name a family's module defines: Family's constants and functions.
 MEMBERS = tuple(Family.__annotations__) + tuple(n for n, v in vars(Family).items() if callable(v) and n[0] != "_")
+
+
+#: A finger without a closed-form tip: its tip is this top share of the visible membrane
+#: along the sensor's axis.
+TIP_SHARE = 0.2
+#: A flat pad's centre: this share of the visible membrane nearest the camera's axis.
+CENTRE_SHARE = 0.5
+
+
+def tip_and_body(points: np.ndarray, inside: np.ndarray, start_z: float | None = None) -> dict[str, np.ndarray]:
+    """A finger's ``regions``: its tip, where the membrane seen lies at or beyond
+    ``start_z`` along the axis (None: the top ``TIP_SHARE`` of the visible membrane), and its
+    body, the rest of ``inside``."""
+    z = points[..., 2]
+    start = np.quantile(z[inside], 1.0 - TIP_SHARE) if start_z is None else start_z
+    tip = inside & (z >= start)
+    return {"tip": tip, "body": inside & ~tip}
+
+
+def centre_and_rim(points: np.ndarray, inside: np.ndarray) -> dict[str, np.ndarray]:
+    """A flat pad's ``regions``: its centre, the ``CENTRE_SHARE`` of the visible membrane
+    nearest the camera's axis, and its rim, the rest of ``inside``."""
+    off_axis = np.hypot(points[..., 0], points[..., 1])
+    centre = inside & (off_axis <= np.quantile(off_axis[inside], CENTRE_SHARE))
+    return {"centre": centre, "rim": inside & ~centre}
 
 
 def no_params(params: Mapping[str, float], family: str, size_from: str, where: str) -> dict[str, float]:

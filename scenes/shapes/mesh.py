@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .interface import needs_thickness, no_params
+from .interface import needs_thickness, no_params, tip_and_body
 
 NAME = "mesh"
 TABLE_KEYS = ("mesh_path", "core_mesh_path", "mesh_transform")
@@ -25,6 +25,7 @@ CORE_FROM = "thickness or core_mesh_path"
 SEATED = False
 FILLS_VIEW = False
 PUBLISHED = False
+REGIONS = ("tip", "body")
 
 #: A mesh whose largest extent exceeds this (in the file's units) is not in metres: no
 #: sensor is a metre across (the bound ``scenes.spec.MAX_SENSOR_SIZE_M`` puts on a spec's
@@ -162,3 +163,8 @@ def mesh(membrane) -> trimesh.Trimesh:
     if membrane.mesh_transform is not None:
         out.apply_transform(np.reshape(membrane.mesh_transform, (4, 4)))
     return check_membrane(out, f"membrane {membrane.mesh_path}")
+
+
+def regions(membrane, points: np.ndarray, inside: np.ndarray) -> dict[str, np.ndarray]:
+    """The tip (the top share of the visible membrane along the axis) and the body."""
+    return tip_and_body(points, inside)

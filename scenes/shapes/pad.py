@@ -27,7 +27,7 @@ from collections.abc import Mapping
 import numpy as np
 import trimesh
 
-from .interface import derived_core
+from .interface import centre_and_rim, derived_core
 from .params import Parameters
 from .revolve import revolve
 
@@ -38,6 +38,7 @@ CORE_FROM = "thickness"
 SEATED = True
 FILLS_VIEW = True
 PUBLISHED = False
+REGIONS = ("centre", "rim")
 
 DEFAULTS: dict[str, float] = {
     #: m, radius of the pad's rim (the disc the camera looks up at)
@@ -123,3 +124,8 @@ def shape_mesh(params: Mapping[str, float], base_z: float, edge: float) -> trime
 
 # The family's interface (``scenes.shapes.interface``): its core is derived.
 membrane_params, check, tube, mesh = derived_core(check_params, shape_mesh)
+
+
+def regions(membrane, points: np.ndarray, inside: np.ndarray) -> dict[str, np.ndarray]:
+    """The pad's centre, nearest the camera's axis, and its rim."""
+    return centre_and_rim(points, inside)

@@ -27,7 +27,7 @@ from collections.abc import Mapping
 import numpy as np
 import trimesh
 
-from .interface import derived_core
+from .interface import derived_core, tip_and_body
 from .form import Form, check_form, mesh_arguments, warped_mesh
 from .params import Parameters
 
@@ -38,6 +38,7 @@ CORE_FROM = "thickness"
 SEATED = True
 FILLS_VIEW = False
 PUBLISHED = False
+REGIONS = ("tip", "body")
 
 #: The paw's waist: its centre and half-length as shares of cylinder_length.
 WAIST_CENTRE = 0.55
@@ -143,3 +144,8 @@ def shape_mesh(params: Mapping[str, float], base_z: float, edge: float) -> trime
 
 # The family's interface (``scenes.shapes.interface``): its core is derived.
 membrane_params, check, tube, mesh = derived_core(check_params, shape_mesh)
+
+
+def regions(membrane, points: np.ndarray, inside: np.ndarray) -> dict[str, np.ndarray]:
+    """The tip (the top share of the visible membrane along the axis) and the body."""
+    return tip_and_body(points, inside)

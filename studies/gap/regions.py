@@ -1,11 +1,13 @@
 """Where the gap lies: per-pixel error maps and the error split by region, contact,
 colour channel and contact depth.
 
-Regions of the image circle come from the undeformed membrane seen at each pixel: the
-tip (beyond the cylinder's junction with the tip, or the farthest fifth of the visible
-membrane along the sensor axis for a mesh sensor), near the LEDs (the third of the rest
-closest to an LED) and the body (the remainder). A sample's contact area is where its
-depth map differs from D_ref, grown by the elastic smoothing's reach.
+Regions of the image circle come from the undeformed membrane seen at each pixel. Each
+shape family names its own (``scenes.shapes.interface.Family.regions``): a finger's tip
+(beyond the capsule's junction with its tip, else the farthest fifth of the visible
+membrane along the sensor axis) and body, a flat pad's centre and rim. The area near the
+LEDs (the third of the family's last region closest to an LED) is every family's. A
+sample's contact area is where its depth map differs from D_ref, grown by the elastic
+smoothing's reach.
 """
 
 from __future__ import annotations
@@ -16,38 +18,42 @@ from scipy import ndimage
 from scenes.camera import CONTACT_EPS_M, Camera, reference_depth
 from scenes.geometry import membrane_mesh
 from scenes.image_stats import bootstrap_interval
-from scenes.shapes import family
+from scenes.shapes import REGIONS as SHAPE_REGIONS, family
 from scenes.spec import SensorSpec
 
-REGIONS = ("tip", "body", "near_leds")
+#: Every region of every family, in the order reports list them (``region_names``: a sensor's).
+REGIONS = SHAPE_REGIONS + ("near_leds",)
 CHANNELS = ("red", "green", "blue")
 #: Contact depth bins, metres (lower edges; the last is open).
 DEPTH_BINS_M = (0.0, 0.5e-3, 1.0e-3, 1.5e-3, 2.5e-3, 4.0e-3)
 
 
+def region_names(spec: SensorSpec) -> tuple[str, ...]:
+    """The regions ``region_labels`` gives for ``spec``: its shape family's, then near_leds."""
+    return family(spec.membrane.shape).REGIONS + ("near_leds",)
+
+
 def region_labels(spec: SensorSpec, camera: Camera | None = None, ref: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Boolean (H, W) masks of the tip, the body and the area near the LEDs, within the
-    sensor's image circle."""
+    """Boolean (H, W) masks of ``region_names(spec)`` that split the sensor's image circle:
+    its shape family's regions, the area near the LEDs carved out of the last."""
     camera = Camera.from_spec(spec) if camera is None else camera
     if ref is None:
         ref = reference_depth(membrane_mesh(spec), camera)[0]
     P = ref[..., None] * camera.rays
     inside = camera.mask
-    z = P[..., 2]
-    tube = family(spec.membrane.shape).tube(spec.membrane)
-    if tube is not None:  # the tip starts at the tube's junction
-        junction = tube.junction_z
-    else:
-        junction = np.quantile(z[inside], 0.8)
-    tip = inside & (z >= junction)
-    rest = inside & ~tip
+    shape = family(spec.membrane.shape)
+    labels = dict(shape.regions(spec.membrane, P, inside))
+    last = shape.REGIONS[-1]
+    rest = labels[last]
     leds = np.array([led.position for led in spec.leds])
     distance = np.min(np.linalg.norm(P[..., None, :] - leds, axis=-1), axis=-1)
     if rest.any():
         near = rest & (distance <= np.quantile(distance[rest], 1 / 3))
     else:
         near = rest
-    return {"tip": tip, "body": rest & ~near, "near_leds": near}
+    labels[last] = rest & ~near
+    labels["near_leds"] = near
+    return labels
 
 
 def contact_masks(depth: np.ndarray, ref: np.ndarray, reach_px: int) -> np.ndarray:
@@ -88,7 +94,7 @@ def where(real: np.ndarray, sim: np.ndarray, depth: np.ndarray | None, records: 
     err = real.astype(np.float32) - sim
     n = len(err)
     out = {"regions": {}, "contact": {}, "channels": {}, "depth": {}}
-    for name in REGIONS:
+    for name in labels:
         out["regions"][name] = _area_stats(err, np.broadcast_to(labels[name], (n,) + labels[name].shape), seed)
         out["regions"][name]["pixels"] = int(labels[name].sum())
     if depth is not None:

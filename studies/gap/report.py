@@ -37,7 +37,7 @@ def figures(out: Path, report: dict, artefacts: dict) -> dict[str, str]:
     im = axes[0].imshow(np.where(mask, maps["mean_abs"].mean(-1), np.nan), cmap="magma")
     axes[0].set_title("mean |real - sim| (all channels)", fontsize=9)
     fig.colorbar(im, ax=axes[0], fraction=0.04)
-    for labels_name, colour in zip(REGIONS, ("#ffffff", "#00ffff", "#ffff00")):
+    for labels_name, colour in zip(artefacts["labels"], ("#ffffff", "#00ffff", "#ffff00", "#ff00ff")):
         axes[0].contour(artefacts["labels"][labels_name], levels=[0.5], colors=colour, linewidths=0.6)
     limit = float(np.nanmax(np.abs(maps["mean"][mask]))) or 1e-3
     for c, name in enumerate(CHANNELS):
@@ -288,7 +288,7 @@ def _contact_lines(report: dict, top: str) -> list[str]:
 
 def _by_region(share_closed: dict) -> str:
     """'12.0% at the tip, ...' of a share_closed entry's region scopes (empty if it has none)."""
-    return ", ".join(f"{share_closed[name] * 100:.1f}% {'at the' if name == 'tip' else 'in the'} "
+    return ", ".join(f"{share_closed[name] * 100:.1f}% {'in the' if name in ('body', 'near_leds') else 'at the'} "
                      f"{name.replace('_', ' ')}" for name in REGIONS if name in share_closed)
 
 
