@@ -69,13 +69,20 @@ def structure(spec, name: str):
         return spec.replace(camera=dataclasses.replace(spec.camera, fov_y=math.pi / 2))
     if not spec.led_groups:
         raise ValueError(f"structure {name!r} varies LED groups; sensor {spec.name!r} has none")
-    m = spec.membrane
     change = {
         "leds_in_elastomer": dict(ring_radius=PUBLISHED_RING_M[0], height=PUBLISHED_RING_M[1]),
-        "leds_under_wall": dict(ring_radius=m.core_radius - m.glass_wall / 2, height=m.base_z - 1e-3),
         "lambertian_leds": dict(beam_half_angle_rad=None),
         "point_leds": dict(count=1),
     }
+    if name == "leds_under_wall":  # under the glass tube's wall: a body known in closed form
+        from scenes.shapes import family
+
+        m = spec.membrane
+        tube = family(m.shape).tube(m)
+        if tube is None:
+            raise ValueError(f"structure 'leds_under_wall' seats the LEDs under the glass tube's wall; sensor "
+                             f"{spec.name!r}'s {m.shape!r} membrane has no tube known in closed form")
+        change[name] = dict(ring_radius=tube.core_radius - m.glass_wall / 2, height=tube.base_z - 1e-3)
     if name not in change:
         raise ValueError(f"unknown structure {name!r}; one of {', '.join(STRUCTURES)}")
     from scenes.spec_read import with_led_groups

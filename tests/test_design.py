@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -39,6 +40,9 @@ def test_sweeps_parse_and_bad_ones_are_refused_by_name(thumb):
         sweep.check_sweep(thumb, {"width": [np.nan]})
     with pytest.raises(ValueError, match="groups inside the tube"):
         sweep.check_sweep(load_spec(SENSORS / "geltip_2023.toml"), {"thickness": [0.002]})
+    read_whole = dataclasses.replace(thumb, membrane=dataclasses.replace(thumb.membrane, shape="mesh"))
+    with pytest.raises(ValueError, match="is a mesh file: only a shape family"):  # its family has no PARAMETERS
+        sweep.check_sweep(read_whole, {"thickness": [0.002]})
 
 
 def test_designs_seat_their_leds_on_their_own_membrane_and_impossible_ones_are_refused(thumb):

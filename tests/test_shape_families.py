@@ -1,5 +1,5 @@
 """Shape families (scenes.shapes): one registry, every family answering the same questions,
-and no code outside the capsule's module that asks whether a shape is a capsule."""
+and no code outside the families that compares a shape with a family's name."""
 
 import ast
 import dataclasses
@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SENSORS = ROOT / "scenes" / "sensors"
 #: Packages whose code must ask a shape's family rather than compare its name.
 PACKAGES = ("scenes", "phong_reference", "pbr_tactile", "rig", "studies")
-#: The one module that may name the capsule in a comparison: its own.
-CAPSULE_MODULE = "scenes/shapes/capsule.py"
+#: The one package that may name a family in a comparison: the families'.
+FAMILIES_PACKAGE = "scenes/shapes/"
 
 
 def test_every_family_is_registered_once_by_its_name():
@@ -29,7 +29,7 @@ def test_every_family_is_registered_once_by_its_name():
         module = family(name)
         assert module.NAME == name and module.__name__ == f"scenes.shapes.{name}"
         missing = [m for m in MEMBERS if not hasattr(module, m)]
-        assert len(MEMBERS) == 13 and "mesh" in MEMBERS and "regions" in MEMBERS and "PUBLISHED" in MEMBERS
+        assert len(MEMBERS) == 14 and "mesh" in MEMBERS and "regions" in MEMBERS and "PUBLISHED" in MEMBERS
         assert not missing, f"family {name!r} lacks {missing}"
     assert set(shapes.ANALYTIC) <= set(shapes.FAMILIES)
     # Each [membrane] key that one family alone takes belongs to exactly one.
@@ -125,33 +125,33 @@ def test_the_membrane_mesh_is_the_familys_seated():
     assert np.array_equal(membrane_mesh(spec).vertices, capsule.mesh(spec.membrane).vertices)
 
 
-def _capsule_comparisons(path: Path) -> list[int]:
-    """Lines of ``path`` that compare something with the string "capsule" (==, !=, in, not
-    in a literal tuple, list or set that holds it)."""
+def _family_comparisons(path: Path) -> list[int]:
+    """Lines of ``path`` that compare something with a family's name ("capsule", "mesh",
+    ...: ==, !=, in, not in a literal tuple, list or set that holds one)."""
 
-    def names_capsule(node) -> bool:
+    def names_family(node) -> bool:
         if isinstance(node, ast.Constant):
-            return node.value == "capsule"
+            return node.value in shapes.FAMILIES
         if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
-            return any(isinstance(e, ast.Constant) and e.value == "capsule" for e in node.elts)
+            return any(isinstance(e, ast.Constant) and e.value in shapes.FAMILIES for e in node.elts)
         return False
 
     lines = []
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Compare) and any(names_capsule(n) for n in [node.left, *node.comparators]):
+        if isinstance(node, ast.Compare) and any(names_family(n) for n in [node.left, *node.comparators]):
             lines.append(node.lineno)
-        elif isinstance(node, ast.match_case) and names_capsule(getattr(node.pattern, "value", None)):
+        elif isinstance(node, ast.match_case) and names_family(getattr(node.pattern, "value", None)):
             lines.append(node.pattern.lineno)
     return lines
 
 
-def test_no_module_but_the_capsules_compares_a_shape_with_capsule():
+def test_no_module_outside_the_families_compares_a_shape_with_a_familys_name():
     found = {}
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
             rel = str(path.relative_to(ROOT))
-            lines = _capsule_comparisons(path)
-            if lines and rel != CAPSULE_MODULE:
+            lines = _family_comparisons(path)
+            if lines and not rel.startswith(FAMILIES_PACKAGE):
                 found[rel] = lines
     assert not found, f"ask the shape's family (scenes.shapes.family) instead: {found}"
 
@@ -160,4 +160,4 @@ def test_the_scan_finds_a_comparison(tmp_path):
     path = tmp_path / "branchy.py"
     path.write_text('a = m.shape == "capsule"\nb = "capsule" != m.shape\nc = m.shape in ("pad", "capsule")\n'
                     'd = m.shape == "thumb"\nmatch m.shape:\n    case "capsule":\n        pass\n')
-    assert _capsule_comparisons(path) == [1, 2, 3, 6]
+    assert _family_comparisons(path) == [1, 2, 3, 4, 6]

@@ -68,6 +68,9 @@ class Family(Protocol):
     #: contacts and its published depth maps and images apply to it.
     PUBLISHED: bool
 
+    #: Its parameters' names, defaults, bounds and units (``scenes.shapes.params``), or
+    #: None for a shape read whole from a file (nothing of it can be varied).
+    PARAMETERS: object | None
     #: The parts of the image the gap study reports the gap in, this family's own (the area
     #: near the LEDs, every family's, is carved out of the last): a finger's tip and body, a
     #: flat pad's centre and rim.

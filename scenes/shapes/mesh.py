@@ -26,6 +26,8 @@ SEATED = False
 FILLS_VIEW = False
 PUBLISHED = False
 REGIONS = ("tip", "body")
+#: A mesh file has no parameters: nothing of its shape can be varied.
+PARAMETERS = None
 
 #: A mesh whose largest extent exceeds this (in the file's units) is not in metres: no
 #: sensor is a metre across (the bound ``scenes.spec.MAX_SENSOR_SIZE_M`` puts on a spec's

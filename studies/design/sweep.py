@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from scenes.shapes import DEFAULTS
+from scenes.shapes import DEFAULTS, family
 from scenes.spec import SensorSpec
 from scenes.spec_read import spec_from_dict
 
@@ -70,7 +70,7 @@ def check_sweep(spec: SensorSpec, sweep: Mapping[str, Sequence[float]]) -> dict[
     if spec.led_groups:
         raise ValueError(f"sensor {spec.name!r} lays its LEDs out in groups inside the tube ([[led_groups]]); the "
                          "fast path lights LEDs on the membrane, so its designs cannot be scored")
-    if spec.membrane.shape == "mesh":
+    if family(spec.membrane.shape).PARAMETERS is None:
         raise ValueError(f"sensor {spec.name!r} is a mesh file: only a shape family (scenes.shapes) has parameters "
                          f"to sweep, besides {', '.join(COMMON)}; sweep those, or describe the shape as a family")
     if not 1 <= len(sweep) <= MAX_PARAMETERS:
