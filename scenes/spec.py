@@ -92,11 +92,6 @@ class MembraneSpec:
         tube = family(self.shape).tube(self)
         return tube.thickness if tube is not None else self.thickness
 
-    @property
-    def tip_z(self) -> float:
-        """z of a capsule's tip apex in the tube frame, metres (``Tube.apex_z``)."""
-        return self.base_z + self.cylinder_length + self.radius
-
 
 #: The membrane's shape where a spec names none.
 DEFAULT_SHAPE = MembraneSpec.shape

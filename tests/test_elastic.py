@@ -20,6 +20,7 @@ from scenes.elastic import (
     penetration,
     solve_layer,
 )
+from scenes.shapes import family
 from scenes.spec import Elastic
 
 #: The plate's distance from the camera, metres, and its half-width.
@@ -148,7 +149,7 @@ def test_penetration_of_a_sphere_on_the_tip_matches_the_geometry(spec, mesh, cam
     apex = (camera.mask_cx or camera.cx, camera.mask_cy or camera.cy)
     depth = press(ref, camera, mesh, trimesh.primitives.Sphere(radius=r), apex, d)
     R = spec.membrane.radius
-    tip = np.array([0.0, 0.0, spec.membrane.tip_z - R])  # centre of the hemispherical tip
+    tip = np.array([0.0, 0.0, family(spec.membrane.shape).tube(spec.membrane).apex_z - R])  # centre of the hemispherical tip
     point, normal = surface_point(mesh, camera, apex)
     S = point - normal * (d - r)  # the indenter's centre
     layer = MembraneLayer(mesh, spec, camera)

@@ -17,6 +17,7 @@ from phong_reference.plane import PlaneBaker, bake_plane
 from phong_reference.sources import Sources, snap_leds
 from phong_reference.tangent import angle_deg
 from scenes.camera import SurfaceSamples, cast_rays
+from scenes.shapes import family
 from scenes.shapes.capsule import profile as capsule_profile
 from scenes.shapes.revolve import revolve
 
@@ -163,7 +164,7 @@ def test_geltip_unit_tangent_and_travel_over_the_tip(mesh, spec, small_camera):
         far = side < -0.001
         assert far.sum() > 1000 and (f[far, 2] < 0).all()
         # Past the apex, on the far side of the hemispherical tip.
-        apex = far & (samples.points[valid[m], 2] > spec.membrane.tip_z - spec.membrane.radius)
+        apex = far & (samples.points[valid[m], 2] > family(spec.membrane.shape).tube(spec.membrane).junction_z)
         assert apex.sum() > 100 and (f[apex, 2] < 0).all()
 
 

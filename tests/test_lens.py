@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from scenes.camera import (Camera, lens_angle, lens_radius, lens_resample, pinhole_view, project,
                            reference_depth)
+from scenes.shapes import family
 from scenes.spec import DEFAULT_SPEC_PATH
 from scenes.spec_read import spec_from_dict
 
@@ -76,7 +77,7 @@ def test_the_field_of_view_and_the_equidistant_fisheye(spec):
 def test_a_principal_point_off_the_frames_centre_moves_the_tube(spec):
     plain = Camera.from_spec(spec)
     moved = Camera.from_spec(_lens(spec, principal_point_px=(300.0, 250.0)).camera)
-    tip = np.array([0.0, 0.0, spec.membrane.tip_z])
+    tip = np.array([0.0, 0.0, family(spec.membrane.shape).tube(spec.membrane).apex_z])
     assert project(tip, plain) == pytest.approx([319.5, 239.5])
     assert project(tip, moved) == pytest.approx([300.0, 250.0])
     # the scaled camera keeps it, at pixel centres
@@ -247,10 +248,10 @@ def test_the_tube_is_seated_against_the_camera_as_the_spec_says(spec):
     ax, ay = tilt
     rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
     ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
-    apex = (rx @ ry).T @ (np.array([0.0, 0.0, spec.membrane.tip_z]) - [0.001, -0.0005, 0.0])
+    apex = (rx @ ry).T @ (np.array([0.0, 0.0, family(spec.membrane.shape).tube(spec.membrane).apex_z]) - [0.001, -0.0005, 0.0])
     top = np.asarray(plain.vertices)[np.argmax(np.asarray(plain.vertices)[:, 2])]
     moved = np.asarray(mesh.vertices)[np.argmax(np.asarray(plain.vertices)[:, 2])]
-    assert np.allclose(top, [0, 0, spec.membrane.tip_z], atol=1e-9) and np.allclose(moved, apex, atol=1e-9)
+    assert np.allclose(top, [0, 0, family(spec.membrane.shape).tube(spec.membrane).apex_z], atol=1e-9) and np.allclose(moved, apex, atol=1e-9)
     assert mesh.is_watertight == plain.is_watertight and len(mesh.faces) == len(plain.faces)
     # an LED 6.5 mm either side of the camera, offset 1 mm along x: 5.5 mm and 7.5 mm from
     # the tube's axis, in the bore (7 mm) and under the glass wall

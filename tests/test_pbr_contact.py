@@ -28,6 +28,7 @@ from pbr_tactile.membrane import (
 from pbr_tactile.solid import Elastomer
 from scenes.cli import main
 from scenes.contact import press, surface_point
+from scenes.shapes import family
 
 EDGE = 0.5e-3  # m, refined edge: coarse enough for fast tests
 RADIUS = 0.004  # m, sphere indenter
@@ -58,11 +59,11 @@ def rotation(angle: float, axis) -> np.ndarray:
 
 def test_a_sphere_on_the_axis_reaches_the_commanded_depth(camera, ref, spec):
     pose = np.eye(4)
-    pose[2, 3] = spec.membrane.tip_z + RADIUS - DEPTH
+    pose[2, 3] = family(spec.membrane.shape).tube(spec.membrane).apex_z + RADIUS - DEPTH
     depth = contact_depth(trimesh.primitives.Sphere(radius=RADIUS), camera, ref, pose)
     # The pixels nearest the axis see the sphere's lowest point, tip_z - 1.5 mm; they are
     # half a pixel off the axis, x = 0.13 mm there, which lifts the hit by x^2 / 2r = 2 um.
-    assert depth[239:241, 319:321].min() == pytest.approx(spec.membrane.tip_z - DEPTH, abs=3e-6)
+    assert depth[239:241, 319:321].min() == pytest.approx(family(spec.membrane.shape).tube(spec.membrane).apex_z - DEPTH, abs=3e-6)
     assert depth.dtype == np.float32 and np.all(depth <= ref)
 
 

@@ -88,7 +88,7 @@ def test_the_families_answers():
     assert capsule.tube(m) == Tube(radius=m.radius, core_radius=m.core_radius, base_z=m.base_z,
                                    junction_z=m.base_z + m.cylinder_length)
     assert capsule.tube(m).thickness == m.radius - m.core_radius == m.elastomer_thickness
-    assert capsule.tube(m).apex_z == m.tip_z
+    assert capsule.tube(m).apex_z == m.base_z + m.cylinder_length + m.radius
     for path in ("thumb", "paw", "gelsight"):
         other = load_spec(SENSORS / f"{path}.toml").membrane
         assert family(other.shape).tube(other) is None and other.elastomer_thickness == other.thickness

@@ -6,6 +6,7 @@ import tomllib
 
 import pytest
 
+from scenes.shapes import family
 from scenes.spec import DEFAULT_SPEC_PATH
 from scenes.spec_read import load_spec, spec_from_dict
 
@@ -15,7 +16,7 @@ def test_default_geltip_matches_the_published_sensor(spec):
     assert m.radius == pytest.approx(0.0115)
     assert m.cylinder_length + m.radius == pytest.approx(0.0555)
     assert m.radius - m.core_radius == pytest.approx(0.0025)
-    assert m.tip_z == pytest.approx(0.0455)
+    assert family(m.shape).tube(m).apex_z == pytest.approx(0.0455)
     assert (spec.camera.width, spec.camera.height) == (640, 480)
     assert spec.camera.fov_y == pytest.approx(math.pi / 2)
     assert len(spec.leds) == 3
