@@ -303,12 +303,13 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
             replayed_ref = work / "replay_calibrated_reference"
             from studies.compare.run import spread
 
+            replayed_ids = spread(unit.ids, diagnosis_presses)
             stage("replay_calibrated_reference", lambda: replay(unit, replayed_ref, pbr,
                                                                 {"profile": str(ref_profile)},
-                                                                ids=spread(unit.ids, diagnosis_presses), workers=1,
-                                                                progress=not quiet))
+                                                                ids=replayed_ids, workers=1, progress=not quiet))
             diagnosis_ref = stage("diagnose_reference", lambda: diagnose(
-                capture, replayed_ref, work / "diagnosis_reference", progress=not quiet, split_by="alternate"))
+                capture, replayed_ref, work / "diagnosis_reference", progress=not quiet, split_by="alternate",
+                ids=replayed_ids))
         loc = None
         if localisation:
             from studies.sim2real.presses import run as localise

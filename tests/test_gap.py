@@ -14,7 +14,7 @@ import trimesh
 from scenes.camera import Camera, reference_depth
 from scenes.cli import main
 from scenes.contact import press
-from scenes.dataset import DatasetError, DatasetWriter, write_sample_files
+from scenes.dataset import DatasetError, DatasetWriter, read_samples, write_sample_files
 from studies.gap import effects as fx
 from studies.gap import metrics
 from studies.gap.benchmark import score
@@ -383,6 +383,21 @@ def test_the_fade_profile_is_monotone_and_beer_lambert_when_even():
 
 
 # --- bad input -----------------------------------------------------------------------------
+
+
+def test_pairs_of_some_samples_take_only_those_from_both(tmp_path, spec, sim_dir, sim_images):
+    """A replay of some of a capture's presses (``bench real --diagnosis-presses``) pairs
+    with the capture on its own samples only: ``ids`` names them, and each side must hold
+    every one."""
+    short = write_dataset(tmp_path / "short", "real", spec, sim_images[:5])
+    every = [r["id"] for r in read_samples(sim_dir)]
+    pairs = load_pairs(sim_dir, short, ids=every[1:4])
+    assert pairs.ids == every[1:4] and pairs.real.shape[0] == pairs.sim.shape[0] == 3
+    np.testing.assert_array_equal(pairs.real, load_pairs(sim_dir, sim_dir).real[1:4])
+    with pytest.raises(DatasetError, match=r"short lacks 2 of the sample\(s\) asked for: 000005_cylinder"):
+        load_pairs(sim_dir, short, ids=every[3:7])
+    with pytest.raises(ValueError, match="ids must name at least one sample"):
+        load_pairs(sim_dir, short, ids=[])
 
 
 def test_pairs_refuse_bad_datasets(tmp_path, spec, sim_dir, sim_images):

@@ -307,11 +307,12 @@ SPLITS = ("stratified", "alternate")
 
 def run(real_dir: str | Path, sim_dir: str | Path, out: str | Path, heldout_fraction: float = 0.5, seed: int = 0,
         factor: int = 2, effects: tuple[str, ...] | None = None, progress: bool = True,
-        intervals: int = PARAM_RESAMPLES, split_by: str = "stratified") -> dict:
+        intervals: int = PARAM_RESAMPLES, split_by: str = "stratified", ids=None) -> dict:
     """Load, diagnose, and write ``out/report.json``, ``out/report.html`` and figures.
 
     split_by : "stratified" (``heldout_fraction`` of each object's samples at random,
-        ``seed``) or "alternate" (:func:`alternate`: the capture's odd samples held out)."""
+        ``seed``) or "alternate" (:func:`alternate`: the capture's odd samples held out).
+    ids : the samples diagnosed (``pairs.load_pairs``), None: all."""
     if split_by not in SPLITS:
         raise ValueError(f"split_by must be one of {SPLITS}, got {split_by!r}")
     from .report import write_report
@@ -328,7 +329,7 @@ def run(real_dir: str | Path, sim_dir: str | Path, out: str | Path, heldout_frac
             bar.n = done
             bar.refresh()
 
-    pairs = load_pairs(real_dir, sim_dir, progress=loading)
+    pairs = load_pairs(real_dir, sim_dir, progress=loading, ids=ids)
 
     def fitting(done, total, name):
         if bar is not None:

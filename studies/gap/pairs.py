@@ -124,19 +124,36 @@ def _read_depth(root: Path, record: dict, shape: tuple[int, int]) -> np.ndarray:
     return depth.astype(np.float32, copy=False)
 
 
-def load_pairs(real_dir: str | Path, sim_dir: str | Path, progress=None) -> Pairs:
+def _only(records: list[dict], ids: set[str], root: Path) -> list[dict]:
+    """The records of ``ids``; DatasetError naming those ``root`` lacks."""
+    missing = sorted(ids - {r["id"] for r in records})
+    if missing:
+        shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
+        raise DatasetError(f"{root} lacks {len(missing)} of the sample(s) asked for: {shown}")
+    return [r for r in records if r["id"] in ids]
+
+
+def load_pairs(real_dir: str | Path, sim_dir: str | Path, progress=None, ids=None) -> Pairs:
     """Read a real dataset and its simulated counterpart, matched by sample id, in the
     protocol's order.
 
     progress : optional callable(done, total) for a progress bar.
+    ids : the samples to pair, which both datasets must hold (a replay of some of a
+        capture's presses); None: every sample, and both must hold the same ones.
     """
     real_dir, sim_dir = Path(real_dir), Path(sim_dir)
     real_meta, sim_meta = read_meta(real_dir), read_meta(sim_dir)
     check_compatible(real_meta, sim_meta, real_dir, sim_dir)
+    sim_records, real_records = read_samples(sim_dir), read_samples(real_dir)
+    if ids is not None:
+        ids = {str(i) for i in ids}
+        if not ids:
+            raise ValueError("ids must name at least one sample, got none")
+        sim_records, real_records = _only(sim_records, ids, sim_dir), _only(real_records, ids, real_dir)
     # in the protocol's order, not the order the samples finished in (parallel workers finish in any
     # order), so that a diagnosis of the same datasets is the same every run
-    sim_records = sorted(read_samples(sim_dir), key=lambda r: (r.get("tap_index", 0), str(r["id"])))
-    real_records = _match(read_samples(real_dir), sim_records, real_dir, sim_dir)
+    sim_records = sorted(sim_records, key=lambda r: (r.get("tap_index", 0), str(r["id"])))
+    real_records = _match(real_records, sim_records, real_dir, sim_dir)
     width, height = (int(v) for v in sim_meta["image_size"])
     shape = (height, width)
     try:
