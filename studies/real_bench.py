@@ -307,9 +307,13 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
             stage("replay_calibrated_reference", lambda: replay(unit, replayed_ref, pbr,
                                                                 {"profile": str(ref_profile)},
                                                                 ids=replayed_ids, workers=1, progress=not quiet))
-            diagnosis_ref = stage("diagnose_reference", lambda: diagnose(
-                capture, replayed_ref, work / "diagnosis_reference", progress=not quiet, split_by="alternate",
-                ids=replayed_ids))
+            try:
+                diagnosis_ref = stage("diagnose_reference", lambda: diagnose(
+                    capture, replayed_ref, work / "diagnosis_reference", progress=not quiet, split_by="alternate",
+                    ids=replayed_ids))
+            except REPORTED as exc:  # the replay and every other figure are kept; the JSON says why
+                print(f"bench real: the diagnosis against the reference's replay failed: {exc}", file=sys.stderr)
+                diagnosis_ref = {"error": str(exc)}
         loc = None
         if localisation:
             from studies.sim2real.presses import run as localise
@@ -369,7 +373,7 @@ def run(json_path, archive=None, spec=None, ball_mm=None, pixel_mm=None, work=No
                 "reference_presses": ref["reference_taps"] if ref else [],
                 "diagnosis_fast": None if diagnosis is None else {"answer": headline(diagnosis),
                                                                   "explained": diagnosis["explained"]},
-                "diagnosis_reference": None if diagnosis_ref is None else {
+                "diagnosis_reference": diagnosis_ref if diagnosis_ref is None or "error" in diagnosis_ref else {
                     "answer": headline(diagnosis_ref),
                     "explained": diagnosis_ref["explained"], "pairs": diagnosis_ref["pairs"],
                     "ranking": diagnosis_ref["ranking"]},

@@ -822,3 +822,19 @@ def test_a_glossy_paint_is_traced_at_every_grid_point(spec, scene, stub):
     camera, ref, depth = scene
     basis = SourceBasis(spec, renderer(coating_gloss=0.3), depth, film=FILM)
     assert not basis.reweighting["on"] and "glossy" in basis.reweighting["why"] and basis.variants == []
+
+
+def test_a_replay_through_a_units_profile_is_refused_before_any_render(spec):
+    """The reference's replay with a unit's profile is imaged by the profile's camera, which
+    the per-source model does not image through: refused, naming the replay, not a
+    TypeError an hour in (``bench real --reference-diagnosis`` records the message)."""
+    from scenes.dataset import DatasetError
+    from studies.gap.diagnosis import make_models
+
+    profiled = {**renderer(), "exposure_gain": None, "profile": "unit/profile.toml", "profile_data": {"version": 1}}
+    images = np.zeros((2, 6, 8, 3), np.float32)
+    pairs = Pairs(Path("real"), Path("replay"), {}, {"renderer": profiled}, ["a", "b"], [{}, {}], images, images,
+                  None, spec)
+    with pytest.raises(DatasetError, match=r"replay is the reference's replay through a unit's profile "
+                                           r"\(unit/profile.toml\).*without --profile"):
+        make_models(pairs, profiled, 2)
