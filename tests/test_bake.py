@@ -8,8 +8,15 @@ import trimesh
 
 from phong_reference.bake import bake
 from phong_reference.sources import snap_leds
-from scenes.cache import cache_dir
+from scenes.cache import CACHE_ENV, cache_dir
 from scenes.camera import Camera
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    """Each test an empty cache of its own: these count and corrupt its entries, which the
+    user's cache (or another test worker's entries in it) must not see."""
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
 
 
 def _entries(method):

@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from scenes.cache import CacheError, cache_dir, cached, make_key, read_entry
+from scenes.cache import CACHE_ENV, CacheError, cache_dir, cached, make_key, read_entry
+
+
+@pytest.fixture(autouse=True)
+def own_cache(tmp_path, monkeypatch):
+    """Each test an empty cache of its own: these count and corrupt its entries, which the
+    user's cache (or another test worker's entries in it) must not see."""
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
 
 
 def test_cache_hit_and_rebuild_after_corruption():
