@@ -64,7 +64,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
 
     from .nocontact import CACHE_VERSION
     from .camera_pass import CAMERA_PASS_VERSION
-    from .render import reference, source_response
+    from .render import RenderSettings, reference, source_response
     from .scene import led_sources
     from .variant import choose_variant
 
@@ -85,9 +85,10 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
                 "response": source_response(sources, effects)}
 
     def render(perturb_=None):
-        return reference(depth, ref_depth, mesh, spec, camera, effects, spp=spp * passes, width=width, height=height,
-                         seed=seed, variant=variant, passes=passes, photons=photons, per_source=True, solids=solids,
-                         no_contact_runs=no_contact_runs, inscatter=inscatter, perturb=perturb_)
+        settings = RenderSettings(spp=spp * passes, width=width, height=height, seed=seed, variant=variant,
+                                  passes=passes, photons=photons, no_contact_runs=no_contact_runs, per_source=True,
+                                  inscatter=inscatter)
+        return reference(depth, ref_depth, mesh, spec, camera, effects, settings, perturb=perturb_, solids=solids)
 
     if perturbation is None:
         return cached("pbr-calibration-basis", key, lambda: identity(render()), use_cache=use_cache)

@@ -74,7 +74,7 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     from scenes.spec_read import load_spec
 
     from .effects import Effects
-    from .render import reference
+    from .render import RenderSettings, reference
 
     _check_contact_args(args, parser)
     spec = load_spec(args.spec)
@@ -109,10 +109,12 @@ def cmd_reference(args, parser: argparse.ArgumentParser | None = None) -> int:
     def progress(done, total):
         bar.update(done - bar.n)
 
-    est = reference(depth, ref, mesh, spec, camera, effects, spp=args.spp, width=args.width, height=args.height,
-                    seed=args.seed, variant=args.variant, progress=progress, passes=args.passes,
-                    estimator=args.estimator, photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3,
-                    no_contact_runs=args.no_contact_runs, per_source=profile is not None, inscatter=args.inscatter)
+    settings = RenderSettings(spp=args.spp, width=args.width, height=args.height, seed=args.seed,
+                              variant=args.variant, passes=args.passes, estimator=args.estimator,
+                              photons=args.photons, kernel_radius=args.kernel_radius_mm * 1e-3,
+                              no_contact_runs=args.no_contact_runs, per_source=profile is not None,
+                              inscatter=args.inscatter)
+    est = reference(depth, ref, mesh, spec, camera, effects, settings, progress=progress)
     bar.close()
     out = output_paths(args.out)
     out["linear"].parent.mkdir(parents=True, exist_ok=True)

@@ -51,7 +51,7 @@ from .estimate import MIN_PASSES, Control, Estimate, contact_rse
 from .fluence import INSCATTER
 from .membrane import shared_builder
 from .nocontact import CACHE_VERSION
-from .render import reference
+from .render import RenderSettings, reference
 
 #: The dataset's ``source`` (scenes.dataset.SOURCES) for this renderer.
 SOURCE = "pbr"
@@ -262,12 +262,14 @@ def _frame(spec: SensorSpec, mesh, camera: Camera, opts: dict) -> dict[str, np.n
     def build():
         memo: dict = {}
         photons = opts["estimator"] == "photons"
-        est = reference(None, None, mesh, spec, camera, effects, spp=opts["camera_spp"] * opts["max_passes"],
-                        width=width, height=height, seed=opts["seed"], variant=variant, passes=opts["max_passes"],
-                        estimator=opts["estimator"], photons=opts["photons"],
-                        kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
-                        no_contact_memo=memo, control_spp=opts["camera_spp"] * CONTROL_SPP_FACTOR if photons else 0,
-                        per_source=profile is not None, led_power=power, inscatter=opts["inscatter"])
+        settings = RenderSettings(spp=opts["camera_spp"] * opts["max_passes"], width=width, height=height,
+                                  seed=opts["seed"], variant=variant, passes=opts["max_passes"],
+                                  estimator=opts["estimator"], photons=opts["photons"],
+                                  kernel_radius=opts["kernel_radius_mm"] * 1e-3,
+                                  no_contact_runs=opts["no_contact_runs"],
+                                  control_spp=opts["camera_spp"] * CONTROL_SPP_FACTOR if photons else 0,
+                                  per_source=profile is not None, inscatter=opts["inscatter"])
+        est = reference(None, None, mesh, spec, camera, effects, settings, led_power=power, no_contact_memo=memo)
         rse = contact_rse(est, camera.scaled(width, height).mask)
         control = {} if est.control is None else {CONTROL_PREFIX + k: getattr(est.control, k)
                                                   for k in ("images", "mean", "variance")}
@@ -412,14 +414,16 @@ class PbrDatasetRenderer:
         else:
             opts = self.opts
             width, height = opts["film"]
+            settings = RenderSettings(spp=opts["camera_spp"] * MIN_PASSES, width=width, height=height,
+                                      seed=opts["seed"], variant=self.variant, passes=MIN_PASSES,
+                                      estimator=opts["estimator"], photons=opts["photons"],
+                                      kernel_radius=opts["kernel_radius_mm"] * 1e-3,
+                                      no_contact_runs=opts["no_contact_runs"], target_rse=opts["target_rse"],
+                                      max_passes=opts["max_passes"], per_source=self.profile is not None,
+                                      inscatter=opts["inscatter"])
             est = reference(np.where(touched, depth, self.ref_depth), self.ref_depth, self.mesh, self.spec,
-                            self.camera, self.effects, spp=opts["camera_spp"] * MIN_PASSES, width=width,
-                            height=height, seed=opts["seed"], variant=self.variant, passes=MIN_PASSES,
-                            estimator=opts["estimator"], photons=opts["photons"],
-                            kernel_radius=opts["kernel_radius_mm"] * 1e-3, no_contact_runs=opts["no_contact_runs"],
-                            target_rse=opts["target_rse"], max_passes=opts["max_passes"], no_contact_memo=self._memo,
-                            solids=self._solids, control=self._control, per_source=self.profile is not None,
-                            led_power=self.led_power, inscatter=opts["inscatter"])
+                            self.camera, self.effects, settings, led_power=self.led_power, control=self._control,
+                            solids=self._solids, no_contact_memo=self._memo)
         linear = self.camera_size(est.mean)
         rse = est.rse if est.rse is not None and math.isfinite(est.rse) else None
         return {

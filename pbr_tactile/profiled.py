@@ -41,7 +41,7 @@ def reference_spec(profile: Profile, spec: SensorSpec) -> SensorSpec:
 
 
 def profiled_image(per_source: np.ndarray, names, profile: Profile, camera: Camera) -> np.ndarray:
-    """(h, w, S) per-source linear images (``reference(..., per_source=True)`` of
+    """(h, w, S) per-source linear images (``reference`` with ``RenderSettings(per_source=True)``) of
     ``profile.sensor_spec``, whose LEDs are already turned, with ``profile_effects``) ->
     (h, w, 3) the calibrated sensor's image in [0, 1]."""
     ref = profile.reference

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import tempfile
 from collections import OrderedDict
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -105,6 +105,72 @@ def render(scene: dict, spp: int = 64, passes: int = 4, seed: int = 0, variant: 
 FULL_MODEL = Effects()
 #: Default kernel radius of the photon density estimate, m (pbr_tactile.density.irradiance).
 KERNEL_RADIUS_M = 0.75e-3
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How ``reference`` estimates an image: what its cost and noise depend on, not what it
+    shows (the sensor, the contact, the effects and the light are ``reference``'s own
+    arguments). Checked when made; ValueError naming the setting.
+
+    spp : samples per pixel in ``passes`` passes (spp // passes per pass).
+    width, height : the film, px (None: the camera's).
+    seed : the passes' seeds start here. variant : the Mitsuba variant (None: the default).
+    passes : independent passes, or with target_rse the fewest.
+    estimator : "photons" (two-pass, converges fast; matte or glossy paint) or "volpath"
+        (Mitsuba's brute-force volumetric path tracer).
+    photons : photons per LED per pass, for the photon estimator.
+    kernel_radius : the photon density estimate's radius, m (bias ~ radius^2).
+    no_contact_runs : estimate the photon map as the sensor's cached no-contact map plus
+        the contact's change (``pbr_tactile.nocontact``), from this many no-contact runs
+        per pass; worth it when rendering many contacts of one sensor (the first pays for
+        the cache). Without contact the map is the cached no-contact map alone: a
+        no-contact frame rendered with the contacts' seed and pass cap fills the cache
+        they use. 0: off.
+    target_rse : add passes of the same size until the RMS relative standard error over
+        the contact region (``contact_region``: the dent and its rim; without contact
+        the image circle) is at most this, or ``max_passes`` are done (``run_passes``).
+    control_spp : camera samples per pixel of this render as a control variate for the
+        contacts after it (``render_photons``; photons only).
+    per_source : one grey image per source of ``led_sources(spec, effects)`` instead of
+        RGB (``render_photons``; photons only).
+    inscatter : how the photon estimator's camera finds the light its scattering events
+        in the elastomer receive: "fluence" (the default: read it from the photons'
+        fluence on the solid's voxel grid, ``pbr_tactile.fluence``; less noise, and the
+        camera pass costs a fifth) or "split" (trace SCATTER_SPLIT paths on from the
+        first event, with next-event estimates of the LEDs: the estimator before it).
+    """
+
+    spp: int = 64
+    width: int | None = None
+    height: int | None = None
+    seed: int = 0
+    variant: str | None = None
+    passes: int = 4
+    estimator: str = "photons"
+    photons: int = 1 << 20
+    kernel_radius: float = KERNEL_RADIUS_M
+    no_contact_runs: int = 0
+    target_rse: float | None = None
+    max_passes: int = MAX_PASSES
+    control_spp: int = 0
+    per_source: bool = False
+    inscatter: str = "fluence"
+
+    def __post_init__(self):
+        if self.estimator not in ("photons", "volpath"):
+            raise ValueError(f"estimator must be 'photons' or 'volpath', got {self.estimator!r}")
+        if self.no_contact_runs < 0:
+            raise ValueError(f"no_contact_runs must be >= 0, got {self.no_contact_runs}")
+        check_passes(self.passes, self.target_rse, self.max_passes)
+        if self.inscatter not in INSCATTER:
+            raise ValueError(f"inscatter must be one of {', '.join(map(repr, INSCATTER))}, got {self.inscatter!r}")
+        if self.control_spp and self.estimator != "photons":
+            raise ValueError("a control variate (control, control_spp) needs the photon estimator")
+        if self.per_source and self.estimator != "photons":
+            raise ValueError("per_source images need the photon estimator")
+
+
 #: Stream of a control's extra camera samples (no pass seed maps to it).
 CONTROL_STREAM = 0xC0C0
 
@@ -381,81 +447,41 @@ def reference(
     spec: SensorSpec,
     camera: Camera,
     effects: Effects = FULL_MODEL,
-    spp: int = 64,
-    width: int | None = None,
-    height: int | None = None,
-    seed: int = 0,
-    variant: str | None = None,
-    progress=None,
-    passes: int = 4,
-    estimator: str = "photons",
-    photons: int = 1 << 20,
-    kernel_radius: float = KERNEL_RADIUS_M,
-    no_contact_runs: int = 0,
-    target_rse: float | None = None,
-    max_passes: int = MAX_PASSES,
-    no_contact_memo: dict | None = None,
-    solids: ElastomerBuilder | None = None,
-    control: Control | None = None,
-    control_spp: int = 0,
-    per_source: bool = False,
+    settings: RenderSettings = RenderSettings(),
+    *,
     led_power=1.0,
-    inscatter: str = "fluence",
     perturb=None,
+    control: Control | None = None,
+    solids: ElastomerBuilder | None = None,
+    no_contact_memo: dict | None = None,
+    progress=None,
 ):
-    """Render what the sensor's camera sees for a contact depth map (None: no contact).
+    """Render what the sensor's camera sees for a contact depth map (None: no contact),
+    estimated as ``settings`` say (``RenderSettings``).
 
-    spp : samples per pixel in ``passes`` passes (spp // passes per pass).
-    passes : independent passes, or with target_rse the fewest.
-    target_rse : add passes of the same size until the RMS relative standard error over
-        the contact region (``contact_region``: the dent and its rim; without contact
-        the image circle) is at most this, or ``max_passes`` are done (``run_passes``).
-    estimator : "photons" (two-pass, converges fast; matte or glossy paint) or "volpath"
-        (Mitsuba's brute-force volumetric path tracer).
-    photons : photons per LED per pass, for the photon estimator.
-    kernel_radius : the photon density estimate's radius, m (bias ~ radius^2).
-    no_contact_runs : estimate the photon map as the sensor's cached no-contact map plus
-        the contact's change (``pbr_tactile.nocontact``), from this many no-contact runs
-        per pass; worth it when rendering many contacts of one sensor (the first pays for
-        the cache). Without contact the map is the cached no-contact map alone: a
-        no-contact frame rendered with the contacts' seed and pass cap fills the cache
-        they use. 0: off.
-    no_contact_memo : see ``render_photons``.
-    solids : the membrane's ElastomerBuilder, kept across contacts (it refines the
-        membrane and checks its undeformed solid once); None: ``shared_builder``'s.
-    control, control_spp : the no-contact frame as a control variate for this contact,
-        and asking for this render as one (see ``render_photons``; photons only).
-    per_source : one grey image per source of ``led_sources(spec, effects)`` instead of
-        RGB (see ``render_photons``; photons only).
     led_power : each LED's radiance scale, one for all or one per LED (``led_sources``).
-    inscatter : how the photon estimator's camera finds the light its scattering events
-        in the elastomer receive: "fluence" (the default: read it from the photons'
-        fluence on the solid's voxel grid, ``pbr_tactile.fluence``; less noise, and the
-        camera pass costs a fifth) or "split" (trace SCATTER_SPLIT paths on from the
-        first event, with next-event estimates of the LEDs: the estimator before it).
     perturb : variants of (absorption_per_m, scattering_per_m, coating_albedo) re-weighted
         from the same photons (``render_photons``; photons only): returns a
         ``pbr_tactile.reweight.VariantEstimates``, each estimate through the sensor effects.
+    control : the no-contact frame as a control variate for this contact (see
+        ``render_photons``; photons only).
+    solids : the membrane's ElastomerBuilder, kept across contacts (it refines the
+        membrane and checks its undeformed solid once); None: ``shared_builder``'s.
+    no_contact_memo : see ``render_photons``.
     """
-    if estimator not in ("photons", "volpath"):
-        raise ValueError(f"estimator must be 'photons' or 'volpath', got {estimator!r}")
-    if not effects.contact_shadow and estimator != "photons":
+    s = settings
+    if not effects.contact_shadow and s.estimator != "photons":
         raise ValueError("Effects(contact_shadow=False) needs the photon estimator: volpath cannot trace light "
                          "and camera paths in different geometry")
-    if effects.core_leak_cone_rad > 0 and effects.core_light_leak > 0 and estimator != "photons":
+    if effects.core_leak_cone_rad > 0 and effects.core_light_leak > 0 and s.estimator != "photons":
         raise ValueError("Effects(core_leak_cone_rad > 0) needs the photon estimator: the scene's emitters are "
                          "Lambertian spheres, and only the photon pass aims the leak's light up the tube")
-    if no_contact_runs < 0:
-        raise ValueError(f"no_contact_runs must be >= 0, got {no_contact_runs}")
-    check_passes(passes, target_rse, max_passes)
-    if (control is not None or control_spp) and estimator != "photons":
+    if control is not None and s.estimator != "photons":
         raise ValueError("a control variate (control, control_spp) needs the photon estimator")
-    if per_source and estimator != "photons":
-        raise ValueError("per_source images need the photon estimator")
-    if perturb is not None and estimator != "photons":
+    if perturb is not None and s.estimator != "photons":
         raise ValueError("perturb (re-weighted variants) needs the photon estimator")
-    if inscatter not in INSCATTER:
-        raise ValueError(f"inscatter must be one of {', '.join(map(repr, INSCATTER))}, got {inscatter!r}")
+    spp, width, height, seed, variant, passes = s.spp, s.width, s.height, s.seed, s.variant, s.passes
+    estimator, target_rse, max_passes, inscatter = s.estimator, s.target_rse, s.max_passes, s.inscatter
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
     targets = {"target_rse": target_rse, "region": region, "max_passes": max_passes}
     build = solids if solids is not None else shared_builder(membrane, spec, camera)
@@ -475,18 +501,18 @@ def reference(
                                           led_power=led_power)
                 if not effects.contact_shadow:
                     light_scene = flat_scene
-            elif no_contact_runs:
+            elif s.no_contact_runs:
                 flat_scene = scene  # the no-contact frame: its map is the cached one
             grids = None
             if inscatter == "fluence":
                 flat_grid = build.grid()
                 grids = (build.grid(depth, ref_depth) if light_scene is None else flat_grid, flat_grid)
-            est = render_photons(scene, led_sources(spec, effects, led_power), effects, photons=photons,
+            est = render_photons(scene, led_sources(spec, effects, led_power), effects, photons=s.photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
-                                 progress=progress, kernel_radius=kernel_radius, light_scene=light_scene,
-                                 pilot_scene=flat_scene, no_contact_runs=no_contact_runs if flat_scene else 0,
-                                 no_contact_memo=no_contact_memo, control=control, control_spp=control_spp,
-                                 per_source=per_source, fluence_grids=grids, perturb=perturb, **targets)
+                                 progress=progress, kernel_radius=s.kernel_radius, light_scene=light_scene,
+                                 pilot_scene=flat_scene, no_contact_runs=s.no_contact_runs if flat_scene else 0,
+                                 no_contact_memo=no_contact_memo, control=control, control_spp=s.control_spp,
+                                 per_source=s.per_source, fluence_grids=grids, perturb=perturb, **targets)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
     if isinstance(est, VariantEstimates):

@@ -185,10 +185,10 @@ def test_a_contacts_grid_is_its_undeformed_grid_measured_again_where_it_moved(tm
 
 def test_fluence_settings_are_checked_before_any_work(mesh, spec, camera):
     from pbr_tactile.plugin import options_from
-    from pbr_tactile.render import reference, render_photons
+    from pbr_tactile.render import RenderSettings, reference, render_photons
 
     with pytest.raises(ValueError, match="inscatter must be one of 'split', 'fluence', got 'voxels'"):
-        reference(None, None, mesh, spec, camera, inscatter="voxels")
+        reference(None, None, mesh, spec, camera, Effects(), RenderSettings(inscatter="voxels"))
     with pytest.raises(ValueError, match="option inscatter must be one of 'split', 'fluence', got 'nee'"):
         options_from({"inscatter": "nee"}, camera)
     assert options_from({}, camera)["inscatter"] == "fluence"
@@ -208,7 +208,7 @@ def test_a_contact_by_the_fluence_equals_the_split_estimator_inside_and_outside_
     per-pass images are heavy tailed (rare bright samples of LEDs seen through the glass),
     so its variance, read from 6 passes, is loose: the bounds on |z| allow for that."""
     from pbr_tactile.estimate import contact_region, contact_rse
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     from test_pbr import _needs_vectorised_variant
 
@@ -216,7 +216,8 @@ def test_a_contact_by_the_fluence_equals_the_split_estimator_inside_and_outside_
     monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
     width, height = 160, 120
     kw = {"spp": 96, "width": width, "height": height, "passes": 6, "photons": 1 << 17, "no_contact_runs": 2}
-    est = {inscatter: reference(pressed, ref, mesh, spec, camera, Effects(), inscatter=inscatter, seed=3, **kw)
+    est = {inscatter: reference(pressed, ref, mesh, spec, camera, Effects(),
+                                RenderSettings(inscatter=inscatter, seed=3, **kw))
            for inscatter in ("split", "fluence")}
     region = contact_region(pressed, ref, camera, width, height)
     circle = camera.scaled(width, height).mask
@@ -250,7 +251,7 @@ def test_per_source_images_by_the_fluence_make_the_rgb_image(mesh, spec, camera,
     fluence lookup (the default of every reference render): weighted by each source's film
     response they are the RGB image of the same seed, with and without contact (the
     transport is linear in each source's power, and the fluence of a pass is per source)."""
-    from pbr_tactile.render import reference, source_response
+    from pbr_tactile.render import RenderSettings, reference, source_response
     from pbr_tactile.scene import led_sources
 
     from test_pbr import _needs_vectorised_variant
@@ -262,7 +263,8 @@ def test_per_source_images_by_the_fluence_make_the_rgb_image(mesh, spec, camera,
     for depth in (None, pressed):
         kw = {"spp": 4, "width": 40, "height": 30, "passes": 2, "photons": 1 << 12, "seed": 3, "no_contact_runs": 1}
         contact = () if depth is None else (depth, ref)
-        per_source = reference(*(contact or (None, None)), mesh, spec, camera, effects, per_source=True, **kw)
-        rgb = reference(*(contact or (None, None)), mesh, spec, camera, effects, **kw)
+        per_source = reference(*(contact or (None, None)), mesh, spec, camera, effects,
+                               RenderSettings(per_source=True, **kw))
+        rgb = reference(*(contact or (None, None)), mesh, spec, camera, effects, RenderSettings(**kw))
         assert per_source.mean.shape == (30, 40, len(response))
         np.testing.assert_allclose(per_source.mean @ response, rgb.mean, rtol=0, atol=1e-6 * rgb.mean.max())

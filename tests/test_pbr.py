@@ -181,7 +181,8 @@ def test_each_led_can_have_its_own_power_and_the_image_is_linear_in_it(monkeypat
 
     monkeypatch.setattr(render, "render_photons", photons)
     with pytest.raises(StopIteration):
-        render.reference(None, None, mesh, spec, camera, effects, spp=2, width=40, height=30, led_power=powers)
+        render.reference(None, None, mesh, spec, camera, effects, render.RenderSettings(spp=2, width=40, height=30),
+                         led_power=powers)
     assert [s["scale"] for s in seen[0]] == [s["scale"] for s in own]
 
 
@@ -212,20 +213,20 @@ def test_variant_selection_errors(monkeypatch):
 
 def test_a_small_render_is_finite_and_carries_its_error(mesh, spec, camera):
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
-    est = reference(None, None, mesh, spec, camera, Effects(), spp=8, width=24, height=18, variant="scalar_spectral",
-                    passes=2, estimator="volpath")
+    est = reference(None, None, mesh, spec, camera, Effects(),
+                    RenderSettings(spp=8, width=24, height=18, variant="scalar_spectral", passes=2, estimator="volpath"))
     assert est.mean.shape == (18, 24, 3) and est.variance.shape == (18, 24, 3)
     assert np.isfinite(est.mean).all() and (est.variance >= 0).all()
     assert est.mean.max() > 0  # some LED light reaches the camera
     with pytest.raises(ValueError, match="vectorised"):
-        reference(None, None, mesh, spec, camera, Effects(), spp=4, width=8, height=6, variant="scalar_spectral",
-                  passes=2, estimator="photons")
+        reference(None, None, mesh, spec, camera, Effects(),
+                  RenderSettings(spp=4, width=8, height=6, variant="scalar_spectral", passes=2, estimator="photons"))
     with pytest.raises(ValueError, match="estimator must be"):
-        reference(None, None, mesh, spec, camera, Effects(), estimator="magic")
+        reference(None, None, mesh, spec, camera, Effects(), RenderSettings(estimator="magic"))
     with pytest.raises(ValueError, match="contact_shadow=False. needs the photon estimator"):
-        reference(None, None, mesh, spec, camera, Effects(contact_shadow=False), estimator="volpath")
+        reference(None, None, mesh, spec, camera, Effects(contact_shadow=False), RenderSettings(estimator="volpath"))
     from pbr_tactile.render import render_photons
 
     with pytest.raises(ValueError, match="kernel_radius must be >= 0 m, got -0.001"):
@@ -325,7 +326,7 @@ def test_a_second_render_compiles_no_kernel(tmp_path, monkeypatch, mesh, spec, c
     _needs_vectorised_variant()
     import drjit as dr
 
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
     kw = {"spp": 4, "width": 20, "height": 15, "passes": 2, "photons": 1 << 12}
@@ -335,7 +336,7 @@ def test_a_second_render_compiles_no_kernel(tmp_path, monkeypatch, mesh, spec, c
         dr.kernel_history()  # clears it
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         try:
-            reference(None, None, mesh, spec, camera, Effects(), seed=seed, **kw)
+            reference(None, None, mesh, spec, camera, Effects(), RenderSettings(seed=seed, **kw))
             # the tracing kernels: those of hundreds of operations and more (loading a
             # scene launches a few small kernels of Mitsuba's own, with sizes baked in)
             return {(k["operation_count"], k["hash"]) for k in dr.kernel_history()
@@ -428,13 +429,13 @@ def test_contact_and_no_contact_share_random_walks(mesh, spec, camera, ref, pres
     _needs_vectorised_variant()
     from scipy.ndimage import binary_dilation
 
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     W, H = 40, 30
     kw = {"spp": 4, "width": W, "height": H, "passes": 2, "photons": 1 << 14}
-    contact = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, **kw).mean
-    same = reference(None, None, mesh, spec, camera, Effects(), seed=4, **kw).mean
-    other = reference(None, None, mesh, spec, camera, Effects(), seed=5, **kw).mean
+    contact = reference(pressed, ref, mesh, spec, camera, Effects(), RenderSettings(seed=4, **kw)).mean
+    same = reference(None, None, mesh, spec, camera, Effects(), RenderSettings(seed=4, **kw)).mean
+    other = reference(None, None, mesh, spec, camera, Effects(), RenderSettings(seed=5, **kw)).mean
     rows = (np.arange(H) * camera.height / H).astype(int)
     cols = (np.arange(W) * camera.width / W).astype(int)
     dent = (ref - pressed)[np.ix_(rows, cols)] > 1e-6
@@ -474,7 +475,7 @@ def test_no_contact_control_variate(tmp_path, monkeypatch, mesh, spec, camera, r
     from scipy.ndimage import binary_dilation
 
     from pbr_tactile import photons as ph
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     monkeypatch.setenv("TACTILE_SIM_CACHE", str(tmp_path / "cache"))
     traced = []
@@ -487,13 +488,13 @@ def test_no_contact_control_variate(tmp_path, monkeypatch, mesh, spec, camera, r
     monkeypatch.setattr(ph, "deposits", counting)
     W, H, runs = 40, 30, 4
     kw = {"spp": 32, "width": W, "height": H, "passes": 4, "photons": 1 << 14}
-    plain = reference(pressed, ref, mesh, spec, camera, Effects(), seed=3, **kw)
+    plain = reference(pressed, ref, mesh, spec, camera, Effects(), RenderSettings(seed=3, **kw))
     traced.clear()
-    cv = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, no_contact_runs=runs, **kw)
+    cv = reference(pressed, ref, mesh, spec, camera, Effects(), RenderSettings(seed=4, no_contact_runs=runs, **kw))
     cold = len(traced)
     assert cold == 1 + 4 * (2 + runs)  # pilot; per pass the contact, its no-contact twin and the runs
     traced.clear()
-    again = reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, no_contact_runs=runs, **kw)
+    again = reference(pressed, ref, mesh, spec, camera, Effects(), RenderSettings(seed=4, no_contact_runs=runs, **kw))
     assert len(traced) == 4  # the contact's own photons: the pilot and the no-contact runs are cached
     np.testing.assert_allclose(again.mean, cv.mean, rtol=0.05, atol=1e-3 * float(cv.mean.max()))
 
@@ -515,4 +516,4 @@ def test_no_contact_control_variate(tmp_path, monkeypatch, mesh, spec, camera, r
     assert ratio < 0.6
 
     with pytest.raises(ValueError, match="no_contact_runs must be >= 0, got -1"):
-        reference(pressed, ref, mesh, spec, camera, Effects(), seed=4, no_contact_runs=-1, **kw)
+        reference(pressed, ref, mesh, spec, camera, Effects(), RenderSettings(seed=4, no_contact_runs=-1, **kw))

@@ -51,7 +51,7 @@ def tiny_render(mesh, spec, camera):
     differing only in sensor-side effects share one, those applied as ``reference`` does."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from pbr_tactile.membrane import ElastomerBuilder
-    from pbr_tactile.render import reference, sensor_effects
+    from pbr_tactile.render import RenderSettings, reference, sensor_effects
 
     solids = ElastomerBuilder(mesh, spec, camera, COARSE_EDGE_M)
     renders = {}
@@ -59,8 +59,9 @@ def tiny_render(mesh, spec, camera):
     def render(effects: Effects):
         scene_side = replace(effects, **{n: getattr(Effects(), n) for n in SENSOR_SIDE})
         if scene_side not in renders:
-            renders[scene_side] = reference(None, None, mesh, spec, camera, scene_side, estimator="volpath",
-                                            variant="scalar_spectral", solids=solids, **TINY)
+            renders[scene_side] = reference(None, None, mesh, spec, camera, scene_side,
+                                            RenderSettings(estimator="volpath", variant="scalar_spectral", **TINY),
+                                            solids=solids)
         return sensor_effects(renders[scene_side], camera, effects)
 
     return render
@@ -83,7 +84,7 @@ def test_all_led_power_into_the_core_renders_with_photons(mesh, spec, camera):
     elastomer have no power left and are left out), with the default estimator."""
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
     from pbr_tactile.membrane import ElastomerBuilder
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
     from pbr_tactile.scene import led_sources
     from pbr_tactile.variant import VariantError, choose_variant
 
@@ -96,6 +97,6 @@ def test_all_led_power_into_the_core_renders_with_photons(mesh, spec, camera):
             pytest.skip("the photon estimator needs a vectorised variant (apt-get install libllvm19)")
     except VariantError as exc:
         pytest.skip(str(exc))
-    est = reference(None, None, mesh, spec, camera, Effects(core_light_leak=1.0), photons=1 << 8,
-                    solids=ElastomerBuilder(mesh, spec, camera, COARSE_EDGE_M), **TINY)
+    est = reference(None, None, mesh, spec, camera, Effects(core_light_leak=1.0), RenderSettings(photons=1 << 8, **TINY),
+                    solids=ElastomerBuilder(mesh, spec, camera, COARSE_EDGE_M))
     assert np.isfinite(est.mean).all() and est.mean.max() > 0  # the core's light reaches the camera

@@ -78,11 +78,11 @@ def test_the_documented_guiding_angle():
 
 def test_the_volpath_scene_refuses_the_directional_leak(mesh, spec, camera):
     pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install '.[pbr]')")
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     with pytest.raises(ValueError, match="core_leak_cone_rad"):
         reference(None, None, mesh, spec, camera, Effects(core_light_leak=0.5, core_leak_cone_rad=0.3),
-                  estimator="volpath", spp=1, passes=1, width=8, height=6)
+                  RenderSettings(estimator="volpath", spp=2, passes=2, width=8, height=6))
 
 
 def test_photons_leave_within_the_cone_uniformly_and_lambertian_ones_by_cosine(photon_mi):
@@ -153,7 +153,7 @@ def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh, photon_mi):
     lens or away from it. Facing it, the LED outshines the membrane in the pixel it sits
     in; turned away, that pixel is the membrane's (the camera pass used to leave every
     beam LED dark, so a real unit's LEDs never showed in the glass' reflections)."""
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
     from scenes.camera import Camera
     from scenes.spec import LED
 
@@ -163,8 +163,8 @@ def test_the_camera_sees_a_beam_led_that_faces_it(spec, mesh, photon_mi):
         one = spec.replace(leds=(LED("led", position=(0.0, 0.0, 0.005), direction=direction, colour=(1.0, 1.0, 1.0),
                                      k_d=1.0, k_s=0.0, peak_nm=620.0, fwhm_nm=20.0,
                                      beam_half_angle_rad=math.radians(30)),), led_groups=())
-        est = reference(None, None, mesh, one, camera, Effects(), spp=16, passes=2, width=15, height=11,
-                        photons=1 << 14, seed=3)
+        est = reference(None, None, mesh, one, camera, Effects(),
+                        RenderSettings(spp=16, passes=2, width=15, height=11, photons=1 << 14, seed=3))
         pixel[name] = float(est.mean[5, 7].sum())
         assert np.isfinite(est.mean).all()
     assert pixel["facing"] > 10 * pixel["away"] > 0
@@ -176,7 +176,7 @@ def test_a_beam_led_whose_axis_holds_a_negative_zero_renders_as_the_positive_one
     (not every such vector is: the shipped 2023 spec's axes hold -0.0 and render), so the
     camera pass' cone axis, kept across the first hit and the walk (twice as wide), broke
     the render ("operands have incompatible sizes"). Same seed: the image of +0.0."""
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
     from pbr_tactile.scene import led_sources
     from scenes.camera import Camera
     from scenes.spec import LED
@@ -188,8 +188,8 @@ def test_a_beam_led_whose_axis_holds_a_negative_zero_renders_as_the_positive_one
                                      colour=(1.0, 1.0, 1.0), k_d=1.0, k_s=0.0, peak_nm=620.0, fwhm_nm=20.0,
                                      beam_half_angle_rad=math.radians(30)),), led_groups=())
         assert math.copysign(1.0, led_sources(one)[0]["cone_axis"][0]) == math.copysign(1.0, x)
-        images.append(reference(None, None, mesh, one, camera, Effects(), spp=4, passes=2, width=15, height=11,
-                                photons=1 << 12, seed=3).mean)
+        images.append(reference(None, None, mesh, one, camera, Effects(),
+                                RenderSettings(spp=4, passes=2, width=15, height=11, photons=1 << 12, seed=3)).mean)
     np.testing.assert_allclose(images[0], images[1], rtol=1e-5, atol=1e-9)  # (the sign changes roundings)
 
 

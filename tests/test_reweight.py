@@ -56,10 +56,11 @@ def test_a_perturbation_is_checked_by_name(mesh, spec, camera):
     variants = Perturbation([[10.0, 50.0, 0.85], [20.0, 90.0, 0.6]]).effects(traced)
     assert variants[1] == Effects(core_light_leak=0.5, scattering_per_m=90.0, coating_albedo=0.6)
     np.testing.assert_array_equal(Perturbation.of_effects(variants).values, [[10.0, 50.0, 0.85], [20.0, 90.0, 0.6]])
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     with pytest.raises(ValueError, match=r"perturb \(re-weighted variants\) needs the photon estimator"):
-        reference(None, None, mesh, spec, camera, estimator="volpath", perturb=[[10.0, 50.0, 0.85]])
+        reference(None, None, mesh, spec, camera, Effects(), RenderSettings(estimator="volpath"),
+                  perturb=[[10.0, 50.0, 0.85]])
 
 
 def test_the_factor_by_hand():

@@ -125,7 +125,7 @@ def reference_frame(
     read from the cache.
     """
     from pbr_tactile.effects import Effects
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
 
     effects = Effects()
     shape = (settings.height, settings.width)
@@ -141,9 +141,10 @@ def reference_frame(
                     return stack[0], stack[1], True
             except (OSError, ValueError) as exc:
                 warnings.warn(f"cached reference {path} is unreadable ({exc}); rendering it again", stacklevel=2)
-    est = reference(depth, None if depth is None else ref_depth, mesh, spec, camera, effects, spp=settings.spp,
-                    width=settings.width, height=settings.height, seed=settings.seed, passes=settings.passes,
-                    estimator="photons", photons=settings.photons, progress=progress)
+    est = reference(depth, None if depth is None else ref_depth, mesh, spec, camera, effects,
+                    RenderSettings(spp=settings.spp, width=settings.width, height=settings.height, seed=settings.seed,
+                                   passes=settings.passes, estimator="photons", photons=settings.photons),
+                    progress=progress)
     if path is not None:
         atomic_write_bytes(path, npy_bytes(np.stack([est.mean, est.variance]).astype(np.float32)))
     return est.mean, est.variance, False

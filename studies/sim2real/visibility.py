@@ -71,7 +71,7 @@ def measure(replay: str | Path, taps: list[str], settings: dict[str, list[str]],
 
     from pbr_tactile.effects import Effects
     from pbr_tactile.plugin import EXPOSURE_LEVEL, EXPOSURE_PERCENTILE
-    from pbr_tactile.render import reference
+    from pbr_tactile.render import RenderSettings, reference
     from scenes.geometry import membrane_mesh
     from scenes.rig import tap_depths
 
@@ -100,12 +100,12 @@ def measure(replay: str | Path, taps: list[str], settings: dict[str, list[str]],
     width, height = film
     for name, items in settings.items():
         effects = Effects().with_settings(items)
-        kw = dict(spp=camera_spp * passes, width=width, height=height, seed=seed, passes=passes, photons=photons,
-                  kernel_radius=kernel_radius_mm * 1e-3, inscatter="fluence")
+        kw = RenderSettings(spp=camera_spp * passes, width=width, height=height, seed=seed, passes=passes,
+                            photons=photons, kernel_radius=kernel_radius_mm * 1e-3, inscatter="fluence")
         t0 = time.perf_counter()
 
         def shot(depth):
-            est = reference(depth, ref, mesh, spec, camera, effects, **kw)
+            est = reference(depth, ref, mesh, spec, camera, effects, kw)
             return resize(est.mean, camera.shape, order=1, mode="edge", preserve_range=True)
 
         still = shot(None)
