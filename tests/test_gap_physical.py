@@ -824,17 +824,26 @@ def test_a_glossy_paint_is_traced_at_every_grid_point(spec, scene, stub):
     assert not basis.reweighting["on"] and "glossy" in basis.reweighting["why"] and basis.variants == []
 
 
-def test_a_replay_through_a_units_profile_is_refused_before_any_render(spec):
-    """The reference's replay with a unit's profile is imaged by the profile's camera, which
-    the per-source model does not image through: refused, naming the replay, not a
-    TypeError an hour in (``bench real --reference-diagnosis`` records the message)."""
-    from scenes.dataset import DatasetError
+def test_a_replay_through_a_units_profile_is_diagnosed_on_its_image_candidates(spec):
+    """The reference's replay through a unit's profile is imaged by the profile's camera: its
+    physical candidates are not applicable (not re-rendered per source through a profile
+    yet), and its image ones predict without the reference's exposure rule, which a
+    profile replaces (run for real, a lens candidate's prediction asked for that rule's
+    gain, which such a replay does not have: a TypeError). Nothing is rendered."""
     from studies.gap.diagnosis import make_models
 
     profiled = {**renderer(), "exposure_gain": None, "profile": "unit/profile.toml", "profile_data": {"version": 1}}
-    images = np.zeros((2, 6, 8, 3), np.float32)
+    camera = Camera.from_spec(spec)
+    images = np.full((2,) + camera.shape + (3,), 0.5, np.float32)
+    depth = np.repeat(reference_depth(membrane_mesh(spec), camera)[0][None], 2, axis=0).astype(np.float32)
     pairs = Pairs(Path("real"), Path("replay"), {}, {"renderer": profiled}, ["a", "b"], [{}, {}], images, images,
-                  None, spec)
-    with pytest.raises(DatasetError, match=r"replay is the reference's replay through a unit's profile "
-                                           r"\(unit/profile.toml\).*without --profile"):
-        make_models(pairs, profiled, 2)
+                  depth, spec)
+    work, _ = make_models(pairs, profiled, 4)
+    out = work.not_applicable(pairs)
+    physical = [n for n, kind in work.kinds.items() if kind not in ("fast", "image")]
+    assert physical and all("profile" in out[n] for n in physical)
+    assert "vignetting" in work.kinds and work.kinds["vignetting"] == "image" and "vignetting" not in out
+    sim = work.working_images(images)
+    plain = work.predict(sim, None, {"vignetting": {"strength": 0.0, "exposure": 1.0}}, keys=[0, 1])
+    darker = work.predict(sim, None, {"vignetting": {"strength": 0.5, "exposure": 1.0}}, keys=[0, 1])
+    assert np.isfinite(darker).all() and darker.mean() < plain.mean() and work.basis.renders == 0

@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 
 from scenes.camera import Camera
-from scenes.dataset import DatasetError
 from scenes.spec import SensorSpec
 
 from . import selection
@@ -42,12 +41,6 @@ def make_models(pairs: Pairs, renderer: dict, factor: int):
     not counted as a gap.
     """
     if renderer.get("renderer") == "pbr":
-        if renderer.get("profile_data") is not None:
-            raise DatasetError(
-                f"{pairs.sim_dir} is the reference's replay through a unit's profile ({renderer.get('profile')}): its "
-                "images are the calibrated camera's (the profile's per-LED gains, alignment, lens fall-off, response "
-                "and clipping), which the reference's per-source model does not image through yet; diagnose a "
-                "replay rendered without --profile, or the fast path's")
         basis = SourceBasis(pairs.spec, renderer, pairs.depth if pairs.depth is not None else np.zeros((0,)))
         judge = judging_factor(pairs.spec, basis.film)
         work = ReferenceModel(pairs.spec, renderer, max(factor, judge), basis)

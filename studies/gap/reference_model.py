@@ -298,7 +298,9 @@ class ReferenceModel:
         out = self.optics(out, image_params)
         film = {k: v for k, v in params.items() if self.kinds[k] == "image" and v != self.catalogue[k].identity}
         if film:  # the reference's own lens: its capture is exposed after it, by the rule and its own exposure
-            scale = fx.exposure_scale(film) * self._film_exposure(film, physical)
+            scale = fx.exposure_scale(film)
+            if self.basis.gain is not None:  # a unit's profile sets its camera once: no exposure rule to follow
+                scale *= self._film_exposure(film, physical)
             out = np.clip(out * np.float32(scale), 0.0, 1.0)
         return out
 
