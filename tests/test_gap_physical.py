@@ -824,26 +824,63 @@ def test_a_glossy_paint_is_traced_at_every_grid_point(spec, scene, stub):
     assert not basis.reweighting["on"] and "glossy" in basis.reweighting["why"] and basis.variants == []
 
 
-def test_a_replay_through_a_units_profile_is_diagnosed_on_its_image_candidates(spec):
-    """The reference's replay through a unit's profile is imaged by the profile's camera: its
-    physical candidates are not applicable (not re-rendered per source through a profile
-    yet), and its image ones predict without the reference's exposure rule, which a
-    profile replaces (run for real, a lens candidate's prediction asked for that rule's
-    gain, which such a replay does not have: a TypeError). Nothing is rendered."""
+def _profiled(spec) -> dict:
+    """The stand-in's renderer settings as a replay through a unit's profile records them:
+    its per-LED gains and leak, a camera response, no exposure gain."""
+    from scenes.profile import CameraProfile, Profile
+
+    leds = len(spec.leds)
+    gains = (np.array([[1.2, 0.9, 0.7], [0.8, 1.1, 0.9], [0.7, 0.9, 1.3]] * leds)[:leds] * 0.004).tolist()
+    profile = Profile(sensor=spec.name, leds=tuple(led.name for led in spec.leds), camera=CameraProfile(gamma=1.6),
+                      reference={"led_gains": gains, "led_leak": [0.2] * leds})
+    return {**renderer(core_light_leak=0.5), "exposure_gain": None, "profile": "unit/profile.toml",
+            "profile_data": profile.to_dict()}
+
+
+def test_a_replay_through_a_units_profile_is_modelled_through_its_camera(spec, scene, stub):
+    """A replay through a unit's profile is imaged by the profile's camera (per-LED gains,
+    leak, response): the per-source model images its candidates through it, and leaves out
+    the light's candidates, which the profile's gains stand for. A lens candidate is
+    predicted without the reference's exposure rule, which a profile replaces (run for
+    real, it asked for that rule's gain: a TypeError)."""
+    from scenes.profile import profile_from_dict
     from studies.gap.diagnosis import make_models
 
-    profiled = {**renderer(), "exposure_gain": None, "profile": "unit/profile.toml", "profile_data": {"version": 1}}
-    camera = Camera.from_spec(spec)
-    images = np.full((2,) + camera.shape + (3,), 0.5, np.float32)
-    depth = np.repeat(reference_depth(membrane_mesh(spec), camera)[0][None], 2, axis=0).astype(np.float32)
-    pairs = Pairs(Path("real"), Path("replay"), {}, {"renderer": profiled}, ["a", "b"], [{}, {}], images, images,
-                  depth, spec)
+    profiled = _profiled(spec)
+    profile = profile_from_dict(profiled["profile_data"])
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, profiled, 1, SourceBasis(spec, profiled, depth, film=FILM), profile)
+    sim, real = (np.stack([model._resized(model.image(i, p)) for i in range(len(depth))])
+                 for p in ({}, {"absorption_per_m": {"value": 60.0}}))
+    assert 0.05 < sim.mean() < 0.95 and np.abs(real - sim).mean() > 0.01
+    pairs = Pairs(Path("real"), Path("replay"), {}, {"renderer": profiled}, [f"{i:06d}" for i in range(len(depth))],
+                  [{"object": "sphere"}] * len(depth), real.astype(np.float32), sim.astype(np.float32), depth, spec)
     work, _ = make_models(pairs, profiled, 4)
-    out = work.not_applicable(pairs)
-    physical = [n for n, kind in work.kinds.items() if kind not in ("fast", "image")]
-    assert physical and all("profile" in out[n] for n in physical)
-    assert "vignetting" in work.kinds and work.kinds["vignetting"] == "image" and "vignetting" not in out
-    sim = work.working_images(images)
-    plain = work.predict(sim, None, {"vignetting": {"strength": 0.0, "exposure": 1.0}}, keys=[0, 1])
-    darker = work.predict(sim, None, {"vignetting": {"strength": 0.5, "exposure": 1.0}}, keys=[0, 1])
-    assert np.isfinite(darker).all() and darker.mean() < plain.mean() and work.basis.renders == 0
+    assert work.profile.to_dict() == profile.to_dict() and "per-LED gains" in work.not_applicable(pairs)["led_power"]
+    lens = work.predict(work.working_images(sim[:2]), None, {"vignetting": {"strength": 0.5, "exposure": 1.0}},
+                        keys=[0, 1])
+    assert np.isfinite(lens).all() and lens.mean() < work.working_images(sim[:2]).mean()
+
+
+@pytest.mark.slow
+def test_an_absorption_hidden_behind_a_units_profile_is_found(spec, scene, stub):
+    """Diagnosed through the profile's camera, an absorption hidden in a replay through a
+    unit's profile is ranked first, fitted and closed."""
+    from scenes.profile import profile_from_dict
+
+    profiled = _profiled(spec)
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, profiled, 1, SourceBasis(spec, profiled, depth, film=FILM),
+                           profile_from_dict(profiled["profile_data"]))
+    sim, real = (np.stack([model._resized(model.image(i, p)) for i in range(len(depth))])
+                 for p in ({}, {"absorption_per_m": {"value": 60.0}}))
+    pairs = Pairs(Path("real"), Path("replay"), {}, {"renderer": profiled}, [f"{i:06d}" for i in range(len(depth))],
+                  [{"object": "sphere"}] * len(depth), real.astype(np.float32), sim.astype(np.float32), depth, spec)
+    train, heldout = split(pairs, 0.5, seed=0)
+    d = Diagnosis(pairs, train, heldout, factor=4, effects=("absorption_per_m", "led_power", "camera_gains"))
+    assert "led_power" in d.not_applicable
+    singles = d.singles()
+    ranked = [n for n, j in sorted(singles.items(), key=lambda kv: -kv[1].gain) if j.significant]
+    assert ranked[0] == "absorption_per_m"
+    assert singles["absorption_per_m"].fit.params["absorption_per_m"]["value"] == pytest.approx(60.0, rel=0.1)
+    assert singles["absorption_per_m"].improvement["masked"]["mae"]["share"] > 0.8

@@ -41,13 +41,29 @@ def make_models(pairs: Pairs, renderer: dict, factor: int):
     not counted as a gap.
     """
     if renderer.get("renderer") == "pbr":
-        basis = SourceBasis(pairs.spec, renderer, pairs.depth if pairs.depth is not None else np.zeros((0,)))
-        judge = judging_factor(pairs.spec, basis.film)
-        work = ReferenceModel(pairs.spec, renderer, max(factor, judge), basis)
-        return work, (ReferenceModel(pairs.spec, renderer, judge, basis) if work.factor != judge else work)
+        spec, profile = unit_of_replay(pairs, renderer)
+        basis = SourceBasis(spec, renderer, pairs.depth if pairs.depth is not None else np.zeros((0,)))
+        judge = judging_factor(spec, basis.film)
+        work = ReferenceModel(spec, renderer, max(factor, judge), basis, profile)
+        return work, (ReferenceModel(spec, renderer, judge, basis, profile) if work.factor != judge else work)
     exposure = auto_exposed(pairs.real_meta)
     work = FastModel(pairs.spec, renderer, factor, exposure)
     return work, (FastModel(pairs.spec, renderer, 1, exposure) if factor != 1 else work)
+
+
+def unit_of_replay(pairs: Pairs, renderer: dict):
+    """(the spec the reference rendered, its unit's Profile or None): a replay through a
+    unit's profile (``renderer.profile_data``) rendered the unit as the reference takes it
+    (``pbr_tactile.profiled.reference_spec``: the fitted layout, the turned LEDs, the
+    profile's image circle), not the dataset's recorded spec."""
+    data = renderer.get("profile_data")
+    if data is None:
+        return pairs.spec, None
+    from pbr_tactile.profiled import reference_spec
+    from scenes.profile import profile_from_dict
+
+    profile = profile_from_dict(data, f"{pairs.sim_dir}/dataset.json renderer.profile_data")
+    return reference_spec(profile, pairs.spec), profile
 
 
 def polish_model(pairs: Pairs, renderer: dict, work):

@@ -91,6 +91,9 @@ EXPOSURE_STARTS = (1.0, 0.7, 1.4)
 #: The candidates that change only the light's colours (each LED's power and the film's
 #: response to it), not where it goes: ``ReferenceModel.colour_matrix``.
 COLOUR_FIELDS = ("led_power", "led_peak_shift", "led_spectra", "camera_response")
+#: Candidates a unit's profile stands for (its per-LED gains and leak): not applicable to a
+#: replay through one.
+PROFILED_LIGHT = COLOUR_FIELDS + ("core_light_leak", "core_leak_cone_rad")
 
 
 def _level(image: np.ndarray, mask: np.ndarray) -> float:
@@ -128,8 +131,9 @@ class ReferenceModel:
     kind = "pbr"
     ties_to_simplest = True  # ``selection.rank``
 
-    def __init__(self, spec: SensorSpec, renderer: dict, factor: int, basis: SourceBasis):
+    def __init__(self, spec: SensorSpec, renderer: dict, factor: int, basis: SourceBasis, profile=None):
         self.spec = spec
+        self.profile = profile  # a replay through a unit's profile is imaged by its camera (``image``)
         self.renderer = renderer
         self.factor = int(factor)
         self.full_camera, self.camera = working_cameras(spec, self.factor)
@@ -177,11 +181,11 @@ class ReferenceModel:
 
     def not_applicable(self, pairs) -> dict[str, str]:
         out = {}
-        if self.renderer.get("profile_data") is not None:
-            for name, kind in self.kinds.items():
-                if kind != "fast" and kind != "image":
-                    out[name] = ("the simulated dataset was rendered for a calibrated unit's profile (one image per "
-                                 "source through the unit's camera); re-rendering it per source is not built yet")
+        if self.profile is not None:
+            for name in PROFILED_LIGHT:
+                if name in self.kinds:
+                    out[name] = ("the simulated dataset was rendered through a calibrated unit's profile, whose "
+                                 "per-LED gains and leak stand for the LEDs' powers, colours and leak")
         if pairs.depth is None:
             for name, kind in self.kinds.items():
                 if kind in ("linear", "render", "bool-render", "bool-linear"):
@@ -191,7 +195,7 @@ class ReferenceModel:
         for name, kind in self.kinds.items():
             if kind == "unpredictable":
                 out.setdefault(name, f"Effects.{name} is not a number or a switch; it cannot be fitted")
-        if self.basis.gain is None:
+        if self.basis.gain is None and self.profile is None:
             for name, kind in self.kinds.items():
                 if kind not in ("fast", "image"):
                     out.setdefault(name, "the simulated dataset records no exposure_gain")
@@ -313,7 +317,7 @@ class ReferenceModel:
         photon map's are not, so it is a lower bound). None when none is rendered."""
         rendered = set(self.basis.rendered_keys())
         keys = [int(k) for k in keys if int(k) in rendered]
-        if not keys:
+        if not keys or self.profile is not None:  # through a profile's camera the noise is not linear in it
             return None
         weight = (float(self.basis.gain) * self.colour({})) ** 2  # (S, 3)
         area = self._film.mask
@@ -488,6 +492,8 @@ class ReferenceModel:
         many LEDs as channels and r invertible, s = (R_0^T)^-1 linear and
         A = R^T diag(p) (R_0^T)^-1. Applied to the simulated image itself, a prediction
         of these carries none of the basis' Monte Carlo noise."""
+        if self.profile is not None:  # the profile's camera is not linear
+            return None
         power0, R0, _ = self._light({})
         if R0.shape != (3, 3) or np.linalg.cond(R0) > MAX_RESPONSE_CONDITION:
             return None
@@ -495,7 +501,14 @@ class ReferenceModel:
         return R.T @ np.diag(power / power0) @ np.linalg.inv(R0.T)
 
     def image(self, key: int, params: dict) -> np.ndarray:
-        """(h, w, 3) M(theta) of tap ``key`` at the film: clip(exposure_gain linear)."""
+        """(h, w, 3) M(theta) of tap ``key`` at the film: clip(exposure_gain linear); through
+        a unit's profile, its camera's image of the per-source light
+        (``pbr_tactile.profiled.profiled_image``)."""
+        if self.profile is not None:
+            from pbr_tactile.profiled import profiled_image
+
+            linear = self.sources(key, params) * np.float32(fx.exposure_scale(params))
+            return profiled_image(linear, self.basis.names, self.profile, self.full_camera).astype(np.float32)
         colour = self.colour(params)
         linear = np.tensordot(self.sources(key, params), colour, axes=([2], [0]))  # (h, w, 3)
         return np.clip(fx.exposure_scale(params) * self.exposure(params, colour) * linear, 0.0, 1.0).astype(np.float32)
