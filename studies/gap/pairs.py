@@ -81,6 +81,11 @@ def check_compatible(real_meta: dict, sim_meta: dict, real_dir: Path, sim_dir: P
         )
 
 
+def _first(ids: list[str]) -> str:
+    """The first five of ``ids``, for a message."""
+    return ", ".join(ids[:5]) + (" ..." if len(ids) > 5 else "")
+
+
 def _match(real_records: list[dict], sim_records: list[dict], real_dir: Path, sim_dir: Path):
     if not sim_records:
         raise DatasetError(f"{sim_dir} holds no samples (samples.jsonl is empty or missing)")
@@ -92,8 +97,7 @@ def _match(real_records: list[dict], sim_records: list[dict], real_dir: Path, si
     only_real = sorted(set(real_by_id) - set(sim_ids))
     for where, missing, other in ((real_dir, only_sim, sim_dir), (sim_dir, only_real, real_dir)):
         if missing:
-            shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
-            raise DatasetError(f"{where} lacks {len(missing)} sample(s) that {other} has: {shown}")
+            raise DatasetError(f"{where} lacks {len(missing)} sample(s) that {other} has: {_first(missing)}")
     return [real_by_id[i] for i in sim_ids]
 
 
@@ -128,8 +132,7 @@ def _only(records: list[dict], ids: set[str], root: Path) -> list[dict]:
     """The records of ``ids``; DatasetError naming those ``root`` lacks."""
     missing = sorted(ids - {r["id"] for r in records})
     if missing:
-        shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
-        raise DatasetError(f"{root} lacks {len(missing)} of the sample(s) asked for: {shown}")
+        raise DatasetError(f"{root} lacks {len(missing)} of the sample(s) asked for: {_first(missing)}")
     return [r for r in records if r["id"] in ids]
 
 
