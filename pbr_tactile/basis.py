@@ -36,7 +36,7 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
                   photons: int = 1 << 18, spp: int = 32, passes: int = 2, seed: int = 0,
                   use_cache: bool = True, depth: np.ndarray | None = None,
                   ref_depth: np.ndarray | None = None, solids=None, no_contact_runs: int = 0,
-                  inscatter: str = "fluence", perturb=None) -> dict:
+                  inscatter: str = "fluence", perturb=None, only=None) -> dict:
     """One grey image per source (``pbr_tactile.scene.led_sources``, with leaks) of the
     sensor: ``mean`` (h, w, S) per unit flux, ``variance``, ``names`` (S,), ``response``
     (S, 3) the film's response to each source at the effects' powers. Without ``depth``
@@ -53,13 +53,17 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
 
     ``perturb``: a ``pbr_tactile.reweight.Perturbation`` or its (K, 3) array of variants
     (absorption_per_m, scattering_per_m, coating_albedo), each re-weighted from the same
-    photons (``pbr_tactile.reweight``; a matte paint only). The dict then also holds
+    photons (``pbr_tactile.reweight``; a glossy paint's albedo is not). The dict then also holds
     ``perturb`` (K, 3), ``variant_mean`` and ``variant_variance`` (K, h, w, S), each
     variant's basis as ``mean`` and ``variance`` are the traced one's, ``ess_ratio`` (K, S)
     the variants' Kish effective-sample-size ratios and ``valid`` (K,) bool, those at
     ``pbr_tactile.reweight.MIN_ESS_RATIO`` or above for every source (the others: render
     them with their own effects instead). The identity part is cached under the key
-    without variants too, so a later call without them reads it."""
+    without variants too, so a later call without them reads it.
+
+    ``only``: the places of the sources to render (``reference``'s): ``names``, ``mean``
+    and the rest hold those, traced as they are in the whole basis (common random
+    numbers), so they stand in for its columns where a change touches only them."""
     from scenes.cache import cached, make_key
 
     from .nocontact import CACHE_VERSION
@@ -76,9 +80,12 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
     own = camera == Camera.from_spec(spec)
     key = make_key("basis", 2, CACHE_VERSION, CAMERA_PASS_VERSION, variant, inscatter, dataclasses.asdict(spec),
                    np.asarray(mesh.vertices), effects.to_dict(), [width, height], photons, spp, passes, seed, *contact,
-                   *([no_contact_runs] if no_contact_runs else []), *([] if own else [dataclasses.asdict(camera)]))
+                   *([no_contact_runs] if no_contact_runs else []), *([] if own else [dataclasses.asdict(camera)]),
+                   *([] if only is None else ["only", [int(k) for k in only]]))
     perturbation = None if perturb is None else Perturbation.of(perturb)
     sources = led_sources(spec, effects)
+    if only is not None:
+        sources = [sources[int(k)] for k in only]
 
     def identity(est) -> dict:
         return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
@@ -88,7 +95,8 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
         settings = RenderSettings(spp=spp * passes, width=width, height=height, seed=seed, variant=variant,
                                   passes=passes, photons=photons, no_contact_runs=no_contact_runs, per_source=True,
                                   inscatter=inscatter)
-        return reference(depth, ref_depth, mesh, spec, camera, effects, settings, perturb=perturb_, solids=solids)
+        return reference(depth, ref_depth, mesh, spec, camera, effects, settings, perturb=perturb_, solids=solids,
+                         only=only)
 
     if perturbation is None:
         return cached("pbr-calibration-basis", key, lambda: identity(render()), use_cache=use_cache)
@@ -113,13 +121,15 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
 def grid_bases(points: list[dict], base: Effects, basis_at) -> tuple[list[dict], dict | None]:
     """Each grid point's basis, ``basis_at(effects, perturb=None)`` (``emitter_basis`` with
     the rest bound), from as few traces as it can: where every point differs from ``base``
-    only in the medium and the paint's albedo (``reweight.PARAMETERS``) and the paint is
-    matte, one basis is traced at the grid's middle point (each parameter's median value,
+    only in the medium and the paint's albedo (``reweight.PARAMETERS``; a glossy paint's
+    albedo not), one basis is traced at the grid's middle point (each parameter's median value,
     else the point nearest it) and re-weighted to every other point (perturbation Monte
     Carlo); a point whose re-weighting is not valid (``reweight.MIN_ESS_RATIO``) is traced
     again with its own effects. Returns (bases in the points' order, a report of what was
     traced and re-weighted, or None where each point was traced)."""
-    if len(points) < 2 or base.coating_gloss or any(k not in PARAMETERS for p in points for k in p):
+    glossy_albedo = base.coating_gloss > 0 and any(float(p.get("coating_albedo", base.coating_albedo))
+                                                   != base.coating_albedo for p in points)
+    if len(points) < 2 or glossy_albedo or any(k not in PARAMETERS for p in points for k in p):
         return [basis_at(dataclasses.replace(base, **p)) for p in points], None
     values = np.array([[float(p.get(k, getattr(base, k))) for k in PARAMETERS] for p in points])
     # a walk represents the others only where it scatters and its paint reflects, if any of theirs do

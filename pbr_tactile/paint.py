@@ -40,6 +40,8 @@ class Paint:
                                        ("roughness", self.roughness, 1e-3, 1.0)):
             if not low <= float(value) <= high:
                 raise ValueError(f"paint {name} must be in [{low:g}, {high:g}], got {value}")
+            # plain floats: a NumPy scalar times a Dr.Jit array would evaluate it inside the photons' loop
+            object.__setattr__(self, name, float(value))
 
     @classmethod
     def of(cls, value) -> Paint:

@@ -211,8 +211,8 @@ def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dic
     where none). With ``classes`` = PATH_CLASSES, ``acc`` holds one block of vertices per
     source and path class, and each deposit goes to its path's class (PATH_EVENTS).
 
-    variants : (coefficients (K, 3), flux, track, moments): each deposit (and track) is
-        also added, times each variant's factor f (``pbr_tactile.reweight``, equation (1)),
+    variants : (coefficients (K, 3), flux, track, moments, lobe): each deposit (and track,
+        and with ``lobe`` its flake-lobe flux, into the last) is also added, times each variant's factor f (``pbr_tactile.reweight``, equation (1)),
         into ``flux`` (``track``) at K times ``acc``'s (``track``'s) index plus k (the
         variants of one vertex or voxel side by side, in one cache line: measured with 11
         variants at 2^15 photons, their added CPU time fell from about 1.0 to 0.6 of the
@@ -240,7 +240,7 @@ def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dic
         keys += tuple((k, mi.Float) for k in ("wx", "wy", "wz", "sx", "sy", "sz"))
     if variants is not None:  # the path's statistics, for the copies' factors
         keys += (("length", mi.Float), ("scatters", mi.UInt32), ("bounces", mi.UInt32))
-        coefficients, v_acc, v_track, moments = variants
+        coefficients, v_acc, v_track, moments, v_lobe = variants
         n_variants = len(coefficients)
     queue = {k: dr.zeros(t, n_lanes) for k, t in keys}
     lane_index = dr.arange(mi.UInt32, n_lanes)
@@ -275,6 +275,17 @@ def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dic
         for i, b in zip(corners, bary):
             dr.scatter_reduce(dr.ReduceOp.Add, acc, weight * b, into + i, hit_coating,
                               mode=dr.ReduceMode.Expand)
+        lobe_f = []  # per corner: the flake lobe's BRDF from here towards its view, over the cosine in
+        if lobe is not None:  # (acc, toward, normal)
+            acc_g, toward, normal = lobe
+            for i, b in zip(corners, bary):
+                n_i = dr.gather(mi.Vector3f, normal, i, hit_coating)
+                f_cos = paint.glossy_cos(mi, dr, n_i, dr.gather(mi.Vector3f, toward, i, hit_coating), -ray.d)
+                cos_in = dr.dot(n_i, -ray.d)
+                f = dr.select(cos_in > 1e-6, f_cos / dr.maximum(cos_in, 1e-6), 0.0)
+                lobe_f.append(f)
+                dr.scatter_reduce(dr.ReduceOp.Add, acc_g, weight * b * f, offset + i, hit_coating,
+                                  mode=dr.ReduceMode.Expand)
         if variants is not None:
             # The path up to this hit: the segment that ends here counts where it ran in the elastomer.
             L = path[0] + dr.select(crossed, length, 0.0)
@@ -285,21 +296,15 @@ def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dic
                     for i, b in zip(corners, bary):
                         dr.scatter_reduce(dr.ReduceOp.Add, v_acc, w_f * b, (into + i) * n_variants + k - 1,
                                           hit_coating, mode=dr.ReduceMode.Expand)
+                    for i, b, f in zip(corners, bary, lobe_f):  # a glossy paint's lobe, re-weighted alike
+                        dr.scatter_reduce(dr.ReduceOp.Add, v_lobe, w_f * b * f, (offset + i) * n_variants + k - 1,
+                                          hit_coating, mode=dr.ReduceMode.Expand)
                 at_k = (k * n_src_moments + s) * 2
                 dr.scatter_reduce(dr.ReduceOp.Add, moments, w_f, at_k, hit_coating, mode=dr.ReduceMode.Expand)
                 dr.scatter_reduce(dr.ReduceOp.Add, moments, w_f * w_f, at_k + 1, hit_coating,
                                   mode=dr.ReduceMode.Expand)
             path = (L, path[1] + dr.select(scatter, mi.UInt32(1), mi.UInt32(0)),
                     path[2] + dr.select(hit_coating, mi.UInt32(1), mi.UInt32(0)))
-        if lobe is not None:  # (acc, toward, normal): the lobe's BRDF from here towards each corner's view
-            acc_g, toward, normal = lobe
-            for i, b in zip(corners, bary):
-                n_i = dr.gather(mi.Vector3f, normal, i, hit_coating)
-                f_cos = paint.glossy_cos(mi, dr, n_i, dr.gather(mi.Vector3f, toward, i, hit_coating), -ray.d)
-                cos_in = dr.dot(n_i, -ray.d)
-                f = dr.select(cos_in > 1e-6, f_cos / dr.maximum(cos_in, 1e-6), 0.0)
-                dr.scatter_reduce(dr.ReduceOp.Add, acc_g, weight * b * f, offset + i, hit_coating,
-                                  mode=dr.ReduceMode.Expand)
         inward = -si.n
         diffuse_dir = mi.Frame3f(inward).to_world(mi.warp.square_to_cosine_hemisphere(sampler.next_2d(active)))
         if glossy:
@@ -366,7 +371,7 @@ def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dic
 
 def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, coating_albedo: float,
              photons: int, seed: int = 0, window: np.ndarray | None = None, grid=None, classes: bool = False,
-             glossy: GlossyView | None = None, perturb=None):
+             glossy: GlossyView | None = None, perturb=None, streams=None):
     """Per source, the flux each coating vertex receives, per unit flux emitted.
 
     All sources' photons are traced in one wavefront, as one symbolic Dr.Jit loop (one
@@ -396,8 +401,9 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         (absorption_per_m, scattering_per_m, coating_albedo): every deposit (and track) is
         also re-weighted to each variant (``pbr_tactile.reweight``: equation (1), unbiased;
         it draws no random numbers, so the walks, and what is returned beside it, are
-        those of the same seed without it). Not with a glossy paint, whose flake lobe's
-        factor is not re-weighted.
+        those of the same seed without it). With a glossy paint (``glossy``), its flake
+        lobe's flux is re-weighted alike (``Reweighted.lobe``); its albedo's variants are
+        refused (``Perturbation.coefficients``).
     Returns (S, V) float64, V the coating mesh's vertex count; with a grid, that and the
     (S, N) tracks, N the grid's voxels (m per unit flux emitted). With ``perturb``, a pair:
     that, and the variants' ``pbr_tactile.reweight.Reweighted`` (flux (K, S, V), tracks
@@ -408,11 +414,8 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     paint = Paint.of(coating_albedo)
     variants = perturbation = None
     if perturb is not None:
-        if paint.glossy:
-            raise ValueError(f"perturb needs a matte paint, got coating_gloss {paint.gloss}: the flake lobe's factor "
-                             "(its map towards the camera) is not re-weighted; trace each glossy variant again")
         perturbation = Perturbation.of(perturb)
-        coefficients = perturbation.coefficients(sigma_t, albedo, paint.albedo)
+        coefficients = perturbation.coefficients(sigma_t, albedo, paint.albedo, paint.gloss)
     c = coating_buffers(mi, scene)
     n_vertices = len(c.vertex_area)
     n_src = len(sources)
@@ -431,14 +434,19 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
         k = len(perturbation)
         variants = (coefficients, dr.zeros(mi.Float, k * dr.width(acc)),
                     None if track is None else dr.zeros(mi.Float, k * dr.width(track)),
-                    dr.zeros(mi.Float, (k + 1) * n_src * 2))
+                    dr.zeros(mi.Float, (k + 1) * n_src * 2),
+                    None if lobe is None else dr.zeros(mi.Float, k * n_src * n_vertices))
 
     # Generation 0: points on the LED spheres, cosine about their normals.
     lane = dr.arange(mi.UInt32, n_src * photons)
     s = lane // photons
     centre = dr.gather(mi.Point3f, mi.Point3f(*[mi.Float([src.centre[k] for src in sources]) for k in range(3)]), s)
     radius = dr.gather(mi.Float, mi.Float([src.radius for src in sources]), s)
-    identity = splitmix(np.uint64(seed), np.arange(n_src * photons, dtype=np.uint64))
+    streams = np.arange(n_src) if streams is None else np.asarray(streams, np.int64)
+    if streams.shape != (n_src,) or (streams < 0).any() or len(set(streams.tolist())) != n_src:
+        raise ValueError(f"streams must be {n_src} distinct non-negative source places, got {streams.tolist()}")
+    identity = splitmix(np.uint64(seed), (np.repeat(streams, photons) * photons
+                                          + np.tile(np.arange(photons), n_src)).astype(np.uint64))
     sampler = Rng(mi, identity)
     normal = mi.warp.square_to_uniform_sphere(sampler.next_2d())
     # Directional sources leave from the sphere's point on their axis, within their cone.
@@ -501,12 +509,15 @@ def deposits(mi, scene, sources: list[Source], sigma_t: float, albedo: float, co
     if variants is None:
         return out
     k = len(perturbation)
-    _, v_acc, v_track, moments = variants
-    # Stored variant-minor (_trace_generation): variant first here.
-    return out, Reweighted(np.moveaxis(np.asarray(v_acc, np.float64).reshape((*shape, k)), -1, 0).copy(),
-                           None if v_track is None else
-                           np.moveaxis(np.asarray(v_track, np.float64).reshape(n_src, grid.size, k), -1, 0).copy(),
-                           np.asarray(moments, np.float64).reshape(k + 1, n_src, 2))
+    _, v_acc, v_track, moments, v_lobe = variants
+
+    def variant_first(a, *dims):  # stored variant-minor (_trace_generation): variant first here
+        return np.moveaxis(np.asarray(a, np.float64).reshape((*dims, k)), -1, 0).copy()
+
+    return out, Reweighted(variant_first(v_acc, *shape),
+                           None if v_track is None else variant_first(v_track, n_src, grid.size),
+                           np.asarray(moments, np.float64).reshape(k + 1, n_src, 2),
+                           None if v_lobe is None else variant_first(v_lobe, n_src, n_vertices))
 
 
 def weight_window(irradiance_pilot: np.ndarray, vertex_area: np.ndarray, photons: int,

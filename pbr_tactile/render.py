@@ -192,7 +192,7 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                    target_rse: float | None = None, region: np.ndarray | None = None, max_passes: int = MAX_PASSES,
                    no_contact_memo: dict | None = None, control: Control | None = None,
                    control_spp: int = 0, per_source: bool = False, fluence_grids: tuple | None = None,
-                   perturb=None):
+                   perturb=None, streams=None):
     """The two-pass photon estimator (pbr_tactile.photons, module doc), in independent passes.
 
     spp : camera samples per pixel of one pass.
@@ -244,7 +244,12 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         ``pbr_tactile.reweight.VariantEstimates`` then: the traced Estimate (what this
         returns without it, for the same seed), one Estimate per variant from the same
         passes, and the variants' Kish ESS ratios over every deposit used. Not with a
-        control variate (``control``, ``control_spp``) or a glossy paint.
+        control variate (``control``, ``control_spp``); with a glossy paint, the medium's
+        variants only (its flake lobe's map re-weighted as the flux is).
+    streams : (S,) each source's place in a longer list of sources whose render this
+        one stands beside (``pbr_tactile.photons.deposits``): its photons walk as they do
+        there, so a render of the few sources a change touches pairs with the others'
+        render of the whole list (common random numbers). None: 0 .. S - 1.
 
     The pilot's seed follows the last pass's (``passes``, or ``max_passes`` with a
     target), so a pass never shares its random numbers with the pilot, and every render
@@ -273,10 +278,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         if control is not None or control_spp:
             raise ValueError("perturb cannot be combined with a control variate (control, control_spp): the "
                              "control is the traced effects' no-contact frame, not the variants'")
-        if effects.coating_gloss > 0:
-            raise ValueError(f"perturb needs a matte paint, got coating_gloss {effects.coating_gloss}: the flake "
-                             "lobe's factor is not re-weighted; trace each glossy variant again")
-        perturbation.coefficients(effects.sigma_t, effects.albedo, effects.coating_albedo)  # refused before tracing
+        # refused before tracing (a glossy paint's albedo among them)
+        perturbation.coefficients(effects.sigma_t, effects.albedo, effects.coating_albedo, effects.coating_gloss)
     grid_lit = grid_pilot = None
     if fluence_grids is not None:
         grid_lit, grid_pilot = fluence_grids
@@ -336,13 +339,15 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         viewed = [] if view_0 is None else [np.round(view_0.toward, 3), np.round(view_0.normal, 3)]
         # The variants' runs are their own entries (the traced parts too: one run holds both).
         varied = [] if perturbation is None else ["perturb", perturbation.key()]
+        varied += [] if streams is None else ["streams", [int(k) for k in streams]]
         no_contact = NoContact(mi, pilot_lit, [[s.key() for s in srcs],
                                                sigma_t, albedo, *paint.key(), photons, *viewed, *varied],
                                no_contact_runs, use_cache, no_contact_memo, grid_pilot)
     pilot_seed = seed * 7919 + (passes if target_rse is None else max_passes)
     parts = ("flux",) + (() if grid_lit is None else ("track",)) + (() if view is None else ("lobe",))
-    if perturbation is not None:  # the variants' flux (K, S, V), tracks (K, S, N), deposit moments
-        parts += ("variant_flux",) + (() if grid_lit is None else ("variant_track",)) + ("moments",)
+    if perturbation is not None:  # the variants' flux (K, S, V), tracks (K, S, N), deposit moments, lobe (K, S, V)
+        parts += ("variant_flux",) + (() if grid_lit is None else ("variant_track",)) + ("moments",) \
+            + (() if view is None else ("variant_lobe",))
 
     def trace(in_scene, count: int, run_seed: int, window_=None, grid=None, seen=None, reweigh=True):
         """The deposits' parts: flux, the tracks with a grid, the lobe's flux with a view;
@@ -350,13 +355,14 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         lobe = None if seen is None else GlossyView(seen.toward, seen.normal)
         varied = perturbation if reweigh else None
         out = deposits(mi, in_scene, srcs, sigma_t, albedo, paint, count, run_seed, window_, grid, glossy=lobe,
-                       perturb=varied)
+                       perturb=varied, streams=streams)
         if varied is not None:
             out, reweighted = out
         out = (out,) if grid is None else tuple(out)
         out += () if lobe is None else (lobe.flux,)
         if varied is not None:
-            out += (reweighted.flux,) + (() if grid is None else (reweighted.track,)) + (reweighted.moments,)
+            out += (reweighted.flux,) + (() if grid is None else (reweighted.track,)) + (reweighted.moments,) \
+                + (() if lobe is None else (reweighted.lobe,))
         return out
 
     def trace_pilot():
@@ -376,8 +382,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
     def one_pass(k: int) -> np.ndarray:
         pass_seed = seed * 7919 + k
         phi = lobe_map = None
-        # Per variant: its maps and fluence, formed as the traced ones are.
-        variant_maps, variant_phi = [None] * len(media), [None] * len(media)
+        # Per variant: its maps, fluence and lobe maps, formed as the traced ones are.
+        variant_maps, variant_phi, variant_lobe = [None] * len(media), [None] * len(media), [None] * len(media)
         if traced:
             got = dict(zip(parts, trace(lit, photons, pass_seed, window, grid_lit, view)))
             maps = irradiance(got["flux"], area, kernel)
@@ -389,6 +395,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                 variant_maps[v] = irradiance(got["variant_flux"][v], area, kernel)
                 if grid_lit is not None:
                     variant_phi[v] = grid_lit.fluence(got["variant_track"][v])
+                if view is not None:
+                    variant_lobe[v] = irradiance(got["variant_lobe"][v], area, kernel)
             if media:
                 moments.append(got["moments"])
         if no_contact is not None:
@@ -409,6 +417,9 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
                 if grid_pilot is not None:
                     variant_phi[v] = grid_pilot.fluence(runs["variant_track"][v]) + (
                         variant_phi[v] - grid_pilot.fluence(same["variant_track"][v]) if traced else 0.0)
+                if view is not None:
+                    variant_lobe[v] = map_of(runs["variant_lobe"][v]) + (
+                        variant_lobe[v] - map_of(same["variant_lobe"][v]) if traced else 0.0)
             if media:
                 moments.append(runs["moments"])
         fluence = None if phi is None else (grid_lit, phi)
@@ -418,7 +429,8 @@ def render_photons(scene: dict, sources: list[dict], effects: Effects, photons: 
         for v, (sigma_t_v, albedo_v, rho_v) in enumerate(media):
             variant_images[v].append(camera_pass(
                 mi, loaded, srcs, variant_maps[v], sigma_t_v, albedo_v, replace(paint, albedo=rho_v), spp, pass_seed,
-                fluence=None if variant_phi[v] is None else (grid_lit, variant_phi[v])) @ response)
+                fluence=None if variant_phi[v] is None else (grid_lit, variant_phi[v]),
+                glossy_maps=variant_lobe[v]) @ response)
         if not control_spp:
             return image
         as_traced.append(image)
@@ -454,6 +466,7 @@ def reference(
     control: Control | None = None,
     solids: ElastomerBuilder | None = None,
     no_contact_memo: dict | None = None,
+    only=None,
     progress=None,
 ):
     """Render what the sensor's camera sees for a contact depth map (None: no contact),
@@ -468,6 +481,10 @@ def reference(
     solids : the membrane's ElastomerBuilder, kept across contacts (it refines the
         membrane and checks its undeformed solid once); None: ``shared_builder``'s.
     no_contact_memo : see ``render_photons``.
+    only : the places of the sources to render in ``led_sources``' list (photons and
+        per_source only): the image holds those sources, each traced with the random
+        numbers it has in a render of the whole list (``render_photons``' streams), so
+        it pairs with that render where a change touches only them (a leak's cone).
     """
     s = settings
     if not effects.contact_shadow and s.estimator != "photons":
@@ -480,6 +497,14 @@ def reference(
         raise ValueError("a control variate (control, control_spp) needs the photon estimator")
     if perturb is not None and s.estimator != "photons":
         raise ValueError("perturb (re-weighted variants) needs the photon estimator")
+    sources = led_sources(spec, effects, led_power)
+    if only is not None:
+        only = tuple(int(k) for k in only)
+        if s.estimator != "photons" or not s.per_source:
+            raise ValueError("only (a subset of the sources) needs the photon estimator and per_source images")
+        if not only or len(set(only)) != len(only) or not all(0 <= k < len(sources) for k in only):
+            raise ValueError(f"only must name distinct places among the {len(sources)} sources, got {list(only)}")
+        sources = [sources[k] for k in only]
     spp, width, height, seed, variant, passes = s.spp, s.width, s.height, s.seed, s.variant, s.passes
     estimator, target_rse, max_passes, inscatter = s.estimator, s.target_rse, s.max_passes, s.inscatter
     region = None if target_rse is None else contact_region(depth, ref_depth, camera, width, height)
@@ -507,12 +532,13 @@ def reference(
             if inscatter == "fluence":
                 flat_grid = build.grid()
                 grids = (build.grid(depth, ref_depth) if light_scene is None else flat_grid, flat_grid)
-            est = render_photons(scene, led_sources(spec, effects, led_power), effects, photons=s.photons,
+            est = render_photons(scene, sources, effects, photons=s.photons,
                                  spp=max(1, spp // passes), passes=passes, seed=seed, variant=variant,
                                  progress=progress, kernel_radius=s.kernel_radius, light_scene=light_scene,
                                  pilot_scene=flat_scene, no_contact_runs=s.no_contact_runs if flat_scene else 0,
                                  no_contact_memo=no_contact_memo, control=control, control_spp=s.control_spp,
-                                 per_source=s.per_source, fluence_grids=grids, perturb=perturb, **targets)
+                                 per_source=s.per_source, fluence_grids=grids, perturb=perturb, streams=only,
+                                 **targets)
         else:
             est = render(scene, spp=spp, passes=passes, seed=seed, variant=variant, progress=progress, **targets)
     if isinstance(est, VariantEstimates):

@@ -41,8 +41,12 @@ effective sample size of the deposits, (sum w f)^2 / sum (w f)^2, over the same 
 (``ess_ratio``) says how many of the traced deposits the variant effectively keeps; below
 ``MIN_ESS_RATIO`` a variant is reported as not valid (trace it again).
 
-Glossy paints are refused: the flake lobe's map is weighted by a BRDF towards the camera
-that this module does not re-weight (trace each glossy variant again).
+A glossy paint (``pbr_tactile.paint``: a diffuse base and a GGX flake lobe) keeps the
+medium's variants: its flake lobe's map (``pbr_tactile.photons.GlossyView``) is a sum of
+the arrivals' weights times the lobe's BRDF towards the camera, which f scales as it
+scales the flux. Its albedo's variants are refused: a bounce off the flake lobe carries
+G1 in place of rho (``_paint_direction``), so (rho' / rho)^m would have to count the
+diffuse lobe's bounces alone (trace each glossy paint's albedo again).
 """
 
 from __future__ import annotations
@@ -117,20 +121,26 @@ class Perturbation:
 
         return [replace(traced, **{name: float(v) for name, v in zip(PARAMETERS, row)}) for row in self.values]
 
-    def coefficients(self, sigma_t: float, albedo: float, rho: float) -> np.ndarray:
+    def coefficients(self, sigma_t: float, albedo: float, rho: float, gloss: float = 0.0) -> np.ndarray:
         """(K, 3) float64 the exponents of equation (1) per variant, against the traced
         sigma_t (1/m), albedo (-) and paint albedo rho (-): ln(sigma_s' / sigma_s) per
         scattering event (-inf where sigma_s' = 0), sigma_t' - sigma_t (1/m) per metre in
         the elastomer, ln(rho' / rho) per paint bounce (-inf where rho' = 0).
 
         Refuses variants the traced walk cannot represent: scattering where the traced
-        medium has none, a reflecting paint where the traced one is black."""
+        medium has none, a reflecting paint where the traced one is black, another paint
+        albedo where the traced paint is glossy (``gloss`` > 0: module doc)."""
         sigma_s = sigma_t * albedo if sigma_t > 0 else 0.0
         sa, ss, rr = self.values.T
         out = np.zeros((len(self), 3))
         if sigma_s <= 0 and np.any(ss > 0):
             raise ValueError(f"perturb: scattering_per_m {ss[ss > 0].tolist()} cannot be re-weighted from a traced "
                              f"medium without scattering (its walks never scatter); trace it again")
+        other_paint = np.abs(rr - rho) > SAME
+        if gloss > 0 and np.any(other_paint):
+            raise ValueError(f"perturb: coating_albedo {rr[other_paint].tolist()} cannot be re-weighted from a glossy "
+                             f"traced paint (coating_gloss {gloss:g}: a flake bounce does not scale with the albedo); "
+                             f"trace it again")
         if rho <= 0 and np.any(rr > 0):
             raise ValueError(f"perturb: coating_albedo {rr[rr > 0].tolist()} cannot be re-weighted from a black "
                              f"traced paint (its photons end on the paint); trace it again")
@@ -193,12 +203,15 @@ class Reweighted:
     flux : (K, S, V) float64 (K, S, PATH_CLASSES, V with classes) flux per unit flux
         emitted, as ``deposits`` returns the traced one; track : (K, S, N) m per unit flux
         emitted with a fluence grid, else None; moments : (K + 1, S, 2) the deposits'
-        sum of w f and of (w f)^2, the traced walk's (f = 1) first (``kish_ratio``).
+        sum of w f and of (w f)^2, the traced walk's (f = 1) first (``kish_ratio``);
+        lobe : (K, S, V) a glossy paint's flake-lobe flux (``GlossyView.flux``) under
+        each variant, else None.
     """
 
     flux: np.ndarray
     track: np.ndarray | None
     moments: np.ndarray
+    lobe: np.ndarray | None = None
 
     @property
     def ess_ratio(self) -> np.ndarray:

@@ -48,13 +48,17 @@ PIXELS = [(320, 240), (250, 200), (400, 300), (200, 330), (460, 180), (150, 240)
 
 
 def fake_basis(spec, mesh, camera, effects, film, photons=0, spp=0, passes=0, seed=0, use_cache=True, depth=None,
-               ref_depth=None, solids=None, no_contact_runs=0, inscatter="fluence", perturb=None):
+               ref_depth=None, solids=None, no_contact_runs=0, inscatter="fluence", perturb=None, only=None):
     """Per-source images with a known physics: LED m's light exp(-sigma_a d_m) (d_m the
     distance in metres over the image from the LED's place), its leak a ring at 0.4 of
     the image radius on the LED's side (nearer the centre, the tip, the narrower its cone up
     the tube), a contact adding its indentation's shading. With ``perturb`` ((K, 3) rows of
     absorption, scattering, paint albedo), each row's images too, as the re-weighting
-    returns them (``ESS``: each row's effective-sample-size ratio, 1 by default)."""
+    returns them (``ESS``: each row's effective-sample-size ratio, 1 by default). With
+    ``only``, those sources' columns."""
+    if only is not None:
+        out = fake_basis(spec, mesh, camera, effects, film, depth=depth, ref_depth=ref_depth)
+        return {k: (out[k][..., list(only)] if k != "names" else out[k][list(only)]) for k in out}
     if perturb is not None:
         from pbr_tactile.reweight import PARAMETERS, valid
 
@@ -818,10 +822,71 @@ def test_medium_and_paint_grid_points_are_reweighted_from_one_render_per_tap(spe
     assert model.costly("scattering_per_m") and model.costly("membrane_compliance")  # one point traced; a dent moves
 
 
-def test_a_glossy_paint_is_traced_at_every_grid_point(spec, scene, stub):
+def test_a_leaks_cone_traces_the_leaks_alone_beside_the_identitys_leds(spec, scene, stub, monkeypatch):
+    """The leak's cone changes only the leaks' light: its grid points render the leak
+    sources alone (``emitter_basis(only=)``) and take the LEDs' own columns from the
+    identity's render, which is what a render of every source there gives."""
+    import pbr_tactile.basis
+
+    camera, ref, depth = scene
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(kwargs.get("only"))
+        return fake_basis(*args, **kwargs)
+
+    monkeypatch.setattr(pbr_tactile.basis, "emitter_basis", counted)
+    basis = SourceBasis(spec, renderer(core_light_leak=0.3), depth, film=FILM)
+    for key in (source_basis.NO_CONTACT, 0):
+        got = basis.images(key, "core_leak_cone_rad", 0.3)
+        _, effects, _ = basis.variant("core_leak_cone_rad", 0.3)
+        whole = fake_basis(spec, basis.mesh, basis.camera, effects, FILM,
+                           **({} if key == source_basis.NO_CONTACT else {"depth": depth[key], "ref_depth": ref}))
+        np.testing.assert_allclose(got, whole["mean"], rtol=1e-6)
+        np.testing.assert_allclose(basis._variances[(key, "core_leak_cone_rad", 0.3)], whole["variance"], rtol=1e-6)
+    leaks = [k for k, n in enumerate(basis.names) if n.endswith("_leak")]
+    assert len(leaks) == len(spec.leds) and calls == [None, leaks, None, leaks]  # the identity first, each tap
+    assert not np.allclose(basis.images(0, "core_leak_cone_rad", 0.3), basis.images(0))  # the cone is seen
+
+
+@pytest.mark.slow
+def test_a_render_of_the_leaks_alone_is_the_whole_renders_leak_columns(spec, scene, tmp_path, monkeypatch, photon_mi):
+    """``emitter_basis(only=)`` on the reference itself (a contact, no-contact runs, the
+    fluence): the leak sources traced alone give the columns a render of every source
+    gives them, to float rounding (the same random numbers), in a fraction of its time."""
+    from pbr_tactile.basis import emitter_basis
+    from scenes.cache import CACHE_ENV
+
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path))
+    camera, ref, depth = scene
+    effects = Effects(core_light_leak=0.5, core_leak_cone_rad=0.3)
+    kw = dict(film=(16, 12), photons=1 << 12, spp=4, passes=2, seed=1, no_contact_runs=1, depth=depth[0],
+              ref_depth=ref)
+    mesh = membrane_mesh(spec)
+    whole = emitter_basis(spec, mesh, camera, effects, **kw)
+    leaks = [k for k, n in enumerate(whole["names"]) if str(n).endswith("_leak")]
+    alone = emitter_basis(spec, mesh, camera, effects, only=leaks, **kw)
+    assert list(alone["names"]) == [whole["names"][k] for k in leaks]
+    np.testing.assert_allclose(alone["mean"], whole["mean"][..., leaks], rtol=1e-5, atol=1e-6 * whole["mean"].max())
+    np.testing.assert_allclose(alone["variance"], whole["variance"][..., leaks], rtol=1e-4,
+                               atol=1e-6 * whole["variance"].max())
+    np.testing.assert_allclose(alone["response"], whole["response"][leaks])
+
+
+def test_a_glossy_paints_albedo_is_traced_and_its_medium_reweighted(spec, scene, stub):
+    """A glossy paint's flake bounces do not scale with its albedo, so its albedo's grid
+    points are traced (costly, screened); its medium's are re-weighted. Where the
+    simulation's medium does not scatter, its scattering's points are traced too."""
     camera, ref, depth = scene
     basis = SourceBasis(spec, renderer(coating_gloss=0.3), depth, film=FILM)
-    assert not basis.reweighting["on"] and "glossy" in basis.reweighting["why"] and basis.variants == []
+    assert basis.reweighting["on"] and {n for n, _ in basis.variants} == {"absorption_per_m", "scattering_per_m"}
+    assert "glossy" in basis.reweighting["not_reweighted"]["coating_albedo"]
+    model = ReferenceModel(spec, renderer(coating_gloss=0.3), 1, basis)
+    assert model.costly("coating_albedo") and not model.costly("absorption_per_m")
+    clear = SourceBasis(spec, renderer(coating_gloss=0.3, scattering_per_m=0.0), depth, film=FILM)
+    assert {n for n, _ in clear.variants} == {"absorption_per_m"}
+    assert set(clear.reweighting["not_reweighted"]) == {"coating_albedo", "scattering_per_m"}
+    assert "does not scatter" in clear.reweighting["not_reweighted"]["scattering_per_m"]
 
 
 def _profiled(spec) -> dict:

@@ -160,6 +160,30 @@ def test_the_traced_values_give_the_traced_deposits_and_the_same_walks(lit):
     assert flux.shape == plain.shape and rw.track is None and rw.moments.shape == (2, len(srcs), 2)
 
 
+def test_sources_traced_alone_walk_as_they_do_among_the_whole_list(lit):
+    """``deposits(streams=)``: sources traced alone with their places in the whole list
+    deposit what they deposit traced with it (the same random numbers, splits and
+    roulette included), so a render of the sources a change touches pairs with the
+    others' render (``emitter_basis(only=)``). Without their places they walk otherwise."""
+    from pbr_tactile.photons import deposits
+
+    mi, scene, srcs, grid, _, _ = lit
+    fx = Effects()
+    window = _window(lit, fx, 1 << 11)
+    medium = (fx.sigma_t, fx.albedo, fx.coating_albedo, 1 << 11)
+    whole, track = deposits(mi, scene, srcs, *medium, seed=3, window=window, grid=grid)
+    part = [1, len(srcs) - 1]
+    alone, alone_track = deposits(mi, scene, [srcs[k] for k in part], *medium, seed=3, window=window[part], grid=grid,
+                                  streams=part)
+    tolerance = {"rtol": 1e-5, "atol": 1e-7}  # atomic sums in another order
+    np.testing.assert_allclose(alone, whole[part], **tolerance)
+    np.testing.assert_allclose(alone_track, track[part], **tolerance)
+    elsewhere = deposits(mi, scene, [srcs[k] for k in part], *medium, seed=3, window=window[part])
+    assert not np.allclose(elsewhere, whole[part], rtol=1e-2)
+    with pytest.raises(ValueError, match=r"streams must be 2 distinct non-negative source places, got \[1, 1\]"):
+        deposits(mi, scene, [srcs[k] for k in part], *medium, seed=3, streams=[1, 1])
+
+
 def test_switching_scattering_or_the_paint_off_keeps_exactly_the_paths_without_them(lit):
     """With path classes (``deposits(classes=True)``): a variant of the same sigma_t with
     no scattering has f = 1 on paths that did not scatter and 0 on the rest, so its flux
@@ -305,18 +329,43 @@ def test_a_variant_far_from_the_traced_one_is_not_valid(lit):
     np.testing.assert_array_equal(valid(rw.ess_ratio), [True, True, False])
 
 
-def test_a_glossy_paint_or_a_control_is_refused_with_variants(lit):
+def test_a_glossy_paints_lobe_is_reweighted_with_the_medium_and_its_albedo_refused(lit):
+    """A glossy paint's flake-lobe flux is re-weighted as the flux is (its arrivals' weights
+    times f): at the traced values it is the traced lobe, with less absorption it grows.
+    Its albedo is refused: a flake bounce does not scale with it."""
+    from pbr_tactile.camera_pass import camera_views
     from pbr_tactile.paint import Paint
-    from pbr_tactile.photons import deposits
+    from pbr_tactile.photons import GlossyView, deposits
     from pbr_tactile.render import render_photons
 
-    mi, scene, srcs, _, _, _ = lit
+    mi, scene, srcs, _, vertices, _ = lit
     fx = Effects()
-    with pytest.raises(ValueError, match="perturb needs a matte paint, got coating_gloss 0.5: the flake lobe's "
-                                         "factor .* is not re-weighted; trace each glossy variant again"):
-        deposits(mi, scene, srcs, fx.sigma_t, fx.albedo, Paint(0.85, 0.5), 16, perturb=[[10.0, 50.0, 0.85]])
-    with pytest.raises(ValueError, match="perturb needs a matte paint, got coating_gloss 0.5"):
-        render_photons({}, [], Effects(coating_gloss=0.5), perturb=[[10.0, 50.0, 0.85]])
+    seen = camera_views(mi, scene)
+    args = (mi, scene, srcs, fx.sigma_t, fx.albedo, Paint(fx.coating_albedo, 0.5, 0.3), 1 << 11)
+    alone, view = GlossyView(seen.toward, seen.normal), GlossyView(seen.toward, seen.normal)
+    plain = deposits(*args, seed=3, glossy=alone)
+    flux, rw = deposits(*args, seed=3, glossy=view, perturb=[[fx.absorption_per_m, fx.scattering_per_m,
+                                                                fx.coating_albedo], [5.0, 50.0, fx.coating_albedo]])
+    tolerance = {"rtol": 1e-5, "atol": 1e-7}  # atomic sums in another order
+    np.testing.assert_allclose(flux, plain, **tolerance)
+    np.testing.assert_allclose(view.flux, alone.flux, **tolerance)
+    assert rw.lobe.shape == (2, len(srcs), len(vertices)) and alone.flux.sum() > 0
+    np.testing.assert_allclose(rw.lobe[0], alone.flux, **tolerance)
+    np.testing.assert_allclose(rw.flux[0], plain, **tolerance)
+    assert np.all(rw.lobe[1].sum(axis=1) > alone.flux.sum(axis=1))  # less absorption, more light in the lobe too
+    with pytest.raises(ValueError, match=r"coating_albedo \[0.6\] cannot be re-weighted from a glossy traced paint "
+                                         r"\(coating_gloss 0.5: a flake bounce does not scale with the albedo\)"):
+        deposits(*args, seed=3, glossy=view, perturb=[[10.0, 50.0, 0.6]])
+    with pytest.raises(ValueError, match=r"from a glossy traced paint \(coating_gloss 0.5"):
+        render_photons({}, [], Effects(coating_gloss=0.5), perturb=[[20.0, 50.0, 0.6]])
+    # without the lobe's view, no lobe is re-weighted
+    assert deposits(*args, seed=3, perturb=[[5.0, 50.0, fx.coating_albedo]])[1].lobe is None
+
+
+def test_a_control_or_a_medium_without_scattering_is_refused_with_variants():
+    from pbr_tactile.render import render_photons
+
+    fx = Effects()
     with pytest.raises(ValueError, match=r"perturb cannot be combined with a control variate"):
         render_photons({}, [], fx, control_spp=4, perturb=[[10.0, 50.0, 0.85]])
     with pytest.raises(ValueError, match="cannot be re-weighted from a traced medium without scattering"):
@@ -324,8 +373,9 @@ def test_a_glossy_paint_or_a_control_is_refused_with_variants(lit):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("gloss", [0.0, 1.0])
 def test_a_bases_variants_agree_with_bases_rendered_at_each_variant(mesh, spec, camera, ref, pressed, monkeypatch,
-                                                                    photon_mi):
+                                                                    photon_mi, gloss):
     """The diagnosis' render (``emitter_basis`` of a contact, with no-contact runs and the
     fluence): each variant's basis agrees with a basis rendered at its effects with
     another seed, pixel by pixel and source by source (z = difference over the root of the
@@ -335,7 +385,8 @@ def test_a_bases_variants_agree_with_bases_rendered_at_each_variant(mesh, spec, 
     rendered without variants (the same walks), and is cached under its own key too. A
     small film, few photons and 2 mm voxels: the test is of the plumbing (maps, fluence,
     no-contact runs, a camera pass per variant); the deposits' statistics are tested
-    above."""
+    above. A glossy paint (its flake lobe's map re-weighted too) has the medium's variants
+    only."""
     from pbr_tactile import render
     from pbr_tactile.basis import emitter_basis
     from pbr_tactile.membrane import ElastomerBuilder
@@ -347,15 +398,17 @@ def test_a_bases_variants_agree_with_bases_rendered_at_each_variant(mesh, spec, 
     passes = 6
     kw = dict(film=(16, 12), photons=1 << 11, spp=4, passes=passes, depth=pressed, ref_depth=ref,
               solids=CoarseVoxels(mesh, spec, camera, 1e-3), no_contact_runs=1)
-    variants = np.array([[40.0, 50.0, 0.85], [20.0, 90.0, 0.85], [20.0, 50.0, 0.75]])
-    got = emitter_basis(spec, mesh, camera, Effects(), seed=1, perturb=variants, **kw)
-    n_src = got["mean"].shape[-1]
-    assert got["variant_mean"].shape == (3, 12, 16, n_src) and got["ess_ratio"].shape == (3, n_src)
+    variants = np.array([[40.0, 50.0, 0.85], [20.0, 90.0, 0.85], [20.0, 50.0, 0.75]])[:2 if gloss else 3]
+    paint = Effects(coating_gloss=gloss, coating_roughness=0.3)
+    got = emitter_basis(spec, mesh, camera, paint, seed=1, perturb=variants, **kw)
+    n_src, n_var = got["mean"].shape[-1], len(variants)
+    assert got["variant_mean"].shape == (n_var, 12, 16, n_src) and got["ess_ratio"].shape == (n_var, n_src)
     np.testing.assert_array_equal(got["perturb"], variants)
     # absorption and paint keep most of the deposits' ESS; scattering 90 (1.8x) less
-    assert np.all(got["valid"][[0, 2]]) and np.all(got["ess_ratio"][[0, 2]] > 0.7)
+    near = [0] if gloss else [0, 2]
+    assert np.all(got["valid"][near]) and np.all(got["ess_ratio"][near] > 0.7)
     assert np.all(got["ess_ratio"][1] < 0.9)
-    plain = emitter_basis(spec, mesh, camera, Effects(), seed=1, use_cache=False, **kw)
+    plain = emitter_basis(spec, mesh, camera, paint, seed=1, use_cache=False, **kw)
     np.testing.assert_allclose(got["mean"], plain["mean"], rtol=1e-4, atol=1e-6 * plain["mean"].max())
 
     def no_render(*args, **kwargs):
@@ -363,17 +416,18 @@ def test_a_bases_variants_agree_with_bases_rendered_at_each_variant(mesh, spec, 
 
     with monkeypatch.context() as patched:
         patched.setattr(render, "reference", no_render)
-        np.testing.assert_array_equal(emitter_basis(spec, mesh, camera, Effects(), seed=1, **kw)["mean"],
+        np.testing.assert_array_equal(emitter_basis(spec, mesh, camera, paint, seed=1, **kw)["mean"],
                                       got["mean"])
     # Without contact the maps are the no-contact runs' alone: a variant at the traced
     # values is the traced basis (f = 1, the same camera pass).
-    flat = emitter_basis(spec, mesh, camera, Effects(), seed=1, use_cache=False, perturb=[[20.0, 50.0, 0.85]],
+    flat = emitter_basis(spec, mesh, camera, paint, seed=1, use_cache=False, perturb=[[20.0, 50.0, 0.85]],
                          **{**kw, "depth": None, "ref_depth": None, "passes": 2})
     np.testing.assert_allclose(flat["variant_mean"][0], flat["mean"], rtol=1e-4, atol=1e-6 * flat["mean"].max())
     np.testing.assert_allclose(flat["ess_ratio"], 1.0, rtol=1e-3)
     z, off = [], []
     for k, (sa, ss, rho) in enumerate(variants):
-        e = Effects(absorption_per_m=sa, scattering_per_m=ss, coating_albedo=rho)
+        e = Effects(absorption_per_m=sa, scattering_per_m=ss, coating_albedo=rho, coating_gloss=gloss,
+                    coating_roughness=0.3)
         again = emitter_basis(spec, mesh, camera, e, seed=2, use_cache=False, **kw)
         lit = (again["mean"] > 0) & (got["variant_mean"][k] > 0)
         assert lit.mean() > 0.5
@@ -389,7 +443,7 @@ def test_a_bases_variants_agree_with_bases_rendered_at_each_variant(mesh, spec, 
     # pixels' correlation (they share each pass's maps).
     assert np.all(over_3 < 0.05) and np.all(mean_z2 < 2.5)
     # The scattering coefficient barely changes the image; the others are seen.
-    assert off_z2[0] > 4.0 and off_z2[2] > 4.0
+    assert off_z2[0] > 4.0 and (gloss or off_z2[2] > 4.0)
 
 
 def test_the_calibrations_grid_traces_one_basis_and_retraces_what_is_not_valid():

@@ -10,8 +10,10 @@ to every grid point of them in the same call (perturbation Monte Carlo,
 ``pbr_tactile.reweight``). A grid point whose re-weighting is not valid (its Kish
 effective-sample-size ratio below ``pbr_tactile.reweight.MIN_ESS_RATIO``: far from the
 traced value its variance grows too large) is traced again, and ``reweighting`` says
-which and why. Only a candidate that moves the geometry or the light's places (the
-membrane's mechanics, the leak's cone) is always traced again."""
+which and why, as it says which candidates' points cannot be re-weighted at all (a
+glossy paint's albedo, scattering where the simulation has none). Only a candidate that
+moves the geometry or the light's places (the membrane's mechanics, the leak's cone) is
+always traced again."""
 
 from __future__ import annotations
 
@@ -47,6 +49,11 @@ NO_CONTACT = -1
 MECHANICS = ("membrane_compliance", "layer_spread")
 #: Candidates re-weighted from the identity's photons.
 REWEIGHTED = PARAMETERS
+#: Candidates that change only the leaks' light (each LED's leak into the glass core): at
+#: their grid points the leak sources alone are traced, with the random numbers they have
+#: in the identity's render, and the LEDs' own columns are the identity's (their photons
+#: walk the same either way), which halves such a render's photons.
+LEAKS_ONLY = ("core_leak_cone_rad",)
 
 
 class SourceBasis:
@@ -89,8 +96,8 @@ class SourceBasis:
         self.renders = 0  # basis renders made here (not read from memory)
         self.seconds = 0.0
         self.cost: dict[str, dict] = {}  # per candidate: renders and seconds
-        # The grid points re-weighted from each identity render ((name, value) rows), or
-        # why none are (a glossy paint's flake lobe is not re-weighted).
+        # The grid points re-weighted from each identity render ((name, value) rows), and
+        # which candidates' are not and why.
         self.variants: list[tuple[str, float]] = []
         self.reweighting: dict = {"on": False, "why": "switched off"}
         if reweight:
@@ -101,14 +108,22 @@ class SourceBasis:
         the identity, each with the other parameters at the simulation's values."""
         from .physical import physical_catalogue
 
-        if self.effects.coating_gloss > 0:
-            self.reweighting = {"on": False, "why": f"the paint is glossy (coating_gloss {self.effects.coating_gloss:g}): "
-                                                    "its flake lobe is not re-weighted, so every grid point is traced"}
-            return
+        # Not re-weighted, and why: a glossy paint's albedo (a flake bounce does not scale
+        # with it); scattering where the simulation's medium has none, a paint albedo where
+        # its paint is black (its walks never scatter, or end on the paint).
+        e = self.effects
+        why = {"coating_albedo": f"the paint is glossy (coating_gloss {e.coating_gloss:g}): a flake bounce does "
+                                 "not scale with its albedo" if e.coating_gloss > 0 else
+                                 "the paint is black: its photons end on it" if e.coating_albedo <= 0 else None,
+               "scattering_per_m": "the medium does not scatter: its walks never do" if e.scattering_per_m <= 0
+                                   else None}
+        not_reweighted = {n: f"{w}; its grid points are traced" for n, w in why.items() if w}
+        names = [n for n in REWEIGHTED if n not in not_reweighted]
         grids = physical_catalogue(self.spec, self.effects)[2]
-        self.variants = [(name, float(v)) for name in REWEIGHTED if name in grids
+        self.variants = [(name, float(v)) for name in names if name in grids
                          for v in grids[name]["values"] if float(v) != float(getattr(self.effects, name))]
         self.reweighting = {"on": True, "variants": [f"{n}={v:g}" for n, v in self.variants],
+                            **({"not_reweighted": not_reweighted} if not_reweighted else {}),
                             "retraced": {}, "seconds": 0.0, "renders": 0,
                             "what": "grid points of the absorption, scattering and paint albedo re-weighted from each "
                                     "tap's identity photons (perturbation Monte Carlo); retraced: the points whose "
@@ -171,11 +186,16 @@ class SourceBasis:
             if scale != 1.0:
                 depth = (self.ref - scale * (self.ref - depth)).astype(np.float32)
             contact = {"depth": depth, "ref_depth": self.ref}
+        only = None
+        if name in LEAKS_ONLY:
+            plain = self.images(key)  # the identity (first: its LEDs' columns stand for this point's)
+            only = [k for k, n in enumerate(self.names) if n.endswith("_leak")]
         t0 = time.perf_counter()
         rows = self._rows() if perturb else None
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
                               passes=self.passes, seed=self.seed, use_cache=self.use_cache,
-                              no_contact_runs=self.no_contact_runs, inscatter=self.inscatter, perturb=rows, **contact)
+                              no_contact_runs=self.no_contact_runs, inscatter=self.inscatter, perturb=rows,
+                              only=only, **contact)
         seconds = time.perf_counter() - t0
         self.renders += 1
         self.seconds += seconds
@@ -193,13 +213,19 @@ class SourceBasis:
                 else:
                     self.reweighting["retraced"].setdefault(f"{n}={v:g}", {"tap": int(key), "ess_ratio": float(ess[k])})
         names = [str(n) for n in basis["names"]]
-        if self.names is None:
+        image, variance = np.asarray(basis["mean"], np.float32), np.asarray(basis["variance"], np.float32)
+        if only is not None:  # the leaks' columns into the identity's
+            if names != [self.names[k] for k in only]:
+                raise ValueError(f"the leaks rendered alone are {names}, not the basis' {[self.names[k] for k in only]}")
+            leaks, leak_variance = image, variance
+            image, variance = plain.copy(), self.variance(key).copy()
+            image[..., only], variance[..., only] = leaks, leak_variance
+        elif self.names is None:
             self.names = names
         elif names != self.names:
             raise ValueError(f"the basis' sources changed between renders ({self.names} against {names})")
-        image = np.asarray(basis["mean"], np.float32)
         self._images[tag] = image
-        self._variances[tag] = np.asarray(basis["variance"], np.float32)
+        self._variances[tag] = variance
         return image
 
     def rendered_keys(self) -> list[int]:
