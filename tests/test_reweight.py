@@ -484,13 +484,18 @@ def test_the_calibrations_grid_traces_one_basis_and_retraces_what_is_not_valid()
             assert basis["mean"].flat[0] == 20.0
         else:  # re-weighted: the variant's
             assert basis["mean"].flat[0] == point["absorption_per_m"] + 1000
-    # anything but the medium and the paint's albedo, or a glossy paint: each point traced
+    # anything but the medium and the paint's albedo, or a glossy paint's albedo: each point traced
+    glossy = dataclasses.replace(base, coating_gloss=0.3)
     for grid, paint in (([{"absorption_per_m": 5.0, "core_light_leak": 0.1}, {"absorption_per_m": 20.0,
                                                                               "core_light_leak": 0.1}], base),
-                        (points[:2], dataclasses.replace(base, coating_gloss=0.3))):
+                        ([{"coating_albedo": 0.6}, {"coating_albedo": 0.85}], glossy)):
         calls.clear()
         bases, report = grid_bases(grid, paint, basis_at)
         assert report is None and len(calls) == len(grid) and all(c[2] is None for c in calls)
+    # a glossy paint's medium is re-weighted
+    calls.clear()
+    bases, report = grid_bases(points[:2], glossy, basis_at)
+    assert report is not None and calls[0][2] == 2 and len(calls) == 1
     # nothing scatters anywhere: absorption alone is re-weighted
     calls.clear()
     bases, report = grid_bases([{"scattering_per_m": 0.0}, {"scattering_per_m": 0.0, "absorption_per_m": 9.0}], base,
