@@ -223,6 +223,24 @@ def test_a_re_rendered_effect_is_interpolated_between_grid_points(spec, scene, s
     assert "absorption_per_m" not in model.basis.cost and model.basis.cost["identity"]["renders"] == 1
 
 
+def test_a_grid_point_of_no_weight_is_not_rendered(spec, scene, stub):
+    """A re-rendered candidate at a grid point reads that point alone: a fit at the
+    identity renders nothing of its own, one at an inner point renders no neighbour (on
+    the 36-pair bench the leak's cone, fitted at 0, rendered 0.3 on every held-out tap)."""
+    camera, ref, depth = scene
+    model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
+    assert model.grids["membrane_compliance"]["values"] == (0.6, 1.0, 1.25, 1.8)
+    np.testing.assert_array_equal(model.interpolated(0, "membrane_compliance", 1.0), model.rendered(0))
+    assert "membrane_compliance" not in model.basis.cost
+    at = model.interpolated(0, "membrane_compliance", 1.25)
+    np.testing.assert_array_equal(at, model.rendered(0, "membrane_compliance", 1.25))
+    assert model.basis.cost["membrane_compliance"]["renders"] == 1  # not 1.8
+    between = model.interpolated(0, "membrane_compliance", 1.5)
+    assert model.basis.cost["membrane_compliance"]["renders"] == 2
+    t = (1.5 - 1.25) / (1.8 - 1.25)
+    np.testing.assert_allclose(between, (1 - t) * at + t * model.rendered(0, "membrane_compliance", 1.8), rtol=1e-5)
+
+
 def test_a_re_rendered_change_is_smoothed_as_a_ratio():
     """A change that scales the light smoothly passes whole; the renders' noise is cut."""
     rng = np.random.default_rng(0)

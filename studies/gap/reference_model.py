@@ -407,6 +407,10 @@ class ReferenceModel:
         j = int(np.clip(np.searchsorted(values, value), 1, len(values) - 1))
         a, b = values[j - 1], values[j]
         t = 0.0 if b == a else (value - a) / (b - a)
+        # A grid point of no weight is not rendered (a fit at the identity, or at a grid point).
+        at = a if t == 0.0 else b if t == 1.0 else None
+        if at is not None:
+            return (self.rendered(key, name, at) if at != self._identity_value(name) else base).astype(np.float32)
         A = self.rendered(key, name, a) if a != self._identity_value(name) else base
         B = self.rendered(key, name, b) if b != self._identity_value(name) else base
         image = (1 - t) * A + t * B
