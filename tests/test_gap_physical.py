@@ -229,16 +229,20 @@ def test_a_grid_point_of_no_weight_is_not_rendered(spec, scene, stub):
     the 36-pair bench the leak's cone, fitted at 0, rendered 0.3 on every held-out tap)."""
     camera, ref, depth = scene
     model = ReferenceModel(spec, renderer(), 1, SourceBasis(spec, renderer(), depth, film=FILM))
-    assert model.grids["membrane_compliance"]["values"] == (0.6, 1.0, 1.25, 1.8)
+    assert model.grids["absorption_per_m"]["values"] == (5.0, 10.0, 20.0, 50.0, 120.0)
     np.testing.assert_array_equal(model.interpolated(0, "membrane_compliance", 1.0), model.rendered(0))
     assert "membrane_compliance" not in model.basis.cost
-    at = model.interpolated(0, "membrane_compliance", 1.25)
-    np.testing.assert_array_equal(at, model.rendered(0, "membrane_compliance", 1.25))
-    assert model.basis.cost["membrane_compliance"]["renders"] == 1  # not 1.8
-    between = model.interpolated(0, "membrane_compliance", 1.5)
+    at = model.interpolated(0, "membrane_compliance", 0.6)
+    np.testing.assert_array_equal(at, model.rendered(0, "membrane_compliance", 0.6))
+    assert model.basis.cost["membrane_compliance"]["renders"] == 1  # 1.0 is the identity
+    # a re-weighted candidate at an inner grid point reads it alone (not 20 or 5)
+    np.testing.assert_array_equal(model.interpolated(0, "absorption_per_m", 10.0),
+                                  model.rendered(0, "absorption_per_m", 10.0))
+    between = model.interpolated(0, "membrane_compliance", 1.1)
     assert model.basis.cost["membrane_compliance"]["renders"] == 2
-    t = (1.5 - 1.25) / (1.8 - 1.25)
-    np.testing.assert_allclose(between, (1 - t) * at + t * model.rendered(0, "membrane_compliance", 1.8), rtol=1e-5)
+    t = (1.1 - 1.0) / (1.25 - 1.0)
+    np.testing.assert_allclose(between, (1 - t) * model.rendered(0) + t * model.rendered(0, "membrane_compliance", 1.25),
+                               rtol=1e-5)
 
 
 def test_a_re_rendered_change_is_smoothed_as_a_ratio():
