@@ -84,12 +84,11 @@ def emitter_basis(spec: SensorSpec, mesh, camera: Camera, effects: Effects, film
                    *([] if only is None else ["only", [int(k) for k in only]]))
     perturbation = None if perturb is None else Perturbation.of(perturb)
     sources = led_sources(spec, effects)
-    if only is not None:
-        sources = [sources[int(k)] for k in only]
 
-    def identity(est) -> dict:
-        return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in sources]),
-                "response": source_response(sources, effects)}
+    def identity(est) -> dict:  # after the render, which checks ``only``
+        chosen = sources if only is None else [sources[int(k)] for k in only]
+        return {"mean": est.mean, "variance": est.variance, "names": np.array([s["name"] for s in chosen]),
+                "response": source_response(chosen, effects)}
 
     def render(perturb_=None):
         settings = RenderSettings(spp=spp * passes, width=width, height=height, seed=seed, variant=variant,

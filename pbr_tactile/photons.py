@@ -212,8 +212,8 @@ def _trace_generation(mi, scene, c: Coating, interfaces, acc, target, start: dic
     source and path class, and each deposit goes to its path's class (PATH_EVENTS).
 
     variants : (coefficients (K, 3), flux, track, moments, lobe): each deposit (and track,
-        and with ``lobe`` its flake-lobe flux, into the last) is also added, times each variant's factor f (``pbr_tactile.reweight``, equation (1)),
-        into ``flux`` (``track``) at K times ``acc``'s (``track``'s) index plus k (the
+        and with ``lobe`` its flake-lobe flux, into the last) is also added, times each
+        variant's factor f (``pbr_tactile.reweight``, equation (1)), into ``flux`` (``track``) at K times ``acc``'s (``track``'s) index plus k (the
         variants of one vertex or voxel side by side, in one cache line: measured with 11
         variants at 2^15 photons, their added CPU time fell from about 1.0 to 0.6 of the
         pass's own against K blocks), and the deposits' moments into ``moments`` ((K + 1) S 2: the

@@ -184,6 +184,26 @@ def test_sources_traced_alone_walk_as_they_do_among_the_whole_list(lit):
         deposits(mi, scene, [srcs[k] for k in part], *medium, seed=3, streams=[1, 1])
 
 
+def test_a_render_of_some_sources_refuses_places_it_cannot_take(mesh, spec, camera):
+    """``reference(only=)`` and ``emitter_basis(only=)`` name the sources by their places in
+    ``led_sources``' list: repeated or missing places, and a render that is not per source
+    by photons, are refused before anything is traced."""
+    from pbr_tactile.basis import emitter_basis
+    from pbr_tactile.render import RenderSettings, reference
+    from pbr_tactile.scene import led_sources
+
+    count = len(led_sources(spec, Effects()))
+    per_source = RenderSettings(per_source=True)
+    for only in ([0, 0], [count], []):
+        with pytest.raises(ValueError, match=rf"only must name distinct places among the {count} sources, got "):
+            reference(None, None, mesh, spec, camera, Effects(), per_source, only=only)
+    with pytest.raises(ValueError, match=r"only \(a subset of the sources\) needs the photon estimator and "
+                                         r"per_source images"):
+        reference(None, None, mesh, spec, camera, Effects(), RenderSettings(), only=[0])
+    with pytest.raises(ValueError, match=r"only must name distinct places"):
+        emitter_basis(spec, mesh, camera, Effects(), (8, 6), use_cache=False, only=[count + 2])
+
+
 def test_switching_scattering_or_the_paint_off_keeps_exactly_the_paths_without_them(lit):
     """With path classes (``deposits(classes=True)``): a variant of the same sigma_t with
     no scattering has f = 1 on paths that did not scatter and 0 on the rest, so its flux

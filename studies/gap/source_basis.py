@@ -215,8 +215,9 @@ class SourceBasis:
         names = [str(n) for n in basis["names"]]
         image, variance = np.asarray(basis["mean"], np.float32), np.asarray(basis["variance"], np.float32)
         if only is not None:  # the leaks' columns into the identity's
-            if names != [self.names[k] for k in only]:
-                raise ValueError(f"the leaks rendered alone are {names}, not the basis' {[self.names[k] for k in only]}")
+            expected = [self.names[k] for k in only]
+            if names != expected:
+                raise ValueError(f"the leaks rendered alone are {names}, not the basis' {expected}")
             leaks, leak_variance = image, variance
             image, variance = plain.copy(), self.variance(key).copy()
             image[..., only], variance[..., only] = leaks, leak_variance
