@@ -159,6 +159,11 @@ def grid_bases(points: list[dict], base: Effects, basis_at) -> tuple[list[dict],
                          "sources, given) fell below reweight.MIN_ESS_RATIO, traced again"}
 
 
+def is_leak(names) -> np.ndarray:
+    """(S,) bool: which sources (``led<m>`` or ``led<m>_leak``) are an LED's leak into the core."""
+    return np.array([str(n).endswith("_leak") for n in names], bool)
+
+
 def led_of_source(names) -> np.ndarray:
     """(S,) the LED index of each source name (``led<m>`` or ``led<m>_leak``)."""
     return np.array([int(str(n)[3:].split("_")[0]) for n in names])

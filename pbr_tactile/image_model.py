@@ -60,7 +60,7 @@ from scipy import ndimage, optimize
 from scenes.camera import Camera
 from scenes.profile import Alignment, CameraProfile, camera_response, circle_radius, relative_illumination
 
-from .basis import led_of_source
+from .basis import is_leak, led_of_source
 from .real_image import CLIP_LEVEL
 
 #: Bounds of the fit: LED azimuth offsets (rad) from the spec's, scale, shift (px at the
@@ -189,7 +189,7 @@ class ImageModel:
         self.h, self.w, self.S = self.A.shape
         self.led = led_of_source(names)
         self.leds = int(self.led.max()) + 1
-        self.has_leak = np.array([str(n).endswith("_leak") for n in names])
+        self.has_leak = is_leak(names)
         self.camera = camera
         self.rendered = camera if rendered is None else rendered
         self._lens_rays: tuple = (None, None)  # (the real lens, its rays at the film): ``moved``

@@ -390,7 +390,9 @@ class ReferenceModel:
         tag = (int(key), name, None if value is None else float(value))
         if tag not in self._rendered:
             image = self.basis.images(key, name, value)
-            leak = np.array([str(n).endswith("_leak") for n in self.basis.names])
+            from pbr_tactile.basis import is_leak
+
+            leak = is_leak(self.basis.names)
             if leak.any():
                 image = image.copy()
                 image[..., leak] = axially_smoothed(image[..., leak], (self._film.cx, self._film.cy), LEAK_SMOOTH_PX)
@@ -476,14 +478,14 @@ class ReferenceModel:
 
     def colour(self, params: dict) -> np.ndarray:
         """(S, 3) each source's share in each channel with ``params``."""
-        from pbr_tactile.basis import led_of_source
+        from pbr_tactile.basis import is_leak, led_of_source
 
         power, R, fraction = self._light(params)
         if self.basis.names is None:
             self.basis.images(NO_CONTACT)  # the basis' source names
         led = led_of_source(self.basis.names)
-        weight = np.array([power[m] * (fraction if str(s).endswith("_leak") else 1.0 - fraction)
-                           for s, m in zip(self.basis.names, led)])
+        weight = np.array([power[m] * (fraction if leak else 1.0 - fraction)
+                           for leak, m in zip(is_leak(self.basis.names), led)])
         return weight[:, None] * R[led]
 
     def colour_matrix(self, params: dict) -> np.ndarray | None:

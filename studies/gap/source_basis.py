@@ -174,7 +174,7 @@ class SourceBasis:
         """Render tap ``key``'s basis for the identity or ``name`` at ``value`` and keep it;
         with ``perturb``, the identity's, re-weighted to ``self.variants`` too (those valid
         are kept under their own tags)."""
-        from pbr_tactile.basis import emitter_basis
+        from pbr_tactile.basis import emitter_basis, is_leak
 
         tag = (int(key), name, None if value is None else float(value))
         spec, effects, scale = self.variant(name, value)
@@ -189,7 +189,7 @@ class SourceBasis:
         only = None
         if name in LEAKS_ONLY:
             plain = self.images(key)  # the identity (first: its LEDs' columns stand for this point's)
-            only = [k for k, n in enumerate(self.names) if n.endswith("_leak")]
+            only = [int(k) for k in np.flatnonzero(is_leak(self.names))]
         t0 = time.perf_counter()
         rows = self._rows() if perturb else None
         basis = emitter_basis(spec, self.mesh, self.camera, effects, self.film, photons=self.photons, spp=self.spp,
